@@ -1,0 +1,394 @@
+"""Run folders -> tidy pandas frames.
+
+A *run folder* holds ``status.json`` and/or ``.hydra/config.yaml`` (see docs/architecture.md,
+"Run folder contents"). Sweeps put each job at ``<sweep>/<override_dirname>/seed=<seed>/``;
+single runs live at ``outputs/runs/<run_name>/<timestamp>/``. An *arm* is a job's overrides
+without the seed: the folder name above ``seed=*`` for sweep jobs, and ``sampler.name`` plus the
+overrides that differ between runs of that sampler for single runs.
+
+Loading is lenient per run and strict per table: a run that failed, never wrote ``status.json``
+or lacks a table is kept in the runs frame with ``included=False`` and a ``problem`` saying why
+(the report lists it), while a table that cannot be read once a run is included is an error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pandas as pd
+import pyarrow.parquet as pq
+import yaml
+
+from analysis import AnalysisError
+
+TABLES = {
+    "train_metrics": "train_metrics.parquet",
+    "eval": "eval.parquet",
+    "sampler": "sampler.parquet",
+}
+"""Table name -> file name in the run folder."""
+
+REQUIRED_COLUMNS = {
+    "train_metrics": ["iteration", "env_steps", "wall_time_s", "mean_episode_length", "mean_reward"],
+    "eval": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
+    "sampler": ["iteration", "bin", "probability"],
+}
+"""The columns the analysis reads from each table; other columns are carried along untouched."""
+
+NEEDED_TABLES = ("train_metrics", "eval")
+"""Tables a run must have to be included; ``sampler`` is optional (its plot skips runs without it)."""
+
+IGNORED_OVERRIDE_KEYS = {
+    "seed", "sweep_name", "run_name", "task_name", "device", "resume", "sweep", "logger",
+    "progress_bar", "max_iterations", "num_envs",
+}
+"""Override keys that do not define an arm: the ``exclude_keys`` of conf/train.yaml's override_dirname."""
+
+RUN_COLUMNS = [
+    "run_dir", "sweep_dir", "arm", "seed", "status", "error", "iteration", "sampler",
+    "overrides", "included", "problem",
+]
+"""The fixed columns of the runs frame; ``param.<key>`` columns follow (see load_runs)."""
+
+SKIP_DIRS = {"report", "checkpoints"}
+"""Folder names never searched for runs (report output, checkpoints)."""
+
+
+def is_run_dir(path: Path) -> bool:
+    """Whether ``path`` is a run folder (has ``status.json`` or ``.hydra/config.yaml``)."""
+    return (path / "status.json").is_file() or (path / ".hydra" / "config.yaml").is_file()
+
+
+def find_run_dirs(root: str | Path) -> list[Path]:
+    """All run folders at or below ``root``, sorted; run folders are not searched further."""
+    root = Path(root)
+    if not root.exists():
+        raise AnalysisError(f"{root}: no such file or folder")
+    if is_run_dir(root):
+        return [root]
+    found = []
+    for dirpath, dirnames, _ in os.walk(root):
+        here = Path(dirpath)
+        if here != root and is_run_dir(here):
+            found.append(here)
+            dirnames[:] = []
+            continue
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d not in SKIP_DIRS)
+    return sorted(found)
+
+
+def read_json(path: Path) -> dict | list | None:
+    """The parsed JSON at ``path``, or None when the file is absent; AnalysisError when unreadable."""
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise AnalysisError(f"{path}: not valid JSON ({e})") from e
+
+
+def read_config(run_dir: Path) -> dict:
+    """The composed config from ``.hydra/config.yaml`` as a plain dict ({} when absent)."""
+    path = run_dir / ".hydra" / "config.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        cfg = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as e:
+        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
+    if not isinstance(cfg, dict):
+        raise AnalysisError(f"{path}: expected a mapping at the top level, got {type(cfg).__name__}")
+    return cfg
+
+
+def read_overrides(run_dir: Path) -> dict[str, str]:
+    """``.hydra/overrides.yaml`` as {key: raw value}, without seed/bookkeeping keys and deletions.
+
+    Hydra's ``+``/``++`` prefixes are dropped; ``~key`` deletions carry no value and are skipped.
+    """
+    path = run_dir / ".hydra" / "overrides.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
+    except (OSError, yaml.YAMLError) as e:
+        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
+    if not isinstance(items, list):
+        raise AnalysisError(f"{path}: expected a list of 'key=value' strings")
+    out = {}
+    for item in items:
+        text = str(item)
+        if text.startswith("~") or "=" not in text:
+            continue
+        key, value = text.split("=", 1)
+        key = key.lstrip("+")
+        if key in IGNORED_OVERRIDE_KEYS or key.startswith("hydra."):
+            continue
+        out[key] = value
+    return out
+
+
+def config_value(cfg: dict, dotted: str):
+    """``cfg['a']['b']`` for ``'a.b'``, or None when any part is missing."""
+    node = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def parse_value(raw: str):
+    """A command-line override value as int, float or bool where it reads as one, else the string."""
+    for cast in (int, float):
+        try:
+            return cast(raw)
+        except ValueError:
+            pass
+    if raw.lower() in ("true", "false"):
+        return raw.lower() == "true"
+    return raw
+
+
+def seed_from_name(run_dir: Path) -> int | None:
+    """The seed in a ``seed=<int>`` folder name, else None."""
+    name = run_dir.name
+    if name.startswith("seed="):
+        try:
+            return int(name.split("=", 1)[1])
+        except ValueError:
+            return None
+    return None
+
+
+def _table_problem(run_dir: Path, name: str) -> str | None:
+    """Why ``name`` cannot be used from ``run_dir`` (absent, unreadable, missing columns), or None."""
+    path = run_dir / TABLES[name]
+    if not path.is_file():
+        return f"no {path.name}"
+    try:
+        columns = set(pq.read_schema(path).names)
+    except Exception as e:  # pyarrow raises several types for truncated or foreign files
+        return f"{path.name} unreadable ({type(e).__name__})"
+    missing = [c for c in REQUIRED_COLUMNS[name] if c not in columns]
+    if missing:
+        return f"{path.name} lacks columns {missing}"
+    return None
+
+
+def _read_run(run_dir: Path, root: Path) -> dict:
+    """One row of the runs frame (without the arm of single runs, filled in later)."""
+    row = {"run_dir": str(run_dir), "error": None, "iteration": None, "problem": None}
+    problems = []
+    try:
+        cfg = read_config(run_dir)
+        overrides = read_overrides(run_dir)
+    except AnalysisError as e:
+        cfg, overrides = {}, {}
+        problems.append(str(e))
+    try:
+        status = read_json(run_dir / "status.json")
+    except AnalysisError as e:
+        status = None
+        problems.append(str(e))
+    if isinstance(status, dict):
+        row["status"] = str(status.get("status", "unknown"))
+        row["error"] = status.get("error")
+        row["iteration"] = status.get("iteration")
+    else:
+        row["status"] = "unknown"
+        problems.append("no status.json")
+
+    seed = cfg.get("seed", seed_from_name(run_dir))
+    row["seed"] = int(seed) if isinstance(seed, int | float) else None
+    row["sampler"] = config_value(cfg, "sampler.name")
+    row["overrides"] = ",".join(f"{k}={v}" for k, v in sorted(overrides.items()))
+    row["_overrides"] = overrides
+    row["_cfg"] = cfg
+
+    # Sweep jobs: the arm is the override_dirname folder (relative to the sweep, in case a value
+    # held a '/'); a sweep without overrides puts seed=* at its root and falls back to the sampler.
+    if seed_from_name(run_dir) is not None:
+        arm_dir = run_dir.parent
+        if root in arm_dir.parents or (arm_dir == root and "=" not in root.name):
+            sweep_dir = root
+        else:  # the path given was the arm folder itself
+            sweep_dir = arm_dir.parent
+        row["sweep_dir"] = str(sweep_dir)
+        row["arm"] = arm_dir.relative_to(sweep_dir).as_posix() if arm_dir != sweep_dir else None
+    else:
+        row["sweep_dir"] = None
+        row["arm"] = None
+
+    if row["status"] == "failed":
+        problems.append(f"failed: {row['error']}" if row["error"] else "failed")
+    elif row["status"] not in ("done", "running") and row["status"] != "unknown":
+        problems.append(f"status {row['status']!r}")
+    problems += [p for p in (_table_problem(run_dir, t) for t in NEEDED_TABLES) if p]
+    row["problem"] = "; ".join(problems) if problems else None
+    row["included"] = not problems
+    return row
+
+
+def _single_run_arms(rows: list[dict]) -> None:
+    """Name single runs (and seed-only sweeps) ``sampler.name`` plus the overrides that differ
+    between runs of the same sampler (never the seed or the ``sampler`` group choice itself)."""
+    pending = [r for r in rows if r["arm"] is None]
+    by_sampler: dict[str, list[dict]] = {}
+    for r in pending:
+        by_sampler.setdefault(str(r["sampler"]), []).append(r)
+    for sampler, group in by_sampler.items():
+        keys = sorted({k for r in group for k in r["_overrides"] if k != "sampler"})
+        differing = [k for k in keys if len({r["_overrides"].get(k) for r in group}) > 1]
+        for r in group:
+            extra = [f"{k}={r['_overrides'][k]}" for k in differing if k in r["_overrides"]]
+            r["arm"] = ",".join([sampler, *extra])
+
+
+def _missing_jobs(rows: list[dict]) -> list[dict]:
+    """Rows for sweep jobs absent from disk: every (arm, seed) of a sweep's grid with no folder,
+    plus jobs listed in the sweep's index.csv whose folder is gone."""
+    missing = []
+    sweeps: dict[str, list[dict]] = {}
+    for r in rows:
+        if r["sweep_dir"] is not None:
+            sweeps.setdefault(r["sweep_dir"], []).append(r)
+    for sweep_dir, group in sweeps.items():
+        present = {r["run_dir"] for r in group}
+        arm_dirs = {r["arm"]: Path(r["run_dir"]).parent for r in group}
+        seeds = sorted({seed_from_name(Path(r["run_dir"])) for r in group} - {None})
+        expected = {
+            str(arm_dir / f"seed={seed}"): (arm, seed) for arm, arm_dir in arm_dirs.items() for seed in seeds
+        }
+        index = Path(sweep_dir) / "index.csv"
+        if index.is_file():
+            try:
+                listed = pd.read_csv(index)
+            except (OSError, ValueError, pd.errors.ParserError):
+                listed = pd.DataFrame()  # a broken index is rebuilt by analysis.index; the grid still applies
+            if {"job", "arm", "seed"} <= set(listed.columns):
+                for job, arm, seed in zip(listed["job"], listed["arm"], listed["seed"], strict=True):
+                    if pd.notna(job) and pd.notna(seed):
+                        expected[str(Path(sweep_dir) / str(job))] = (str(arm), int(seed))
+        siblings = {r["arm"]: r for r in group}  # a missing job shares its arm's config
+        for run_dir, (arm, seed) in sorted(expected.items()):
+            if run_dir in present:
+                continue
+            missing.append({
+                "run_dir": run_dir, "sweep_dir": sweep_dir, "arm": arm, "seed": seed,
+                "status": "missing", "error": None, "iteration": None,
+                "sampler": siblings[arm]["sampler"] if arm in siblings else None,
+                "overrides": siblings[arm]["overrides"] if arm in siblings else arm,
+                "included": False, "problem": "job folder missing",
+                "_overrides": siblings[arm]["_overrides"] if arm in siblings else {},
+                "_cfg": siblings[arm]["_cfg"] if arm in siblings else {},
+            })
+    return missing
+
+
+def load_runs(paths) -> pd.DataFrame:
+    """Find and describe every run under ``paths`` (sweep folders, run folders, or parents of runs).
+
+    Returns one row per job with columns:
+
+    - ``run_dir`` (str): the run folder; ``sweep_dir`` (str | None): the sweep it belongs to.
+    - ``arm`` (str): the job's overrides without the seed (see the module docstring).
+    - ``seed`` (Int64): from the config's ``seed`` (else the ``seed=<s>`` folder name).
+    - ``status`` (str): ``done``/``running``/``failed`` from status.json, ``unknown`` when it is
+      absent, ``missing`` for a sweep job with no folder; ``error`` (str | None);
+      ``iteration`` (Int64): the last iteration status.json reports.
+    - ``sampler`` (str): ``sampler.name`` from ``.hydra/config.yaml``.
+    - ``overrides`` (str): the job's overrides, ``key=value`` joined by ``,``, sorted, without seed.
+    - ``included`` (bool): status is done or running and train_metrics/eval are readable with the
+      needed columns; ``problem`` (str | None): why not.
+    - ``param.<key>`` for every override key of any run: the value in that run's config when the key
+      is a config value there (so an arm that kept a default still gets it), else the override's
+      value (e.g. a config-group choice such as ``param.sampler``), else missing.
+
+    Raises AnalysisError when a path does not exist or no run folder is found under any path.
+    """
+    if isinstance(paths, str | Path):
+        paths = [paths]
+    rows = []
+    seen = set()
+    for path in paths:
+        root = Path(path).resolve()
+        run_dirs = find_run_dirs(root)
+        for run_dir in run_dirs:
+            if run_dir in seen:
+                continue
+            seen.add(run_dir)
+            rows.append(_read_run(run_dir, root if root != run_dir else run_dir.parent.parent))
+    if not rows:
+        raise AnalysisError(f"no run folders (with status.json or .hydra/config.yaml) under {list(map(str, paths))}")
+    _single_run_arms(rows)
+    rows += _missing_jobs(rows)
+
+    keys = sorted({k for r in rows for k in r["_overrides"]})
+    for r in rows:
+        for k in keys:
+            value = config_value(r["_cfg"], k)
+            if value is None or isinstance(value, dict | list):
+                raw = r["_overrides"].get(k)
+                value = parse_value(raw) if raw is not None else None
+            r[f"param.{k}"] = value
+    df = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
+    df = df[RUN_COLUMNS + [f"param.{k}" for k in keys]]
+    df["seed"] = df["seed"].astype("Int64")
+    df["iteration"] = pd.to_numeric(df["iteration"], errors="coerce").astype("Int64")
+    df["included"] = df["included"].astype(bool)
+    return df.sort_values(["arm", "seed", "run_dir"], na_position="last").reset_index(drop=True)
+
+
+def load_table(runs: pd.DataFrame, name: str) -> pd.DataFrame:
+    """One table of every included run, stacked: ``run_dir, arm, seed`` then the table's columns.
+
+    ``name`` is ``"eval"``, ``"train_metrics"`` or ``"sampler"`` (schemas in docs/architecture.md).
+    Runs without the file are skipped (only possible for ``sampler``, which is optional); a file
+    that is unreadable or lacks a needed column raises AnalysisError naming it. With no rows, an
+    empty frame with the needed columns is returned.
+    """
+    if name not in TABLES:
+        raise AnalysisError(f"unknown table {name!r}; expected one of {sorted(TABLES)}")
+    frames = []
+    for run in runs[runs["included"]].itertuples(index=False):
+        path = Path(run.run_dir) / TABLES[name]
+        if not path.is_file():
+            if name in NEEDED_TABLES:
+                raise AnalysisError(f"{path}: missing")
+            continue
+        try:
+            table = pd.read_parquet(path)
+        except Exception as e:  # pyarrow raises several types for truncated or foreign files
+            raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
+        missing = [c for c in REQUIRED_COLUMNS[name] if c not in table.columns]
+        if missing:
+            raise AnalysisError(f"{path}: missing columns {missing}")
+        table = table.drop(columns=[c for c in ("run_dir", "arm", "seed") if c in table.columns])
+        table.insert(0, "seed", run.seed)
+        table.insert(0, "arm", run.arm)
+        table.insert(0, "run_dir", run.run_dir)
+        frames.append(table)
+    if not frames:
+        return pd.DataFrame(columns=["run_dir", "arm", "seed", *REQUIRED_COLUMNS[name]])
+    return pd.concat(frames, ignore_index=True)
+
+
+def load_segments(runs: pd.DataFrame) -> pd.DataFrame:
+    """The motion segments ``name, start_s, end_s, difficulty`` from the first included run's
+    ``motion_segments.json`` (runs of one report share a motion); empty when no run has the file."""
+    for run_dir in runs.loc[runs["included"], "run_dir"]:
+        path = Path(run_dir) / "motion_segments.json"
+        data = read_json(path)
+        if data is None:
+            continue
+        if not isinstance(data, list) or not all(isinstance(s, dict) for s in data):
+            raise AnalysisError(f"{path}: expected a list of {{name, start_s, end_s, difficulty}} objects")
+        segments = pd.DataFrame(data)
+        missing = [c for c in ("name", "start_s", "end_s") if c not in segments.columns]
+        if missing:
+            raise AnalysisError(f"{path}: segments lack fields {missing}")
+        return segments
+    return pd.DataFrame(columns=["name", "start_s", "end_s", "difficulty"])

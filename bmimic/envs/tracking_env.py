@@ -1,0 +1,564 @@
+"""The BeyondMimic motion-tracking environment as an rsl-rl-lib `VecEnv` over the batched simulator.
+
+One control step (`step`), all batched on the device, no host synchronisation, no per-env Python:
+  1. actions -> PD targets (`ctrl`), `decimation` physics steps + kinematics (one CUDA graph on a GPU);
+  2. the per-step state (robot bodies, reference frame, relative targets) is computed once;
+  3. terminations, then rewards (sum of weight * term * dt);
+  4. finished episodes are charged to the sampler's bins and the sampler is updated;
+  5. finished envs are reset at frames the sampler draws (reference-state initialisation),
+     every env advances one reference frame, envs past the end of their clip are resampled and
+     teleported without ending the episode (BeyondMimic), pushes are applied;
+  6. kinematics are recomputed after those state writes (no stale poses, cf. mjlab #1068) and the
+     observations are built from a fresh state.
+Subset resets are masked writes over all envs (`torch.where`), so shapes never depend on data.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import mujoco
+import numpy as np
+import torch
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+from bmimic import BmimicError
+from bmimic.envs.config import EnvConfig
+from bmimic.envs.mdp import resolve_term
+from bmimic.envs.quat import (
+    quat_apply,
+    quat_apply_inverse,
+    quat_conj,
+    quat_error_magnitude,
+    quat_from_euler_xyz,
+    quat_mul,
+    yaw_quat,
+)
+from bmimic.motion import Motion
+from bmimic.robot import RobotInfo
+from bmimic.sampling.bins import BinLayout
+from bmimic.sim import SimConfig, Simulator
+
+
+@dataclass
+class TrackingState:
+    """Quantities every term reads, computed once per state (shapes [N, ...], B = tracked bodies)."""
+
+    joint_pos: torch.Tensor
+    joint_vel: torch.Tensor
+    root_lin_vel_b: torch.Tensor
+    root_ang_vel_b: torch.Tensor
+    robot_body_pos: torch.Tensor
+    robot_body_quat: torch.Tensor
+    robot_body_lin_vel: torch.Tensor
+    robot_body_ang_vel: torch.Tensor
+    robot_anchor_pos: torch.Tensor
+    robot_anchor_quat: torch.Tensor
+    ref_joint_pos: torch.Tensor
+    ref_joint_vel: torch.Tensor
+    ref_body_pos: torch.Tensor
+    ref_body_quat: torch.Tensor
+    ref_body_lin_vel: torch.Tensor
+    ref_body_ang_vel: torch.Tensor
+    ref_anchor_pos: torch.Tensor
+    ref_anchor_quat: torch.Tensor
+    ref_body_pos_relative: torch.Tensor
+    ref_body_quat_relative: torch.Tensor
+
+
+class _Terms:
+    """Resolved term functions of one kind, with names, params and weights."""
+
+    def __init__(self, kind: str, cfgs) -> None:
+        self.names: list[str] = []
+        self.funcs: list = []
+        self.params: list[dict] = []
+        self.cfgs: list = []
+        for name, cfg in cfgs.items():
+            if getattr(cfg, "enabled", True) is False:
+                continue
+            self.names.append(name)
+            self.funcs.append(resolve_term(kind, cfg.func))
+            self.params.append(dict(cfg.params) if cfg.params else {})
+            self.cfgs.append(cfg)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+class TrackingEnv(VecEnv):
+    """BeyondMimic tracking of one motion (or a library of clips) by `num_envs` robots.
+
+    `mode="train"`: domain randomisation, observation noise, pushes and automatic resets at frames
+    drawn by `sampler`. `mode="eval"`: none of those; the caller places envs with `reset_to_frames`
+    and reads terminations, and the reference stops at the end of each clip.
+    """
+
+    def __init__(
+        self,
+        env_cfg: EnvConfig,
+        sim_cfg: SimConfig,
+        mjm: mujoco.MjModel,
+        robot: RobotInfo,
+        motion: Motion,
+        layout: BinLayout,
+        num_envs: int,
+        device: str,
+        seed: int,
+        sampler=None,
+        sampler_cfg=None,
+        mode: str = "train",
+    ) -> None:
+        if mode not in ("train", "eval"):
+            raise ValueError(f"mode must be train or eval, got {mode!r}")
+        if mode == "train" and sampler is None:
+            raise ValueError("a training environment needs a sampler")
+        self.cfg = env_cfg
+        self.mode = mode
+        self.num_envs = num_envs
+        self.device = torch.device(device)
+        self.sampler = sampler
+        self.sampler_cfg = sampler_cfg
+        self.layout = layout
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(seed)
+        train = mode == "train"
+        self.randomize = train and env_cfg.randomization.enabled
+        self.noise_enabled = train and env_cfg.observation_noise
+        self.rsi_noise = train
+
+        randomized = ("geom_friction", "body_ipos") if self.randomize else ()
+        self.sim = Simulator(mjm, sim_cfg, num_envs, device, randomized_fields=randomized)
+        self.step_dt = self.sim.control_dt
+        self.max_episode_length = int(math.ceil(env_cfg.episode_length_s / self.step_dt))
+        self.episode_length_buf = torch.zeros(num_envs, dtype=torch.long, device=self.device)
+        self.num_actions = len(robot.joint_names)
+
+        self._bind_robot(mjm, robot)
+        self._bind_motion(motion)
+        self._bind_terms()
+        self._alloc_buffers()
+        if self.randomize:
+            self._randomize_startup()
+        self.sim.capture()
+        # Start every env at a sampled frame (train) or frame 0 (eval); the runner never calls reset.
+        everyone = torch.ones(num_envs, dtype=torch.bool, device=self.device)
+        if train:
+            self._resample(everyone)
+        else:
+            self.reset_to_frames(torch.zeros(num_envs, dtype=torch.long, device=self.device))
+        self.sim.forward_kinematics()
+        self.state = self._compute_state()
+        self._obs = self._compute_observations()
+
+    # ============================================================================ set-up
+    def _bind_robot(self, mjm: mujoco.MjModel, robot: RobotInfo) -> None:
+        dev = self.device
+        nj = self.num_actions
+        if mjm.jnt_type[0] != mujoco.mjtJoint.mjJNT_FREE or not np.array_equal(robot.qpos_adr, np.arange(7, 7 + nj)):
+            raise BmimicError("robot model: expected a free joint followed by the actuated hinges in qpos")
+        if mjm.nu != nj:
+            raise BmimicError(f"robot model: {mjm.nu} actuators for {nj} joints; expected one per joint")
+        self.robot = robot
+        self.action_scale = torch.as_tensor(robot.action_scale, dtype=torch.float32, device=dev)
+        self.nominal_joint_pos = torch.as_tensor(robot.default_joint_pos, dtype=torch.float32, device=dev)
+        self.default_joint_pos = self.nominal_joint_pos.repeat(self.num_envs, 1)
+        self.soft_joint_limits = torch.as_tensor(robot.soft_joint_limits, dtype=torch.float32, device=dev)
+        self.tracked_body_ids = torch.as_tensor(robot.tracked_body_ids, dtype=torch.long, device=dev)
+        tracked = [int(i) for i in robot.tracked_body_ids]
+        if int(robot.anchor_body_id) not in tracked:
+            raise BmimicError("robot.anchor_body must be one of robot.tracked_bodies")
+        self.anchor_index = tracked.index(int(robot.anchor_body_id))
+        missing = [int(i) for i in robot.end_effector_body_ids if int(i) not in tracked]
+        if missing:
+            raise BmimicError("robot.end_effector_bodies must all be in robot.tracked_bodies")
+        self.end_effector_index = torch.as_tensor(
+            [tracked.index(int(i)) for i in robot.end_effector_body_ids], dtype=torch.long, device=dev
+        )
+        self.gravity_w = torch.tensor([[0.0, 0.0, -1.0]], device=dev)
+        # Root body of the robot tree: cvel is expressed about subtree_com of this body.
+        self.root_body_id = int(mjm.body_rootid[tracked[0]])
+        # Undesired contacts: any robot body except the end effectors.
+        undesired = np.zeros(mjm.nbody, dtype=bool)
+        undesired[1:] = True
+        undesired[np.asarray(robot.end_effector_body_ids, dtype=int)] = False
+        self._undesired_body = torch.as_tensor(undesired, device=dev)
+        self._geom_body = torch.as_tensor(mjm.geom_bodyid, dtype=torch.long, device=dev)
+        feet = [g for g in range(mjm.ngeom) if mjm.geom_priority[g] > 0]
+        if not feet:
+            ee = set(int(i) for i in robot.end_effector_body_ids)
+            feet = [g for g in range(mjm.ngeom) if int(mjm.geom_bodyid[g]) in ee and mjm.geom_contype[g]]
+        self._foot_geoms = torch.as_tensor(feet, dtype=torch.long, device=dev)
+        self._torso_body = int(robot.anchor_body_id)
+
+    def _bind_motion(self, motion: Motion) -> None:
+        dev = self.device
+        name_to_idx = {n: i for i, n in enumerate(motion.body_names)}
+        body_names = [mujoco_name for mujoco_name in self.robot.body_names]
+        tracked_names = [body_names[int(i) - 1] for i in self.robot.tracked_body_ids]
+        missing = [n for n in tracked_names + ["pelvis"] if n not in name_to_idx]
+        if missing:
+            raise BmimicError(f"motion: has no bodies named {missing}; it does not match robot {self.robot}")
+        idx = [name_to_idx[n] for n in tracked_names]
+        root = name_to_idx[body_names[0]]
+
+        def t(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=dev)
+
+        self.motion = motion
+        self.motion_num_frames = motion.num_frames
+        self.m_joint_pos = t(motion.joint_pos)
+        self.m_joint_vel = t(motion.joint_vel)
+        self.m_body_pos = t(motion.body_pos_w[:, idx])
+        self.m_body_quat = t(motion.body_quat_w[:, idx])
+        self.m_body_lin_vel = t(motion.body_lin_vel_w[:, idx])
+        self.m_body_ang_vel = t(motion.body_ang_vel_w[:, idx])
+        self.m_root_pos = t(motion.body_pos_w[:, root])
+        self.m_root_quat = t(motion.body_quat_w[:, root])
+        self.m_root_lin_vel = t(motion.body_lin_vel_w[:, root])
+        self.m_root_ang_vel = t(motion.body_ang_vel_w[:, root])
+        # Frame -> one past the last frame of its clip: the reference resamples there (library-ready).
+        starts = list(np.asarray(motion.clip_starts, dtype=int)) + [motion.num_frames]
+        clip_end = np.zeros(motion.num_frames, dtype=np.int64)
+        for a, b in zip(starts[:-1], starts[1:]):
+            clip_end[a:b] = b
+        self.frame_clip_end = torch.as_tensor(clip_end, device=dev)
+
+    def _bind_terms(self) -> None:
+        self.policy_terms = _Terms("observations", self.cfg.policy_observations)
+        self.critic_terms = _Terms("observations", self.cfg.critic_observations)
+        self.reward_terms = _Terms("rewards", self.cfg.rewards)
+        self.termination_terms = _Terms("terminations", self.cfg.terminations)
+        self.reward_weights = torch.tensor(
+            [c.weight for c in self.reward_terms.cfgs], dtype=torch.float32, device=self.device
+        )
+        self._timeout_term = torch.tensor(
+            [bool(c.time_out) for c in self.termination_terms.cfgs], dtype=torch.bool, device=self.device
+        )
+
+    def _alloc_buffers(self) -> None:
+        n, dev = self.num_envs, self.device
+        self.actions = torch.zeros(n, self.num_actions, device=dev)
+        self.last_actions = torch.zeros_like(self.actions)
+        self.time_steps = torch.zeros(n, dtype=torch.long, device=dev)
+        self.segment_start = torch.zeros(n, dtype=torch.long, device=dev)
+        self.segment_end = torch.full((n,), self.motion_num_frames, dtype=torch.long, device=dev)
+        self.push_timer_s = torch.zeros(n, device=dev)
+        self._ones = torch.ones(n, dtype=torch.bool, device=dev)
+        s = self.layout.num_bins
+        self.rew_buf = torch.zeros(n, device=dev)
+        self.episode_reward_terms = torch.zeros(n, len(self.reward_terms), device=dev)
+        # Per-iteration statistics, accumulated on the device and read once per iteration.
+        self.stats_bin_episodes = torch.zeros(s, device=dev)
+        self.stats_bin_failures = torch.zeros(s, device=dev)
+        self.stats_episodes = torch.zeros((), device=dev)
+        self.stats_failures = torch.zeros((), device=dev)
+        self.stats_length_sum = torch.zeros((), device=dev)
+        self.stats_reward_sums = torch.zeros(len(self.reward_terms), device=dev)
+        self.stats_terminations = torch.zeros(len(self.termination_terms), device=dev)
+        self.stats_nonfinite = torch.zeros((), device=dev)
+        self.stats_overflow = torch.zeros((), device=dev)
+        self.stats_steps = torch.zeros((), device=dev)
+        self.stats_errors = torch.zeros(3, device=dev)  # anchor pos m, body pos m, joint pos rad
+        self.extras: dict = {"log": {}}
+
+    def _uniform(self, shape, half_width) -> torch.Tensor:
+        hw = torch.as_tensor(half_width, dtype=torch.float32, device=self.device)
+        u = torch.rand(shape, generator=self.generator, device=self.device)
+        return (2.0 * u - 1.0) * hw
+
+    def _randomize_startup(self) -> None:
+        """Per-world model fields, written before graph capture (BeyondMimic ranges)."""
+        r = self.cfg.randomization
+        n = self.num_envs
+        lo, hi = r.friction_range
+        mu = lo + (hi - lo) * torch.rand(n, 1, generator=self.generator, device=self.device)
+        friction = self.sim.geom_friction
+        friction[:, self._foot_geoms, 0] = mu.expand(n, len(self._foot_geoms))
+        self.sim.body_ipos[:, self._torso_body] += self._uniform((n, 3), list(r.torso_com_offset_m))
+        self.default_joint_pos += self._uniform((n, self.num_actions), r.default_joint_offset_rad)
+        self.push_timer_s[:] = self._draw_push_interval()
+
+    def _draw_push_interval(self) -> torch.Tensor:
+        lo, hi = self.cfg.randomization.push_interval_s
+        return lo + (hi - lo) * torch.rand(self.num_envs, generator=self.generator, device=self.device)
+
+    # ============================================================================ state
+    def _compute_state(self) -> TrackingState:
+        sim = self.sim
+        ids = self.tracked_body_ids
+        a = self.anchor_index
+        f = self.time_steps.clamp(0, self.motion_num_frames - 1)
+        root_quat = sim.qpos[:, 3:7]
+        body_pos = sim.xpos[:, ids]
+        body_quat = sim.xquat[:, ids]
+        cvel = sim.cvel[:, ids]
+        ang = cvel[..., 0:3]
+        com = sim.subtree_com[:, self.root_body_id][:, None]
+        lin = cvel[..., 3:6] + torch.cross(ang, body_pos - com, dim=-1)  # velocity of the body origin
+        ref_pos = self.m_body_pos[f]
+        ref_quat = self.m_body_quat[f]
+        robot_anchor_pos, robot_anchor_quat = body_pos[:, a], body_quat[:, a]
+        ref_anchor_pos, ref_anchor_quat = ref_pos[:, a], ref_quat[:, a]
+        # Anchor-centred, yaw-aligned, height-preserving targets (BeyondMimic).
+        delta_pos = torch.cat((robot_anchor_pos[:, :2], ref_anchor_pos[:, 2:3]), dim=-1)
+        delta_rot = yaw_quat(quat_mul(robot_anchor_quat, quat_conj(ref_anchor_quat)))
+        delta_rot_b = delta_rot[:, None].expand_as(ref_quat)
+        rel_pos = delta_pos[:, None] + quat_apply(delta_rot_b, ref_pos - ref_anchor_pos[:, None])
+        rel_quat = quat_mul(delta_rot_b, ref_quat)
+        return TrackingState(
+            joint_pos=sim.qpos[:, 7:],
+            joint_vel=sim.qvel[:, 6:],
+            root_lin_vel_b=quat_apply_inverse(root_quat, sim.qvel[:, 0:3]),
+            root_ang_vel_b=sim.qvel[:, 3:6],
+            robot_body_pos=body_pos,
+            robot_body_quat=body_quat,
+            robot_body_lin_vel=lin,
+            robot_body_ang_vel=ang,
+            robot_anchor_pos=robot_anchor_pos,
+            robot_anchor_quat=robot_anchor_quat,
+            ref_joint_pos=self.m_joint_pos[f],
+            ref_joint_vel=self.m_joint_vel[f],
+            ref_body_pos=ref_pos,
+            ref_body_quat=ref_quat,
+            ref_body_lin_vel=self.m_body_lin_vel[f],
+            ref_body_ang_vel=self.m_body_ang_vel[f],
+            ref_anchor_pos=ref_anchor_pos,
+            ref_anchor_quat=ref_anchor_quat,
+            ref_body_pos_relative=rel_pos,
+            ref_body_quat_relative=rel_quat,
+        )
+
+    def _group(self, terms: _Terms, noisy: bool) -> torch.Tensor:
+        parts = []
+        for fn, params, cfg in zip(terms.funcs, terms.params, terms.cfgs):
+            x = fn(self, **params)
+            if noisy and cfg.noise > 0:
+                x = x + self._uniform(x.shape, cfg.noise)
+            parts.append(x)
+        return torch.cat(parts, dim=-1)
+
+    def _compute_observations(self) -> TensorDict:
+        groups = {"policy": self._group(self.policy_terms, self.noise_enabled)}
+        if len(self.critic_terms):
+            groups["critic"] = self._group(self.critic_terms, False)
+        return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
+
+    def undesired_contact_count(self) -> torch.Tensor:
+        """Per world: contacts involving a robot body other than the end effectors."""
+        sim = self.sim
+        slots = torch.arange(sim.contact_worldid.shape[0], device=self.device)
+        active = slots < sim.nacon
+        geom = sim.contact_geom.long().clamp_min(0)
+        bodies = self._geom_body[geom]
+        hit = active & (self._undesired_body[bodies[:, 0]] | self._undesired_body[bodies[:, 1]])
+        world = sim.contact_worldid.long().clamp(0, self.num_envs - 1)
+        return torch.zeros(self.num_envs, device=self.device).index_add_(0, world, hit.float())
+
+    # ============================================================================ resets
+    def _write_reference_state(self, mask: torch.Tensor, frames: torch.Tensor, noise: bool) -> None:
+        """Put the masked envs at the reference state of `frames` (plus RSI noise when training)."""
+        r = self.cfg.reset
+        n = self.num_envs
+        pos = self.m_root_pos[frames]
+        quat = self.m_root_quat[frames]
+        lin = self.m_root_lin_vel[frames]
+        ang_w = self.m_root_ang_vel[frames]
+        q = self.m_joint_pos[frames]
+        qd = self.m_joint_vel[frames]
+        if noise:
+            pos = pos + self._uniform((n, 3), list(r.root_pos_range_m))
+            rpy = self._uniform((n, 3), list(r.root_rot_range_rad))
+            quat = quat_mul(quat_from_euler_xyz(rpy[:, 0], rpy[:, 1], rpy[:, 2]), quat)
+            lin = lin + self._uniform((n, 3), list(r.root_lin_vel_range_mps))
+            ang_w = ang_w + self._uniform((n, 3), list(r.root_ang_vel_range_radps))
+            q = q + self._uniform(q.shape, r.joint_pos_range_rad)
+            q = torch.minimum(torch.maximum(q, self.soft_joint_limits[:, 0]), self.soft_joint_limits[:, 1])
+        qpos = torch.cat((pos, quat, q), dim=-1)
+        qvel = torch.cat((lin, quat_apply_inverse(quat, ang_w), qd), dim=-1)  # free-joint angular vel is local
+        m = mask[:, None]
+        self.sim.qpos[:] = torch.where(m, qpos, self.sim.qpos)
+        self.sim.qvel[:] = torch.where(m, qvel, self.sim.qvel)
+
+    def _resample(self, mask: torch.Tensor) -> None:
+        """Masked envs start a new reference segment at a frame the sampler draws (RSI)."""
+        bins = self.sampler.sample(self.num_envs, generator=self.generator)
+        frames = self.layout.sample_frames(bins, generator=self.generator)
+        frames = torch.where(mask, frames, self.time_steps)
+        self.time_steps.copy_(frames)
+        self.segment_start.copy_(torch.where(mask, frames, self.segment_start))
+        self.segment_end.copy_(self.frame_clip_end[frames])
+        self._write_reference_state(mask, frames, noise=self.rsi_noise)
+
+    def reset_to_frames(self, frames: torch.Tensor, mask: torch.Tensor | None = None) -> None:
+        """Evaluation: put (masked) envs exactly at the reference state of `frames`, episode counters 0."""
+        mask = self._ones if mask is None else mask
+        frames = frames.to(self.device).long()
+        self.time_steps.copy_(torch.where(mask, frames, self.time_steps))
+        self.segment_start.copy_(self.time_steps)
+        self.segment_end.copy_(self.frame_clip_end[self.time_steps])
+        self._write_reference_state(mask, self.time_steps, noise=False)
+        self.episode_length_buf.masked_fill_(mask, 0)
+        self.actions.masked_fill_(mask[:, None], 0.0)
+        self.last_actions.masked_fill_(mask[:, None], 0.0)
+        self.sim.forward_kinematics()
+        self.state = self._compute_state()
+        self._obs = self._compute_observations()
+
+    # ============================================================================ VecEnv API
+    def get_observations(self) -> TensorDict:
+        return self._obs
+
+    def step(self, actions: torch.Tensor):
+        sim = self.sim
+        self.last_actions.copy_(self.actions)
+        self.actions.copy_(actions)
+        sim.ctrl.copy_(self.default_joint_pos + self.action_scale * self.actions)
+        sim.step()
+        self.episode_length_buf += 1
+
+        # Worlds that blew up are reset (not charged to the sampler) and counted.
+        nonfinite = sim.nonfinite_worlds()
+        sim.sanitize(nonfinite)
+        self.stats_nonfinite += nonfinite.sum()
+        self.stats_overflow += sim.overflowed_worlds().sum()
+        sim.clear_overflow()
+
+        self.state = self._compute_state()
+        term_flags = torch.stack(
+            [fn(self, **p) for fn, p in zip(self.termination_terms.funcs, self.termination_terms.params)], dim=-1
+        )
+        truncated = (term_flags & self._timeout_term).any(-1)
+        terminated = (term_flags & ~self._timeout_term).any(-1) & ~nonfinite
+        truncated = truncated | nonfinite
+        rewards = torch.stack(
+            [fn(self, **p) for fn, p in zip(self.reward_terms.funcs, self.reward_terms.params)], dim=-1
+        ) * (self.reward_weights * self.step_dt)
+        rewards = torch.nan_to_num(rewards, nan=0.0, posinf=0.0, neginf=0.0)
+        self.rew_buf = rewards.sum(-1)
+        self.episode_reward_terms += rewards
+        dones = terminated | truncated
+        self._accumulate_step_stats(term_flags)
+
+        if self.mode == "train":
+            self._accumulate_episode_stats(dones, terminated)
+            self._finish_segments(dones, terminated, nonfinite)
+            self._resample(dones)
+            self.episode_length_buf.masked_fill_(dones, 0)
+            self.actions.masked_fill_(dones[:, None], 0.0)
+            self.last_actions.masked_fill_(dones[:, None], 0.0)
+            self.episode_reward_terms.masked_fill_(dones[:, None], 0.0)
+            self.time_steps += 1
+            # End of the clip mid-episode: resample and teleport; the episode continues.
+            clip_end = self.time_steps >= self.segment_end
+            self._finish_segments(clip_end & ~dones, torch.zeros_like(dones), torch.zeros_like(dones))
+            self._resample(clip_end)
+            if self.randomize:
+                self._push(self.step_dt)
+            sim.forward_kinematics()
+        else:
+            self.time_steps.copy_(torch.minimum(self.time_steps + 1, self.segment_end - 1))
+            self.reached_clip_end = self.time_steps >= self.segment_end - 1
+
+        self.state = self._compute_state()
+        self._obs = self._compute_observations()
+        self.extras = {"time_outs": truncated, "log": {}, "terminated": terminated}
+        return self._obs, self.rew_buf, dones.long(), self.extras
+
+    # ============================================================================ sampler & stats
+    def _finish_segments(self, finished: torch.Tensor, terminated: torch.Tensor, nonfinite: torch.Tensor) -> None:
+        """Charge finished reference segments to bins and update the sampler (fixed shapes)."""
+        cfg = self.sampler_cfg
+        layout = self.layout
+        s = layout.num_bins
+        counted = finished & ~nonfinite
+        if cfg.failure == "terminated":
+            failed = terminated & counted
+        else:
+            short = self.episode_length_buf < cfg.failure_threshold * self.max_episode_length
+            failed = short & terminated & counted
+        w = counted.float()
+        wf = failed.float()
+        start_bin = layout.bins_of(self.segment_start)
+        end_bin = layout.bins_of(self.time_steps)
+        failures = torch.zeros(s, device=self.device).index_add_(0, end_bin if cfg.attribution == "failure" else start_bin, wf)
+        if cfg.attribution == "failure":
+            diff = torch.zeros(s + 1, device=self.device)
+            diff.index_add_(0, start_bin, w)
+            diff.index_add_(0, torch.maximum(end_bin, start_bin) + 1, -w)
+            episodes = torch.cumsum(diff[:s], 0)
+        else:
+            episodes = torch.zeros(s, device=self.device).index_add_(0, start_bin, w)
+        self.sampler.update_counts(episodes, failures)
+        self.stats_bin_episodes += episodes
+        self.stats_bin_failures += failures
+
+    def _accumulate_episode_stats(self, dones: torch.Tensor, terminated: torch.Tensor) -> None:
+        d = dones.float()
+        self.stats_episodes += d.sum()
+        self.stats_failures += terminated.float().sum()
+        self.stats_length_sum += (self.episode_length_buf.float() * d).sum()
+        self.stats_reward_sums += (self.episode_reward_terms * d[:, None]).sum(0)
+
+    def _accumulate_step_stats(self, term_flags: torch.Tensor) -> None:
+        s = self.state
+        self.stats_steps += 1
+        self.stats_terminations += term_flags.float().sum(0)
+        self.stats_errors[0] += (s.ref_anchor_pos - s.robot_anchor_pos).norm(dim=-1).mean()
+        self.stats_errors[1] += (s.ref_body_pos_relative - s.robot_body_pos).norm(dim=-1).mean()
+        self.stats_errors[2] += (s.ref_joint_pos - s.joint_pos).abs().mean()
+
+    def _push(self, dt: float) -> None:
+        r = self.cfg.randomization
+        self.push_timer_s -= dt
+        due = self.push_timer_s <= 0
+        n = self.num_envs
+        dv = self._uniform((n, 3), list(r.push_lin_vel_mps))
+        dw = quat_apply_inverse(self.sim.qpos[:, 3:7], self._uniform((n, 3), list(r.push_ang_vel_radps)))
+        push = torch.cat((dv, dw), dim=-1) * due[:, None]
+        self.sim.qvel[:, 0:6] += push
+        self.push_timer_s.copy_(torch.where(due, self._draw_push_interval(), self.push_timer_s))
+
+    def pop_iteration_stats(self) -> dict:
+        """Per-iteration statistics (one host transfer), then reset the accumulators."""
+        steps = max(float(self.stats_steps), 1.0)
+        out = {
+            "bin_episodes": self.stats_bin_episodes.cpu().numpy().copy(),
+            "bin_failures": self.stats_bin_failures.cpu().numpy().copy(),
+            "nonfinite_resets": float(self.stats_nonfinite),
+            "overflow_worlds": float(self.stats_overflow),
+        }
+        episodes = float(self.stats_episodes)
+        out["episodes"] = episodes
+        out["failures"] = float(self.stats_failures)
+        out["mean_episode_length"] = float(self.stats_length_sum) / episodes if episodes else float("nan")
+        sums = (self.stats_reward_sums / max(episodes, 1.0)).cpu().numpy()
+        for name, v in zip(self.reward_terms.names, sums):
+            out[f"Episode_Reward/{name}"] = float(v) if episodes else float("nan")
+        out["mean_episode_reward"] = float(sums.sum()) if episodes else float("nan")
+        terms = (self.stats_terminations / (steps * self.num_envs)).cpu().numpy()
+        for name, v in zip(self.termination_terms.names, terms):
+            out[f"Episode_Termination/{name}"] = float(v)
+        errs = (self.stats_errors / steps).cpu().numpy()
+        out["Metrics/error_anchor_pos_m"] = float(errs[0])
+        out["Metrics/error_body_pos_m"] = float(errs[1])
+        out["Metrics/error_joint_pos_rad"] = float(errs[2])
+        for buf in (
+            self.stats_bin_episodes, self.stats_bin_failures, self.stats_terminations, self.stats_errors,
+            self.stats_nonfinite, self.stats_overflow, self.stats_steps, self.stats_episodes,
+            self.stats_failures, self.stats_length_sum, self.stats_reward_sums,
+        ):
+            buf.zero_()
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def state_field_names() -> list[str]:
+    return [f.name for f in fields(TrackingState)]
+
+
+__all__ = ["TrackingEnv", "TrackingState", "quat_error_magnitude"]

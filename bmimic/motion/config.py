@@ -1,0 +1,166 @@
+"""Motion configuration (`conf/motion/*.yaml`) and `load_motion`, which turns it into a `Motion`.
+
+Generated and converted motions are cached as npz under `cache_dir`, keyed by everything they depend
+on (source content or generator settings, the generator/converter version and the robot model's
+kinematic figures), so a changed input or model never reuses a stale file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+from pathlib import Path
+from typing import Optional
+
+import mujoco
+import numpy as np
+
+from bmimic.motion import builtin
+from bmimic.motion.convert import convert_csv
+from bmimic.motion.motion import Motion, MotionDataError
+
+CONVERTER_VERSION = "1"
+"""Part of the CSV cache key; bump whenever conversion output changes."""
+CONTROL_FPS = 50.0
+
+
+@dataclasses.dataclass
+class MotionConfig:
+    """Which reference motion to track and which part of it."""
+
+    name: str = "default"
+    """Label of this motion (run names, plots)."""
+    source: str = "builtin"
+    """"builtin" (generated in code, no data needed) or "file" (an npz or a LAFAN1 G1 CSV at `path`)."""
+    path: Optional[str] = None
+    """Motion file for source "file": `.npz` (BeyondMimic format with names) or `.csv` (LAFAN1 G1,
+    converted and cached). Relative paths are resolved against the directory the command was started in."""
+    fps_in: float = 30.0
+    """Frame rate of a CSV file (LAFAN1: 30)."""
+    builtin: str = "graded"
+    """Name of the built-in motion for source "builtin": "graded" or "easy_only"."""
+    seed: int = 0
+    """Seed of the built-in motion (amplitudes, frequencies, sides, order within a difficulty level)."""
+    duration_s: float = 30.0
+    """Length of the built-in motion in seconds (segments stretch, or the graded cycle repeats)."""
+    start_s: Optional[float] = None
+    """Start of the window to train on, in seconds from the motion's start (None: 0)."""
+    end_s: Optional[float] = None
+    """End of the window to train on, in seconds (None: the motion's end)."""
+    assume_model_order: bool = False
+    """Accept an npz without joint/body names (e.g. made by mjlab) as being in the model's order."""
+
+
+def resolve_path(path: str) -> Path:
+    """Relative paths are taken from the original working directory (Hydra may have changed it)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.utils import to_absolute_path
+
+        if HydraConfig.initialized():
+            return Path(to_absolute_path(path))
+    except ImportError:
+        pass
+    return Path(path).expanduser().resolve()
+
+
+def model_fingerprint(mjmodel: mujoco.MjModel) -> str:
+    """Hash of the figures that forward kinematics and the centre of mass depend on."""
+    h = hashlib.sha256()
+    for arr in (
+        mjmodel.body_parentid,
+        mjmodel.body_pos,
+        mjmodel.body_quat,
+        mjmodel.body_mass,
+        mjmodel.body_ipos,
+        mjmodel.jnt_type,
+        mjmodel.jnt_axis,
+        mjmodel.jnt_pos,
+        mjmodel.jnt_range,
+        mjmodel.geom_bodyid,
+        mjmodel.geom_pos,
+        mjmodel.geom_size,
+    ):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    for i in range(mjmodel.nbody):
+        h.update(mjmodel.body(i).name.encode())
+    for i in range(mjmodel.njnt):
+        h.update(mjmodel.joint(i).name.encode())
+    return h.hexdigest()[:16]
+
+
+def _cached(cache_file: Path, mjmodel: mujoco.MjModel, make) -> Motion:
+    if cache_file.is_file():
+        try:
+            return Motion.load(cache_file, mjmodel)
+        except MotionDataError:
+            pass  # a damaged cache entry is rebuilt below
+    motion = make()
+    motion.save(cache_file)
+    return motion
+
+
+def load_motion(
+    cfg: MotionConfig,
+    mjmodel: mujoco.MjModel,
+    cache_dir: str | os.PathLike = "outputs/cache",
+    bin_size_s: float = 1.0,
+) -> Motion:
+    """The configured motion at 50 Hz in model order, windowed to [start_s, end_s].
+
+    Raises MotionDataError (one line naming the field or file) for bad settings or data, including a
+    window shorter than two time bins of `bin_size_s`.
+    """
+    cache = resolve_path(str(cache_dir))
+    if cfg.source == "builtin":
+        key = hashlib.sha256(
+            f"builtin|{cfg.builtin}|{cfg.seed}|{float(cfg.duration_s)!r}|{builtin.GENERATOR_VERSION}|"
+            f"{model_fingerprint(mjmodel)}".encode()
+        ).hexdigest()
+        motion = _cached(
+            cache / f"builtin-{cfg.builtin}-{key[:24]}.npz",
+            mjmodel,
+            lambda: builtin.generate_builtin(mjmodel, cfg.builtin, int(cfg.seed), float(cfg.duration_s)),
+        )
+    elif cfg.source == "file":
+        if not cfg.path:
+            raise MotionDataError("motion.path: required when motion.source is 'file'")
+        path = resolve_path(str(cfg.path))
+        if not path.is_file():
+            raise MotionDataError(f"motion.path: {path}: file not found")
+        suffix = path.suffix.lower()
+        if suffix == ".npz":
+            motion = Motion.load(path, mjmodel, assume_model_order=bool(cfg.assume_model_order))
+        elif suffix == ".csv":
+            h = hashlib.sha256(path.read_bytes())
+            h.update(
+                f"|fps_in={float(cfg.fps_in)!r}|fps_out={CONTROL_FPS!r}|{CONVERTER_VERSION}|"
+                f"{model_fingerprint(mjmodel)}".encode()
+            )
+            motion = _cached(
+                cache / f"{h.hexdigest()}.npz",
+                mjmodel,
+                lambda: convert_csv(path, mjmodel, float(cfg.fps_in), CONTROL_FPS),
+            )
+        else:
+            raise MotionDataError(f"motion.path: {path}: expected a .npz or .csv file")
+    else:
+        raise MotionDataError(f"motion.source: expected 'builtin' or 'file', got {cfg.source!r}")
+
+    if abs(motion.fps - CONTROL_FPS) > 1e-6:
+        raise MotionDataError(
+            f"motion {cfg.name!r}: is at {motion.fps:g} fps; the environment steps at {CONTROL_FPS:g} Hz "
+            "(convert it with python -m bmimic.motion.convert --fps-out 50)"
+        )
+    if cfg.start_s is not None or cfg.end_s is not None:
+        try:
+            motion = motion.window(cfg.start_s, cfg.end_s)
+        except MotionDataError as err:
+            raise MotionDataError(f"motion.start_s/end_s: {err}") from None
+    if motion.duration_s < 2 * bin_size_s - 1e-9:
+        raise MotionDataError(
+            f"motion {cfg.name!r}: {motion.duration_s:.2f} s is shorter than two time bins "
+            f"(2 x {bin_size_s:g} s); use a longer motion or window"
+        )
+    return motion

@@ -1,0 +1,123 @@
+"""Vectorised quaternion helpers in numpy (w, x, y, z order, Hamilton product).
+
+Every function broadcasts over leading dimensions; the last axis is the quaternion (4) or vector (3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors v by unit quaternions q."""
+    w = q[..., :1]
+    u = q[..., 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def quat_rotate_inverse(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors v by the inverse of unit quaternions q (world -> body frame)."""
+    return quat_rotate(quat_conjugate(q), v)
+
+
+def quat_to_axis_angle(q: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, angle in [0, pi]) of unit quaternions."""
+    # q and -q are the same rotation; take the one with w >= 0 so the angle is the short way round.
+    q = np.where(q[..., :1] < 0.0, -q, q)
+    sin_half = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(sin_half, q[..., :1])
+    # angle / sin(angle/2) -> 2 as angle -> 0; guard the division there.
+    small = sin_half < 1e-9
+    scale = np.where(small, 2.0, angle / np.where(small, 1.0, sin_half))
+    return q[..., 1:] * scale
+
+
+def axis_angle_to_quat(rotvec: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    small = angle < 1e-9
+    # sin(a/2)/a -> 1/2 as a -> 0.
+    k = np.where(small, 0.5, np.sin(half) / np.where(small, 1.0, angle))
+    return np.concatenate([np.cos(half), rotvec * k], axis=-1)
+
+
+def quat_from_euler_zyx(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Quaternion of R = Rz(yaw) Ry(pitch) Rx(roll) (extrinsic x, y, z; intrinsic z, y', x'')."""
+    roll, pitch, yaw = np.broadcast_arrays(
+        np.asarray(roll, float), np.asarray(pitch, float), np.asarray(yaw, float)
+    )
+    cr, sr = np.cos(0.5 * roll), np.sin(0.5 * roll)
+    cp, sp = np.cos(0.5 * pitch), np.sin(0.5 * pitch)
+    cy, sy = np.cos(0.5 * yaw), np.sin(0.5 * yaw)
+    return np.stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ],
+        axis=-1,
+    )
+
+
+def quat_slerp(q0: np.ndarray, q1: np.ndarray, blend: np.ndarray) -> np.ndarray:
+    """Spherical interpolation from q0 (blend 0) to q1 (blend 1) along the shorter arc."""
+    blend = np.asarray(blend, dtype=float)[..., None]
+    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(dot < 0.0, -q1, q1)
+    dot = np.abs(dot)
+    theta = np.arccos(np.clip(dot, -1.0, 1.0))
+    sin_theta = np.sin(theta)
+    # Nearly parallel quaternions: slerp degenerates to lerp (then renormalise).
+    near = sin_theta < 1e-6
+    safe = np.where(near, 1.0, sin_theta)
+    w0 = np.where(near, 1.0 - blend, np.sin((1.0 - blend) * theta) / safe)
+    w1 = np.where(near, blend, np.sin(blend * theta) / safe)
+    return quat_normalize(w0 * q0 + w1 * q1)
+
+
+def angular_velocity_from_quats(quat: np.ndarray, dt: float) -> np.ndarray:
+    """World-frame angular velocity [T, 3] of an orientation track [T, 4] sampled every dt.
+
+    Central differences: axis-angle(q[t+1] q[t-1]^-1) / (2 dt); one-sided at both ends.
+    """
+    num = quat.shape[0]
+    if num < 2:
+        return np.zeros((num, 3))
+    omega = np.empty((num, 3))
+    if num > 2:
+        delta = quat_mul(quat[2:], quat_conjugate(quat[:-2]))
+        omega[1:-1] = quat_to_axis_angle(delta) / (2.0 * dt)
+    omega[0] = quat_to_axis_angle(quat_mul(quat[1], quat_conjugate(quat[0]))) / dt
+    omega[-1] = quat_to_axis_angle(quat_mul(quat[-1], quat_conjugate(quat[-2]))) / dt
+    return omega
+
+
+def yaw_quat(yaw: np.ndarray) -> np.ndarray:
+    """Quaternion of a rotation by yaw about the world z axis."""
+    yaw = np.asarray(yaw, dtype=float)
+    zeros = np.zeros_like(yaw)
+    return np.stack([np.cos(0.5 * yaw), zeros, zeros, np.sin(0.5 * yaw)], axis=-1)

@@ -1,0 +1,221 @@
+r"""Time bins of a reference motion, and charging finished episodes to them.
+
+Conventions. A motion of N frames at f frames per second spans :math:`T = N/f` seconds; frame i
+is at time :math:`t_i = i/f`. With bin size b seconds there are
+
+.. math:: S = \lceil T / b \rceil
+
+bins; bin s covers :math:`[s\,b, \min((s+1)\,b, T))`, so the last bin may be shorter. The bin of
+time t is :math:`\min(\lfloor t/b \rfloor, S-1)` (time T itself belongs to the last bin).
+Quotients within 1e-9 (relative) of an integer are snapped to it first, so float error never
+moves a boundary: ``num_bins(30.0, 1.0) == 30`` and frame 9 at 30 fps is in bin 3 for b = 0.1 s
+even though ``9/30/0.1 == 2.9999999999999996``.
+
+A :class:`BinLayout` maps frames to bins and draws a start frame uniformly among the frames of a
+bin. When b is not a multiple of the frame period the last bin can be a sliver shorter than one
+frame period that holds no frame; such a bin is dropped (its time joins the previous bin), so
+every bin of a layout holds at least one frame and ``layout.num_bins`` may be one less than
+``num_bins(T, b)`` in that case.
+
+Charging episodes (:func:`attribute`), for finished segments with start frame, end frame and a
+failed flag (a segment is a stretch of one episode on one contiguous piece of the motion):
+
+- ``attribution="failure"``: a failure is charged to the bin of the frame where the segment
+  ended; ``episodes[s]`` counts the segments that were active in bin s (visits, computed with a
+  difference array over [start_bin, end_bin] and a cumulative sum), so the adaptive sampler's
+  rate is failures per visit.
+- ``attribution="start"``: both counts go to the bin the segment started in.
+
+What counts as failed (:func:`failed_mask`): ``"terminated"`` = any termination other than a
+time-out (the caller passes the terminated flag, which excludes time-outs); ``"short"`` = episode
+length < failure_threshold x max episode length.
+
+Everything here is vectorised with fixed output shapes, so it runs on the GPU inside the
+environment step without synchronising with the host.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from bmimic.sampling.config import (
+    ATTRIBUTIONS,
+    FAILURES,
+    SamplerConfigError,
+    check_attribution,
+    check_bin_size,
+    check_failure,
+)
+from bmimic.sampling.samplers import bin_counts
+
+_SNAP_RTOL = 1e-9
+
+
+def _snap(x: float) -> float:
+    r = round(x)
+    return float(r) if abs(x - r) <= _SNAP_RTOL * max(1.0, abs(r)) else x
+
+
+def _snap_tensor(x: torch.Tensor) -> torch.Tensor:
+    r = torch.round(x)
+    return torch.where((x - r).abs() <= _SNAP_RTOL * r.abs().clamp(min=1.0), r, x)
+
+
+def num_bins(duration_s: float, bin_size_seconds: float) -> int:
+    """S = ceil(T / b), robust to float error. Raises SamplerConfigError unless 0 < b <= T."""
+    check_bin_size(bin_size_seconds, duration_s)
+    return max(1, math.ceil(_snap(duration_s / bin_size_seconds)))
+
+
+def bin_edges_s(duration_s: float, bin_size_seconds: float) -> torch.Tensor:
+    """Bin edges [0, b, 2b, ..., (S-1) b, T] in seconds (float64, S+1 entries)."""
+    s = num_bins(duration_s, bin_size_seconds)
+    edges = torch.arange(s + 1, dtype=torch.float64) * bin_size_seconds
+    edges[-1] = duration_s
+    return edges
+
+
+def bins_of_time(t_s: torch.Tensor, bin_size_seconds: float, num_bins: int) -> torch.Tensor:
+    """Bin of each time: min(floor(t / b), S-1), with float-error snapping (LongTensor)."""
+    q = _snap_tensor(torch.as_tensor(t_s, dtype=torch.float64) / bin_size_seconds)
+    return q.floor().long().clamp_(0, num_bins - 1)
+
+
+class BinLayout:
+    """Frame <-> bin maps of one motion (N frames at ``fps``), precomputed on ``device``.
+
+    Attributes:
+        num_frames, fps, bin_size_seconds, duration_s, num_bins.
+        frame_to_bin: LongTensor[N], the bin of each frame.
+        bin_first_frame: LongTensor[S], first frame of each bin.
+        bin_num_frames: LongTensor[S], number of frames in each bin (>= 1).
+        edges_s: float64 Tensor[S+1], bin edges in seconds (last = T).
+    """
+
+    def __init__(self, num_frames: int, fps: float, bin_size_seconds: float, device: Any = "cpu"):
+        if not (isinstance(num_frames, int) and num_frames >= 1):
+            raise SamplerConfigError(f"motion num_frames must be an integer >= 1, got {num_frames!r}")
+        if not (isinstance(fps, (int, float)) and 0.0 < fps < math.inf):
+            raise SamplerConfigError(f"motion fps must be a finite number > 0, got {fps!r}")
+        self.num_frames = num_frames
+        self.fps = float(fps)
+        self.bin_size_seconds = float(bin_size_seconds)
+        self.duration_s = num_frames / self.fps
+        s = num_bins(self.duration_s, bin_size_seconds)
+        frames_per_bin = self.fps * self.bin_size_seconds
+        if _snap(frames_per_bin) < 1.0:
+            raise SamplerConfigError(
+                f"sampler.bin_size_seconds must be at least one frame period ({1.0 / self.fps:g} s at "
+                f"{self.fps:g} fps), got {bin_size_seconds!r}"
+            )
+        # Built on the CPU in float64 once, then moved: exact and cheap.
+        frame_to_bin = bins_of_time(
+            torch.arange(num_frames, dtype=torch.float64) / self.fps, bin_size_seconds, s
+        )
+        # With >= 1 frame per bin only the last bin can be empty (a sliver shorter than a frame).
+        s = int(frame_to_bin[-1]) + 1
+        counts = torch.bincount(frame_to_bin, minlength=s)
+        self.num_bins = s
+        self.frame_to_bin = frame_to_bin.to(device)
+        self.bin_num_frames = counts.to(device)
+        self.bin_first_frame = (torch.cumsum(counts, 0) - counts).to(device)
+        edges = torch.arange(s + 1, dtype=torch.float64) * self.bin_size_seconds
+        edges[-1] = self.duration_s
+        self.edges_s = edges.to(device)
+        self.device = self.frame_to_bin.device
+
+    def bins_of(self, frames: torch.Tensor) -> torch.Tensor:
+        """Bin of each frame index (LongTensor). Frames past the end (e.g. frame N, time T)
+        count in the last bin; negative frames in the first."""
+        frames = torch.as_tensor(frames, device=self.device).long()
+        return self.frame_to_bin[frames.clamp(0, self.num_frames - 1)]
+
+    def sample_frames(self, bins: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """A frame drawn uniformly among the frames of each bin (LongTensor, same shape as bins)."""
+        bins = torch.as_tensor(bins, device=self.device).long()
+        count = self.bin_num_frames[bins]
+        u = torch.rand(bins.shape, generator=generator, dtype=torch.float64, device=self.device)
+        offset = torch.minimum((u * count).long(), count - 1)
+        return self.bin_first_frame[bins] + offset
+
+    def __repr__(self) -> str:
+        return (
+            f"BinLayout(num_frames={self.num_frames}, fps={self.fps:g}, "
+            f"bin_size_seconds={self.bin_size_seconds:g}, num_bins={self.num_bins})"
+        )
+
+
+def visits_histogram(start_bins: torch.Tensor, end_bins: torch.Tensor, num_bins: int) -> torch.Tensor:
+    """Number of segments active in each bin, for segments [start_bin, end_bin] (inclusive).
+
+    Difference array: +1 at start, -1 after end, cumulative sum. ``end < start`` cannot come from
+    a real segment; it is treated as ``end = start`` so the counts are never negative.
+    Returns a LongTensor[S].
+    """
+    start = torch.as_tensor(start_bins).long()
+    end = torch.maximum(torch.as_tensor(end_bins, device=start.device).long(), start)
+    diff = torch.zeros(num_bins + 1, dtype=torch.long, device=start.device)
+    diff.index_add_(0, start, torch.ones_like(start))
+    diff.index_add_(0, end + 1, -torch.ones_like(end))
+    return torch.cumsum(diff[:num_bins], 0)
+
+
+def failed_mask(
+    terminated: torch.Tensor,
+    episode_length_steps: torch.Tensor,
+    max_episode_length_steps: int | float | torch.Tensor,
+    failure: str,
+    failure_threshold: float = 0.8,
+) -> torch.Tensor:
+    """Which finished episodes failed (BoolTensor).
+
+    ``"terminated"``: ``terminated`` itself (terminations other than time-outs).
+    ``"short"``: ``episode_length_steps < failure_threshold * max_episode_length_steps``.
+    """
+    check_failure(failure, failure_threshold)
+    if failure == "terminated":
+        return torch.as_tensor(terminated).bool().clone()
+    length = torch.as_tensor(episode_length_steps)
+    return length < failure_threshold * torch.as_tensor(max_episode_length_steps, device=length.device)
+
+
+def attribute(
+    start_frames: torch.Tensor,
+    end_frames: torch.Tensor,
+    failed: torch.Tensor,
+    layout: BinLayout,
+    attribution: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-bin (episodes, failures) counts, LongTensor[S] each, for :meth:`update_counts`.
+
+    Args:
+        start_frames, end_frames: LongTensor[n], first and last frame of each finished segment.
+        failed: BoolTensor[n].
+        layout: the motion's :class:`BinLayout`.
+        attribution: "failure" (episodes = visits over [start_bin, end_bin], failures at the end
+            bin) or "start" (both at the start bin).
+    """
+    check_attribution(attribution)
+    start_bins = layout.bins_of(start_frames)
+    failed = torch.as_tensor(failed, device=layout.device).long()
+    if attribution == "start":
+        return bin_counts(start_bins, layout.num_bins), bin_counts(start_bins, layout.num_bins, failed)
+    end_bins = layout.bins_of(end_frames)
+    episodes = visits_histogram(start_bins, end_bins, layout.num_bins)
+    return episodes, bin_counts(end_bins, layout.num_bins, failed)
+
+
+__all__ = [
+    "ATTRIBUTIONS",
+    "FAILURES",
+    "BinLayout",
+    "attribute",
+    "bin_edges_s",
+    "bins_of_time",
+    "failed_mask",
+    "num_bins",
+    "visits_histogram",
+]

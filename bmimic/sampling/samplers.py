@@ -1,0 +1,358 @@
+r"""Samplers that choose the time bin each episode starts in.
+
+A motion is cut into S bins (see :mod:`bmimic.sampling.bins`). A sampler keeps a distribution P
+over the bins, draws start bins from it and updates it from the outcome of finished episodes.
+All three samplers share one interface::
+
+    s.update(bins, failed, visits=None)   # one batch of finished episodes
+    s.update_counts(episodes, failures)   # the same from per-bin counts, no host synchronisation
+    p = s.probabilities()                 # Tensor[S], >= 0, sums to 1
+    b = s.sample(n, generator=None)       # LongTensor[n]
+    s.state_dict(); s.load_state_dict(d)
+
+For a batch, :math:`n_s` is the number of episodes charged to bin s (or, with ``visits``, the
+number that were active in bin s) and :math:`f_s` the number of failed ones among them.
+
+Look-ahead kernel (shared by both adaptive samplers). With kernel length K and decay
+:math:`\gamma`, :math:`k_u = \gamma^u / \sum_{v=0}^{K-1} \gamma^v`, and for a vector x over bins
+
+.. math:: (\mathcal{K} x)_s = \sum_{u=0}^{K-1} k_u \, x_{\min(s+u,\, S-1)}.
+
+A bin is boosted by failures in the K-1 bins after it, so episodes start shortly *before* the
+hard part; the right end is padded by repeating the last bin.
+
+**UniformSampler**: :math:`P_s = 1/S`; updates are ignored.
+
+**AdaptiveSampler** (paper form). A smoothed failure rate r (initially 0) moves only where the
+batch has episodes:
+
+.. math::
+    r_s \leftarrow (1-\alpha_{smooth})\, r_s + \alpha_{smooth}\, f_s / n_s \quad (n_s > 0),\qquad
+    c = \mathcal{K} r,\qquad
+    p_s = c_s / \textstyle\sum_j c_j \ \ (\text{uniform while } \sum_j c_j = 0),\qquad
+    P_s = \lambda_{uniform}/S + (1-\lambda_{uniform})\, p_s .
+
+So :math:`P_s \ge \lambda_{uniform}/S` always: a true uniform floor.
+
+**BeyondMimicSampler** (semantics of the released HybridRobotics/whole_body_tracking code). Every
+update, including one with no finished episodes, decays an EMA of failure *counts* (not rates):
+
+.. math::
+    q \leftarrow \alpha\, f + (1-\alpha)\, q,\qquad
+    w = \mathcal{K}\,(q + \epsilon/S),\qquad P = w / \textstyle\sum_j w_j,
+
+with :math:`\epsilon` = ``uniform_ratio``. Because q is a count, the weight of the uniform term,
+:math:`\epsilon / (\sum_j q_j + \epsilon)`, depends on the number of environments and on how often
+the policy fails; it is not a floor. The released code updates once per control step and draws
+the resets of a step *before* adding that step's failures.
+
+Sampling is exact inverse-CDF sampling: uniforms in [0, 1) are located with ``searchsorted`` in
+the cumulative sum of P, which is cached at each update, so a draw is two kernels and never
+synchronises with the host. Measured on this project's 2-core CPU it beat ``torch.multinomial``
+with replacement (e.g. 1.7 ms vs 2.7 ms for 16384 draws over 10^4 bins, 0.9 vs 1.4 ms over 240
+bins), which recomputes its table on every call; ``method="multinomial"`` is kept for comparison
+(:mod:`bmimic.sampling.benchmark` times both).
+
+State and probabilities are kept in float64 so that long runs (10^6 updates at alpha=0.001)
+accumulate no visible rounding error; the cost is negligible at S <= 10^4.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from bmimic.sampling.config import (
+    SamplerConfigError,
+    check_alpha,
+    check_alpha_smooth,
+    check_gamma,
+    check_K,
+    check_lambda_uniform,
+    check_uniform_ratio,
+)
+
+_DTYPE = torch.float64
+_METHODS = ("inverse_cdf", "multinomial")
+
+
+def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype = _DTYPE, device: Any = "cpu") -> torch.Tensor:
+    """Normalised kernel k_u = gamma^u / sum_v gamma^v, u = 0..K-1."""
+    k = torch.tensor([gamma**u for u in range(K)], dtype=dtype, device=device)
+    return k / k.sum()
+
+
+def lookahead_index(num_bins: int, K: int, device: Any = "cpu") -> torch.Tensor:
+    """Index table [S, K] with entry (s, u) = min(s + u, S - 1) (right end padded by replication)."""
+    s = torch.arange(num_bins, device=device)[:, None]
+    u = torch.arange(K, device=device)[None, :]
+    return (s + u).clamp_(max=num_bins - 1)
+
+
+def bin_counts(bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Histogram of ``bins`` over ``num_bins`` bins (optionally weighted), as a fixed-size tensor.
+
+    Unlike ``torch.bincount`` it never reads the data to size its output, so it does not
+    synchronise a CUDA device with the host.
+    """
+    if weights is None:
+        weights = torch.ones_like(bins, dtype=torch.long)
+    out = torch.zeros(num_bins, dtype=weights.dtype, device=bins.device)
+    return out.index_add_(0, bins, weights)
+
+
+class _BinSampler:
+    """Shared plumbing: cached probabilities and CDF, sampling, update(), state dict."""
+
+    kind = ""
+
+    def __init__(self, num_bins: int, device: Any = "cpu", method: str = "inverse_cdf"):
+        if not (isinstance(num_bins, int) and not isinstance(num_bins, bool) and num_bins >= 1):
+            raise SamplerConfigError(f"sampler num_bins must be an integer >= 1, got {num_bins!r}")
+        if method not in _METHODS:
+            raise SamplerConfigError(f"sampler method must be one of {', '.join(_METHODS)}, got {method!r}")
+        self.num_bins = num_bins
+        self.device = torch.device(device)
+        self.method = method
+        self._probs = torch.full((num_bins,), 1.0 / num_bins, dtype=_DTYPE, device=self.device)
+        self._cdf = torch.empty_like(self._probs)
+        self._set_probs(self._probs)
+
+    # -- probabilities and sampling -----------------------------------------------------------
+
+    def _set_probs(self, probs: torch.Tensor) -> None:
+        # In place, so the cached tensors keep their storage (friendly to CUDA graphs).
+        self._probs.copy_(probs)
+        torch.cumsum(self._probs, 0, out=self._cdf)
+        # Rescale so the last entry is exactly 1 and every uniform in [0, 1) lands in a bin.
+        self._cdf.div_(self._cdf[-1:].clone())
+
+    def probabilities(self) -> torch.Tensor:
+        """P over the bins (float64, sums to 1); a copy of the cached value."""
+        return self._probs.clone()
+
+    def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Draw ``n`` bins i.i.d. from P (with replacement) as a LongTensor[n] on the sampler's device."""
+        if self.method == "multinomial":
+            if n == 0:
+                return torch.empty(0, dtype=torch.long, device=self.device)
+            return torch.multinomial(self._probs, n, replacement=True, generator=generator)
+        u = torch.rand(n, generator=generator, dtype=_DTYPE, device=self.device)
+        # right=True: bin i holds u in [cdf[i-1], cdf[i]), so zero-probability bins are never drawn.
+        return torch.searchsorted(self._cdf, u, right=True).clamp_(max=self.num_bins - 1)
+
+    # -- updates ------------------------------------------------------------------------------
+
+    def update(self, bins: torch.Tensor, failed: torch.Tensor, visits: torch.Tensor | None = None) -> None:
+        """Update from one batch of finished episodes.
+
+        Args:
+            bins: LongTensor[n], the bin each episode is charged to, values in [0, S).
+            failed: BoolTensor[n], whether each episode failed.
+            visits: optional Tensor[S] of per-bin visit counts; when given it replaces the count
+                of episodes per bin (rate = failures per visit).
+
+        This checks its input and so synchronises with the device; the environment's per-step
+        path should accumulate counts and call :meth:`update_counts` instead.
+        """
+        bins = torch.as_tensor(bins, device=self.device)
+        failed = torch.as_tensor(failed, device=self.device)
+        if bins.ndim != 1 or failed.shape != bins.shape:
+            raise SamplerConfigError(
+                f"sampler update: bins and failed must be 1-D of equal length, got shapes "
+                f"{tuple(bins.shape)} and {tuple(failed.shape)}"
+            )
+        if bins.dtype.is_floating_point or bins.dtype == torch.bool:
+            raise SamplerConfigError(f"sampler update: bins must be an integer tensor, got {bins.dtype}")
+        bins = bins.long()
+        if bins.numel() and (int(bins.min()) < 0 or int(bins.max()) >= self.num_bins):
+            raise SamplerConfigError(
+                f"sampler update: bins must lie in [0, {self.num_bins}), got range "
+                f"[{int(bins.min())}, {int(bins.max())}]"
+            )
+        failures = bin_counts(bins, self.num_bins, failed.to(torch.long))
+        episodes = bin_counts(bins, self.num_bins) if visits is None else visits
+        self.update_counts(episodes, failures)
+
+    def update_counts(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        """Update from per-bin counts of one batch: ``episodes[s]`` = n_s, ``failures[s]`` = f_s.
+
+        Fixed shapes and no host synchronisation, so it can run every control step.
+        """
+        episodes = self._as_counts(episodes, "episodes")
+        failures = self._as_counts(failures, "failures")
+        self._update(episodes, failures)
+
+    def _as_counts(self, x: torch.Tensor, name: str) -> torch.Tensor:
+        x = torch.as_tensor(x, device=self.device)
+        if x.shape != (self.num_bins,):
+            raise SamplerConfigError(
+                f"sampler update_counts: {name} must have shape ({self.num_bins},), got {tuple(x.shape)}"
+            )
+        return x.to(_DTYPE)
+
+    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        raise NotImplementedError
+
+    def smoothed_failure(self) -> torch.Tensor:
+        """The sampler's smoothed failure signal per bin (float64 [S]), for diagnostics."""
+        raise NotImplementedError
+
+    # -- state --------------------------------------------------------------------------------
+
+    def hparams(self) -> dict[str, Any]:
+        return {}
+
+    def _state_tensors(self) -> dict[str, torch.Tensor]:
+        return {}
+
+    def _recompute(self) -> None:
+        pass
+
+    def state_dict(self) -> dict[str, Any]:
+        """Kind, number of bins, hyperparameters (for the record) and state tensors (copies)."""
+        state = {k: v.detach().clone() for k, v in self._state_tensors().items()}
+        return {"kind": self.kind, "num_bins": self.num_bins, "hparams": self.hparams(), "state": state}
+
+    def load_state_dict(self, d: dict[str, Any]) -> None:
+        """Restore the state saved by :meth:`state_dict`; hyperparameters stay those of this sampler."""
+        if d.get("kind") != self.kind or d.get("num_bins") != self.num_bins:
+            raise SamplerConfigError(
+                f"sampler state is for a {d.get('kind')!r} sampler with {d.get('num_bins')} bins, "
+                f"this is a {self.kind!r} sampler with {self.num_bins} bins"
+            )
+        own = self._state_tensors()
+        saved = d.get("state", {})
+        if set(saved) != set(own):
+            raise SamplerConfigError(f"sampler state has keys {sorted(saved)}, expected {sorted(own)}")
+        for key, tensor in own.items():
+            tensor.copy_(torch.as_tensor(saved[key]).to(device=self.device, dtype=tensor.dtype))
+        self._recompute()
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v}" for k, v in self.hparams().items())
+        return f"{type(self).__name__}(num_bins={self.num_bins}{', ' if args else ''}{args})"
+
+
+class UniformSampler(_BinSampler):
+    """P_s = 1/S; updates are accepted and ignored."""
+
+    kind = "uniform"
+
+    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        pass
+
+    def smoothed_failure(self) -> torch.Tensor:
+        return torch.full((self.num_bins,), float("nan"), dtype=_DTYPE, device=self.device)
+
+
+class _LookaheadSampler(_BinSampler):
+    """A sampler whose weights are smoothed with the look-ahead kernel."""
+
+    def __init__(self, num_bins: int, gamma: float, K: int, device: Any, method: str):
+        check_gamma(gamma)
+        check_K(K)
+        super().__init__(num_bins, device=device, method=method)
+        self.gamma = float(gamma)
+        self.K = int(K)
+        self._kernel = lookahead_kernel(self.gamma, self.K, device=self.device)
+        self._index = lookahead_index(num_bins, self.K, device=self.device)
+
+    def _smooth(self, x: torch.Tensor) -> torch.Tensor:
+        return (x[self._index] * self._kernel).sum(dim=1)
+
+
+class AdaptiveSampler(_LookaheadSampler):
+    """Paper form: EMA of per-bin failure rates, look-ahead kernel, uniform mixture (see module doc)."""
+
+    kind = "adaptive"
+
+    def __init__(
+        self,
+        num_bins: int,
+        gamma: float = 0.9,
+        lambda_uniform: float = 0.1,
+        K: int = 5,
+        alpha_smooth: float = 0.1,
+        device: Any = "cpu",
+        method: str = "inverse_cdf",
+    ):
+        check_lambda_uniform(lambda_uniform)
+        check_alpha_smooth(alpha_smooth)
+        super().__init__(num_bins, gamma, K, device, method)
+        self.lambda_uniform = float(lambda_uniform)
+        self.alpha_smooth = float(alpha_smooth)
+        self._rate = torch.zeros(num_bins, dtype=_DTYPE, device=self.device)
+
+    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        seen = episodes > 0
+        observed = failures / episodes.clamp(min=1.0)
+        ema = torch.lerp(self._rate, observed, self.alpha_smooth)
+        self._rate.copy_(torch.where(seen, ema, self._rate))
+        self._recompute()
+
+    def _recompute(self) -> None:
+        c = self._smooth(self._rate)
+        total = c.sum()
+        # p = c / sum(c), or uniform while sum(c) == 0 (no failure seen yet); branch-free.
+        p = torch.where(total > 0, c / total.clamp(min=torch.finfo(_DTYPE).tiny), 1.0 / self.num_bins)
+        self._set_probs(self.lambda_uniform / self.num_bins + (1.0 - self.lambda_uniform) * p)
+
+    def smoothed_failure(self) -> torch.Tensor:
+        """The smoothed failure rate r."""
+        return self._rate.clone()
+
+    def hparams(self) -> dict[str, Any]:
+        return {
+            "gamma": self.gamma,
+            "lambda_uniform": self.lambda_uniform,
+            "K": self.K,
+            "alpha_smooth": self.alpha_smooth,
+        }
+
+    def _state_tensors(self) -> dict[str, torch.Tensor]:
+        return {"rate": self._rate}
+
+
+class BeyondMimicSampler(_LookaheadSampler):
+    """Released-code form: EMA of failure counts plus uniform_ratio/S, look-ahead kernel (see module doc)."""
+
+    kind = "beyondmimic"
+
+    def __init__(
+        self,
+        num_bins: int,
+        gamma: float = 0.8,
+        K: int = 1,
+        alpha: float = 0.001,
+        uniform_ratio: float = 0.1,
+        device: Any = "cpu",
+        method: str = "inverse_cdf",
+    ):
+        check_alpha(alpha)
+        check_uniform_ratio(uniform_ratio)
+        super().__init__(num_bins, gamma, K, device, method)
+        self.alpha = float(alpha)
+        self.uniform_ratio = float(uniform_ratio)
+        self._count = torch.zeros(num_bins, dtype=_DTYPE, device=self.device)
+        self._recompute()
+
+    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        # Every call decays q, also when no episode finished (failures all zero).
+        self._count.lerp_(failures, self.alpha)
+        self._recompute()
+
+    def _recompute(self) -> None:
+        w = self._smooth(self._count + self.uniform_ratio / self.num_bins)
+        self._set_probs(w / w.sum())
+
+    def smoothed_failure(self) -> torch.Tensor:
+        """The EMA of failure counts q (scales with the number of environments)."""
+        return self._count.clone()
+
+    def hparams(self) -> dict[str, Any]:
+        return {"gamma": self.gamma, "K": self.K, "alpha": self.alpha, "uniform_ratio": self.uniform_ratio}
+
+    def _state_tensors(self) -> dict[str, torch.Tensor]:
+        return {"count": self._count}

@@ -1,0 +1,216 @@
+"""Batched MuJoCo-Warp simulation with zero-copy torch views.
+
+One world per environment (`nworld = num_envs`). A control step is `decimation` physics steps
+followed by a kinematics pass (so body poses read after the step belong to the new qpos); on a GPU the
+whole control step is one captured CUDA graph, on a CPU it runs eagerly. After writing the state
+of some worlds (a reset, a teleport at the end of the motion), `forward_kinematics()` recomputes
+body poses and velocities for every world, so poses read in the same step are consistent.
+
+All torch views alias Warp memory: write them in place (`sim.qpos[ids] = x`), never rebind them,
+because a captured graph holds the original pointers.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+from dataclasses import dataclass
+
+import mujoco
+import mujoco_warp as mjw
+import torch
+import warp as wp
+
+from bmimic import BmimicError
+from bmimic.sim.config import SimConfig
+
+log = logging.getLogger(__name__)
+
+_INTEGRATORS = {
+    "euler": mujoco.mjtIntegrator.mjINT_EULER,
+    "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
+    "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
+    "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+}
+_SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
+# Overflow bits: buffers that lose contacts/constraints (must be reported) vs solver iteration caps.
+_SOLVER_LIMIT = int(mjw.OverflowType.ITERATIONS) | int(mjw.OverflowType.LS_ITERATIONS)
+_BUFFER_OVERFLOW = int(mjw.OverflowType.ALL) & ~_SOLVER_LIMIT
+_CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}
+
+
+def apply_sim_options(mjm: mujoco.MjModel, cfg: SimConfig) -> None:
+    """Write the sim config into the host model's options (before it is put on the device)."""
+    for key, table, value in (
+        ("sim.integrator", _INTEGRATORS, cfg.integrator),
+        ("sim.solver", _SOLVERS, cfg.solver),
+        ("sim.cone", _CONES, cfg.cone),
+    ):
+        if value not in table:
+            raise BmimicError(f"{key}: unknown value {value!r}; choose one of {sorted(table)}")
+    mjm.opt.timestep = cfg.timestep_s
+    mjm.opt.integrator = _INTEGRATORS[cfg.integrator]
+    mjm.opt.solver = _SOLVERS[cfg.solver]
+    mjm.opt.cone = _CONES[cfg.cone]
+    mjm.opt.iterations = cfg.iterations
+    mjm.opt.ls_iterations = cfg.ls_iterations
+
+
+def warp_device(device: str) -> str:
+    return "cpu" if device == "cpu" else f"cuda:{torch.device(device).index or 0}"
+
+
+@dataclass
+class SimHealth:
+    """Counters of worlds that needed help, for the logs."""
+
+    nonfinite_resets: int = 0
+    contact_overflows: int = 0
+    constraint_overflows: int = 0
+
+
+class Simulator:
+    """`num_worlds` copies of one MuJoCo model stepped in lockstep on `device`."""
+
+    def __init__(
+        self,
+        mjm: mujoco.MjModel,
+        cfg: SimConfig,
+        num_worlds: int,
+        device: str,
+        randomized_fields: tuple[str, ...] = (),
+    ) -> None:
+        apply_sim_options(mjm, cfg)
+        self.mjm = mjm
+        self.cfg = cfg
+        self.num_worlds = num_worlds
+        self.device = torch.device(device)
+        self.wp_device = wp.get_device(warp_device(device))
+        self.decimation = cfg.decimation
+        self.physics_dt = cfg.timestep_s
+        self.control_dt = cfg.timestep_s * cfg.decimation
+        with wp.ScopedDevice(self.wp_device):
+            batch = {name: num_worlds for name in randomized_fields}
+            self.model = mjw.put_model(mjm, batch_sizes=batch or None)
+            # Print warnings only for lost contacts/constraints; solver caps are counted, not printed.
+            self.model.opt.warn_overflow = _BUFFER_OVERFLOW
+            self.data = mjw.make_data(mjm, nworld=num_worlds, nconmax=cfg.nconmax, njmax=cfg.njmax)
+        self._bind_views()
+        self.qpos[:] = torch.as_tensor(mjm.qpos0, dtype=torch.float32, device=self.device)
+        self.forward()
+        self.health = SimHealth()
+        self._step_graph = None
+        self._kin_graph = None
+        self.use_graph = cfg.use_cuda_graph and self.wp_device.is_cuda and wp.is_mempool_enabled(self.wp_device)
+
+    # ----------------------------------------------------------------------------------------- views
+    def _bind_views(self) -> None:
+        d, m = self.data, self.model
+        t = wp.to_torch
+        self.qpos = t(d.qpos)  # [N, nq]: free joint (pos 3, quat wxyz 4) then hinges
+        self.qvel = t(d.qvel)  # [N, nv]: free joint (lin world 3, ang body-frame 3) then hinges
+        self.ctrl = t(d.ctrl)  # [N, nu]
+        self.xpos = t(d.xpos)  # [N, nbody, 3] world body origins
+        self.xquat = t(d.xquat)  # [N, nbody, 4] wxyz
+        self.cvel = t(d.cvel)  # [N, nbody, 6] (ang, lin) about subtree_com of the body's root
+        self.subtree_com = t(d.subtree_com)  # [N, nbody, 3]
+        self.qfrc_applied = t(d.qfrc_applied)
+        self.xfrc_applied = t(d.xfrc_applied)
+        self.overflow = t(d.overflow)  # [N] bit flags per world
+        self.nefc = t(d.nefc)  # [N]
+        self.nacon = t(d.nacon)  # [1]
+        self.contact_geom = t(d.contact.geom)  # [naconmax, 2]
+        self.contact_worldid = t(d.contact.worldid)  # [naconmax]
+        self.contact_dist = t(d.contact.dist)  # [naconmax]
+        self.geom_friction = t(m.geom_friction)  # [1 or N, ngeom, 3]
+        self.body_ipos = t(m.body_ipos)  # [1 or N, nbody, 3]
+
+    # ----------------------------------------------------------------------------------------- stepping
+    def _physics(self) -> None:
+        for _ in range(self.decimation):
+            mjw.step(self.model, self.data)
+        self._kinematics()
+
+    def _kinematics(self) -> None:
+        mjw.kinematics(self.model, self.data)
+        mjw.com_pos(self.model, self.data)
+        mjw.com_vel(self.model, self.data)
+
+    def _capture(self, fn):
+        # GC suspended: a collected Warp graph destructor must not be recorded into the new graph.
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        try:
+            torch.cuda.synchronize(self.device)
+            with wp.ScopedDevice(self.wp_device):
+                with wp.ScopedCapture() as cap:
+                    fn()
+            return cap.graph
+        finally:
+            if gc_was_enabled:
+                gc.enable()
+
+    def capture(self) -> None:
+        """(Re)capture the graphs; call after every change of array identity (none after start-up)."""
+        if not self.use_graph:
+            return
+        self._step_graph = self._capture(self._physics)
+        self._kin_graph = self._capture(self._kinematics)
+        log.info("captured CUDA graphs for the control step and kinematics (%d worlds)", self.num_worlds)
+
+    def step(self) -> None:
+        """One control step: `decimation` physics steps, then kinematics of the new state."""
+        if self._step_graph is not None:
+            wp.capture_launch(self._step_graph)
+        else:
+            with wp.ScopedDevice(self.wp_device):
+                self._physics()
+
+    def forward_kinematics(self) -> None:
+        """Recompute body poses and velocities of every world from qpos/qvel (after state writes)."""
+        if self._kin_graph is not None:
+            wp.capture_launch(self._kin_graph)
+        else:
+            with wp.ScopedDevice(self.wp_device):
+                self._kinematics()
+
+    def forward(self) -> None:
+        """Full mj_forward of every world (start-up only; not on the per-step path)."""
+        with wp.ScopedDevice(self.wp_device):
+            mjw.forward(self.model, self.data)
+
+    # ----------------------------------------------------------------------------------------- health
+    def nonfinite_worlds(self) -> torch.Tensor:
+        """Bool[N]: worlds whose state is no longer finite (reset them; never let one kill the run)."""
+        return ~(torch.isfinite(self.qpos).all(dim=1) & torch.isfinite(self.qvel).all(dim=1))
+
+    def overflowed_worlds(self) -> torch.Tensor:
+        """Bool[N]: worlds whose contact or constraint buffers overflowed during the last step."""
+        return (self.overflow & _BUFFER_OVERFLOW) != 0
+
+    def unconverged_worlds(self) -> torch.Tensor:
+        """Bool[N]: worlds whose solver hit its iteration or line-search limit (not an error)."""
+        return (self.overflow & _SOLVER_LIMIT) != 0
+
+    def clear_overflow(self) -> None:
+        self.overflow.zero_()
+
+    def sanitize(self, worlds: torch.Tensor) -> None:
+        """Put non-finite worlds back at the model's initial pose so they cannot poison the contact pool."""
+        qpos0 = torch.as_tensor(self.mjm.qpos0, dtype=torch.float32, device=self.device)
+        self.qpos[:] = torch.where(worlds[:, None], qpos0, self.qpos)
+        self.qvel[:] = torch.where(worlds[:, None], torch.zeros_like(self.qvel), self.qvel)
+
+
+def measure_contact_sizes(sim: Simulator) -> dict[str, float]:
+    """Active contacts and constraint rows right now, to size nconmax/njmax from measurement."""
+    nacon = int(sim.nacon.item())
+    return {
+        "contacts_per_world": nacon / sim.num_worlds,
+        "max_constraint_rows": int(sim.nefc.max().item()),
+        "naconmax": int(sim.data.naconmax),
+        "njmax": int(sim.data.njmax),
+    }
+
+
+__all__ = ["Simulator", "SimHealth", "apply_sim_options", "measure_contact_sizes", "warp_device"]

@@ -1,0 +1,213 @@
+"""`python -m bmimic.train [overrides]`: train a tracking policy under a motion sampler.
+
+    python -m bmimic.train                                   # embedded default motion, adaptive sampler
+    python -m bmimic.train sampler=uniform seed=3
+    python -m bmimic.train motion=lafan_dance1 sampler.gamma=0.8 num_envs=8192
+    python -m bmimic.train -m +sweep=sampler_ablation        # a study from sweeps/
+    python -m bmimic.train --help                            # groups and options
+    python -m bmimic.train --cfg job                         # the composed config
+
+Single runs write outputs/runs/<run_name>/<timestamp>/, multirun jobs
+outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/. Returns the final evaluated failure rate
+(lower is better) so Hydra's optimising sweepers can use it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import traceback
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from bmimic import BmimicError
+from bmimic.config import resolve_runtime, validate
+from bmimic.runs import (
+    atomic_write_json,
+    read_status,
+    resolve_device,
+    seed_everything,
+    write_provenance,
+    write_status,
+)
+
+log = logging.getLogger("bmimic.train")
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from bmimic.motion.motion import MotionDataError
+
+    return (BmimicError, MotionDataError)
+
+
+def find_resume_checkpoint(resume: str | None, run_dir: Path) -> tuple[Path | None, Path]:
+    """(checkpoint to load, run folder to continue in) for `resume` = null / true / a path."""
+    if resume is None or str(resume).lower() in ("false", "none", "null", ""):
+        return None, run_dir
+    if str(resume).lower() in ("true", "latest", "1", "yes"):
+        own = run_dir / "checkpoints" / "latest.pt"
+        if own.exists():  # a sweep job folder, or a re-run in the same folder
+            return own, run_dir
+        # Single runs get a new timestamped folder each launch: continue the newest sibling instead.
+        siblings = sorted(
+            (p for p in run_dir.parent.iterdir() if p != run_dir and (p / "checkpoints" / "latest.pt").exists()),
+            key=lambda p: p.name,
+        ) if run_dir.parent.exists() else []
+        if siblings:
+            return siblings[-1] / "checkpoints" / "latest.pt", siblings[-1]
+        log.info("resume=true but no checkpoint under %s: starting fresh", run_dir.parent)
+        return None, run_dir
+    path = Path(hydra.utils.to_absolute_path(str(resume)))
+    if path.is_dir():
+        path = path / "checkpoints" / "latest.pt" if (path / "checkpoints").exists() else path / "latest.pt"
+    if not path.exists():
+        raise BmimicError(f"resume: checkpoint {path} does not exist")
+    return path, run_dir
+
+
+def build(cfg: DictConfig, device: str):
+    """Robot, motion, bins, sampler, environments: everything a run or a tool needs."""
+    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.motion.config import load_motion
+    from bmimic.robot import load_mjmodel, resolve_robot
+    from bmimic.sampling.bins import BinLayout
+    from bmimic.sampling.config import make_sampler
+
+    mjm = load_mjmodel(cfg=cfg.robot)
+    robot = resolve_robot(cfg.robot, mjm)
+    motion = load_motion(cfg.motion, mjm)
+    validate(cfg, motion.duration_s)
+    layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
+    sampler = make_sampler(cfg.sampler, layout.num_bins, device)
+    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, cfg.num_envs, device, cfg.seed,
+                      sampler=sampler, sampler_cfg=cfg.sampler, mode="train")
+    return mjm, robot, motion, layout, sampler, env
+
+
+def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout):
+    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.robot import load_mjmodel
+    from bmimic.training.evaluation import Evaluator
+
+    total = layout.num_bins * cfg.eval.episodes_per_bin
+    n = max(1, min(total, cfg.eval.max_envs))
+    env = TrackingEnv(cfg.env, cfg.sim, load_mjmodel(cfg=cfg.robot), robot, motion, layout, n, device,
+                      cfg.seed + 7919, mode="eval")
+    return Evaluator(env, layout, motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s)
+
+
+def train(cfg: DictConfig, run_dir: Path) -> float:
+    """Train in `run_dir`; returns the final evaluated failure rate."""
+    from bmimic.training.runner import Trainer
+
+    requested = cfg.device
+    device = resolve_device(requested)
+    resolve_runtime(cfg, device)
+    on_gpu = device.startswith("cuda")
+    log.info("device: %s (requested %s); num_envs %d; max_iterations %d", device, requested, cfg.num_envs,
+             cfg.max_iterations)
+    if not on_gpu:
+        log.info("no GPU: this is a smoke-scale run (%d envs, %d iterations) through the whole pipeline; "
+                 "on a GPU the same command trains for real", cfg.num_envs, cfg.max_iterations)
+    checkpoint, run_dir = find_resume_checkpoint(cfg.resume, run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_status(run_dir, "running", 0)
+    write_provenance(run_dir, device)
+    atomic_write_json(run_dir / "resolved_config.json", OmegaConf.to_container(cfg, resolve=True))
+    seed_everything(cfg.seed)
+
+    mjm, robot, motion, layout, sampler, env = build(cfg, device)
+    atomic_write_json(run_dir / "motion_segments.json", [s._asdict() for s in motion.segments])
+    log.info("motion: %.1f s, %d frames at %g Hz, %d bins of %g s", motion.duration_s, motion.num_frames,
+             motion.fps, layout.num_bins, cfg.sampler.bin_size_seconds)
+    evaluator = build_evaluator(cfg, device, robot, motion, layout)
+    trainer = Trainer(env, evaluator, sampler, cfg.ppo, run_dir, device, cfg.run_name,
+                      eval_every_iters=cfg.eval.every_iters, logger=cfg.logger, wandb_project=cfg.wandb_project,
+                      progress_bar=cfg.progress_bar, is_main_rank=int(os.environ.get("RANK", "0")) == 0)
+    if checkpoint is not None:
+        trainer.load_checkpoint(checkpoint)
+    try:
+        trainer.learn(cfg.max_iterations, cfg.ppo.init_at_random_ep_len)
+        final = trainer.progress.last_eval
+        if not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
+            final = trainer.evaluate()
+        trainer.save_checkpoint()
+    finally:
+        trainer.close()
+    metrics = {
+        "final_eval_failure_rate": final["eval_failure_rate"],
+        "final_eval_success_rate": final["eval_success_rate"],
+        "final_eval_mpkpe_mm": final["eval_mpkpe_mm"],
+        "final_eval_bins_mastered_frac": final["eval_bins_mastered_frac"],
+        "iterations": trainer.progress.iteration,
+        "env_steps": trainer.progress.env_steps,
+        "wall_time_s": trainer.progress.wall_time_s,
+        "mean_episode_length": trainer.train_rows[-1]["mean_episode_length"] if trainer.train_rows else math.nan,
+        "max_episode_length": env.max_episode_length,
+        "num_bins": layout.num_bins,
+        "num_envs": cfg.num_envs,
+        "device": device,
+    }
+    atomic_write_json(run_dir / "metrics.json", metrics)
+    write_status(run_dir, "done", trainer.progress.iteration)
+    log.info("done: %d iterations, %.0f s, eval failure rate %.3f -> %s", metrics["iterations"],
+             metrics["wall_time_s"], metrics["final_eval_failure_rate"], run_dir)
+    return float(metrics["final_eval_failure_rate"])
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def main(cfg: DictConfig) -> float:
+    hc = HydraConfig.get()
+    run_dir = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
+    if multirun and read_status(run_dir).get("status") == "done" and cfg.get("resume") is None:
+        log.info("skipping %s: already done", run_dir)
+        metrics = _read_metrics(run_dir)
+        return float(metrics.get("final_eval_failure_rate", math.nan))
+    if multirun and cfg.resume is None:
+        cfg.resume = "true"  # an interrupted sweep job continues from its last checkpoint
+    try:
+        return train(cfg, run_dir)
+    except _user_errors() as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        write_status(run_dir, "failed", error=msg)
+        print(f"error: {msg}", file=sys.stderr)
+        if multirun:
+            return math.nan
+        sys.exit(2)
+    except Exception as e:
+        write_status(run_dir, "failed", error=f"{type(e).__name__}: {e}")
+        if multirun:  # one broken job must not end the sweep; its error is kept in status.json
+            log.error("job failed:\n%s", traceback.format_exc())
+            return math.nan
+        raise
+    finally:
+        if multirun:
+            _update_sweep_index(run_dir)
+
+
+def _read_metrics(run_dir: Path) -> dict:
+    from bmimic.runs import read_json
+
+    return read_json(run_dir / "metrics.json", default={}) or {}
+
+
+def _update_sweep_index(run_dir: Path) -> None:
+    """Rebuild the sweep's index.csv from its run folders (safe when jobs finish concurrently)."""
+    try:
+        from analysis.index import write_index
+
+        sweep_dir = Path(HydraConfig.get().sweep.dir)
+        write_index(sweep_dir)
+    except Exception as e:  # the index is rebuildable; never fail a job over it
+        log.warning("could not update the sweep index: %s", e)
+
+
+if __name__ == "__main__":
+    main()

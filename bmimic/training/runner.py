@@ -1,0 +1,356 @@
+"""The PPO training loop: rsl-rl-lib's PPO, this project's logging, evaluation and checkpoints.
+
+rsl-rl's `OnPolicyRunner` builds the algorithm (models, storage, optimiser, multi-GPU set-up); the
+loop itself is written here so that each iteration can (a) read the environment's statistics with a
+single host transfer instead of rsl-rl's per-step `.cpu()` bookkeeping, (b) log the sampler's per-bin
+state, (c) run the sampler-independent evaluation and (d) write atomic checkpoints that also hold
+the sampler and RNG states, so `resume` reproduces iteration count, learning rate and sampler state.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from rsl_rl.runners import OnPolicyRunner
+
+from bmimic.runs import atomic_torch_save, atomic_write_parquet, rng_state, set_rng_state, write_status
+from bmimic.sampling import diagnostics
+from bmimic.training.evaluation import summarize
+
+log = logging.getLogger(__name__)
+
+
+def rsl_rl_train_cfg(ppo, run_name: str) -> dict:
+    """The rsl-rl-lib 5.5 `train_cfg` dict for a PPOConfig."""
+    return {
+        "num_steps_per_env": ppo.num_steps_per_env,
+        "save_interval": ppo.save_interval,
+        "obs_groups": {"actor": ["policy"], "critic": list(ppo.critic_obs_groups)},
+        "run_name": run_name,
+        "check_for_nan": False,  # a host sync per step; the env resets non-finite worlds itself
+        "torch_compile_mode": ppo.torch_compile_mode,
+        "logger": "tensorboard",
+        "algorithm": {
+            "class_name": "PPO",
+            "learning_rate": ppo.learning_rate,
+            "num_learning_epochs": ppo.num_learning_epochs,
+            "num_mini_batches": ppo.num_mini_batches,
+            "schedule": ppo.schedule,
+            "desired_kl": ppo.desired_kl,
+            "clip_param": ppo.clip_param,
+            "entropy_coef": ppo.entropy_coef,
+            "value_loss_coef": ppo.value_loss_coef,
+            "use_clipped_value_loss": ppo.use_clipped_value_loss,
+            "gamma": ppo.gamma,
+            "lam": ppo.lam,
+            "max_grad_norm": ppo.max_grad_norm,
+            "normalize_advantage_per_mini_batch": ppo.normalize_advantage_per_mini_batch,
+            "rnd_cfg": None,
+            "symmetry_cfg": None,
+        },
+        "actor": {
+            "class_name": "MLPModel",
+            "hidden_dims": list(ppo.actor_hidden_dims),
+            "activation": ppo.activation,
+            "obs_normalization": ppo.obs_normalization,
+            "distribution_cfg": {
+                "class_name": "GaussianDistribution",
+                "init_std": ppo.init_noise_std,
+                "std_type": ppo.noise_std_type,
+            },
+        },
+        "critic": {
+            "class_name": "MLPModel",
+            "hidden_dims": list(ppo.critic_hidden_dims),
+            "activation": ppo.activation,
+            "obs_normalization": ppo.obs_normalization,
+        },
+    }
+
+
+@dataclass
+class Progress:
+    """Counters a checkpoint carries so a resumed run continues them."""
+
+    iteration: int = 0
+    env_steps: int = 0
+    wall_time_s: float = 0.0
+    last_eval: dict = field(default_factory=dict)
+
+
+class Trainer:
+    """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables."""
+
+    def __init__(self, env, evaluator, sampler, ppo_cfg, run_dir: str | os.PathLike, device: str,
+                 run_name: str, eval_every_iters: int, table_every_iters: int = 10,
+                 logger: str = "tensorboard", wandb_project: str = "bmimic", progress_bar: bool = True,
+                 export_onnx: bool = True, is_main_rank: bool = True) -> None:
+        self.env = env
+        self.evaluator = evaluator
+        self.sampler = sampler
+        self.ppo_cfg = ppo_cfg
+        self.run_dir = Path(run_dir)
+        self.device = device
+        self.eval_every_iters = eval_every_iters
+        self.table_every_iters = max(1, table_every_iters)
+        self.progress_bar = progress_bar
+        self.export_onnx_enabled = export_onnx
+        self.is_main = is_main_rank
+        self.runner = OnPolicyRunner(env, rsl_rl_train_cfg(ppo_cfg, run_name), log_dir=None, device=device)
+        self.alg = self.runner.alg
+        self.progress = Progress()
+        self.train_rows: list[dict] = []
+        self.sampler_rows: list[pd.DataFrame] = []
+        self.eval_rows: list[pd.DataFrame] = []
+        self.writer = self._make_writer(logger, wandb_project, run_name) if self.is_main else None
+        self.ckpt_dir = self.run_dir / "checkpoints"
+
+    # ------------------------------------------------------------------ logging back-ends
+    def _make_writer(self, logger: str, project: str, run_name: str):
+        if logger == "none":
+            return None
+        if logger == "wandb":
+            try:
+                import wandb
+            except ImportError:
+                from bmimic import BmimicError
+
+                raise BmimicError("logger=wandb needs the wandb package: pip install wandb") from None
+            return _WandbWriter(wandb.init(project=project, name=run_name, dir=str(self.run_dir)))
+        from torch.utils.tensorboard import SummaryWriter
+
+        return SummaryWriter(log_dir=str(self.run_dir / "tensorboard"), flush_secs=30)
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoint_state(self) -> dict:
+        state = self.alg.save()
+        state.update(
+            iter=self.progress.iteration,
+            progress=vars(self.progress).copy(),
+            sampler=self.sampler.state_dict(),
+            env_generator=self.env.generator.get_state(),
+            rng=rng_state(),
+            format="bmimic-checkpoint-1",
+        )
+        return state
+
+    def save_checkpoint(self) -> Path:
+        it = self.progress.iteration
+        path = self.ckpt_dir / f"model_{it}.pt"
+        state = self.checkpoint_state()
+        atomic_torch_save(path, state)
+        atomic_torch_save(self.ckpt_dir / "latest.pt", state)
+        if self.export_onnx_enabled:
+            from bmimic.training.export import export_onnx
+
+            try:
+                export_onnx(self.alg.get_policy(), self.env, self.ckpt_dir / f"policy_{it}.onnx")
+            except Exception as e:  # export must never cost a training run
+                log.warning("ONNX export failed at iteration %d: %s", it, e)
+        self.flush_tables()
+        return path
+
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.alg.load(state, None, strict=True)
+        self.progress = Progress(**state["progress"])
+        self.sampler.load_state_dict(state["sampler"])
+        self.env.generator.set_state(state["env_generator"].cpu() if hasattr(state["env_generator"], "cpu") else state["env_generator"])
+        set_rng_state(state["rng"])
+        self.runner.current_learning_iteration = self.progress.iteration
+        self._truncate_tables(self.progress.iteration)
+        log.info("resumed from %s at iteration %d (lr %.2e)", path, self.progress.iteration, self.alg.learning_rate)
+
+    # ------------------------------------------------------------------ tables
+    def _table_path(self, name: str) -> Path:
+        return self.run_dir / f"{name}.parquet"
+
+    def _truncate_tables(self, iteration: int) -> None:
+        """On resume, keep only rows of iterations the checkpoint had completed."""
+        for name, rows in (("train_metrics", self.train_rows), ("sampler", self.sampler_rows), ("eval", self.eval_rows)):
+            path = self._table_path(name)
+            if path.exists():
+                df = pd.read_parquet(path)
+                df = df[df["iteration"] <= iteration] if name == "eval" else df[df["iteration"] < iteration]
+                if name == "train_metrics":
+                    self.train_rows.extend(df.to_dict("records"))
+                else:
+                    rows.append(df)
+
+    def flush_tables(self) -> None:
+        if not self.is_main:
+            return
+        if self.train_rows:
+            atomic_write_parquet(self._table_path("train_metrics"), pd.DataFrame(self.train_rows))
+        if self.sampler_rows:
+            atomic_write_parquet(self._table_path("sampler"), pd.concat(self.sampler_rows, ignore_index=True))
+        if self.eval_rows:
+            atomic_write_parquet(self._table_path("eval"), pd.concat(self.eval_rows, ignore_index=True))
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self) -> dict:
+        policy = self.alg.get_policy()
+        was_training = policy.training
+        policy.eval()
+        per_bin = self.evaluator.evaluate(policy, self.progress.iteration, self.progress.env_steps, self.progress.wall_time_s)
+        if was_training:
+            policy.train()
+        self.eval_rows.append(per_bin)
+        summary = summarize(per_bin)
+        self.progress.last_eval = summary
+        if self.writer is not None:
+            for k, v in summary.items():
+                self.writer.add_scalar(f"Eval/{k}", v, self.progress.iteration)
+        log.info(
+            "eval at iteration %d: failure rate %.3f, bins mastered %.2f, MPKPE %.1f mm",
+            self.progress.iteration, summary["eval_failure_rate"], summary["eval_bins_mastered_frac"],
+            summary["eval_mpkpe_mm"],
+        )
+        return summary
+
+    # ------------------------------------------------------------------ the loop
+    def learn(self, num_iterations: int, init_at_random_ep_len: bool) -> None:
+        env, alg = self.env, self.alg
+        if init_at_random_ep_len and self.progress.iteration == 0:
+            env.episode_length_buf = torch.randint_like(env.episode_length_buf, high=int(env.max_episode_length))
+        obs = env.get_observations().to(self.device)
+        alg.train_mode()
+        if self.runner.is_distributed:
+            alg.broadcast_parameters()
+        start_it = self.progress.iteration
+        end_it = num_iterations
+        steps_per_it = self.ppo_cfg.num_steps_per_env * env.num_envs * self.runner.gpu_world_size
+        bar = None
+        if self.progress_bar and self.is_main and end_it > start_it:
+            from tqdm import tqdm
+
+            bar = tqdm(total=end_it, initial=start_it, desc="train", unit="it", dynamic_ncols=True)
+        for it in range(start_it, end_it):
+            t0 = time.perf_counter()
+            with torch.inference_mode():
+                for _ in range(self.ppo_cfg.num_steps_per_env):
+                    actions = alg.act(obs)
+                    obs, rewards, dones, extras = env.step(actions.to(env.device))
+                    obs, rewards, dones = obs.to(self.device), rewards.to(self.device), dones.to(self.device)
+                    alg.process_env_step(obs, rewards, dones, extras)
+                t1 = time.perf_counter()
+                alg.compute_returns(obs)
+            losses = alg.update()
+            t2 = time.perf_counter()
+            self.progress.iteration = it + 1
+            self.progress.env_steps += steps_per_it
+            self.progress.wall_time_s += t2 - t0
+            row = self._log_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
+                                fps=f"{row['fps']:.0f}")
+            done = self.progress.iteration == end_it
+            if self.is_main and (self.eval_every_iters and self.progress.iteration % self.eval_every_iters == 0):
+                self.evaluate()
+            if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
+                self.save_checkpoint()
+                write_status(self.run_dir, "running", self.progress.iteration)
+        if bar is not None:
+            bar.close()
+
+    def _log_iteration(self, it: int, losses: dict, collect_s: float, learn_s: float, steps: int) -> dict:
+        stats = self.env.pop_iteration_stats()
+        s = diagnostics.summary(self.sampler, torch.as_tensor(stats["bin_episodes"]), torch.as_tensor(stats["bin_failures"]))
+        row = {
+            "iteration": it,
+            "env_steps": self.progress.env_steps,
+            "wall_time_s": self.progress.wall_time_s,
+            "mean_episode_length": stats["mean_episode_length"],
+            "mean_reward": stats["mean_episode_reward"],
+            "episodes": stats["episodes"],
+            "failure_rate": stats["failures"] / stats["episodes"] if stats["episodes"] else math.nan,
+            "sampling_entropy": s["sampling_entropy"],
+            "top1_prob": s["top1_prob"],
+            "top1_bin": s["top1_bin"],
+            "fps": steps / max(collect_s + learn_s, 1e-9),
+            "collection_time_s": collect_s,
+            "learning_time_s": learn_s,
+            "learning_rate": float(self.alg.learning_rate),
+            "action_std": float(self.alg.get_policy().output_std.mean()),
+            "nonfinite_resets": stats["nonfinite_resets"],
+            "overflow_worlds": stats["overflow_worlds"],
+        }
+        for k, v in losses.items():
+            row[f"loss/{k}"] = float(v)
+        for k, v in stats.items():
+            if k.startswith("Episode_Reward/"):
+                row["reward/" + k.split("/", 1)[1]] = v
+            elif k.startswith("Episode_Termination/"):
+                row["termination/" + k.split("/", 1)[1]] = v
+            elif k.startswith("Metrics/"):
+                row["metrics/" + k.split("/", 1)[1]] = v
+        if stats["overflow_worlds"] > 0:
+            log.warning("iteration %d: %d world-steps overflowed the contact/constraint buffers; raise "
+                        "sim.nconmax / sim.njmax", it, int(stats["overflow_worlds"]))
+        self.train_rows.append(row)
+        if it % self.table_every_iters == 0:
+            self.sampler_rows.append(
+                diagnostics.bin_table(it, self.env.layout, torch.as_tensor(stats["bin_episodes"]),
+                                      torch.as_tensor(stats["bin_failures"]), self.sampler)
+            )
+        if self.writer is not None:
+            self._write_scalars(it, row)
+        return row
+
+    def _write_scalars(self, it: int, row: dict) -> None:
+        w = self.writer
+        names = {
+            "mean_episode_length": "Train/mean_episode_length", "mean_reward": "Train/mean_reward",
+            "failure_rate": "Train/failure_rate", "episodes": "Train/episodes",
+            "sampling_entropy": "Sampler/entropy", "top1_prob": "Sampler/top1_prob", "top1_bin": "Sampler/top1_bin",
+            "fps": "Perf/total_fps", "collection_time_s": "Perf/collection_time", "learning_time_s": "Perf/learning_time",
+            "learning_rate": "Loss/learning_rate", "action_std": "Policy/mean_std",
+            "nonfinite_resets": "Sim/nonfinite_resets", "overflow_worlds": "Sim/overflow_worlds",
+        }
+        for k, v in row.items():
+            if isinstance(v, float) and math.isnan(v):
+                continue
+            tag = names.get(k)
+            if tag is None and "/" in k:
+                prefix, name = k.split("/", 1)
+                tag = {"loss": "Loss", "reward": "Episode_Reward", "termination": "Episode_Termination",
+                       "metrics": "Metrics"}[prefix] + "/" + name
+            if tag is not None:
+                w.add_scalar(tag, v, it)
+        if it % self.table_every_iters == 0 and hasattr(w, "add_histogram_raw"):
+            probs = self.sampler.probabilities().detach().cpu().double().numpy()
+            edges = self.env.layout.edges_s.cpu().numpy()
+            bins = np.arange(len(probs))
+            w.add_histogram_raw(
+                "Sampler/probability_over_time_s", min=float(edges[0]), max=float(edges[-1]), num=len(probs),
+                sum=float((probs * edges[:-1]).sum()), sum_squares=float((probs * edges[:-1] ** 2).sum()),
+                bucket_limits=edges[1:].tolist(), bucket_counts=probs.tolist(), global_step=it,
+            )
+            del bins
+
+    def close(self) -> None:
+        self.flush_tables()
+        if self.writer is not None:
+            self.writer.close()
+
+
+class _WandbWriter:
+    """The subset of SummaryWriter the trainer uses, over a W&B run (offline with WANDB_MODE=offline)."""
+
+    def __init__(self, run) -> None:
+        self.run = run
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        self.run.log({tag: value}, step=step)
+
+    def close(self) -> None:
+        self.run.finish()

@@ -1,0 +1,586 @@
+"""Tests of bmimic.sampling: bins, the three samplers, attribution, config, diagnostics."""
+
+from __future__ import annotations
+
+import io
+import math
+import random
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import stats
+
+from bmimic.sampling import (
+    AdaptiveSampler,
+    BeyondMimicSampler,
+    BinLayout,
+    SamplerConfig,
+    SamplerConfigError,
+    UniformSampler,
+    attribute,
+    bin_edges_s,
+    bin_table,
+    bins_of_time,
+    failed_mask,
+    make_sampler,
+    num_bins,
+    summary,
+    validate_sampler_config,
+    visits_histogram,
+)
+from bmimic.sampling.diagnostics import BIN_TABLE_COLUMNS
+
+T = True
+F = False
+
+
+# --- plain-Python references of the formulas (loops, no torch) -------------------------------
+
+
+def _kernel_smooth(x, gamma, K):
+    S = len(x)
+    norm = sum(gamma**u for u in range(K))
+    return [sum(gamma**u * x[min(s + u, S - 1)] for u in range(K)) / norm for s in range(S)]
+
+
+def ref_adaptive(S, gamma, lambda_uniform, K, alpha_smooth, batches):
+    """batches: list of (bins, failed) lists. Returns (r, P)."""
+    r = [0.0] * S
+    for bins, failed in batches:
+        n = [0] * S
+        f = [0] * S
+        for b, x in zip(bins, failed, strict=True):
+            n[b] += 1
+            f[b] += int(x)
+        for s in range(S):
+            if n[s] > 0:
+                r[s] = (1 - alpha_smooth) * r[s] + alpha_smooth * f[s] / n[s]
+    c = _kernel_smooth(r, gamma, K)
+    total = sum(c)
+    p = [ci / total for ci in c] if total > 0 else [1.0 / S] * S
+    return r, [lambda_uniform / S + (1 - lambda_uniform) * pi for pi in p]
+
+
+def ref_beyondmimic(S, gamma, K, alpha, uniform_ratio, batches):
+    """batches: list of (bins, failed) lists (possibly empty). Returns (q, P)."""
+    q = [0.0] * S
+    for bins, failed in batches:
+        h = [0] * S
+        for b, x in zip(bins, failed, strict=True):
+            h[b] += int(x)
+        q = [alpha * h[s] + (1 - alpha) * q[s] for s in range(S)]
+    w = _kernel_smooth([qs + uniform_ratio / S for qs in q], gamma, K)
+    total = sum(w)
+    return q, [wi / total for wi in w]
+
+
+def _random_batches(rng, S, num_batches, max_n):
+    out = []
+    for _ in range(num_batches):
+        n = rng.randint(0, max_n)
+        out.append(([rng.randrange(S) for _ in range(n)], [rng.random() < 0.4 for _ in range(n)]))
+    return out
+
+
+def _feed(sampler, batches):
+    for bins, failed in batches:
+        sampler.update(torch.tensor(bins, dtype=torch.long), torch.tensor(failed, dtype=torch.bool))
+
+
+# --- samplers: known answers and references ---------------------------------------------------
+
+
+def test_adaptive_worked_example():
+    s = AdaptiveSampler(4, gamma=0.5, lambda_uniform=0.2, K=2, alpha_smooth=0.5)
+    s.update(torch.tensor([0, 1, 1, 3]), torch.tensor([F, T, F, T]))
+    assert torch.allclose(s.smoothed_failure(), torch.tensor([0, 0.25, 0, 0.5], dtype=torch.float64))
+    expected = torch.tensor([0.122727, 0.195455, 0.195455, 0.486364], dtype=torch.float64)
+    assert torch.allclose(s.probabilities(), expected, atol=1e-6)
+    s.update(torch.tensor([2, 2, 3]), torch.tensor([T, T, F]))
+    assert torch.allclose(s.smoothed_failure(), torch.tensor([0, 0.25, 0.5, 0.25], dtype=torch.float64))
+    expected = torch.tensor([0.111538, 0.296154, 0.357692, 0.234615], dtype=torch.float64)
+    assert torch.allclose(s.probabilities(), expected, atol=1e-6)
+
+
+def test_beyondmimic_hand_example():
+    # S=3, K=2, gamma=0.5 -> kernel [2/3, 1/3]; alpha=0.5, uniform_ratio=0.3 -> +0.1 per bin.
+    s = BeyondMimicSampler(3, gamma=0.5, K=2, alpha=0.5, uniform_ratio=0.3)
+    s.update(torch.tensor([2, 2, 0]), torch.tensor([T, T, F]))  # h = [0, 0, 2] -> q = [0, 0, 1]
+    assert torch.allclose(s.smoothed_failure(), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    w = torch.tensor([0.1, 0.1 * 2 / 3 + 1.1 / 3, 1.1], dtype=torch.float64)
+    assert torch.allclose(s.probabilities(), w / w.sum(), atol=1e-12)
+    # An empty update still decays q: q = [0, 0, 0.5].
+    s.update(torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.bool))
+    assert torch.allclose(s.smoothed_failure(), torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64))
+    w = torch.tensor([0.1, 0.1 * 2 / 3 + 0.6 / 3, 0.6], dtype=torch.float64)
+    assert torch.allclose(s.probabilities(), w / w.sum(), atol=1e-12)
+
+
+def test_initial_distributions_are_uniform():
+    for s in (UniformSampler(7), AdaptiveSampler(7), BeyondMimicSampler(7, K=3)):
+        assert torch.allclose(s.probabilities(), torch.full((7,), 1 / 7, dtype=torch.float64))
+
+
+def test_uniform_ignores_updates():
+    s = UniformSampler(5)
+    s.update(torch.tensor([0, 0, 1]), torch.tensor([T, T, T]))
+    assert torch.allclose(s.probabilities(), torch.full((5,), 0.2, dtype=torch.float64))
+    assert torch.isnan(s.smoothed_failure()).all()
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_adaptive_matches_reference(seed):
+    rng = random.Random(seed)
+    S, K = rng.randint(1, 40), rng.randint(1, 8)
+    gamma, lam, a = rng.uniform(0.05, 1.0), rng.uniform(0.0, 1.0), rng.uniform(0.01, 1.0)
+    batches = _random_batches(rng, S, rng.randint(1, 25), 30)
+    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a)
+    _feed(s, batches)
+    r, P = ref_adaptive(S, gamma, lam, K, a, batches)
+    assert np.allclose(s.smoothed_failure().numpy(), r, rtol=0, atol=1e-12)
+    assert np.allclose(s.probabilities().numpy(), P, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_beyondmimic_matches_reference(seed):
+    rng = random.Random(100 + seed)
+    S, K = rng.randint(1, 40), rng.randint(1, 8)
+    gamma, a, eps = rng.uniform(0.05, 1.0), rng.uniform(0.001, 1.0), rng.uniform(0.01, 5.0)
+    batches = _random_batches(rng, S, rng.randint(1, 25), 30)
+    s = BeyondMimicSampler(S, gamma=gamma, K=K, alpha=a, uniform_ratio=eps)
+    _feed(s, batches)
+    q, P = ref_beyondmimic(S, gamma, K, a, eps, batches)
+    assert np.allclose(s.smoothed_failure().numpy(), q, rtol=1e-12, atol=1e-12)
+    assert np.allclose(s.probabilities().numpy(), P, rtol=0, atol=1e-12)
+
+
+def test_update_with_visits_uses_visit_counts_as_denominator():
+    s = AdaptiveSampler(3, gamma=0.5, lambda_uniform=0.0, K=1, alpha_smooth=1.0)
+    # One failure ending in bin 2; bins 0..2 each visited by 4 segments.
+    s.update(torch.tensor([2]), torch.tensor([T]), visits=torch.tensor([4, 4, 4]))
+    assert torch.allclose(s.smoothed_failure(), torch.tensor([0.0, 0.0, 0.25], dtype=torch.float64))
+
+
+def test_update_counts_equals_update():
+    bins, failed = torch.tensor([0, 2, 2, 4, 4, 4]), torch.tensor([T, F, T, F, F, T])
+    a, b = AdaptiveSampler(5, K=2), AdaptiveSampler(5, K=2)
+    a.update(bins, failed)
+    b.update_counts(torch.bincount(bins, minlength=5), torch.bincount(bins[failed], minlength=5))
+    assert torch.equal(a.probabilities(), b.probabilities())
+
+
+def test_update_rejects_bad_input():
+    s = AdaptiveSampler(4)
+    with pytest.raises(SamplerConfigError, match=r"bins must lie in \[0, 4\)"):
+        s.update(torch.tensor([0, 4]), torch.tensor([T, F]))
+    with pytest.raises(SamplerConfigError, match="equal length"):
+        s.update(torch.tensor([0, 1]), torch.tensor([T]))
+    with pytest.raises(SamplerConfigError, match="integer tensor"):
+        s.update(torch.tensor([0.5]), torch.tensor([T]))
+    with pytest.raises(SamplerConfigError, match=r"episodes must have shape \(4,\)"):
+        s.update_counts(torch.zeros(3), torch.zeros(4))
+
+
+def test_zero_probability_bins_are_never_sampled():
+    # lambda_uniform = 0 and K = 1: only bins with a non-zero failure rate have mass.
+    for method in ("inverse_cdf", "multinomial"):
+        s = AdaptiveSampler(6, lambda_uniform=0.0, K=1, alpha_smooth=1.0, method=method)
+        s.update(torch.tensor([1, 4]), torch.tensor([T, T]))
+        drawn = s.sample(20000, generator=torch.Generator().manual_seed(0))
+        assert set(drawn.unique().tolist()) == {1, 4}
+
+
+# --- properties -------------------------------------------------------------------------------
+
+_batch = st.lists(st.tuples(st.integers(0, 10**6), st.booleans()), max_size=40)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    S=st.integers(1, 50),
+    K=st.integers(1, 10),
+    gamma=st.floats(1e-3, 1.0),
+    lam=st.floats(0.0, 1.0),
+    a=st.floats(1e-4, 1.0),
+    batches=st.lists(_batch, max_size=6),
+)
+def test_adaptive_properties(S, K, gamma, lam, a, batches):
+    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a)
+    for batch in batches:
+        s.update(
+            torch.tensor([b % S for b, _ in batch], dtype=torch.long), torch.tensor([x for _, x in batch])
+        )
+        p = s.probabilities()
+        assert torch.isfinite(p).all()
+        assert (p >= 0).all()
+        assert abs(float(p.sum()) - 1.0) < 1e-9
+        assert (p >= lam / S - 1e-6).all()
+        r = s.smoothed_failure()
+        assert ((r >= 0) & (r <= 1)).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    S=st.integers(1, 50),
+    K=st.integers(1, 10),
+    gamma=st.floats(1e-3, 1.0),
+    a=st.floats(1e-4, 1.0),
+    eps=st.floats(1e-6, 100.0),
+    counts=st.lists(st.lists(st.integers(0, 10**6), min_size=50, max_size=50), max_size=6),
+)
+def test_beyondmimic_properties(S, K, gamma, a, eps, counts):
+    s = BeyondMimicSampler(S, gamma=gamma, K=K, alpha=a, uniform_ratio=eps)
+    for c in counts:
+        failures = torch.tensor(c[:S], dtype=torch.float64)
+        s.update_counts(failures, failures)
+        p = s.probabilities()
+        assert torch.isfinite(p).all()
+        assert (p > 0).all()
+        assert abs(float(p.sum()) - 1.0) < 1e-9
+
+
+def test_stress_long_motion_many_updates_no_drift():
+    # A 240 s motion at 1 s bins; 10^4 sequential updates with extreme inputs. (The benchmark,
+    # `python -m bmimic.sampling.benchmark --iters 1000000`, runs 10^6.)
+    S, n = 240, 10_000
+    layout = BinLayout(240 * 50, 50.0, 1.0)
+    assert layout.num_bins == S
+    ad = AdaptiveSampler(S, gamma=0.8, lambda_uniform=0.1, K=5, alpha_smooth=0.001)
+    bm = BeyondMimicSampler(S, gamma=0.8, K=3, alpha=0.001, uniform_ratio=0.1)
+    huge = torch.full((S,), 1e9, dtype=torch.float64)
+    zeros = torch.zeros(S, dtype=torch.float64)
+    # Extreme batches first: enormous counts, all failing, then nothing at all.
+    for _ in range(100):
+        ad.update_counts(huge, huge)
+        bm.update_counts(huge, huge)
+        ad.update_counts(zeros, zeros)
+        bm.update_counts(zeros, zeros)
+    for s in (ad, bm):
+        p = s.probabilities()
+        assert torch.isfinite(p).all() and abs(float(p.sum()) - 1) < 1e-9
+    # Then a constant input: the EMAs must follow the closed form x (1 - (1 - a)^k) from a known
+    # start, i.e. no accumulated rounding drift.
+    ad.load_state_dict({**ad.state_dict(), "state": {"rate": zeros.clone()}})
+    bm.load_state_dict({**bm.state_dict(), "state": {"count": zeros.clone()}})
+    episodes = torch.full((S,), 3.0, dtype=torch.float64)
+    failures = torch.arange(S, dtype=torch.float64) % 4  # rates 0, 1/3, 2/3, 1
+    for _ in range(n):
+        ad.update_counts(episodes, failures)
+        bm.update_counts(episodes, failures)
+    decay = 1 - (1 - 0.001) ** n
+    assert torch.allclose(ad.smoothed_failure(), failures / 3 * decay, rtol=1e-9, atol=1e-12)
+    assert torch.allclose(bm.smoothed_failure(), failures * decay, rtol=1e-9, atol=1e-12)
+    for s in (ad, bm):
+        p = s.probabilities()
+        assert torch.isfinite(p).all() and (p > 0).all() and abs(float(p.sum()) - 1) < 1e-9
+    assert (ad.probabilities() >= 0.1 / S - 1e-12).all()
+
+
+# --- sampling, state ----------------------------------------------------------------------------
+
+
+def _fresh(kind, S=20):
+    if kind == "uniform":
+        return UniformSampler(S)
+    return AdaptiveSampler(S, K=3) if kind == "adaptive" else BeyondMimicSampler(S, K=3, alpha=0.05)
+
+
+def _trained(kind, S=20):
+    g = torch.Generator().manual_seed(3)
+    s = _fresh(kind, S)
+    for _ in range(30):
+        bins = torch.randint(0, S, (16,), generator=g)
+        s.update(bins, torch.rand(16, generator=g) < bins.double() / S)
+    return s
+
+
+@pytest.mark.parametrize("kind", ["adaptive", "beyondmimic"])
+@pytest.mark.parametrize("method", ["inverse_cdf", "multinomial"])
+def test_sampling_frequencies_match_probabilities(kind, method):
+    s = _trained(kind)
+    s.method = method
+    n = 200_000
+    drawn = s.sample(n, generator=torch.Generator().manual_seed(1234))
+    assert drawn.dtype == torch.long and drawn.shape == (n,)
+    observed = torch.bincount(drawn, minlength=s.num_bins).numpy()
+    expected = s.probabilities().numpy() * n
+    assert stats.chisquare(observed, expected).pvalue > 1e-3
+
+
+@pytest.mark.parametrize("kind", ["uniform", "adaptive", "beyondmimic"])
+def test_state_dict_round_trip(kind):
+    s = _trained(kind)
+    buf = io.BytesIO()
+    torch.save(s.state_dict(), buf)
+    buf.seek(0)
+    restored = _fresh(kind)
+    restored.load_state_dict(torch.load(buf))
+    assert torch.equal(restored.probabilities(), s.probabilities())
+    a = s.sample(1000, generator=torch.Generator().manual_seed(7))
+    b = restored.sample(1000, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(a, b)
+    # Further updates stay in lock-step.
+    s.update(torch.tensor([1, 2]), torch.tensor([T, F]))
+    restored.update(torch.tensor([1, 2]), torch.tensor([T, F]))
+    assert torch.equal(restored.probabilities(), s.probabilities())
+
+
+def test_load_state_dict_rejects_mismatch():
+    with pytest.raises(SamplerConfigError, match="'adaptive' sampler with 20 bins"):
+        BeyondMimicSampler(20).load_state_dict(AdaptiveSampler(20).state_dict())
+    with pytest.raises(SamplerConfigError, match="with 21 bins"):
+        AdaptiveSampler(20).load_state_dict(AdaptiveSampler(21).state_dict())
+
+
+def test_probabilities_are_a_copy():
+    s = AdaptiveSampler(4)
+    s.probabilities().zero_()
+    assert abs(float(s.probabilities().sum()) - 1) < 1e-12
+
+
+# --- bins -----------------------------------------------------------------------------------------
+
+
+def test_num_bins_and_edges():
+    assert num_bins(30.0, 1.0) == 30
+    assert num_bins(30.5, 1.0) == 31
+    assert num_bins(1.1, 0.1) == 11  # 1.1 / 0.1 == 11.000000000000002
+    assert num_bins(0.7, 0.1) == 7  # 0.7 / 0.1 == 6.999999999999999
+    assert num_bins(2.0, 2.0) == 1
+    assert torch.allclose(bin_edges_s(2.5, 1.0), torch.tensor([0.0, 1.0, 2.0, 2.5], dtype=torch.float64))
+    assert len(bin_edges_s(30.0, 1.0)) == 31
+
+
+def test_layout_regular_and_last_shorter_bin():
+    lay = BinLayout(1500, 50.0, 1.0)
+    assert lay.num_bins == 30 and lay.duration_s == 30.0
+    assert torch.equal(lay.bin_num_frames, torch.full((30,), 50))
+    assert torch.equal(lay.bin_first_frame, torch.arange(30) * 50)
+    lay = BinLayout(1525, 50.0, 1.0)  # 30.5 s
+    assert lay.num_bins == 31 and int(lay.bin_num_frames[-1]) == 25
+    assert float(lay.edges_s[-1]) == 30.5
+    # The frame at time T (frame N) and time T itself are in the last bin.
+    assert int(lay.bins_of(torch.tensor([1525]))[0]) == 30
+    assert int(bins_of_time(torch.tensor([30.5]), 1.0, 31)[0]) == 30
+    assert lay.bins_of(torch.tensor([0, 49, 50, 1499, 1500, 1524])).tolist() == [0, 0, 1, 29, 30, 30]
+
+
+def test_layout_float_precision():
+    lay = BinLayout(30, 30.0, 0.1)  # 3 frames per bin; 9/30/0.1 == 2.9999999999999996
+    assert lay.num_bins == 10
+    assert lay.frame_to_bin.tolist() == [i // 3 for i in range(30)]
+    lay = BinLayout(33, 30.0, 0.1)
+    assert lay.num_bins == 11 and lay.frame_to_bin.tolist() == [i // 3 for i in range(33)]
+
+
+def test_layout_drops_frameless_sliver_bin():
+    # 10 frames at 1 fps, 3.2 s bins: ceil(10/3.2) = 4 bins but the 4th, [9.6, 10) s, holds no frame.
+    assert num_bins(10.0, 3.2) == 4
+    lay = BinLayout(10, 1.0, 3.2)
+    assert lay.num_bins == 3
+    assert lay.frame_to_bin.tolist() == [0, 0, 0, 0, 1, 1, 1, 2, 2, 2]
+    assert torch.allclose(lay.edges_s, torch.tensor([0.0, 3.2, 6.4, 10.0], dtype=torch.float64))
+    assert (lay.bin_num_frames >= 1).all()
+
+
+def test_layout_rejects_bad_bin_size():
+    with pytest.raises(SamplerConfigError, match="sampler.bin_size_seconds must be a finite number > 0"):
+        BinLayout(100, 50.0, 0.0)
+    with pytest.raises(SamplerConfigError, match=r"<= the motion duration \(2 s\)"):
+        BinLayout(100, 50.0, 2.5)
+    with pytest.raises(SamplerConfigError, match="at least one frame period"):
+        BinLayout(100, 50.0, 0.01)
+
+
+def test_sample_frames_uniform_within_bin():
+    lay = BinLayout(1525, 50.0, 1.0)
+    g = torch.Generator().manual_seed(0)
+    bins = torch.randint(0, lay.num_bins, (100_000,), generator=g)
+    frames = lay.sample_frames(bins, generator=g)
+    assert torch.equal(lay.bins_of(frames), bins)
+    # Within the short last bin every one of its 25 frames is drawn about equally often.
+    last = frames[bins == 30] - 1500
+    counts = torch.bincount(last, minlength=25).numpy()
+    assert len(counts) == 25 and stats.chisquare(counts).pvalue > 1e-3
+
+
+def _visits_ref(starts, ends, S):
+    out = [0] * S
+    for a, b in zip(starts, ends, strict=True):
+        for s in range(a, b + 1):
+            out[s] += 1
+    return out
+
+
+@settings(max_examples=50, deadline=None)
+@given(S=st.integers(1, 30), data=st.data())
+def test_visits_histogram_matches_loops(S, data):
+    pairs = data.draw(st.lists(st.tuples(st.integers(0, S - 1), st.integers(0, S - 1)), max_size=40))
+    starts = [min(p) for p in pairs]
+    ends = [max(p) for p in pairs]
+    got = visits_histogram(torch.tensor(starts, dtype=torch.long), torch.tensor(ends, dtype=torch.long), S)
+    assert got.tolist() == _visits_ref(starts, ends, S)
+
+
+def test_attribute_both_modes_match_loops():
+    lay = BinLayout(500, 50.0, 1.0)  # 10 bins of 50 frames
+    g = torch.Generator().manual_seed(5)
+    start = torch.randint(0, 500, (300,), generator=g)
+    end = torch.minimum(start + torch.randint(0, 200, (300,), generator=g), torch.tensor(499))
+    failed = torch.rand(300, generator=g) < 0.3
+    sb, eb = (start // 50).tolist(), (end // 50).tolist()
+    episodes, failures = attribute(start, end, failed, lay, "failure")
+    assert episodes.tolist() == _visits_ref(sb, eb, 10)
+    fref = [0] * 10
+    for b, x in zip(eb, failed.tolist(), strict=True):
+        fref[b] += x
+    assert failures.tolist() == fref
+    episodes, failures = attribute(start, end, failed, lay, "start")
+    assert episodes.tolist() == np.bincount(sb, minlength=10).tolist()
+    fref = [0] * 10
+    for b, x in zip(sb, failed.tolist(), strict=True):
+        fref[b] += x
+    assert failures.tolist() == fref
+    with pytest.raises(SamplerConfigError, match="sampler.attribution must be one of failure, start"):
+        attribute(start, end, failed, lay, "end")
+
+
+def test_failed_mask():
+    terminated = torch.tensor([T, F, T, F])
+    length = torch.tensor([10, 100, 90, 79])
+    assert failed_mask(terminated, length, 100, "terminated").tolist() == [T, F, T, F]
+    assert failed_mask(terminated, length, 100, "short", 0.8).tolist() == [T, F, F, T]
+    per_env_max = torch.tensor([10, 200, 100, 80])
+    assert failed_mask(terminated, length, per_env_max, "short", 1.0).tolist() == [F, T, T, T]
+    with pytest.raises(SamplerConfigError, match="sampler.failure must be one of"):
+        failed_mask(terminated, length, 100, "fell")
+
+
+# --- config ---------------------------------------------------------------------------------------
+
+
+def test_default_config_is_valid_and_factory_builds_each_sampler():
+    validate_sampler_config(SamplerConfig(), 30.0)
+    ad = make_sampler(
+        SamplerConfig(name="adaptive", gamma=0.5, K=4, lambda_uniform=0.3, alpha_smooth=0.2), 12
+    )
+    assert isinstance(ad, AdaptiveSampler)
+    assert ad.hparams() == {"gamma": 0.5, "lambda_uniform": 0.3, "K": 4, "alpha_smooth": 0.2}
+    bm = make_sampler(SamplerConfig(name="beyondmimic", K=1, alpha=0.01, uniform_ratio=0.2), 12)
+    assert isinstance(bm, BeyondMimicSampler) and bm.hparams()["alpha"] == 0.01
+    assert isinstance(make_sampler(SamplerConfig(name="uniform"), 12), UniformSampler)
+
+
+@pytest.mark.parametrize(
+    "key,value,message",
+    [
+        ("name", "greedy", "sampler.name must be one of uniform, adaptive, beyondmimic, got 'greedy'"),
+        ("lambda_uniform", 1.5, "sampler.lambda_uniform must be in [0, 1], got 1.5"),
+        ("lambda_uniform", -0.1, "sampler.lambda_uniform must be in [0, 1], got -0.1"),
+        ("gamma", 0.0, "sampler.gamma must be in (0, 1], got 0.0"),
+        ("gamma", 1.2, "sampler.gamma must be in (0, 1], got 1.2"),
+        ("gamma", math.nan, "sampler.gamma must be in (0, 1], got nan"),
+        ("K", 0, "sampler.K must be an integer >= 1, got 0"),
+        ("K", 2.5, "sampler.K must be an integer >= 1, got 2.5"),
+        ("alpha_smooth", 0.0, "sampler.alpha_smooth must be in (0, 1], got 0.0"),
+        ("alpha_smooth", 1.01, "sampler.alpha_smooth must be in (0, 1], got 1.01"),
+        ("alpha", 0.0, "sampler.alpha must be in (0, 1], got 0.0"),
+        ("alpha", 2.0, "sampler.alpha must be in (0, 1], got 2.0"),
+        ("uniform_ratio", 0.0, "sampler.uniform_ratio must be a finite number > 0, got 0.0"),
+        ("bin_size_seconds", 0.0, "sampler.bin_size_seconds must be a finite number > 0, got 0.0"),
+        ("bin_size_seconds", -1.0, "sampler.bin_size_seconds must be a finite number > 0, got -1.0"),
+        (
+            "bin_size_seconds",
+            31.0,
+            "sampler.bin_size_seconds must be <= the motion duration (30 s), got 31.0",
+        ),
+        ("attribution", "end", "sampler.attribution must be one of failure, start, got 'end'"),
+        ("failure", "fell", "sampler.failure must be one of terminated, short, got 'fell'"),
+        ("failure_threshold", 0.0, "sampler.failure_threshold must be in (0, 1], got 0.0"),
+        ("failure_threshold", 1.5, "sampler.failure_threshold must be in (0, 1], got 1.5"),
+    ],
+)
+def test_validation_errors(key, value, message):
+    cfg = SamplerConfig(**{key: value})
+    with pytest.raises(SamplerConfigError) as err:
+        validate_sampler_config(cfg, 30.0)
+    assert str(err.value) == message
+
+
+def test_constructors_validate_hyperparameters():
+    with pytest.raises(SamplerConfigError, match="sampler.lambda_uniform"):
+        AdaptiveSampler(5, lambda_uniform=2.0)
+    with pytest.raises(SamplerConfigError, match="sampler.K"):
+        BeyondMimicSampler(5, K=0)
+    with pytest.raises(SamplerConfigError, match="num_bins"):
+        UniformSampler(0)
+
+
+# --- diagnostics ------------------------------------------------------------------------------------
+
+
+def test_summary_values():
+    u = UniformSampler(8)
+    d = summary(u, torch.tensor([2, 2, 0, 0, 0, 0, 0, 0]), torch.tensor([1, 0, 0, 0, 0, 0, 0, 0]))
+    assert d == {
+        "episodes": 4.0,
+        "failure_rate": 0.25,
+        "sampling_entropy": pytest.approx(1.0),
+        "top1_prob": pytest.approx(0.125),
+        "top1_bin": 0.0,
+    }
+    assert summary(UniformSampler(1), torch.zeros(1), torch.zeros(1))["sampling_entropy"] == 1.0
+    assert math.isnan(summary(u, torch.zeros(8), torch.zeros(8))["failure_rate"])
+    s = AdaptiveSampler(4, lambda_uniform=0.0, K=1, alpha_smooth=1.0)
+    s.update(torch.tensor([2]), torch.tensor([T]))  # all mass on bin 2
+    d = summary(s, torch.tensor([0, 0, 5, 0]), torch.tensor([0, 0, 1, 0]), total_episodes=2)
+    assert d["sampling_entropy"] == pytest.approx(0.0, abs=1e-12)
+    assert d["top1_prob"] == pytest.approx(1.0) and d["top1_bin"] == 2.0
+    assert d["episodes"] == 2.0 and d["failure_rate"] == 0.5
+
+
+def test_bin_table():
+    lay = BinLayout(125, 50.0, 1.0)  # 2.5 s -> bins [0,1), [1,2), [2,2.5)
+    s = BeyondMimicSampler(3, alpha=0.5)
+    s.update(torch.tensor([1, 1]), torch.tensor([T, F]))
+    df = bin_table(7, lay, torch.tensor([0, 2, 1]), torch.tensor([0, 1, 0]), s)
+    assert tuple(df.columns) == BIN_TABLE_COLUMNS
+    assert df["iteration"].tolist() == [7, 7, 7] and df["bin"].tolist() == [0, 1, 2]
+    assert df["bin_start_s"].tolist() == [0.0, 1.0, 2.0] and df["bin_end_s"].tolist() == [1.0, 2.0, 2.5]
+    assert df["episodes"].tolist() == [0, 2, 1] and df["failures"].tolist() == [0, 1, 0]
+    assert math.isnan(df["raw_failure_rate"][0]) and df["raw_failure_rate"].tolist()[1:] == [0.5, 0.0]
+    assert df["smoothed_failure_rate"].tolist() == [0.0, 0.5, 0.0]
+    assert df["probability"].sum() == pytest.approx(1.0)
+    df = bin_table(0, lay.edges_s, torch.zeros(3), torch.zeros(3), UniformSampler(3))
+    assert df["smoothed_failure_rate"].isna().all()
+    with pytest.raises(SamplerConfigError, match="episodes has shape"):
+        bin_table(0, lay, torch.zeros(4), torch.zeros(3), UniformSampler(3))
+
+
+# --- GPU: the hot path never synchronises with the host ---------------------------------------------
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_hot_path_has_no_host_sync():
+    dev = torch.device("cuda")
+    lay = BinLayout(3000, 50.0, 1.0, device=dev)
+    samplers = [
+        AdaptiveSampler(lay.num_bins, K=3, device=dev),
+        BeyondMimicSampler(lay.num_bins, K=3, device=dev),
+    ]
+    g = torch.Generator(device=dev).manual_seed(0)
+    start = torch.randint(0, 3000, (4096,), device=dev, generator=g)
+    end = torch.clamp(start + 100, max=2999)
+    failed = torch.rand(4096, device=dev, generator=g) < 0.2
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for s in samplers:
+            for mode in ("failure", "start"):
+                s.update_counts(*attribute(start, end, failed, lay, mode))
+            lay.sample_frames(s.sample(4096, generator=g), generator=g)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
