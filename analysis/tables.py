@@ -186,7 +186,13 @@ def speedups(mastery_df, times, baseline: str, opts: ReportOptions) -> tuple[pd.
     base_t = times[times["arm"] == baseline]
     for arm in sorted(set(times["arm"]) - {baseline}):
         t = times[times["arm"] == arm]
-        never = f"{int((~t['reached']).sum())}/{len(t)} arm seeds, {int((~base_t['reached']).sum())}/{len(base_t)} baseline seeds never reached it"
+        if not t["reached"].any():
+            never = "no arm seed reached it: the ratio is an upper bound (arm counted at its last evaluation)"
+        elif not base_t["reached"].any():
+            never = "no baseline seed reached it: the ratio is a lower bound (baseline counted at its last evaluation)"
+        else:
+            never = (f"{int((~t['reached']).sum())}/{len(t)} arm seeds, {int((~base_t['reached']).sum())}/"
+                     f"{len(base_t)} baseline seeds never reached it (counted at their last evaluation)")
         for measure in MEASURES:
             if not (t["reached"].any() or base_t["reached"].any()):
                 rows.append((arm, measure, np.nan, np.nan, np.nan, np.nan, np.nan, "neither arm reached it"))

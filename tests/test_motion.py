@@ -32,7 +32,9 @@ NEUTRAL = {"hip_pitch": -0.312, "knee": 0.669, "ankle_pitch": -0.363}
 
 def _need(path: Path) -> Path:
     if not path.is_file():
-        pytest.skip(f"real LAFAN1 clip {path} is absent (not shipped: CC BY-NC-ND); see shared/motions/README.md")
+        pytest.skip(
+            f"real LAFAN1 clip {path} is absent (not shipped: CC BY-NC-ND); see shared/motions/README.md"
+        )
     return path
 
 
@@ -94,7 +96,9 @@ def test_angular_velocity_of_constant_spin():
 
 
 @settings(max_examples=50, deadline=None)
-@given(st.lists(st.floats(-1.8, 1.8), min_size=3, max_size=3), st.lists(st.floats(-1, 1), min_size=3, max_size=3))
+@given(
+    st.lists(st.floats(-1.8, 1.8), min_size=3, max_size=3), st.lists(st.floats(-1, 1), min_size=3, max_size=3)
+)
 def test_axis_angle_round_trip_and_rotation(rotvec, vec):
     # |rotvec| < pi, where the rotation vector is unique
     rotvec, vec = np.array(rotvec), np.array(vec)
@@ -144,7 +148,9 @@ def test_converted_velocities_match_finite_differences(dance):
     spin = np.linalg.norm(dance.body_ang_vel_w, axis=-1)
     rel = np.linalg.norm(dance.body_ang_vel_w - ang_fd, axis=-1) / (spin + 0.1)
     assert np.median(rel) < 0.005 and np.percentile(rel, 99) < 0.1
-    np.testing.assert_allclose(dance.joint_vel, np.gradient(dance.joint_pos.astype(np.float64), dt, axis=0), atol=1e-3)
+    np.testing.assert_allclose(
+        dance.joint_vel, np.gradient(dance.joint_pos.astype(np.float64), dt, axis=0), atol=1e-3
+    )
 
 
 def test_window_equals_slice_of_full_clip(model, dance, tmp_path):
@@ -228,7 +234,9 @@ MALFORMED = [
 ]
 
 
-@pytest.mark.parametrize("kind, kwargs, fragments", MALFORMED, ids=[f"{m[0]}-{i}" for i, m in enumerate(MALFORMED)])
+@pytest.mark.parametrize(
+    "kind, kwargs, fragments", MALFORMED, ids=[f"{m[0]}-{i}" for i, m in enumerate(MALFORMED)]
+)
 def test_malformed_csv_is_refused_with_location(model, tmp_path, capsys, kind, kwargs, fragments):
     path = tmp_path / f"{kind}.csv"
     if kind != "missing":
@@ -286,7 +294,13 @@ def small(model) -> Motion:
     rows = _csv_rows(40)
     rows[:, 0] = np.linspace(0.0, 0.3, 40)
     return kinematic_motion(
-        model, 50.0, rows[:, :3], rows[:, [6, 3, 4, 5]], rows[:, 7:], CSV_JOINT_NAMES, [Segment("sway", 0, 0.8, "easy")]
+        model,
+        50.0,
+        rows[:, :3],
+        rows[:, [6, 3, 4, 5]],
+        rows[:, 7:],
+        CSV_JOINT_NAMES,
+        [Segment("sway", 0, 0.8, "easy")],
     )
 
 
@@ -342,7 +356,11 @@ def test_npz_without_names_is_refused_unless_assumed(model, small, tmp_path):
     np.testing.assert_array_equal(back.body_pos_w, small.body_pos_w)
 
     # Isaac Lab's breadth-first file: 40 bodies, no names; refused even when the order is "assumed"
-    pad = {k: np.concatenate([getattr(small, k)] * 2, axis=1)[:, :40] for k in NPZ_ARRAY_KEYS if k.startswith("body")}
+    pad = {
+        k: np.concatenate([getattr(small, k)] * 2, axis=1)[:, :40]
+        for k in NPZ_ARRAY_KEYS
+        if k.startswith("body")
+    }
     isaac = _rewrite(nameless, tmp_path / "isaac.npz", **pad)
     for assume in (False, True):
         with pytest.raises(MotionDataError, match="40 bodies.*Isaac Lab"):
@@ -367,10 +385,15 @@ def test_npz_with_missing_key_or_bad_quaternion_is_refused(model, small, tmp_pat
 
 
 def test_window_clips_and_shifts_segments(small):
-    motion = dataclasses.replace(small, segments=[Segment("a", 0.0, 0.3, "easy"), Segment("b", 0.3, 0.8, "hard")])
+    motion = dataclasses.replace(
+        small, segments=[Segment("a", 0.0, 0.3, "easy"), Segment("b", 0.3, 0.8, "hard")]
+    )
     win = motion.window(0.2, 0.5)
     assert win.num_frames == 15
-    assert win.segments == [Segment("a", 0.0, pytest.approx(0.1), "easy"), Segment("b", pytest.approx(0.1), 0.3, "hard")]
+    assert win.segments == [
+        Segment("a", 0.0, pytest.approx(0.1), "easy"),
+        Segment("b", pytest.approx(0.1), 0.3, "hard"),
+    ]
     np.testing.assert_array_equal(win.joint_pos, motion.joint_pos[10:25])
     with pytest.raises(MotionDataError, match="window"):
         motion.window(0.5, 2.0)

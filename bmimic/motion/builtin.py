@@ -364,7 +364,9 @@ def _fast_turn(b: _SegmentBuilder) -> None:
     rng = b.rng
     direction = rng.choice([-1.0, 1.0])
     step_angle = np.deg2rad(rng.uniform(25.0, 35.0))
-    shift, swing = rng.uniform(0.25, 0.32), rng.uniform(0.3, 0.36)
+    shift, swing = rng.uniform(0.34, 0.4), rng.uniform(0.3, 0.36)
+    # Quick steps: the centre of mass goes only to the inner part of each stance foot (still inside it).
+    inset = 0.06
     pair = 2 * (shift + swing)
     n = min(4, max(1, int((b.duration - 0.8) // pair)))
     lead = 0 if direction > 0 else 1  # turning left (counter-clockwise) opens with the left foot
@@ -373,7 +375,7 @@ def _fast_turn(b: _SegmentBuilder) -> None:
     for _ in range(n):
         frame = frame + np.array([0.0, 0.0, direction * step_angle])
         for foot in (lead, 1 - lead):
-            b.shift(t, shift, float(1 - foot))
+            b.shift(t, shift, inset + (1 - 2 * inset) * (1 - foot))
             b.step(foot, t + shift, swing, b.home_pose(foot, frame), rng.uniform(0.05, 0.07))
             t += shift + swing
     b.shift(t, 0.35, 0.5)

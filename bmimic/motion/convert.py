@@ -203,7 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mjcf", type=Path, default=None, help="robot MJCF instead of the built-in G1")
     args = parser.parse_args(argv)
 
-    from bmimic.robot import load_mjmodel  # late: the robot package is only needed past argument parsing
+    # late import: the robot package is only needed past argument parsing
+    from bmimic.robot import RobotModelError, load_mjmodel
 
     start = time.perf_counter()
     try:
@@ -216,7 +217,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             None if args.frames is None else tuple(args.frames),
         )
         motion.save(args.output)
-    except MotionDataError as err:
+    except (MotionDataError, RobotModelError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     elapsed = time.perf_counter() - start

@@ -147,7 +147,7 @@ class Motion:
             setattr(self, key, np.asarray(getattr(self, key), dtype=np.float32))
         self.joint_names = [str(n) for n in self.joint_names]
         self.body_names = [str(n) for n in self.body_names]
-        self.segments = [Segment(*s) for s in self.segments]
+        self.segments = [Segment(str(n), float(a), float(b), str(d)) for n, a, b, d in self.segments]
         self.clip_starts = np.asarray(self.clip_starts, dtype=np.int64).reshape(-1)
         self._validate()
 
@@ -414,6 +414,12 @@ def kinematic_motion(
     (world frame). Body velocities are those of the body origins (xpos) in the world frame, from
     `cvel`: v_origin = v_com - w x (subtree_com[root] - xpos).
     """
+    names = list(joint_names)
+    model_joints = model_joint_names(mjmodel)
+    if sorted(names) != sorted(model_joints):
+        raise MotionDataError(
+            f"joints {sorted(set(model_joints) ^ set(names))} are not both in the data and in the robot model"
+        )
     dt = 1.0 / float(fps)
     num = root_pos.shape[0]
     if num < 2:
@@ -457,12 +463,6 @@ def kinematic_motion(
     ang = cvel[..., :3]
     lin = cvel[..., 3:] - np.cross(ang, com - xpos)
 
-    names = list(joint_names)
-    model_joints = model_joint_names(mjmodel)
-    if sorted(names) != sorted(model_joints):
-        raise MotionDataError(
-            f"joints {sorted(set(model_joints) ^ set(names))} are not both in the data and in the robot model"
-        )
     order = [names.index(n) for n in model_joints]
     return Motion(
         fps=fps,

@@ -117,16 +117,16 @@ class _BinSampler:
         self.method = method
         self._probs = torch.full((num_bins,), 1.0 / num_bins, dtype=_DTYPE, device=self.device)
         self._cdf = torch.empty_like(self._probs)
-        self._set_probs(self._probs)
+        self._refresh_cdf()
 
     # -- probabilities and sampling -----------------------------------------------------------
 
-    def _set_probs(self, probs: torch.Tensor) -> None:
-        # In place, so the cached tensors keep their storage (friendly to CUDA graphs).
-        self._probs.copy_(probs)
-        torch.cumsum(self._probs, 0, out=self._cdf)
+    # The cached tensors are written in place (out=), so they keep their storage (friendly to CUDA
+    # graphs), and with few kernels: the update runs every control step and is launch-bound.
+    def _refresh_cdf(self) -> None:
+        cdf = torch.cumsum(self._probs, 0)
         # Rescale so the last entry is exactly 1 and every uniform in [0, 1) lands in a bin.
-        self._cdf.div_(self._cdf[-1:].clone())
+        torch.div(cdf, cdf[-1], out=self._cdf)
 
     def probabilities(self) -> torch.Tensor:
         """P over the bins (float64, sums to 1); a copy of the cached value."""
@@ -260,7 +260,9 @@ class _LookaheadSampler(_BinSampler):
         self._index = lookahead_index(num_bins, self.K, device=self.device)
 
     def _smooth(self, x: torch.Tensor) -> torch.Tensor:
-        return (x[self._index] * self._kernel).sum(dim=1)
+        if self.K == 1:
+            return x
+        return x[self._index] @ self._kernel
 
 
 class AdaptiveSampler(_LookaheadSampler):
@@ -286,18 +288,19 @@ class AdaptiveSampler(_LookaheadSampler):
         self._rate = torch.zeros(num_bins, dtype=_DTYPE, device=self.device)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        seen = episodes > 0
         observed = failures / episodes.clamp(min=1.0)
-        ema = torch.lerp(self._rate, observed, self.alpha_smooth)
-        self._rate.copy_(torch.where(seen, ema, self._rate))
+        # Bins without episodes lerp towards their own value, i.e. stay exactly unchanged.
+        self._rate.lerp_(torch.where(episodes > 0, observed, self._rate), self.alpha_smooth)
         self._recompute()
 
     def _recompute(self) -> None:
         c = self._smooth(self._rate)
         total = c.sum()
-        # p = c / sum(c), or uniform while sum(c) == 0 (no failure seen yet); branch-free.
-        p = torch.where(total > 0, c / total.clamp(min=torch.finfo(_DTYPE).tiny), 1.0 / self.num_bins)
-        self._set_probs(self.lambda_uniform / self.num_bins + (1.0 - self.lambda_uniform) * p)
+        # p = c / sum(c), or uniform while sum(c) == 0 (no failure seen yet); branch-free (the
+        # 0/0 of the unselected branch is discarded).
+        p = torch.where(total > 0, c / total, 1.0 / self.num_bins)
+        torch.mul(p, 1.0 - self.lambda_uniform, out=self._probs).add_(self.lambda_uniform / self.num_bins)
+        self._refresh_cdf()
 
     def smoothed_failure(self) -> torch.Tensor:
         """The smoothed failure rate r."""
@@ -345,7 +348,8 @@ class BeyondMimicSampler(_LookaheadSampler):
 
     def _recompute(self) -> None:
         w = self._smooth(self._count + self.uniform_ratio / self.num_bins)
-        self._set_probs(w / w.sum())
+        torch.div(w, w.sum(), out=self._probs)
+        self._refresh_cdf()
 
     def smoothed_failure(self) -> torch.Tensor:
         """The EMA of failure counts q (scales with the number of environments)."""

@@ -1,0 +1,466 @@
+"""`python -m bmimic.eval RUN_DIR_OR_CHECKPOINT [options] [key=value ...]`: evaluate a trained policy.
+
+    python -m bmimic.eval outputs/runs/default/2026-01-01_12-00-00            # the run's latest.pt
+    python -m bmimic.eval outputs/runs/default/<stamp>/checkpoints/model_500.pt --episodes-per-bin 8
+    python -m bmimic.eval RUN --horizon-s 4 --device cuda:1 eval.max_envs=1024 env.episode_length_s=20
+
+The run's composed config (RUN_DIR/.hydra/config.yaml) is reloaded and its `auto`/null values are
+resolved for this machine exactly as training does; dotted `key=value` overrides are merged on top.
+Robot, motion, time bins and the evaluation environment are rebuilt like training's
+(`bmimic.train.build_evaluator`), the actor is rebuilt from the checkpoint, and the
+sampler-independent evaluation runs with the deterministic policy: `episodes_per_bin` episodes
+start at stratified frames of every bin and run for `horizon_s`; an episode that terminates before
+then is a failure. Tables go to RUN_DIR/eval/<checkpoint>/ (latest.pt is named after its iteration,
+model_<it>, so re-evaluating after more training never overwrites an older result):
+
+    eval_episodes.parquet  one row per episode
+    eval_bins.parquet      one row per time bin
+    eval_segments.csv      one row per labelled motion segment (by the segment an episode starts in)
+    eval_summary.json      overall numbers (keys as in metrics.json: eval_success_rate, eval_mpkpe_mm, ...)
+
+Bad input (missing folder, no checkpoint, a checkpoint that does not match the run's config) prints
+one `error: ...` line and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+
+from bmimic import BmimicError
+
+log = logging.getLogger("bmimic.eval")
+
+CHECKPOINT_DIR = "checkpoints"
+LATEST = "latest.pt"
+TABLES = ("eval_episodes.parquet", "eval_bins.parquet", "eval_segments.csv", "eval_summary.json")
+
+
+class EvalError(BmimicError):
+    """A run folder, checkpoint or override that cannot be evaluated (one-line message)."""
+
+
+# --------------------------------------------------------------------------------------------- loading
+def locate_run(path: str | Path) -> tuple[Path, Path]:
+    """(run folder, checkpoint) for a run folder (its latest.pt) or a checkpoint file inside one."""
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise EvalError(f"{p}: no such run folder or checkpoint")
+    if p.is_dir():
+        run_dir, checkpoint = p, p / CHECKPOINT_DIR / LATEST
+        if not checkpoint.exists():
+            found = sorted((p / CHECKPOINT_DIR).glob("model_*.pt")) if (p / CHECKPOINT_DIR).is_dir() else []
+            if not found:
+                raise EvalError(f"{p}: no checkpoint ({CHECKPOINT_DIR}/{LATEST} or model_<it>.pt); "
+                                "is this a run folder of a run that has saved one?")
+            checkpoint = max(found, key=_iteration_of_name)
+    else:
+        run_dir, checkpoint = p.resolve().parent.parent, p
+    if not (run_dir / ".hydra" / "config.yaml").exists():
+        raise EvalError(f"{run_dir}: not a run folder (no .hydra/config.yaml)")
+    return run_dir.resolve(), checkpoint.resolve()
+
+
+def _iteration_of_name(path: Path) -> int:
+    try:
+        return int(path.stem.split("_", 1)[1])
+    except (IndexError, ValueError):
+        return -1
+
+
+def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
+    """The run's composed config under the TrainConfig schema, with dotted `key=value` overrides merged."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from bmimic.config import TrainConfig
+
+    path = run_dir / ".hydra" / "config.yaml"
+    try:
+        cfg = OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.load(path))
+    except (OmegaConfBaseException, OSError, ValueError) as e:
+        raise EvalError(f"{path}: cannot be read as a bmimic config: {first_line(e)}") from None
+    OmegaConf.set_struct(cfg, True)  # an override of a key that does not exist is an error, as in Hydra
+    for item in overrides:
+        key, sep, _ = item.partition("=")
+        if not sep or not key or key.startswith(("+", "~")):
+            raise EvalError(f"override {item!r}: expected a dotted key=value (e.g. eval.horizon_s=3)")
+        try:
+            cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
+        except OmegaConfBaseException as e:
+            raise EvalError(f"override {item!r}: {first_line(e)}") from None
+    return cfg
+
+
+@dataclass
+class LoadedRun:
+    """A run's config resolved for this machine, with the robot, motion and bins rebuilt from it."""
+
+    run_dir: Path
+    """The run folder."""
+    checkpoint: Path
+    """The checkpoint file to evaluate."""
+    cfg: object
+    """The composed, runtime-resolved DictConfig (overrides applied)."""
+    device: str
+    """Torch device everything runs on."""
+    mjm: object
+    """The robot's host mujoco.MjModel."""
+    robot: object
+    """bmimic.robot.RobotInfo."""
+    motion: object
+    """bmimic.motion.Motion at the control rate."""
+    layout: object
+    """bmimic.sampling.bins.BinLayout of the motion."""
+
+
+def load_run(path: str | Path, overrides: Sequence[str] = ()) -> LoadedRun:
+    """Locate the run, reload and resolve its config, rebuild robot, motion and bins like training."""
+    from bmimic.config import resolve_runtime, validate
+    from bmimic.motion.config import load_motion
+    from bmimic.robot import load_mjmodel, resolve_robot
+    from bmimic.runs import resolve_device
+    from bmimic.sampling.bins import BinLayout
+
+    run_dir, checkpoint = locate_run(path)
+    cfg = load_run_config(run_dir, overrides)
+    device = resolve_device(cfg.device)
+    resolve_runtime(cfg, device)
+    mjm = load_mjmodel(cfg=cfg.robot)
+    robot = resolve_robot(cfg.robot, mjm)
+    motion = load_motion(cfg.motion, mjm)
+    validate(cfg, motion.duration_s)
+    layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
+    return LoadedRun(run_dir, checkpoint, cfg, device, mjm, robot, motion, layout)
+
+
+def load_checkpoint(path: Path, device: str) -> dict:
+    """The checkpoint dict; it must hold an rsl-rl actor."""
+    try:
+        # weights_only=False: bmimic checkpoints also hold numpy/python RNG states.
+        state = torch.load(path, map_location=device, weights_only=False)
+    except Exception as e:
+        raise EvalError(f"{path}: not a readable torch checkpoint: {first_line(e)}") from None
+    if not isinstance(state, dict) or "actor_state_dict" not in state:
+        raise EvalError(f"{path}: not an rsl-rl/bmimic checkpoint (no actor_state_dict)")
+    return state
+
+
+def build_policy(state: dict, env, ppo_cfg, device: str, checkpoint: Path | str = "checkpoint"):
+    """The deterministic actor (rsl-rl MLPModel) built as the Trainer builds it, weights from `state`."""
+    from rsl_rl.utils import resolve_class
+
+    from bmimic.training.runner import rsl_rl_train_cfg
+
+    train_cfg = rsl_rl_train_cfg(ppo_cfg, "eval")
+    actor_class, actor_kwargs = resolve_class(train_cfg["actor"])
+    actor = actor_class(env.get_observations(), train_cfg["obs_groups"], "actor", env.num_actions, **actor_kwargs)
+    try:
+        actor.load_state_dict(state["actor_state_dict"], strict=True)
+    except RuntimeError as e:
+        raise EvalError(
+            f"{checkpoint}: its actor does not match this run's config (ppo.actor_hidden_dims="
+            f"{list(ppo_cfg.actor_hidden_dims)}, {actor.obs_dim} policy observations, {env.num_actions} "
+            f"actions): {_mismatch(e)}"
+        ) from None
+    return actor.to(device).eval()
+
+
+def _mismatch(e: RuntimeError) -> str:
+    """The first concrete line of a load_state_dict error (which parameter, which shapes)."""
+    lines = [x.strip() for x in str(e).splitlines() if x.strip()]
+    return lines[1] if len(lines) > 1 else (lines[0] if lines else type(e).__name__)
+
+
+def checkpoint_label(checkpoint: Path, state: dict) -> str:
+    """Folder name of a checkpoint's results: its stem; latest.pt is named after its iteration."""
+    if checkpoint.name == LATEST and "iter" in state:
+        return f"model_{int(state['iter'])}"
+    return checkpoint.stem
+
+
+# --------------------------------------------------------------------------------------------- tables
+def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
+    """(segment name, difficulty) covering each time ('' where no segment does)."""
+    names, levels = [], []
+    for t in np.asarray(t_s, dtype=float):
+        hit = next((s for s in segments if s.start_s <= t < s.end_s), None)
+        names.append(hit.name if hit else "")
+        levels.append(hit.difficulty if hit else "")
+    return names, levels
+
+
+def episode_table(raw: pd.DataFrame, evaluator, motion, step_dt: float, iteration: int) -> pd.DataFrame:
+    """One row per episode: where it started, whether it survived, how long, and its mean errors."""
+    from bmimic.training.evaluation import ERROR_COLUMNS
+
+    edges = evaluator.layout.edges_s.cpu().numpy()
+    start_s = raw["start_frame"].to_numpy() / motion.fps
+    segment, difficulty = segment_at(motion.segments, start_s)
+    bins = raw["bin"].to_numpy()
+    failed = raw["failed"].to_numpy().astype(bool)
+    return pd.DataFrame({
+        "iteration": int(iteration),
+        "episode": np.arange(len(raw)),
+        "bin": bins.astype(int),
+        "bin_start_s": edges[bins],
+        "bin_end_s": edges[bins + 1],
+        "segment": segment,
+        "difficulty": difficulty,
+        "start_frame": raw["start_frame"].to_numpy().astype(int),
+        "start_s": start_s,
+        "failed": failed,
+        "success": ~failed,
+        "steps": raw["steps"].to_numpy().astype(int),
+        "survival_s": raw["steps"].to_numpy() * step_dt,
+        **{c: raw[c].to_numpy(dtype=float) for c in ERROR_COLUMNS},
+    })
+
+
+def _aggregate(episodes: pd.DataFrame, key: str) -> pd.DataFrame:
+    from bmimic.training.evaluation import ERROR_COLUMNS
+
+    g = episodes.groupby(key, sort=False)
+    out = g[["survival_s", *ERROR_COLUMNS]].mean()
+    out.insert(0, "failures", g["failed"].sum().astype(int))
+    out.insert(0, "episodes", g["failed"].count().astype(int))
+    out.insert(2, "success_rate", 1.0 - out["failures"] / out["episodes"])
+    out.insert(3, "failure_rate", out["failures"] / out["episodes"])
+    return out.rename(columns={"survival_s": "mean_survival_s"}).reset_index()
+
+
+def bin_table(episodes: pd.DataFrame, evaluator) -> pd.DataFrame:
+    """One row per time bin (every bin has episodes_per_bin episodes)."""
+    per_bin = _aggregate(episodes, "bin").sort_values("bin", ignore_index=True)
+    edges = evaluator.layout.edges_s.cpu().numpy()
+    labels = evaluator.segment_of_bin()  # the segment covering the bin's midpoint, as in eval.parquet
+    b = per_bin["bin"].to_numpy()
+    per_bin.insert(0, "iteration", int(episodes["iteration"].iloc[0]))
+    per_bin.insert(2, "bin_start_s", edges[b])
+    per_bin.insert(3, "bin_end_s", edges[b + 1])
+    per_bin.insert(4, "segment", [labels[i] for i in b])
+    return per_bin
+
+
+def segment_table(episodes: pd.DataFrame, segments) -> pd.DataFrame:
+    """One row per motion segment that episodes started in, in time order ('' = no segment)."""
+    per_seg = _aggregate(episodes, "segment")
+    meta = {s.name: s for s in segments}
+    per_seg.insert(1, "difficulty", [meta[n].difficulty if n in meta else "" for n in per_seg["segment"]])
+    per_seg.insert(2, "start_s", [meta[n].start_s if n in meta else math.nan for n in per_seg["segment"]])
+    per_seg.insert(3, "end_s", [meta[n].end_s if n in meta else math.nan for n in per_seg["segment"]])
+    return per_seg.sort_values("start_s", na_position="last", ignore_index=True)
+
+
+# --------------------------------------------------------------------------------------------- evaluation
+@dataclass
+class EvalResult:
+    """What `evaluate` produced, and where it was written."""
+
+    episodes: pd.DataFrame
+    """One row per episode."""
+    bins: pd.DataFrame
+    """One row per time bin."""
+    segments: pd.DataFrame
+    """One row per motion segment."""
+    summary: dict
+    """Overall numbers and provenance (eval_summary.json)."""
+    out_dir: Path | None = None
+    """Folder the tables were written to (None until written)."""
+
+
+def evaluate(run: LoadedRun, overrides: Sequence[str] = ()) -> EvalResult:
+    """Run the sampler-independent evaluation of `run.checkpoint` and build the tables."""
+    from bmimic.runs import seed_everything
+    from bmimic.train import build_evaluator
+    from bmimic.training.evaluation import summarize
+
+    cfg = run.cfg
+    state = load_checkpoint(run.checkpoint, run.device)
+    seed_everything(cfg.seed)
+    evaluator = build_evaluator(cfg, run.device, run.robot, run.motion, run.layout)
+    env = evaluator.env
+    policy = build_policy(state, env, cfg.ppo, run.device, run.checkpoint)
+    iteration = int(state.get("iter", -1))
+    log.info("evaluating %s (iteration %d) on %s: %d bins x %d episodes, horizon %g s, %d worlds",
+             run.checkpoint, iteration, run.device, run.layout.num_bins, cfg.eval.episodes_per_bin,
+             cfg.eval.horizon_s, env.num_envs)
+    t0 = time.perf_counter()
+    raw = evaluator.run_episodes(policy)
+    wall = time.perf_counter() - t0
+    episodes = episode_table(raw, evaluator, run.motion, env.step_dt, iteration)
+    bins = bin_table(episodes, evaluator)
+    segments = segment_table(episodes, run.motion.segments)
+    progress = state.get("progress") or {}
+    summary = {
+        **summarize(bins),
+        "episodes": int(len(episodes)),
+        "failures": int(episodes["failed"].sum()),
+        "num_bins": int(run.layout.num_bins),
+        "episodes_per_bin": int(cfg.eval.episodes_per_bin),
+        "horizon_s": float(cfg.eval.horizon_s),
+        "eval_worlds": int(env.num_envs),
+        "eval_wall_time_s": wall,
+        "checkpoint": str(run.checkpoint),
+        "iteration": iteration,
+        "env_steps": int(progress.get("env_steps", -1)),
+        "run_dir": str(run.run_dir),
+        "motion": str(cfg.motion.name),
+        "motion_duration_s": float(run.motion.duration_s),
+        "seed": int(cfg.seed),
+        "device": run.device,
+        "overrides": list(overrides),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "label": checkpoint_label(run.checkpoint, state),
+    }
+    return EvalResult(episodes, bins, segments, summary)
+
+
+def write_tables(result: EvalResult, out_dir: Path) -> Path:
+    """Write the four tables atomically; the summary last, so its presence means a complete set."""
+    from bmimic.runs import atomic_write, atomic_write_json, atomic_write_parquet
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_parquet(out_dir / "eval_episodes.parquet", result.episodes)
+    atomic_write_parquet(out_dir / "eval_bins.parquet", result.bins)
+    atomic_write(out_dir / "eval_segments.csv", lambda tmp: result.segments.to_csv(tmp, index=False))
+    atomic_write_json(out_dir / "eval_summary.json", result.summary)
+    result.out_dir = out_dir
+    return out_dir
+
+
+# --------------------------------------------------------------------------------------------- report
+_SHOWN = {
+    "episodes": ("episodes", "{:d}"),
+    "success_rate": ("success", "{:.3f}"),
+    "mpkpe_mm": ("MPKPE_mm", "{:.1f}"),
+    "mpkpe_rel_mm": ("rel_MPKPE_mm", "{:.1f}"),
+    "anchor_ori_err_rad": ("anchor_ori_rad", "{:.3f}"),
+    "body_ori_err_rad": ("body_ori_rad", "{:.3f}"),
+    "joint_pos_err_rad": ("joint_pos_rad", "{:.3f}"),
+    "joint_vel_err_radps": ("joint_vel_radps", "{:.2f}"),
+    "ee_pos_err_mm": ("ee_pos_mm", "{:.1f}"),
+}
+MAX_BINS_SHOWN = 30
+
+
+def _format_rows(df: pd.DataFrame, label_cols: dict[str, str]) -> str:
+    shown = pd.DataFrame({title: df[col].astype(str) for col, title in label_cols.items()})
+    for col, (title, fmt) in _SHOWN.items():
+        shown[title] = [fmt.format(int(v) if fmt == "{:d}" else float(v)) for v in df[col]]
+    return shown.to_string(index=False)
+
+
+def format_report(result: EvalResult) -> str:
+    """A readable summary: per segment, per bin (the worst ones for long motions), overall."""
+    s = result.summary
+    lines = [
+        f"{s['checkpoint']} (iteration {s['iteration']}), {s['device']}: {s['num_bins']} bins x "
+        f"{s['episodes_per_bin']} episodes, horizon {s['horizon_s']:g} s, deterministic policy",
+        "",
+    ]
+    seg = result.segments.assign(
+        segment=[n or "(none)" for n in result.segments["segment"]],
+        span=[f"{a:.1f}-{b:.1f}" if math.isfinite(a) else "" for a, b in zip(result.segments["start_s"],
+                                                                             result.segments["end_s"])],
+    )
+    lines += ["per segment:", _format_rows(seg, {"segment": "segment", "difficulty": "difficulty", "span": "t_s"}), ""]
+    bins = result.bins.assign(span=[f"{a:.1f}-{b:.1f}" for a, b in zip(result.bins["bin_start_s"],
+                                                                          result.bins["bin_end_s"])])
+    title = "per bin:"
+    if len(bins) > MAX_BINS_SHOWN:
+        bins = bins.sort_values(["success_rate", "mpkpe_mm"], ascending=[True, False]).head(MAX_BINS_SHOWN // 3)
+        title = f"worst {len(bins)} of {len(result.bins)} bins:"
+    lines += [title, _format_rows(bins, {"bin": "bin", "span": "t_s", "segment": "segment"}), ""]
+    overall = pd.DataFrame([{"episodes": s["episodes"], "success_rate": s["eval_success_rate"],
+                             **{c: s[f"eval_{c}"] for c in _SHOWN if f"eval_{c}" in s}}])
+    lines += ["overall:", _format_rows(overall, {}),
+              f"bins mastered (failure rate < 0.1): {s['eval_bins_mastered_frac']:.2f}"]
+    if result.out_dir is not None:
+        lines.append(f"tables: {result.out_dir}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------- CLI
+def first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions that mean bad input (printed as one line, exit status 2)."""
+    from bmimic.motion.motion import MotionDataError
+
+    return (BmimicError, MotionDataError)
+
+
+def flag_overrides(args: argparse.Namespace) -> list[str]:
+    """The convenience flags as dotted overrides (applied after the positional ones, so they win)."""
+    out = []
+    if args.episodes_per_bin is not None:
+        out.append(f"eval.episodes_per_bin={args.episodes_per_bin}")
+    if args.horizon_s is not None:
+        out.append(f"eval.horizon_s={args.horizon_s}")
+    if args.num_envs is not None:
+        out.append(f"eval.max_envs={args.num_envs}")
+    if args.device is not None:
+        out.append(f"device={args.device}")
+    return out
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m bmimic.eval",
+        description="Sampler-independent evaluation of a trained policy (deterministic actions).",
+        epilog="Tables: RUN_DIR/eval/<checkpoint>/{" + ",".join(TABLES) + "}",
+    )
+    p.add_argument("path", help="a run folder (evaluates checkpoints/latest.pt) or a checkpoint file in one")
+    p.add_argument("overrides", nargs="*", help="dotted config overrides key=value, e.g. eval.horizon_s=3")
+    p.add_argument("--episodes-per-bin", type=int, help="episodes started per time bin (eval.episodes_per_bin)")
+    p.add_argument("--horizon-s", type=float, help="seconds an episode must survive (eval.horizon_s)")
+    p.add_argument("--num-envs", type=int, help="most simultaneous evaluation worlds (eval.max_envs)")
+    p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
+    p.add_argument("--out", type=Path, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
+    return p
+
+
+def quiet_warp() -> None:
+    try:
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-kernel "Module ... load" lines
+    except ImportError:  # pragma: no cover - warp is a hard dependency
+        pass
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parser().parse_intermixed_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    quiet_warp()
+    overrides = [*args.overrides, *flag_overrides(args)]
+    try:
+        run = load_run(args.path, overrides)
+        result = evaluate(run, overrides)
+        out_dir = args.out if args.out is not None else run.run_dir / "eval" / result.summary["label"]
+        write_tables(result, out_dir.resolve())
+    except user_errors() as e:
+        print(f"error: {first_line(e)}", file=sys.stderr)
+        return 2
+    print(format_report(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,167 @@
+"""`python -m bmimic.play RUN_DIR_OR_CHECKPOINT [options] [key=value ...]`: render a policy tracking its motion.
+
+    python -m bmimic.play outputs/runs/default/2026-01-01_12-00-00                 # 10 s from the start
+    python -m bmimic.play RUN --start-s 12.5 --seconds 5 --out dance.mp4
+    python -m bmimic.play RUN/checkpoints/model_500.pt --width 1280 --height 720 --fps 30
+    MUJOCO_GL=osmesa python -m bmimic.play RUN                                     # force software GL
+
+One evaluation world (no randomisation, no noise, deterministic policy) starts exactly on the
+reference at --start-s; the robot is drawn from the simulation and the reference pose at the same
+frame as a translucent ghost, through the robot's `tracking` camera. When the robot falls (a
+termination) it is put back on the reference at the current frame and the video says so; at the end
+of the clip the rollout starts again at --start-s. The run's config is rebuilt as in
+`python -m bmimic.eval` (same overrides). Default output: RUN_DIR/videos/<checkpoint>_t<start>s.mp4,
+or .gif when imageio/imageio-ffmpeg are not installed. Exit status 2 with a one-line `error: ...`
+on bad input or when no OpenGL backend is available.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+log = logging.getLogger("bmimic.play")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m bmimic.play",
+                                description="Render a trained policy tracking its reference motion (ghost).")
+    p.add_argument("path", help="a run folder (uses checkpoints/latest.pt) or a checkpoint file in one")
+    p.add_argument("overrides", nargs="*", help="dotted config overrides key=value (as in bmimic.eval)")
+    p.add_argument("--seconds", type=float, default=10.0, help="length of the video in seconds (default 10)")
+    p.add_argument("--start-s", type=float, default=0.0, help="motion time to start at, in seconds (default 0)")
+    p.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default RUN_DIR/videos/...)")
+    p.add_argument("--width", type=int, default=640, help="image width in pixels (default 640)")
+    p.add_argument("--height", type=int, default=480, help="image height in pixels (default 480)")
+    p.add_argument("--fps", type=float, default=50.0, help="video frame rate (default 50 = the control rate)")
+    p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
+    p.add_argument("--no-ghost", action="store_true", help="do not draw the reference ghost")
+    p.add_argument("--no-text", action="store_true", help="do not print time, segment and falls on the frames")
+    return p
+
+
+def frame_steps(seconds: float, fps: float, step_dt: float) -> list[int]:
+    """Control steps elapsed at each video frame: frame k shows the state at time k / fps."""
+    n = max(1, int(round(seconds * fps)))
+    return [int(round(k / fps / step_dt)) for k in range(n)]
+
+
+def reference_qpos(env, world: int = 0) -> np.ndarray:
+    """qpos of the reference at `world`'s current frame (free joint then hinges, as the model's qpos)."""
+    import torch
+
+    f = env.time_steps[world]
+    return torch.cat((env.m_root_pos[f], env.m_root_quat[f], env.m_joint_pos[f])).double().cpu().numpy()
+
+
+def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequence[int], ghost: bool = True,
+                   text: bool = True) -> tuple[list[np.ndarray], list[float]]:
+    """Run world 0 from `start_frame` and render one image per entry of `steps_at_frame`.
+
+    Returns the images and the times (s since the start) at which the robot fell and was reset.
+    """
+    import torch
+
+    from bmimic.eval import segment_at
+    from bmimic.render import annotate
+
+    device = env.device
+    first = torch.tensor([start_frame], device=device)
+    env.reset_to_frames(first)
+    obs = env.get_observations()
+    motion = env.motion
+    images, falls = [], []
+    step = 0
+    for target in steps_at_frame:
+        while step < target:
+            with torch.inference_mode():
+                obs, _, _, extras = env.step(policy(obs))
+            step += 1
+            if bool(extras["terminated"][0]):
+                falls.append(step * env.step_dt)
+                env.reset_to_frames(env.time_steps.clone())  # back on the reference, same frame
+            elif bool(env.reached_clip_end[0]):
+                env.reset_to_frames(first)
+            obs = env.get_observations()
+        image = renderer.render(env.sim.data, reference_qpos(env) if ghost else None)
+        if text:
+            frame = int(env.time_steps[0])
+            segment = segment_at(motion.segments, [frame / motion.fps])[0][0]
+            recent = bool(falls) and step * env.step_dt - falls[-1] < 0.5
+            lines = [f"t {step * env.step_dt:5.2f} s   motion {frame / motion.fps:6.2f} s  {segment}",
+                     f"falls {len(falls)}" + ("  (reset to reference)" if recent else "")]
+            image = annotate(image, lines, alert=recent)
+        images.append(image)
+    return images, falls
+
+
+def play(args: argparse.Namespace) -> Path:
+    """Build the run's single-world eval environment and policy, render, write the video."""
+    import torch
+
+    from bmimic.eval import build_policy, checkpoint_label, flag_overrides, load_checkpoint, load_run
+    from bmimic.render import RenderError, TrackingRenderer, video_path, write_video
+    from bmimic.train import build_evaluator
+
+    if args.seconds <= 0 or args.fps <= 0:
+        raise RenderError(f"--seconds ({args.seconds}) and --fps ({args.fps}) must be > 0")
+    overrides = [*args.overrides, *flag_overrides(argparse.Namespace(
+        episodes_per_bin=None, horizon_s=None, num_envs=1, device=args.device))]
+    run = load_run(args.path, overrides)
+    state = load_checkpoint(run.checkpoint, run.device)
+    motion = run.motion
+    if not 0 <= args.start_s < motion.duration_s:
+        raise RenderError(f"--start-s {args.start_s}: must be in [0, {motion.duration_s:g}) s, the motion's length")
+    label = checkpoint_label(run.checkpoint, state)
+    out = args.out if args.out is not None else run.run_dir / "videos" / f"{label}_t{args.start_s:g}s.mp4"
+    out = video_path(Path(out))  # fail on a bad suffix before the rollout, not after
+
+    env = build_evaluator(run.cfg, run.device, run.robot, motion, run.layout).env  # eval.max_envs=1: one world
+    policy = build_policy(state, env, run.cfg.ppo, run.device, run.checkpoint)
+    renderer = TrackingRenderer(env.sim.mjm, args.width, args.height)
+    try:
+        steps = frame_steps(args.seconds, args.fps, env.step_dt)
+        start_frame = min(int(round(args.start_s * motion.fps)), motion.num_frames - 1)
+        log.info("rendering %d frames (%g s at %g fps) of %s from %.2f s", len(steps), args.seconds, args.fps,
+                 run.checkpoint, args.start_s)
+        with torch.inference_mode():
+            images, falls = rollout_frames(env, policy, renderer, start_frame, steps, ghost=not args.no_ghost,
+                                           text=not args.no_text)
+    finally:
+        renderer.close()
+    path = write_video(images, out, args.fps)
+    fell = f", fell {len(falls)} times (at {', '.join(f'{t:.2f}' for t in falls[:5])} s)" if falls else ""
+    print(f"wrote {path}: {len(images)} frames, {args.width}x{args.height} at {args.fps:g} fps{fell}")
+    return path
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parser().parse_intermixed_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # The GL backend must be chosen before anything imports mujoco.
+    from bmimic.render import select_gl_backend
+
+    try:
+        select_gl_backend()
+    except Exception as e:  # RenderError; a probe that cannot even start is the same answer
+        print(f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}", file=sys.stderr)
+        return 2
+
+    from bmimic.eval import first_line, quiet_warp, user_errors
+
+    quiet_warp()
+    try:
+        play(args)
+    except user_errors() as e:
+        print(f"error: {first_line(e)}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,39 @@
+"""Shared fixtures: composed configs, the repo root, the shared data folder."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+CONF = REPO / "conf"
+SHARED_MOTIONS = REPO.parent / "shared" / "motions"
+
+# Tiny sizes for end-to-end runs of the real command line on a CPU.
+TINY = [
+    "device=cpu", "num_envs=2", "max_iterations=2", "ppo.num_steps_per_env=8", "ppo.num_mini_batches=2",
+    "motion=easy_only", "eval.horizon_s=0.2", "progress_bar=false",
+]
+
+
+def compose(overrides: list[str] | None = None, return_hydra_config: bool = False):
+    """Compose conf/train.yaml with overrides, the way the CLI does."""
+    import bmimic.config  # noqa: F401  (registers the schemas)
+    from hydra import compose as _compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return _compose("train", overrides=overrides or [], return_hydra_config=return_hydra_config)
+
+
+@pytest.fixture
+def cfg():
+    return compose()
+
+
+def cli_env() -> dict:
+    env = dict(os.environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env

@@ -1,0 +1,138 @@
+"""Config tree: every option of every group composes; typos fail at composition; validation names the key."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from omegaconf import OmegaConf
+
+from bmimic.config import ConfigError, resolve_runtime, validate
+from tests.conftest import CONF, compose
+
+GROUPS = ["robot", "motion", "sampler", "ppo", "sim", "env", "eval"]
+OPTIONS = [(g, p.stem) for g in GROUPS for p in sorted((CONF / g).glob("*.yaml"))]
+
+
+def test_required_groups_exist():
+    for group in ("robot", "motion", "sampler", "ppo"):
+        assert list((CONF / group).glob("*.yaml")), group
+    assert {p.stem for p in (CONF / "sampler").glob("*.yaml")} >= {"uniform", "adaptive", "beyondmimic"}
+
+
+def test_defaults():
+    cfg = compose()
+    assert cfg.robot.name == "g1"
+    assert cfg.motion.source == "builtin"
+    assert cfg.sampler.name == "adaptive"
+    assert cfg.ppo.num_steps_per_env == 24 and cfg.ppo.learning_rate == 1e-3 and cfg.ppo.entropy_coef == 0.005
+    for key in ("seed", "device", "num_envs", "max_iterations", "run_name", "sweep_name"):
+        assert key in cfg
+
+
+@pytest.mark.parametrize("group,option", OPTIONS, ids=[f"{g}={o}" for g, o in OPTIONS])
+def test_every_option_composes(group, option):
+    cfg = compose([f"{group}={option}"])
+    OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+    assert cfg[group] is not None
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["sampler.gama=0.5", "sampler.K=three", "ppo.learning_rate=fast", "env.episode_length=10", "nonsense=1"],
+)
+def test_typos_and_wrong_types_fail_at_composition(override):
+    with pytest.raises(Exception) as err:
+        compose([override])
+    assert override.split("=")[0].split(".")[-1] in str(err.value)
+
+
+def _resolved(overrides):
+    cfg = compose(overrides)
+    resolve_runtime(cfg, "cpu")
+    return cfg
+
+
+def test_runtime_defaults_cpu_and_gpu():
+    cpu = _resolved([])
+    assert cpu.num_envs == 8 and cpu.max_iterations == 4 and cpu.device == "cpu"
+    gpu = compose([])
+    resolve_runtime(gpu, "cuda:0")
+    assert gpu.num_envs == 4096 and gpu.max_iterations == gpu.ppo.max_iterations
+    explicit = compose(["num_envs=16", "max_iterations=7"])
+    resolve_runtime(explicit, "cuda:0")
+    assert explicit.num_envs == 16 and explicit.max_iterations == 7
+
+
+BAD = [
+    (["num_envs=3", "ppo.num_mini_batches=4", "ppo.num_steps_per_env=5"], "ppo.num_mini_batches"),
+    (["sampler.lambda_uniform=1.5"], "sampler.lambda_uniform"),
+    (["sampler.lambda_uniform=-0.1"], "sampler.lambda_uniform"),
+    (["sampler.gamma=0"], "sampler.gamma"),
+    (["sampler.gamma=1.2"], "sampler.gamma"),
+    (["sampler.K=0"], "sampler.K"),
+    (["sampler.bin_size_seconds=0"], "sampler.bin_size_seconds"),
+    (["sampler.bin_size_seconds=31"], "sampler.bin_size_seconds"),
+    (["sampler.alpha_smooth=0"], "sampler.alpha_smooth"),
+    (["sampler.attribution=middle"], "sampler.attribution"),
+    (["sampler.failure=sometimes"], "sampler.failure"),
+    (["num_envs=0"], "num_envs"),
+    (["sim.decimation=0"], "sim.decimation"),
+    (["sim.timestep_s=-1"], "sim.timestep_s"),
+    (["env.episode_length_s=0"], "env.episode_length_s"),
+    (["env.rewards.action_rate.func=no_such_term"], "env.rewards.action_rate.func"),
+    (["eval.horizon_s=0"], "eval.horizon_s"),
+    (["logger=stdout"], "logger"),
+    (["ppo.gamma=1.5"], "ppo.gamma"),
+]
+
+
+@pytest.mark.parametrize("overrides,key", BAD, ids=[b[1] + ":" + b[0][-1] for b in BAD])
+def test_validation_names_the_key(overrides, key):
+    cfg = _resolved(overrides)
+    with pytest.raises(Exception) as err:
+        validate(cfg, motion_duration_s=30.0)
+    assert key in str(err.value)
+    assert "\n" not in str(err.value).strip()
+
+
+def test_default_config_is_valid():
+    validate(_resolved([]), motion_duration_s=30.0)
+
+
+def test_config_error_is_one_line_on_the_cli(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "bmimic.train", "device=cpu", "sampler.lambda_uniform=2", "motion=easy_only",
+         f"hydra.run.dir={tmp_path}/run"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert out.returncode == 2, out.stderr[-2000:]
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("error:") and "sampler.lambda_uniform" in last
+    assert "Traceback" not in out.stderr
+    status = (tmp_path / "run" / "status.json").read_text()
+    assert '"failed"' in status and "lambda_uniform" in status
+
+
+def test_help_lists_groups():
+    out = subprocess.run([sys.executable, "-m", "bmimic.train", "--help"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0
+    for group in ("robot", "motion", "sampler", "ppo"):
+        assert group in out.stdout
+    for option in ("uniform", "adaptive", "beyondmimic"):
+        assert option in out.stdout
+
+
+def test_cfg_job_prints_config():
+    out = subprocess.run([sys.executable, "-m", "bmimic.train", "--cfg", "job", "sampler=uniform"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0
+    printed = OmegaConf.create(out.stdout)
+    assert printed.sampler.name == "uniform"
+
+
+def test_sweep_folder_layout():
+    cfg = compose(["sampler=uniform", "seed=3", "sweep_name=abl"], return_hydra_config=True)
+    assert cfg.hydra.sweep.dir == "outputs/sweeps/abl"
+    assert "seed" in cfg.hydra.job.config.override_dirname.exclude_keys

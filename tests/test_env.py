@@ -1,0 +1,96 @@
+"""The tracking environment on the CPU: dimensions, consistent resets, sampler wiring, robustness."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from bmimic.config import resolve_runtime
+from bmimic.train import build, build_evaluator
+from tests.conftest import compose
+
+
+@pytest.fixture(scope="module")
+def built():
+    cfg = compose(["motion=easy_only", "num_envs=4", "device=cpu"])
+    resolve_runtime(cfg, "cpu")
+    mjm, robot, motion, layout, sampler, env = build(cfg, "cpu")
+    evaluator = build_evaluator(cfg, "cpu", robot, motion, layout)
+    return cfg, robot, motion, layout, sampler, env, evaluator
+
+
+def test_observation_and_action_dims(built):
+    cfg, robot, motion, layout, sampler, env, _ = built
+    obs = env.get_observations()
+    assert obs["policy"].shape == (4, 160)  # BeyondMimic policy observation
+    assert obs["critic"].shape == (4, 286)  # privileged critic observation
+    assert env.num_actions == 29
+    assert env.max_episode_length == 500  # 10 s at 50 Hz
+    o, r, d, extras = env.step(torch.zeros(4, 29))
+    assert r.shape == (4,) and d.shape == (4,) and extras["time_outs"].shape == (4,)
+    assert torch.isfinite(o["policy"]).all() and torch.isfinite(r).all()
+
+
+def test_reset_poses_are_consistent(built):
+    """After a state write the body poses read in the same step match the new state (mjlab #1068)."""
+    *_, evaluator = built
+    env = evaluator.env
+    frames = torch.arange(env.num_envs) * 37 % env.motion_num_frames
+    env.reset_to_frames(frames)
+    s = env.state
+    assert torch.allclose(s.robot_body_pos, s.ref_body_pos, atol=2e-4)
+    err = (s.robot_body_quat * s.ref_body_quat).sum(-1).abs()
+    assert torch.allclose(err, torch.ones_like(err), atol=1e-4)
+    # At the reference state every tracking reward is (numerically) 1.
+    from bmimic.envs.mdp import rewards
+
+    for fn in (rewards.motion_relative_body_position_error_exp, rewards.motion_relative_body_orientation_error_exp,
+               rewards.motion_global_anchor_position_error_exp):
+        assert torch.allclose(fn(env, std=0.3), torch.ones(env.num_envs), atol=1e-3)
+
+
+def test_clip_end_teleports_consistently(built):
+    cfg, robot, motion, layout, sampler, env, _ = built
+    env.time_steps[:] = env.segment_end - 1
+    env.step(torch.zeros(4, 29))
+    s = env.state
+    # Every env was resampled: its anchor is within the RSI noise of the new reference, not stale.
+    dist = (s.robot_anchor_pos - s.ref_anchor_pos)[:, :2].norm(dim=-1)
+    assert (dist < 0.2).all(), dist
+    assert (env.time_steps < env.segment_end).all()
+    assert (env.episode_length_buf > 0).all()  # the episode continued
+
+
+def test_failures_reach_the_sampler(built):
+    cfg, robot, motion, layout, sampler, env, _ = built
+    before = sampler.smoothed_failure().clone()
+    env.time_steps[:] = 3 * int(motion.fps)  # bin 3
+    env.sim.qpos[:, 2] = 0.2  # pelvis on the floor: anchor height termination
+    env.sim.forward_kinematics()
+    _, _, dones, extras = env.step(torch.zeros(4, 29))
+    assert dones.all() and extras["terminated"].all()
+    after = sampler.smoothed_failure()
+    assert after[3] > before[3]
+    stats = env.pop_iteration_stats()
+    assert stats["bin_failures"][3] == 4 and stats["failures"] >= 4
+
+
+def test_nonfinite_world_is_reset_not_fatal(built):
+    cfg, robot, motion, layout, sampler, env, _ = built
+    env.sim.qvel[1, :] = float("nan")
+    obs, rew, dones, extras = env.step(torch.zeros(4, 29))
+    assert torch.isfinite(obs["policy"]).all() and torch.isfinite(rew).all()
+    assert dones[1] == 1 and extras["time_outs"][1]
+    assert env.pop_iteration_stats()["nonfinite_resets"] >= 1
+
+
+def test_uniform_and_eval_envs(built):
+    *_, evaluator = built
+    env = evaluator.env
+    assert not env.randomize and not env.noise_enabled
+    per_bin = evaluator.evaluate(lambda obs, stochastic_output=False: torch.zeros(env.num_envs, 29), 0, 0, 0.0)
+    assert len(per_bin) == evaluator.layout.num_bins
+    assert per_bin["failure_rate"].between(0, 1).all()
+    assert (per_bin["mpkpe_mm"] >= 0).all() and per_bin["mpkpe_mm"].map(math.isfinite).all()
