@@ -57,18 +57,18 @@ def locate_run(path: str | Path) -> tuple[Path, Path]:
     p = Path(path).expanduser()
     if not p.exists():
         raise EvalError(f"{p}: no such run folder or checkpoint")
-    if p.is_dir():
-        run_dir, checkpoint = p, p / CHECKPOINT_DIR / LATEST
-        if not checkpoint.exists():
-            found = sorted((p / CHECKPOINT_DIR).glob("model_*.pt")) if (p / CHECKPOINT_DIR).is_dir() else []
-            if not found:
-                raise EvalError(f"{p}: no checkpoint ({CHECKPOINT_DIR}/{LATEST} or model_<it>.pt); "
-                                "is this a run folder of a run that has saved one?")
-            checkpoint = max(found, key=_iteration_of_name)
-    else:
-        run_dir, checkpoint = p.resolve().parent.parent, p
+    run_dir = p if p.is_dir() else p.resolve().parent.parent
     if not (run_dir / ".hydra" / "config.yaml").exists():
-        raise EvalError(f"{run_dir}: not a run folder (no .hydra/config.yaml)")
+        where = "" if p.is_dir() else f" (the folder two levels above checkpoint {p.name})"
+        raise EvalError(f"{run_dir}: not a run folder{where}: no .hydra/config.yaml")
+    if not p.is_dir():
+        return run_dir.resolve(), p.resolve()
+    checkpoint = p / CHECKPOINT_DIR / LATEST
+    if not checkpoint.exists():
+        found = sorted((p / CHECKPOINT_DIR).glob("model_*.pt")) if (p / CHECKPOINT_DIR).is_dir() else []
+        if not found:
+            raise EvalError(f"{p}: no checkpoint ({CHECKPOINT_DIR}/{LATEST} or model_<it>.pt) in this run folder")
+        checkpoint = max(found, key=_iteration_of_name)
     return run_dir.resolve(), checkpoint.resolve()
 
 
@@ -103,6 +103,22 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
     return cfg
 
 
+def anchor_relative_paths(cfg, run_dir: Path) -> None:
+    """Relative input paths (motion.path, robot.mjcf_path) were relative to the directory training was
+    started in; resolve them against it (from .hydra/hydra.yaml) when they do not exist from here."""
+    from omegaconf import OmegaConf
+
+    try:
+        launch_dir = Path(OmegaConf.load(run_dir / ".hydra" / "hydra.yaml").hydra.runtime.cwd)
+    except Exception:  # no hydra.yaml (a hand-made run folder): paths stay relative to here
+        return
+    for group, key in (("motion", "path"), ("robot", "mjcf_path")):
+        value = cfg[group].get(key)
+        if value and not Path(value).expanduser().is_absolute() and not Path(value).exists():
+            if (launch_dir / value).exists():
+                cfg[group][key] = str(launch_dir / value)
+
+
 @dataclass
 class LoadedRun:
     """A run's config resolved for this machine, with the robot, motion and bins rebuilt from it."""
@@ -135,6 +151,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = ()) -> LoadedRun:
 
     run_dir, checkpoint = locate_run(path)
     cfg = load_run_config(run_dir, overrides)
+    anchor_relative_paths(cfg, run_dir)
     device = resolve_device(cfg.device)
     resolve_runtime(cfg, device)
     mjm = load_mjmodel(cfg=cfg.robot)

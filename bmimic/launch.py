@@ -21,6 +21,7 @@ and the simulator out of its imports.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as _dt
 import fcntl
 import hashlib
@@ -69,35 +70,57 @@ def available_studies() -> list[str]:
     return sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml"))
 
 
-def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
-              config_name: str = "train") -> tuple[Path, list[Job]]:
-    """(sweep folder, jobs) of `python -m bmimic.train -m <overrides>`, without running anything.
-
-    Composes the primary config in multirun mode, crosses `hydra.sweeper.params` with the command
-    line overrides as BasicSweeper does (a command-line key replaces the params' entry), then builds
-    each job's config with Hydra's sweep loader to resolve its folder.
-    """
-    import bmimic.config  # noqa: F401  (registers the config schemas and the bmimic.arm_dir resolver)
+@contextlib.contextmanager
+def _config_loader(config_dir: str | os.PathLike, config_name: str):
+    """Hydra's config loader for `config_dir`, initialised as for `python -m bmimic.train`."""
     from hydra import initialize_config_dir
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
+
+    import bmimic.config  # noqa: F401  (registers the config schemas and the bmimic.arm_dir resolver)
+
+    with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3",
+                               job_name=config_name):
+        yield GlobalHydra.instance().config_loader()
+
+
+def _expand(loader, config_name: str, overrides: Sequence[str]) -> tuple[DictConfig, list[list[str]]]:
+    """(master config, each job's overrides) as `-m` would make them: the sweeper params crossed
+    with the command line, where a command-line key replaces the params' entry (BasicSweeper)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.types import RunMode
 
     overrides = [o for o in overrides if o not in ("-m", "--multirun")]
-    with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3",
-                               job_name=config_name):
-        loader = GlobalHydra.instance().config_loader()
-        master = loader.load_configuration(config_name, overrides, run_mode=RunMode.MULTIRUN)
-        sweeper = master.hydra.sweeper
-        if not str(sweeper.get("_target_", "")).endswith("BasicSweeper"):
-            raise SweepListError(f"the dry run expands Hydra's basic sweeper only, not {sweeper._target_}")
-        params = sweeper.get("params") or {}
-        task_overrides = list(master.hydra.overrides.task)
-        arguments = [f"{k}={v}" for k, v in params.items()] + task_overrides
-        parsed = OverridesParser.create(config_loader=loader).parse_overrides(arguments)
-        (batch,) = BasicSweeper.split_arguments(parsed, None)
+    master = loader.load_configuration(config_name, overrides, run_mode=RunMode.MULTIRUN)
+    sweeper = master.hydra.sweeper
+    if not str(sweeper.get("_target_", "")).endswith("BasicSweeper"):
+        raise SweepListError(f"the dry run expands Hydra's basic sweeper only, not {sweeper._target_}")
+    params = sweeper.get("params") or {}
+    arguments = [f"{k}={v}" for k, v in params.items()] + list(master.hydra.overrides.task)
+    parsed = OverridesParser.create(config_loader=loader).parse_overrides(arguments)
+    (batch,) = BasicSweeper.split_arguments(parsed, None)
+    return master, batch
+
+
+def sweep_overrides(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
+                    config_name: str = "train") -> list[list[str]]:
+    """Each job's overrides for `python -m bmimic.train -m <overrides>`, in launch order (cheap:
+    composes the primary config once)."""
+    with _config_loader(config_dir, config_name) as loader:
+        return _expand(loader, config_name, overrides)[1]
+
+
+def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
+              config_name: str = "train") -> tuple[Path, list[Job]]:
+    """(sweep folder, jobs) of `python -m bmimic.train -m <overrides>`, without running anything.
+
+    Builds every job's config with Hydra's sweep loader, as the launcher does (about a second per
+    job), so the folders are resolved exactly and a job that would not compose fails here.
+    """
+    from hydra.core.hydra_config import HydraConfig
+
+    with _config_loader(config_dir, config_name) as loader:
+        master, batch = _expand(loader, config_name, overrides)
         jobs = []
         for num, job_overrides in enumerate(batch):
             cfg = loader.load_sweep_config(master, list(job_overrides))
@@ -250,6 +273,8 @@ def pin_job_to_gpu() -> str | None:
     if "joblib" not in str(hc.launcher.get("_target_", "")):
         return None
     if _claimed:  # a reused worker: its CUDA context (if any) is bound to the GPU pinned first
+        log.info("GPU slot %d: CUDA_VISIBLE_DEVICES=%s (held by worker pid %d since its first job)",
+                 _claimed["slot"], _claimed["gpu"], os.getpid())
         return _claimed["gpu"]
     gpus = visible_gpus()
     if not gpus:

@@ -40,6 +40,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=480, help="image height in pixels (default 480)")
     p.add_argument("--fps", type=float, default=50.0, help="video frame rate (default 50 = the control rate)")
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
+    p.add_argument("--msaa", type=int, help="multisample anti-aliasing samples (default 4; 0 on software GL)")
     p.add_argument("--no-ghost", action="store_true", help="do not draw the reference ghost")
     p.add_argument("--no-text", action="store_true", help="do not print time, segment and falls on the frames")
     return p
@@ -70,48 +71,45 @@ def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequ
     from bmimic.eval import segment_at
     from bmimic.render import annotate
 
-    device = env.device
-    first = torch.tensor([start_frame], device=device)
-    env.reset_to_frames(first)
-    obs = env.get_observations()
+    first = torch.tensor([start_frame], device=env.device)
     motion = env.motion
     images, falls = [], []
     step = 0
-    for target in steps_at_frame:
-        while step < target:
-            with torch.inference_mode():
+    with torch.inference_mode():  # the whole rollout: env tensors rebound inside stay inference tensors
+        env.reset_to_frames(first)
+        obs = env.get_observations()
+        for target in steps_at_frame:
+            while step < target:
                 obs, _, _, extras = env.step(policy(obs))
-            step += 1
-            if bool(extras["terminated"][0]):
-                falls.append(step * env.step_dt)
-                env.reset_to_frames(env.time_steps.clone())  # back on the reference, same frame
-            elif bool(env.reached_clip_end[0]):
-                env.reset_to_frames(first)
-            obs = env.get_observations()
-        image = renderer.render(env.sim.data, reference_qpos(env) if ghost else None)
-        if text:
-            frame = int(env.time_steps[0])
-            segment = segment_at(motion.segments, [frame / motion.fps])[0][0]
-            recent = bool(falls) and step * env.step_dt - falls[-1] < 0.5
-            lines = [f"t {step * env.step_dt:5.2f} s   motion {frame / motion.fps:6.2f} s  {segment}",
-                     f"falls {len(falls)}" + ("  (reset to reference)" if recent else "")]
-            image = annotate(image, lines, alert=recent)
-        images.append(image)
+                step += 1
+                if bool(extras["terminated"][0]):
+                    falls.append(step * env.step_dt)
+                    env.reset_to_frames(env.time_steps.clone())  # back on the reference, same frame
+                elif bool(env.reached_clip_end[0]):
+                    env.reset_to_frames(first)
+                obs = env.get_observations()
+            image = renderer.render(env.sim.data, reference_qpos(env) if ghost else None)
+            if text:
+                frame = int(env.time_steps[0])
+                segment = segment_at(motion.segments, [frame / motion.fps])[0][0]
+                recent = bool(falls) and step * env.step_dt - falls[-1] < 0.5
+                lines = [f"t {step * env.step_dt:5.2f} s   motion {frame / motion.fps:6.2f} s  {segment}",
+                         f"falls {len(falls)}" + ("  (reset to reference)" if recent else "")]
+                image = annotate(image, lines, alert=recent)
+            images.append(image)
     return images, falls
 
 
 def play(args: argparse.Namespace) -> Path:
     """Build the run's single-world eval environment and policy, render, write the video."""
-    import torch
-
-    from bmimic.eval import build_policy, checkpoint_label, flag_overrides, load_checkpoint, load_run
+    from bmimic.eval import build_policy, checkpoint_label, load_checkpoint, load_run
     from bmimic.render import RenderError, TrackingRenderer, video_path, write_video
     from bmimic.train import build_evaluator
 
     if args.seconds <= 0 or args.fps <= 0:
         raise RenderError(f"--seconds ({args.seconds}) and --fps ({args.fps}) must be > 0")
-    overrides = [*args.overrides, *flag_overrides(argparse.Namespace(
-        episodes_per_bin=None, horizon_s=None, num_envs=1, device=args.device))]
+    # eval.max_envs=1: build_evaluator then makes exactly one world.
+    overrides = [*args.overrides, "eval.max_envs=1", *([f"device={args.device}"] if args.device else [])]
     run = load_run(args.path, overrides)
     state = load_checkpoint(run.checkpoint, run.device)
     motion = run.motion
@@ -121,17 +119,16 @@ def play(args: argparse.Namespace) -> Path:
     out = args.out if args.out is not None else run.run_dir / "videos" / f"{label}_t{args.start_s:g}s.mp4"
     out = video_path(Path(out))  # fail on a bad suffix before the rollout, not after
 
-    env = build_evaluator(run.cfg, run.device, run.robot, motion, run.layout).env  # eval.max_envs=1: one world
+    env = build_evaluator(run.cfg, run.device, run.robot, motion, run.layout).env
     policy = build_policy(state, env, run.cfg.ppo, run.device, run.checkpoint)
-    renderer = TrackingRenderer(env.sim.mjm, args.width, args.height)
+    renderer = TrackingRenderer(env.sim.mjm, args.width, args.height, msaa=args.msaa)
     try:
         steps = frame_steps(args.seconds, args.fps, env.step_dt)
         start_frame = min(int(round(args.start_s * motion.fps)), motion.num_frames - 1)
         log.info("rendering %d frames (%g s at %g fps) of %s from %.2f s", len(steps), args.seconds, args.fps,
                  run.checkpoint, args.start_s)
-        with torch.inference_mode():
-            images, falls = rollout_frames(env, policy, renderer, start_frame, steps, ghost=not args.no_ghost,
-                                           text=not args.no_text)
+        images, falls = rollout_frames(env, policy, renderer, start_frame, steps, ghost=not args.no_ghost,
+                                       text=not args.no_text)
     finally:
         renderer.close()
     path = write_video(images, out, args.fps)

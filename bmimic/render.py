@@ -26,6 +26,7 @@ log = logging.getLogger(__name__)
 
 GL_BACKENDS = ("egl", "osmesa")
 """Headless backends tried, in order, when MUJOCO_GL is unset."""
+_USABLE_GL = ("egl", "osmesa", "glfw", "glx", "cgl", "wgl", "enable", "enabled", "on", "true", "1")
 GHOST_RGBA = (0.35, 0.75, 1.0, 0.35)
 """Colour of the reference ghost (translucent light blue)."""
 
@@ -66,6 +67,8 @@ def select_gl_backend(candidates: Sequence[str] = GL_BACKENDS) -> str:
     """
     current = os.environ.get("MUJOCO_GL", "").strip()
     if current:
+        if current.lower() not in _USABLE_GL:  # mujoco would raise at import, or render nothing
+            raise RenderError(f"MUJOCO_GL={current}: offscreen rendering needs egl or osmesa (or glfw with a display)")
         return current
     if "mujoco" in sys.modules:  # too late to choose: mujoco has already bound its default (GLFW)
         log.warning("mujoco was imported before a GL backend was chosen; set MUJOCO_GL=egl or osmesa")
@@ -92,28 +95,54 @@ class TrackingRenderer:
     """
 
     def __init__(self, mjm, width: int = 640, height: int = 480, camera: str = "tracking",
-                 ghost_rgba: Sequence[float] = GHOST_RGBA) -> None:
+                 ghost_rgba: Sequence[float] = GHOST_RGBA, msaa: int | None = None) -> None:
         import mujoco
 
         if width < 16 or height < 16:
             raise RenderError(f"video size {width}x{height}: width and height must be at least 16 pixels")
         self.mjm = mjm
+        self.width, self.height = width, height
         # The offscreen framebuffer must be at least the image size; it does not affect physics.
         mjm.vis.global_.offwidth = max(int(mjm.vis.global_.offwidth), width)
         mjm.vis.global_.offheight = max(int(mjm.vis.global_.offheight), height)
-        try:
-            self.renderer = mujoco.Renderer(mjm, height=height, width=width)
-        except Exception as e:  # each backend fails differently (ImportError, FatalError, AttributeError...)
-            backend = os.environ.get("MUJOCO_GL", "") or "default (glfw)"
-            text = str(e).strip().splitlines()
-            raise RenderError(f"cannot create an offscreen renderer with MUJOCO_GL={backend}: "
-                              f"{text[0] if text else type(e).__name__}; try MUJOCO_GL=egl or osmesa") from None
+        self.renderer = self._make_renderer()
+        self.gl_renderer = self._gl_renderer_name()
+        if msaa is None:
+            # Multisampling costs a software rasteriser ~5x per frame (llvmpipe); GPUs do it for free.
+            msaa = 0 if _is_software(self.gl_renderer) else int(mjm.vis.quality.offsamples)
+        if msaa != int(mjm.vis.quality.offsamples):
+            mjm.vis.quality.offsamples = msaa  # read when the framebuffer is made: make it again
+            self.renderer.close()
+            self.renderer = self._make_renderer()
+        log.info("renderer: %s, %d MSAA samples", self.gl_renderer or "unknown OpenGL", msaa)
         self.data = mujoco.MjData(mjm)
         self.ghost = mujoco.MjData(mjm)
         self.option = mujoco.MjvOption()  # default groups: 0-2 shown, collision geoms (group 3) hidden
         self.perturb = mujoco.MjvPerturb()
         self.ghost_rgba = np.asarray(ghost_rgba, dtype=np.float32)
         self.camera = self._camera(camera)
+
+    def _make_renderer(self):
+        import mujoco
+
+        try:
+            return mujoco.Renderer(self.mjm, height=self.height, width=self.width)
+        except Exception as e:  # each backend fails differently (ImportError, FatalError, AttributeError...)
+            backend = os.environ.get("MUJOCO_GL", "") or "default (glfw)"
+            text = str(e).strip().splitlines()
+            raise RenderError(f"cannot create an offscreen renderer with MUJOCO_GL={backend}: "
+                              f"{text[0] if text else type(e).__name__}; try MUJOCO_GL=egl or osmesa") from None
+
+    def _gl_renderer_name(self) -> str:
+        """GL_RENDERER of the context ('' when it cannot be asked)."""
+        try:
+            from OpenGL import GL
+
+            self.renderer._gl_context.make_current()
+            name = GL.glGetString(GL.GL_RENDERER)
+            return name.decode() if isinstance(name, bytes) else str(name or "")
+        except Exception:  # only a performance hint; never fail over it
+            return ""
 
     def _camera(self, name: str):
         import mujoco
@@ -129,7 +158,6 @@ class TrackingRenderer:
 
     def render(self, sim_data, ref_qpos: np.ndarray | None, world: int = 0) -> np.ndarray:
         """[H, W, 3] uint8 image of `world` of a mujoco_warp Data, with the ghost at `ref_qpos`."""
-        import mujoco
         import mujoco_warp as mjw
 
         mjw.get_data_into(self.data, self.mjm, sim_data, world_id=world)
@@ -152,6 +180,11 @@ class TrackingRenderer:
 
     def close(self) -> None:
         self.renderer.close()
+
+
+def _is_software(gl_renderer: str) -> bool:
+    name = gl_renderer.lower()
+    return any(k in name for k in ("llvmpipe", "softpipe", "swrast", "software"))
 
 
 def annotate(image: np.ndarray, lines: Sequence[str], alert: bool = False) -> np.ndarray:
@@ -186,6 +219,8 @@ def video_path(path: Path) -> Path:
     if suffix not in (".mp4", ".gif"):
         raise RenderError(f"--out {path}: the video must end in .mp4 or .gif")
     if suffix == ".mp4" and not mp4_available():
+        log.warning("imageio/imageio-ffmpeg are not installed: writing a GIF instead (%s); "
+                    "pip install imageio imageio-ffmpeg for MP4", path.with_suffix(".gif").name)
         return path.with_suffix(".gif")
     return path
 
@@ -194,11 +229,7 @@ def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: floa
     """Write frames ([H, W, 3] uint8) atomically as MP4 or GIF (by suffix, see `video_path`)."""
     from bmimic.runs import atomic_write
 
-    requested = Path(path)
-    path = video_path(requested)
-    if path != requested:
-        log.warning("imageio/imageio-ffmpeg are not installed: writing a GIF instead (%s); "
-                    "pip install imageio imageio-ffmpeg for MP4", path)
+    path = video_path(Path(path))
     if not frames:
         raise RenderError("no frames to write")
     if path.suffix.lower() == ".mp4":
@@ -221,7 +252,7 @@ def _write_mp4(frames: Sequence[np.ndarray], tmp: str, fps: float) -> None:
 def _write_gif(frames: Sequence[np.ndarray], tmp: str, fps: float) -> None:
     from PIL import Image
 
-    images = [Image.fromarray(f).quantize(colors=256, method=Image.Quantize.MEDIANCUT) for f in frames]
+    images = [Image.fromarray(f).quantize(colors=256, method=Image.Quantize.FASTOCTREE) for f in frames]
     # GIF delays are whole hundredths of a second: 50 fps -> 20 ms exactly, 30 fps -> 30 ms.
     duration_ms = max(10, int(round(100.0 / fps)) * 10)
     images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms, loop=0,

@@ -26,7 +26,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from bmimic import BmimicError
+from bmimic import BmimicError, launch
 from bmimic.config import resolve_runtime, validate
 from bmimic.runs import (
     atomic_write_json,
@@ -166,23 +166,28 @@ def main(cfg: DictConfig) -> float:
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
-    if multirun and read_status(run_dir).get("status") == "done" and cfg.get("resume") is None:
-        log.info("skipping %s: already done", run_dir)
-        metrics = _read_metrics(run_dir)
-        return float(metrics.get("final_eval_failure_rate", math.nan))
-    if multirun and cfg.resume is None:
-        cfg.resume = "true"  # an interrupted sweep job continues from its last checkpoint
+    if multirun:
+        previous = read_status(run_dir)
+        if previous.get("status") == "done" and cfg.get("resume") is None:
+            log.info("skipping %s: already done", run_dir)
+            metrics = _read_metrics(run_dir)
+            return float(metrics.get("final_eval_failure_rate", math.nan))
+        launch.note_previous_attempt(run_dir, previous)  # status.json is overwritten; errors.log keeps it
+        cfg.resume = _sweep_job_resume(cfg.resume, run_dir)
+        launch.pin_job_to_gpu()  # joblib workers: one GPU per slot, before anything initialises CUDA
     try:
         return train(cfg, run_dir)
     except _user_errors() as e:
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         write_status(run_dir, "failed", error=msg)
+        launch.append_error_log(run_dir, f"attempt failed: {msg}")
         print(f"error: {msg}", file=sys.stderr)
         if multirun:
             return math.nan
         sys.exit(2)
     except Exception as e:
         write_status(run_dir, "failed", error=f"{type(e).__name__}: {e}")
+        launch.append_error_log(run_dir, f"attempt failed: {type(e).__name__}: {e}", traceback.format_exc())
         if multirun:  # one broken job must not end the sweep; its error is kept in status.json
             log.error("job failed:\n%s", traceback.format_exc())
             return math.nan
@@ -190,6 +195,14 @@ def main(cfg: DictConfig) -> float:
     finally:
         if multirun:
             _update_sweep_index(run_dir)
+
+
+def _sweep_job_resume(resume: str | None, run_dir: Path) -> str | None:
+    """A sweep job continues from its own last checkpoint only, never from a sibling job's folder."""
+    if resume is None or str(resume).lower() in ("true", "latest", "1", "yes"):
+        own = run_dir / "checkpoints" / "latest.pt"
+        return str(own) if own.exists() else None
+    return resume
 
 
 def _read_metrics(run_dir: Path) -> dict:

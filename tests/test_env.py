@@ -12,13 +12,27 @@ from bmimic.train import build, build_evaluator
 from tests.conftest import compose
 
 
-@pytest.fixture(scope="module")
-def built():
-    cfg = compose(["motion=easy_only", "num_envs=4", "device=cpu"])
-    resolve_runtime(cfg, "cpu")
-    mjm, robot, motion, layout, sampler, env = build(cfg, "cpu")
-    evaluator = build_evaluator(cfg, "cpu", robot, motion, layout)
+DEVICES = ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(scope="module", params=DEVICES)
+def built(request):
+    """On a GPU machine the same tests also run the CUDA-graph path."""
+    device = request.param
+    cfg = compose(["motion=easy_only", "num_envs=4", f"device={device}"])
+    resolve_runtime(cfg, device)
+    mjm, robot, motion, layout, sampler, env = build(cfg, device)
+    evaluator = build_evaluator(cfg, device, robot, motion, layout)
     return cfg, robot, motion, layout, sampler, env, evaluator
+
+
+def test_graph_path_on_gpu(built):
+    cfg, robot, motion, layout, sampler, env, _ = built
+    assert (env._graphs is not None) == (env.device.type == "cuda")
+    for _ in range(20):
+        obs, rew, dones, extras = env.step(torch.randn(4, 29, device=env.device) * 0.1)
+    assert torch.isfinite(obs["policy"]).all() and torch.isfinite(rew).all()
+    assert (env.time_steps < env.segment_end).all()
 
 
 def test_observation_and_action_dims(built):
@@ -28,7 +42,7 @@ def test_observation_and_action_dims(built):
     assert obs["critic"].shape == (4, 286)  # privileged critic observation
     assert env.num_actions == 29
     assert env.max_episode_length == 500  # 10 s at 50 Hz
-    o, r, d, extras = env.step(torch.zeros(4, 29))
+    o, r, d, extras = env.step(torch.zeros(4, 29, device=env.device))
     assert r.shape == (4,) and d.shape == (4,) and extras["time_outs"].shape == (4,)
     assert torch.isfinite(o["policy"]).all() and torch.isfinite(r).all()
 
@@ -37,7 +51,7 @@ def test_reset_poses_are_consistent(built):
     """After a state write the body poses read in the same step match the new state (mjlab #1068)."""
     *_, evaluator = built
     env = evaluator.env
-    frames = torch.arange(env.num_envs) * 37 % env.motion_num_frames
+    frames = torch.arange(env.num_envs, device=env.device) * 37 % env.motion_num_frames
     env.reset_to_frames(frames)
     s = env.state
     assert torch.allclose(s.robot_body_pos, s.ref_body_pos, atol=2e-4)
@@ -48,13 +62,13 @@ def test_reset_poses_are_consistent(built):
 
     for fn in (rewards.motion_relative_body_position_error_exp, rewards.motion_relative_body_orientation_error_exp,
                rewards.motion_global_anchor_position_error_exp):
-        assert torch.allclose(fn(env, std=0.3), torch.ones(env.num_envs), atol=1e-3)
+        assert torch.allclose(fn(env, std=0.3), torch.ones(env.num_envs, device=env.device), atol=1e-3)
 
 
 def test_clip_end_teleports_consistently(built):
     cfg, robot, motion, layout, sampler, env, _ = built
     env.time_steps[:] = env.segment_end - 1
-    env.step(torch.zeros(4, 29))
+    env.step(torch.zeros(4, 29, device=env.device))
     s = env.state
     # Every env was resampled: its anchor is within the RSI noise of the new reference, not stale.
     dist = (s.robot_anchor_pos - s.ref_anchor_pos)[:, :2].norm(dim=-1)
@@ -69,7 +83,7 @@ def test_failures_reach_the_sampler(built):
     env.time_steps[:] = 3 * int(motion.fps)  # bin 3
     env.sim.qpos[:, 2] = 0.2  # pelvis on the floor: anchor height termination
     env.sim.forward_kinematics()
-    _, _, dones, extras = env.step(torch.zeros(4, 29))
+    _, _, dones, extras = env.step(torch.zeros(4, 29, device=env.device))
     assert dones.all() and extras["terminated"].all()
     after = sampler.smoothed_failure()
     assert after[3] > before[3]
@@ -80,7 +94,7 @@ def test_failures_reach_the_sampler(built):
 def test_nonfinite_world_is_reset_not_fatal(built):
     cfg, robot, motion, layout, sampler, env, _ = built
     env.sim.qvel[1, :] = float("nan")
-    obs, rew, dones, extras = env.step(torch.zeros(4, 29))
+    obs, rew, dones, extras = env.step(torch.zeros(4, 29, device=env.device))
     assert torch.isfinite(obs["policy"]).all() and torch.isfinite(rew).all()
     assert dones[1] == 1 and extras["time_outs"][1]
     assert env.pop_iteration_stats()["nonfinite_resets"] >= 1
@@ -90,7 +104,7 @@ def test_uniform_and_eval_envs(built):
     *_, evaluator = built
     env = evaluator.env
     assert not env.randomize and not env.noise_enabled
-    per_bin = evaluator.evaluate(lambda obs, stochastic_output=False: torch.zeros(env.num_envs, 29), 0, 0, 0.0)
+    per_bin = evaluator.evaluate(lambda obs, stochastic_output=False: torch.zeros(env.num_envs, 29, device=env.device), 0, 0, 0.0)
     assert len(per_bin) == evaluator.layout.num_bins
     assert per_bin["failure_rate"].between(0, 1).all()
     assert (per_bin["mpkpe_mm"] >= 0).all() and per_bin["mpkpe_mm"].map(math.isfinite).all()

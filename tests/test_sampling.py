@@ -444,6 +444,12 @@ def test_attribute_both_modes_match_loops():
     for b, x in zip(sb, failed.tolist(), strict=True):
         fref[b] += x
     assert failures.tolist() == fref
+    # `counted` drops segments: the same as passing only the counted ones.
+    counted = torch.rand(300, generator=g) < 0.5
+    for mode in ("failure", "start"):
+        got = attribute(start, end, failed, lay, mode, counted=counted)
+        want = attribute(start[counted], end[counted], failed[counted], lay, mode)
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
     with pytest.raises(SamplerConfigError, match="sampler.attribution must be one of failure, start"):
         attribute(start, end, failed, lay, "end")
 
@@ -452,9 +458,11 @@ def test_failed_mask():
     terminated = torch.tensor([T, F, T, F])
     length = torch.tensor([10, 100, 90, 79])
     assert failed_mask(terminated, length, 100, "terminated").tolist() == [T, F, T, F]
-    assert failed_mask(terminated, length, 100, "short", 0.8).tolist() == [T, F, F, T]
+    # "short" = terminated before 0.8 x max; env 3 is short but ended without a termination
+    # (a segment cut by the clip end), so it did not fail.
+    assert failed_mask(terminated, length, 100, "short", 0.8).tolist() == [T, F, F, F]
     per_env_max = torch.tensor([10, 200, 100, 80])
-    assert failed_mask(terminated, length, per_env_max, "short", 1.0).tolist() == [F, T, T, T]
+    assert failed_mask(terminated, length, per_env_max, "short", 1.0).tolist() == [F, F, T, F]
     with pytest.raises(SamplerConfigError, match="sampler.failure must be one of"):
         failed_mask(terminated, length, 100, "fell")
 

@@ -122,8 +122,9 @@ class TrackingEnv(VecEnv):
         self.sampler = sampler
         self.sampler_cfg = sampler_cfg
         self.layout = layout
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(seed)
+        # The default generator (seeded by bmimic.runs.seed_everything): CUDA-graph replay advances it.
+        self.generator = None
+        self._half_widths: dict[tuple, torch.Tensor] = {}
         train = mode == "train"
         self.randomize = train and env_cfg.randomization.enabled
         self.noise_enabled = train and env_cfg.observation_noise
@@ -150,8 +151,9 @@ class TrackingEnv(VecEnv):
         else:
             self.reset_to_frames(torch.zeros(num_envs, dtype=torch.long, device=self.device))
         self.sim.forward_kinematics()
-        self.state = self._compute_state()
-        self._obs = self._compute_observations()
+        self._observe()
+        if train:
+            self.capture()
 
     # ============================================================================ set-up
     def _bind_robot(self, mjm: mujoco.MjModel, robot: RobotInfo) -> None:
@@ -251,8 +253,8 @@ class TrackingEnv(VecEnv):
         self.rew_buf = torch.zeros(n, device=dev)
         self.episode_reward_terms = torch.zeros(n, len(self.reward_terms), device=dev)
         # Per-iteration statistics, accumulated on the device and read once per iteration.
-        self.stats_bin_episodes = torch.zeros(s, device=dev)
-        self.stats_bin_failures = torch.zeros(s, device=dev)
+        self.stats_bin_episodes = torch.zeros(s, dtype=torch.float64, device=dev)
+        self.stats_bin_failures = torch.zeros(s, dtype=torch.float64, device=dev)
         self.stats_episodes = torch.zeros((), device=dev)
         self.stats_failures = torch.zeros((), device=dev)
         self.stats_length_sum = torch.zeros((), device=dev)
@@ -263,9 +265,20 @@ class TrackingEnv(VecEnv):
         self.stats_steps = torch.zeros((), device=dev)
         self.stats_errors = torch.zeros(3, device=dev)  # anchor pos m, body pos m, joint pos rad
         self.extras: dict = {"log": {}}
+        self._actions_in = torch.zeros_like(self.actions)
+        self._dones_long = torch.zeros(n, dtype=torch.long, device=dev)
+        self._graphs = None
+        self.reached_clip_end = torch.zeros(n, dtype=torch.bool, device=dev)
 
     def _uniform(self, shape, half_width) -> torch.Tensor:
-        hw = torch.as_tensor(half_width, dtype=torch.float32, device=self.device)
+        """U(-hw, hw); list half-widths are cached on the device (no host copies on the step path)."""
+        if isinstance(half_width, (list, tuple)):
+            key = tuple(float(x) for x in half_width)
+            hw = self._half_widths.get(key)
+            if hw is None:
+                hw = self._half_widths[key] = torch.tensor(key, dtype=torch.float32, device=self.device)
+        else:
+            hw = float(half_width)
         u = torch.rand(shape, generator=self.generator, device=self.device)
         return (2.0 * u - 1.0) * hw
 
@@ -412,13 +425,32 @@ class TrackingEnv(VecEnv):
         return self._obs
 
     def step(self, actions: torch.Tensor):
-        sim = self.sim
-        self.last_actions.copy_(self.actions)
-        self.actions.copy_(actions)
-        sim.ctrl.copy_(self.default_joint_pos + self.action_scale * self.actions)
-        sim.step()
-        self.episode_length_buf += 1
+        self._actions_in.copy_(actions)
+        if self._graphs is not None:
+            pre, post, obs = self._graphs
+            pre.replay()
+            self.sim.step()
+            post.replay()
+            self.sim.forward_kinematics()
+            obs.replay()
+        else:
+            self._pre_physics()
+            self.sim.step()
+            self._post_physics()
+            if self.mode == "train":
+                self.sim.forward_kinematics()
+            self._observe()
+        return self._obs, self.rew_buf, self._dones_long, self.extras
 
+    def _pre_physics(self) -> None:
+        self.last_actions.copy_(self.actions)
+        self.actions.copy_(self._actions_in)
+        self.sim.ctrl.copy_(self.default_joint_pos + self.action_scale * self.actions)
+
+    def _post_physics(self) -> None:
+        """Terminations, rewards, sampler and resets: everything between physics and kinematics."""
+        sim = self.sim
+        self.episode_length_buf += 1
         # Worlds that blew up are reset (not charged to the sampler) and counted.
         nonfinite = sim.nonfinite_worlds()
         sim.sanitize(nonfinite)
@@ -444,7 +476,7 @@ class TrackingEnv(VecEnv):
 
         if self.mode == "train":
             self._accumulate_episode_stats(dones, terminated)
-            self._finish_segments(dones, terminated, nonfinite)
+            episodes, failures = self._segment_counts(dones, terminated, nonfinite)
             self._resample(dones)
             self.episode_length_buf.masked_fill_(dones, 0)
             self.actions.masked_fill_(dones[:, None], 0.0)
@@ -453,23 +485,51 @@ class TrackingEnv(VecEnv):
             self.time_steps += 1
             # End of the clip mid-episode: resample and teleport; the episode continues.
             clip_end = self.time_steps >= self.segment_end
-            self._finish_segments(clip_end & ~dones, torch.zeros_like(dones), torch.zeros_like(dones))
+            e2, f2 = self._segment_counts(clip_end & ~dones, torch.zeros_like(dones), torch.zeros_like(dones))
             self._resample(clip_end)
+            # One sampler update per control step (the BeyondMimic EMA's time constant is in steps),
+            # after this step's resets were drawn, as in the released code.
+            self.sampler.update_counts(episodes + e2, failures + f2)
+            self.stats_bin_episodes += episodes + e2
+            self.stats_bin_failures += failures + f2
             if self.randomize:
                 self._push(self.step_dt)
-            sim.forward_kinematics()
         else:
             self.time_steps.copy_(torch.minimum(self.time_steps + 1, self.segment_end - 1))
             self.reached_clip_end = self.time_steps >= self.segment_end - 1
+        self._dones_long = dones.long()
+        self.extras = {"time_outs": truncated, "log": {}, "terminated": terminated}
 
+    def _observe(self) -> None:
         self.state = self._compute_state()
         self._obs = self._compute_observations()
-        self.extras = {"time_outs": truncated, "log": {}, "terminated": terminated}
-        return self._obs, self.rew_buf, dones.long(), self.extras
+
+    def capture(self) -> None:
+        """Record the torch work of a step as three CUDA graphs around the simulator's graphs.
+
+        Everything on the step path has fixed shapes and no host synchronisation, so it can be
+        replayed; this removes the per-kernel launch cost that otherwise dominates at 4096+ envs.
+        Two eager warm-up steps fill the caches first; their statistics are discarded.
+        """
+        if not (self.device.type == "cuda" and self.sim.use_graph):
+            return
+        zeros = torch.zeros_like(self.actions)
+        for _ in range(2):
+            self.step(zeros)
+        torch.cuda.synchronize(self.device)
+        pool = torch.cuda.graph_pool_handle()
+        graphs = []
+        for fn in (self._pre_physics, self._post_physics, self._observe):
+            g = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(g, pool=pool):
+                fn()
+            graphs.append(g)
+        self._graphs = tuple(graphs)
+        self.pop_iteration_stats()
 
     # ============================================================================ sampler & stats
-    def _finish_segments(self, finished: torch.Tensor, terminated: torch.Tensor, nonfinite: torch.Tensor) -> None:
-        """Charge finished reference segments to bins and update the sampler (fixed shapes)."""
+    def _segment_counts(self, finished: torch.Tensor, terminated: torch.Tensor, nonfinite: torch.Tensor):
+        """Per-bin (episodes, failures) of the reference segments that end now (fixed shapes)."""
         cfg = self.sampler_cfg
         layout = self.layout
         s = layout.num_bins
@@ -479,21 +539,20 @@ class TrackingEnv(VecEnv):
         else:
             short = self.episode_length_buf < cfg.failure_threshold * self.max_episode_length
             failed = short & terminated & counted
-        w = counted.float()
-        wf = failed.float()
+        w = counted.to(torch.float64)
         start_bin = layout.bins_of(self.segment_start)
         end_bin = layout.bins_of(self.time_steps)
-        failures = torch.zeros(s, device=self.device).index_add_(0, end_bin if cfg.attribution == "failure" else start_bin, wf)
+        charged = end_bin if cfg.attribution == "failure" else start_bin
+        failures = torch.zeros(s, dtype=torch.float64, device=self.device).index_add_(0, charged, failed.to(torch.float64))
         if cfg.attribution == "failure":
-            diff = torch.zeros(s + 1, device=self.device)
+            # Every bin the segment passed through counts as visited (rate = failures per visit).
+            diff = torch.zeros(s + 1, dtype=torch.float64, device=self.device)
             diff.index_add_(0, start_bin, w)
             diff.index_add_(0, torch.maximum(end_bin, start_bin) + 1, -w)
             episodes = torch.cumsum(diff[:s], 0)
         else:
-            episodes = torch.zeros(s, device=self.device).index_add_(0, start_bin, w)
-        self.sampler.update_counts(episodes, failures)
-        self.stats_bin_episodes += episodes
-        self.stats_bin_failures += failures
+            episodes = torch.zeros(s, dtype=torch.float64, device=self.device).index_add_(0, start_bin, w)
+        return episodes, failures
 
     def _accumulate_episode_stats(self, dones: torch.Tensor, terminated: torch.Tensor) -> None:
         d = dones.float()

@@ -27,8 +27,11 @@ failed flag (a segment is a stretch of one episode on one contiguous piece of th
 - ``attribution="start"``: both counts go to the bin the segment started in.
 
 What counts as failed (:func:`failed_mask`): ``"terminated"`` = any termination other than a
-time-out (the caller passes the terminated flag, which excludes time-outs); ``"short"`` = episode
-length < failure_threshold x max episode length.
+time-out (the caller passes the terminated flag, which excludes time-outs); ``"short"`` = a
+termination that came before failure_threshold x the max episode length. For whole episodes the
+latter is the same as "episode length < failure_threshold x max length", since an episode that
+was not terminated timed out at the max length; for a segment that ended because the reference
+clip ended, requiring a termination keeps it from counting as failed.
 
 Everything here is vectorised with fixed output shapes, so it runs on the GPU inside the
 environment step without synchronising with the host.
@@ -148,18 +151,22 @@ class BinLayout:
         )
 
 
-def visits_histogram(start_bins: torch.Tensor, end_bins: torch.Tensor, num_bins: int) -> torch.Tensor:
+def visits_histogram(
+    start_bins: torch.Tensor, end_bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """Number of segments active in each bin, for segments [start_bin, end_bin] (inclusive).
 
-    Difference array: +1 at start, -1 after end, cumulative sum. ``end < start`` cannot come from
-    a real segment; it is treated as ``end = start`` so the counts are never negative.
-    Returns a LongTensor[S].
+    Difference array: +w at start, -w after end, cumulative sum (w = 1, or ``weights``, e.g. a
+    mask of the segments to count). ``end < start`` cannot come from a real segment; it is treated
+    as ``end = start`` so the counts are never negative. Returns Tensor[S] of the weights' dtype
+    (long without weights).
     """
     start = torch.as_tensor(start_bins).long()
     end = torch.maximum(torch.as_tensor(end_bins, device=start.device).long(), start)
-    diff = torch.zeros(num_bins + 1, dtype=torch.long, device=start.device)
-    diff.index_add_(0, start, torch.ones_like(start))
-    diff.index_add_(0, end + 1, -torch.ones_like(end))
+    w = torch.ones_like(start) if weights is None else torch.as_tensor(weights, device=start.device)
+    diff = torch.zeros(num_bins + 1, dtype=w.dtype, device=start.device)
+    diff.index_add_(0, start, w)
+    diff.index_add_(0, end + 1, -w)
     return torch.cumsum(diff[:num_bins], 0)
 
 
@@ -170,16 +177,18 @@ def failed_mask(
     failure: str,
     failure_threshold: float = 0.8,
 ) -> torch.Tensor:
-    """Which finished episodes failed (BoolTensor).
+    """Which finished episodes (or segments) failed (BoolTensor).
 
     ``"terminated"``: ``terminated`` itself (terminations other than time-outs).
-    ``"short"``: ``episode_length_steps < failure_threshold * max_episode_length_steps``.
+    ``"short"``: ``terminated & (episode_length_steps < failure_threshold * max_episode_length_steps)``.
     """
     check_failure(failure, failure_threshold)
+    terminated = torch.as_tensor(terminated).bool()
     if failure == "terminated":
-        return torch.as_tensor(terminated).bool().clone()
-    length = torch.as_tensor(episode_length_steps)
-    return length < failure_threshold * torch.as_tensor(max_episode_length_steps, device=length.device)
+        return terminated.clone()
+    length = torch.as_tensor(episode_length_steps, device=terminated.device)
+    limit = failure_threshold * torch.as_tensor(max_episode_length_steps, device=terminated.device)
+    return terminated & (length < limit)
 
 
 def attribute(
@@ -188,24 +197,34 @@ def attribute(
     failed: torch.Tensor,
     layout: BinLayout,
     attribution: str,
+    counted: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-bin (episodes, failures) counts, LongTensor[S] each, for :meth:`update_counts`.
 
     Args:
-        start_frames, end_frames: LongTensor[n], first and last frame of each finished segment.
+        start_frames, end_frames: LongTensor[n], first and last frame of each segment.
         failed: BoolTensor[n].
         layout: the motion's :class:`BinLayout`.
         attribution: "failure" (episodes = visits over [start_bin, end_bin], failures at the end
             bin) or "start" (both at the start bin).
+        counted: optional BoolTensor[n]; only these segments are counted. It lets the environment
+            pass all envs every step (fixed shapes) with ``counted`` = the ones that finished.
     """
     check_attribution(attribution)
     start_bins = layout.bins_of(start_frames)
-    failed = torch.as_tensor(failed, device=layout.device).long()
+    failed = torch.as_tensor(failed, device=layout.device).bool()
+    if counted is None:
+        weights = torch.ones_like(start_bins)
+    else:
+        counted = torch.as_tensor(counted, device=layout.device).bool()
+        weights = counted.long()
+        failed = failed & counted
+    failed = failed.long()
+    s = layout.num_bins
     if attribution == "start":
-        return bin_counts(start_bins, layout.num_bins), bin_counts(start_bins, layout.num_bins, failed)
+        return bin_counts(start_bins, s, weights), bin_counts(start_bins, s, failed)
     end_bins = layout.bins_of(end_frames)
-    episodes = visits_histogram(start_bins, end_bins, layout.num_bins)
-    return episodes, bin_counts(end_bins, layout.num_bins, failed)
+    return visits_histogram(start_bins, end_bins, s, weights), bin_counts(end_bins, s, failed)
 
 
 __all__ = [

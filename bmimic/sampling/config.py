@@ -60,7 +60,8 @@ class SamplerConfig:
 
     failure: str = "terminated"
     """What counts as a failed episode: "terminated" = any termination other than a time-out,
-    "short" = episode length < failure_threshold x its max length."""
+    "short" = a termination before failure_threshold x the max episode length (episode length <
+    failure_threshold x max length; time-outs and clip ends never fail)."""
 
     failure_threshold: float = 0.8
     """For failure="short": fraction of the max episode length below which an episode failed, in (0, 1]."""

@@ -96,12 +96,16 @@ class Simulator:
             self.model.opt.warn_overflow = _BUFFER_OVERFLOW
             self.data = mjw.make_data(mjm, nworld=num_worlds, nconmax=cfg.nconmax, njmax=cfg.njmax)
         self._bind_views()
-        self.qpos[:] = torch.as_tensor(mjm.qpos0, dtype=torch.float32, device=self.device)
+        self.qpos0 = torch.as_tensor(mjm.qpos0, dtype=torch.float32, device=self.device)
+        self.qpos[:] = self.qpos0
         self.forward()
         self.health = SimHealth()
         self._step_graph = None
         self._kin_graph = None
         self.use_graph = cfg.use_cuda_graph and self.wp_device.is_cuda and wp.is_mempool_enabled(self.wp_device)
+        if self.wp_device.is_cuda:
+            # Torch and Warp share one stream: every torch op and every (graph) launch is ordered.
+            torch.cuda.set_stream(wp.stream_to_torch(self.wp_device.stream))
 
     # ----------------------------------------------------------------------------------------- views
     def _bind_views(self) -> None:
@@ -197,8 +201,7 @@ class Simulator:
 
     def sanitize(self, worlds: torch.Tensor) -> None:
         """Put non-finite worlds back at the model's initial pose so they cannot poison the contact pool."""
-        qpos0 = torch.as_tensor(self.mjm.qpos0, dtype=torch.float32, device=self.device)
-        self.qpos[:] = torch.where(worlds[:, None], qpos0, self.qpos)
+        self.qpos[:] = torch.where(worlds[:, None], self.qpos0, self.qpos)
         self.qvel[:] = torch.where(worlds[:, None], torch.zeros_like(self.qvel), self.qvel)
 
 

@@ -136,7 +136,6 @@ class Trainer:
             iter=self.progress.iteration,
             progress=vars(self.progress).copy(),
             sampler=self.sampler.state_dict(),
-            env_generator=self.env.generator.get_state(),
             rng=rng_state(),
             format="bmimic-checkpoint-1",
         )
@@ -163,7 +162,6 @@ class Trainer:
         self.alg.load(state, None, strict=True)
         self.progress = Progress(**state["progress"])
         self.sampler.load_state_dict(state["sampler"])
-        self.env.generator.set_state(state["env_generator"].cpu() if hasattr(state["env_generator"], "cpu") else state["env_generator"])
         set_rng_state(state["rng"])
         self.runner.current_learning_iteration = self.progress.iteration
         self._truncate_tables(self.progress.iteration)
@@ -220,7 +218,8 @@ class Trainer:
     def learn(self, num_iterations: int, init_at_random_ep_len: bool) -> None:
         env, alg = self.env, self.alg
         if init_at_random_ep_len and self.progress.iteration == 0:
-            env.episode_length_buf = torch.randint_like(env.episode_length_buf, high=int(env.max_episode_length))
+            # In place: the environment's captured CUDA graphs hold this buffer's address.
+            env.episode_length_buf.copy_(torch.randint_like(env.episode_length_buf, high=int(env.max_episode_length)))
         obs = env.get_observations().to(self.device)
         alg.train_mode()
         if self.runner.is_distributed:
@@ -264,7 +263,8 @@ class Trainer:
 
     def _log_iteration(self, it: int, losses: dict, collect_s: float, learn_s: float, steps: int) -> dict:
         stats = self.env.pop_iteration_stats()
-        s = diagnostics.summary(self.sampler, torch.as_tensor(stats["bin_episodes"]), torch.as_tensor(stats["bin_failures"]))
+        s = diagnostics.summary(self.sampler, torch.as_tensor(stats["bin_episodes"]),
+                                torch.as_tensor(stats["bin_failures"]), total_episodes=stats["episodes"])
         row = {
             "iteration": it,
             "env_steps": self.progress.env_steps,
@@ -280,7 +280,7 @@ class Trainer:
             "collection_time_s": collect_s,
             "learning_time_s": learn_s,
             "learning_rate": float(self.alg.learning_rate),
-            "action_std": float(self.alg.get_policy().output_std.mean()),
+            "action_std": float(self.alg.get_policy().output_std.detach().mean()),
             "nonfinite_resets": stats["nonfinite_resets"],
             "overflow_worlds": stats["overflow_worlds"],
         }
