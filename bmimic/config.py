@@ -62,6 +62,9 @@ class TrainConfig:
     """Single runs go to outputs/runs/<run_name>/<timestamp>/."""
     sweep_name: str = "default"
     """Multirun jobs go to outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/."""
+    time_limit_s: Optional[float] = None
+    """Stop after the iteration during which this much training wall time has passed (then the
+    final evaluation and checkpoint run as usual); null: no limit. For fixed-time budgets and queues."""
     resume: Optional[str] = None
     """`true`: continue the latest run with this run folder layout; or a checkpoint path."""
     logger: str = "tensorboard"
@@ -165,6 +168,8 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         _fail("eval.horizon_s", f"must be > 0, got {cfg.eval.horizon_s}")
     if cfg.eval.episodes_per_bin is not None and cfg.eval.episodes_per_bin < 1:
         _fail("eval.episodes_per_bin", f"must be >= 1, got {cfg.eval.episodes_per_bin}")
+    if cfg.time_limit_s is not None and cfg.time_limit_s <= 0:
+        _fail("time_limit_s", f"must be > 0 or null, got {cfg.time_limit_s}")
     if cfg.logger not in ("tensorboard", "wandb", "none"):
         _fail("logger", f"must be tensorboard, wandb or none, got {cfg.logger!r}")
     _validate_terms(cfg.env)

@@ -102,12 +102,29 @@ def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout):
     return Evaluator(env, layout, motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s)
 
 
+def _init_distributed() -> tuple[int, int]:
+    """(rank, world size); under torchrun, join the NCCL group before any env is built."""
+    import torch
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    if not torch.distributed.is_initialized():
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+        torch.distributed.init_process_group("nccl")
+    return torch.distributed.get_rank(), world
+
+
 def train(cfg: DictConfig, run_dir: Path) -> float:
     """Train in `run_dir`; returns the final evaluated failure rate."""
     from bmimic.training.runner import Trainer
 
     requested = cfg.device
     device = resolve_device(requested)
+    rank, world = _init_distributed()
+    if world > 1:
+        device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
     resolve_runtime(cfg, device)
     on_gpu = device.startswith("cuda")
     log.info("device: %s (requested %s); num_envs %d; max_iterations %d", device, requested, cfg.num_envs,
@@ -117,27 +134,31 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
                  "on a GPU the same command trains for real", cfg.num_envs, cfg.max_iterations)
     checkpoint, run_dir = find_resume_checkpoint(cfg.resume, run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    write_status(run_dir, "running", 0)
-    write_provenance(run_dir, device)
-    atomic_write_json(run_dir / "resolved_config.json", OmegaConf.to_container(cfg, resolve=True))
+    main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
+    if main_rank:
+        write_status(run_dir, "running", 0)
+        write_provenance(run_dir, device)
+        atomic_write_json(run_dir / "resolved_config.json", OmegaConf.to_container(cfg, resolve=True))
     seed_everything(cfg.seed)
 
     mjm, robot, motion, layout, sampler, env = build(cfg, device)
-    atomic_write_json(run_dir / "motion_segments.json", [s._asdict() for s in motion.segments])
+    if main_rank:
+        atomic_write_json(run_dir / "motion_segments.json", [s._asdict() for s in motion.segments])
     log.info("motion: %.1f s, %d frames at %g Hz, %d bins of %g s", motion.duration_s, motion.num_frames,
              motion.fps, layout.num_bins, cfg.sampler.bin_size_seconds)
     evaluator = build_evaluator(cfg, device, robot, motion, layout)
     trainer = Trainer(env, evaluator, sampler, cfg.ppo, run_dir, device, cfg.run_name,
                       eval_every_iters=cfg.eval.every_iters, logger=cfg.logger, wandb_project=cfg.wandb_project,
-                      progress_bar=cfg.progress_bar, is_main_rank=int(os.environ.get("RANK", "0")) == 0)
+                      progress_bar=cfg.progress_bar and main_rank, is_main_rank=main_rank)
     if checkpoint is not None:
         trainer.load_checkpoint(checkpoint)
     try:
-        trainer.learn(cfg.max_iterations, cfg.ppo.init_at_random_ep_len)
+        trainer.learn(cfg.max_iterations, cfg.ppo.init_at_random_ep_len, cfg.time_limit_s)
         final = trainer.progress.last_eval
         if not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
             final = trainer.evaluate()
-        trainer.save_checkpoint()
+        if main_rank:
+            trainer.save_checkpoint()
     finally:
         trainer.close()
     metrics = {
@@ -154,6 +175,8 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         "num_envs": cfg.num_envs,
         "device": device,
     }
+    if not main_rank:
+        return float(metrics["final_eval_failure_rate"])
     atomic_write_json(run_dir / "metrics.json", metrics)
     write_status(run_dir, "done", trainer.progress.iteration)
     log.info("done: %d iterations, %.0f s, eval failure rate %.3f -> %s", metrics["iterations"],

@@ -80,13 +80,14 @@ def test_clip_end_teleports_consistently(built):
 def test_failures_reach_the_sampler(built):
     cfg, robot, motion, layout, sampler, env, _ = built
     before = sampler.smoothed_failure().clone()
-    env.time_steps[:] = 3 * int(motion.fps)  # bin 3
+    env.segment_start[:] = 3 * int(motion.fps)  # a segment that started in bin 3 ...
+    env.time_steps[:] = 3 * int(motion.fps) + 5  # ... and fails there
     env.sim.qpos[:, 2] = 0.2  # pelvis on the floor: anchor height termination
     env.sim.forward_kinematics()
     _, _, dones, extras = env.step(torch.zeros(4, 29, device=env.device))
     assert dones.all() and extras["terminated"].all()
     after = sampler.smoothed_failure()
-    assert after[3] > before[3]
+    assert after[3] > before[3], (after, before, env.stats_bin_failures, env.segment_start, env.time_steps)
     stats = env.pop_iteration_stats()
     assert stats["bin_failures"][3] == 4 and stats["failures"] >= 4
 

@@ -121,6 +121,8 @@ class TrackingEnv(VecEnv):
         self.device = torch.device(device)
         self.sampler = sampler
         self.sampler_cfg = sampler_cfg
+        dist = torch.distributed
+        self.world_size = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
         self.layout = layout
         # The default generator (seeded by bmimic.runs.seed_everything): CUDA-graph replay advances it.
         self.generator = None
@@ -489,9 +491,16 @@ class TrackingEnv(VecEnv):
             self._resample(clip_end)
             # One sampler update per control step (the BeyondMimic EMA's time constant is in steps),
             # after this step's resets were drawn, as in the released code.
-            self.sampler.update_counts(episodes + e2, failures + f2)
-            self.stats_bin_episodes += episodes + e2
-            self.stats_bin_failures += failures + f2
+            episodes, failures = episodes + e2, failures + f2
+            if self.world_size > 1:
+                # Several GPUs train one policy: every rank's sampler sees every rank's episodes,
+                # so all ranks sample from the same distribution.
+                counts = torch.stack((episodes, failures))
+                torch.distributed.all_reduce(counts)
+                episodes, failures = counts[0], counts[1]
+            self.sampler.update_counts(episodes, failures)
+            self.stats_bin_episodes += episodes
+            self.stats_bin_failures += failures
             if self.randomize:
                 self._push(self.step_dt)
         else:
@@ -511,8 +520,8 @@ class TrackingEnv(VecEnv):
         replayed; this removes the per-kernel launch cost that otherwise dominates at 4096+ envs.
         Two eager warm-up steps fill the caches first; their statistics are discarded.
         """
-        if not (self.device.type == "cuda" and self.sim.use_graph):
-            return
+        if not (self.device.type == "cuda" and self.sim.use_graph) or self.world_size > 1:
+            return  # the multi-GPU step all-reduces sampler counts through NCCL: run it eagerly
         zeros = torch.zeros_like(self.actions)
         for _ in range(2):
             self.step(zeros)

@@ -76,6 +76,21 @@ def rsl_rl_train_cfg(ppo, run_name: str) -> dict:
     }
 
 
+class _Runner(OnPolicyRunner):
+    """rsl-rl's runner, accepting a process group that bmimic initialised before building the env."""
+
+    def _configure_multi_gpu(self) -> None:
+        dist = torch.distributed
+        if not (dist.is_available() and dist.is_initialized()):
+            return super()._configure_multi_gpu()
+        self.gpu_world_size = dist.get_world_size()
+        self.gpu_global_rank = dist.get_rank()
+        self.gpu_local_rank = int(os.getenv("LOCAL_RANK", "0"))
+        self.is_distributed = self.gpu_world_size > 1
+        self.cfg["multi_gpu"] = {"global_rank": self.gpu_global_rank, "local_rank": self.gpu_local_rank,
+                                 "world_size": self.gpu_world_size} if self.is_distributed else None
+
+
 @dataclass
 class Progress:
     """Counters a checkpoint carries so a resumed run continues them."""
@@ -104,7 +119,7 @@ class Trainer:
         self.progress_bar = progress_bar
         self.export_onnx_enabled = export_onnx
         self.is_main = is_main_rank
-        self.runner = OnPolicyRunner(env, rsl_rl_train_cfg(ppo_cfg, run_name), log_dir=None, device=device)
+        self.runner = _Runner(env, rsl_rl_train_cfg(ppo_cfg, run_name), log_dir=None, device=device)
         self.alg = self.runner.alg
         self.progress = Progress()
         self.train_rows: list[dict] = []
@@ -202,6 +217,7 @@ class Trainer:
         if was_training:
             policy.train()
         self.eval_rows.append(per_bin)
+        self.flush_tables()  # evaluations are the expensive rows: never lose them to an interruption
         summary = summarize(per_bin)
         self.progress.last_eval = summary
         if self.writer is not None:
@@ -215,7 +231,7 @@ class Trainer:
         return summary
 
     # ------------------------------------------------------------------ the loop
-    def learn(self, num_iterations: int, init_at_random_ep_len: bool) -> None:
+    def learn(self, num_iterations: int, init_at_random_ep_len: bool, time_limit_s: float | None = None) -> None:
         env, alg = self.env, self.alg
         if init_at_random_ep_len and self.progress.iteration == 0:
             # In place: the environment's captured CUDA graphs hold this buffer's address.
@@ -252,12 +268,16 @@ class Trainer:
                 bar.update(1)
                 bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
                                 fps=f"{row['fps']:.0f}")
-            done = self.progress.iteration == end_it
+            out_of_time = time_limit_s is not None and self.progress.wall_time_s >= time_limit_s
+            done = self.progress.iteration == end_it or out_of_time
             if self.is_main and (self.eval_every_iters and self.progress.iteration % self.eval_every_iters == 0):
                 self.evaluate()
             if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
                 self.save_checkpoint()
                 write_status(self.run_dir, "running", self.progress.iteration)
+            if out_of_time:
+                log.info("time limit of %.0f s reached after %d iterations", time_limit_s, self.progress.iteration)
+                break
         if bar is not None:
             bar.close()
 
