@@ -110,7 +110,7 @@ def resolve_runtime(cfg, device: str) -> None:
     if cfg.max_iterations is None:
         cfg.max_iterations = cfg.ppo.max_iterations if on_gpu else CPU_DEFAULT_MAX_ITERATIONS
     if cfg.eval.episodes_per_bin is None:
-        cfg.eval.episodes_per_bin = 4 if on_gpu else 1
+        cfg.eval.episodes_per_bin = 16 if on_gpu else 1
 
 
 def _fail(key: str, problem: str) -> None:

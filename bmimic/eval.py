@@ -156,7 +156,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = ()) -> LoadedRun:
     resolve_runtime(cfg, device)
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm)
+    motion = load_motion(cfg.motion, mjm, bin_size_s=cfg.sampler.bin_size_seconds)
     validate(cfg, motion.duration_s)
     layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
     return LoadedRun(run_dir, checkpoint, cfg, device, mjm, robot, motion, layout)

@@ -81,7 +81,7 @@ def build(cfg: DictConfig, device: str):
 
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm)
+    motion = load_motion(cfg.motion, mjm, bin_size_s=cfg.sampler.bin_size_seconds)
     validate(cfg, motion.duration_s)
     layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
     sampler = make_sampler(cfg.sampler, layout.num_bins, device)
@@ -161,6 +161,10 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
             trainer.save_checkpoint()
     finally:
         trainer.close()
+        if world > 1:
+            import torch
+
+            torch.distributed.destroy_process_group()
     metrics = {
         "final_eval_failure_rate": final["eval_failure_rate"],
         "final_eval_success_rate": final["eval_success_rate"],

@@ -20,9 +20,10 @@ TINY = [
 
 def compose(overrides: list[str] | None = None, return_hydra_config: bool = False):
     """Compose conf/train.yaml with overrides, the way the CLI does."""
-    import bmimic.config  # noqa: F401  (registers the schemas)
     from hydra import compose as _compose
     from hydra import initialize_config_dir
+
+    import bmimic.config  # noqa: F401  (registers the schemas)
 
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return _compose("train", overrides=overrides or [], return_hydra_config=return_hydra_config)

@@ -8,7 +8,7 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
-from bmimic.config import ConfigError, resolve_runtime, validate
+from bmimic.config import resolve_runtime, validate
 from tests.conftest import CONF, compose
 
 GROUPS = ["robot", "motion", "sampler", "ppo", "sim", "env", "eval"]

@@ -11,7 +11,6 @@ from bmimic.config import resolve_runtime
 from bmimic.train import build, build_evaluator
 from tests.conftest import compose
 
-
 DEVICES = ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else [])
 
 
@@ -33,6 +32,15 @@ def test_graph_path_on_gpu(built):
         obs, rew, dones, extras = env.step(torch.randn(4, 29, device=env.device) * 0.1)
     assert torch.isfinite(obs["policy"]).all() and torch.isfinite(rew).all()
     assert (env.time_steps < env.segment_end).all()
+
+
+def test_returned_observations_are_not_overwritten(built):
+    """rsl-rl stores the observation it acted on after the next step: it must not change under it."""
+    env = built[5]
+    first = env.step(torch.zeros(4, 29, device=env.device))[0]
+    kept = first["policy"].clone()
+    env.step(torch.ones(4, 29, device=env.device) * 0.3)
+    assert torch.equal(first["policy"], kept)
 
 
 def test_observation_and_action_dims(built):

@@ -249,7 +249,9 @@ def test_index_callback_writes_the_index(tmp_path, capsys):
 # --------------------------------------------------------------------------------------------- end to end (slow)
 SMOKE = ["num_envs=2", "ppo.num_steps_per_env=4", "ppo.num_mini_batches=2", "motion=easy_only",
          "eval.every_iters=0", "eval.horizon_s=0.2", "ppo.save_interval=1", "progress_bar=false", "logger=none"]
-SMOKE_ARM = ",".join(sorted(o for o in SMOKE if o.split("=")[0] not in ("num_envs", "progress_bar", "logger")))
+# The keys conf/train.yaml keeps out of folder names (budgets and logistics, not arms).
+NOT_ARM = ("num_envs", "progress_bar", "logger", "eval.every_iters", "ppo.save_interval", "max_iterations")
+SMOKE_ARM = ",".join(sorted(o for o in SMOKE if o.split("=")[0] not in NOT_ARM))
 
 
 def sweep_cmd(sweep_dir: Path, *overrides: str) -> list[str]:
@@ -338,7 +340,7 @@ def test_failed_job_is_retried_and_its_error_kept(tmp_path):
     assert status(job)["status"] == "failed" and "bin_size_seconds" in status(job)["error"]
     run_sweep(sweep, *overrides)
     log = (job / "errors.log").read_text()
-    assert log.count("attempt failed: sampler.bin_size_seconds") == 2
+    assert log.count("attempt failed:") == 2 and "sampler.bin_size_seconds" in log
     assert "retrying after a failed attempt" in log
     assert pd.read_csv(sweep / "index.csv")["status"].tolist() == ["failed"]
 

@@ -38,7 +38,7 @@ from bmimic.envs.quat import (
 )
 from bmimic.motion import Motion
 from bmimic.robot import RobotInfo
-from bmimic.sampling.bins import BinLayout
+from bmimic.sampling.bins import BinLayout, attribute, failed_mask
 from bmimic.sim import SimConfig, Simulator
 
 
@@ -424,7 +424,7 @@ class TrackingEnv(VecEnv):
 
     # ============================================================================ VecEnv API
     def get_observations(self) -> TensorDict:
-        return self._obs
+        return self._obs.clone()
 
     def step(self, actions: torch.Tensor):
         self._actions_in.copy_(actions)
@@ -442,7 +442,9 @@ class TrackingEnv(VecEnv):
             if self.mode == "train":
                 self.sim.forward_kinematics()
             self._observe()
-        return self._obs, self.rew_buf, self._dones_long, self.extras
+        # A copy: rsl-rl keeps a reference to the observation it acted on until the transition is
+        # stored after the next step, and the graphs overwrite `_obs` in place.
+        return self._obs.clone(), self.rew_buf, self._dones_long, self.extras
 
     def _pre_physics(self) -> None:
         self.last_actions.copy_(self.actions)
@@ -540,28 +542,12 @@ class TrackingEnv(VecEnv):
     def _segment_counts(self, finished: torch.Tensor, terminated: torch.Tensor, nonfinite: torch.Tensor):
         """Per-bin (episodes, failures) of the reference segments that end now (fixed shapes)."""
         cfg = self.sampler_cfg
-        layout = self.layout
-        s = layout.num_bins
         counted = finished & ~nonfinite
-        if cfg.failure == "terminated":
-            failed = terminated & counted
-        else:
-            short = self.episode_length_buf < cfg.failure_threshold * self.max_episode_length
-            failed = short & terminated & counted
-        w = counted.to(torch.float64)
-        start_bin = layout.bins_of(self.segment_start)
-        end_bin = layout.bins_of(self.time_steps)
-        charged = end_bin if cfg.attribution == "failure" else start_bin
-        failures = torch.zeros(s, dtype=torch.float64, device=self.device).index_add_(0, charged, failed.to(torch.float64))
-        if cfg.attribution == "failure":
-            # Every bin the segment passed through counts as visited (rate = failures per visit).
-            diff = torch.zeros(s + 1, dtype=torch.float64, device=self.device)
-            diff.index_add_(0, start_bin, w)
-            diff.index_add_(0, torch.maximum(end_bin, start_bin) + 1, -w)
-            episodes = torch.cumsum(diff[:s], 0)
-        else:
-            episodes = torch.zeros(s, dtype=torch.float64, device=self.device).index_add_(0, start_bin, w)
-        return episodes, failures
+        failed = failed_mask(terminated, self.episode_length_buf, self.max_episode_length, cfg.failure,
+                             cfg.failure_threshold)
+        episodes, failures = attribute(self.segment_start, self.time_steps, failed, self.layout, cfg.attribution,
+                                       counted=counted)
+        return episodes.to(torch.float64), failures.to(torch.float64)
 
     def _accumulate_episode_stats(self, dones: torch.Tensor, terminated: torch.Tensor) -> None:
         d = dones.float()

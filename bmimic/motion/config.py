@@ -161,6 +161,6 @@ def load_motion(
     if motion.duration_s < 2 * bin_size_s - 1e-9:
         raise MotionDataError(
             f"motion {cfg.name!r}: {motion.duration_s:.2f} s is shorter than two time bins "
-            f"(2 x {bin_size_s:g} s); use a longer motion or window"
+            f"of sampler.bin_size_seconds={bin_size_s:g} s; use a longer motion or window, or smaller bins"
         )
     return motion

@@ -69,7 +69,7 @@ class EvalConfig:
     every_iters: int = 250
     """Evaluate every this many training iterations (0: only at the end). Always evaluates at the end."""
     episodes_per_bin: Optional[int] = None
-    """Episodes started per bin, at evenly spaced frames inside it; null: 4 on a GPU, 1 on a CPU."""
+    """Episodes started per bin, at evenly spaced frames inside it; null: 16 on a GPU, 1 on a CPU."""
     horizon_s: float = 2.0
     """An episode that survives this long (or reaches the end of the motion) counts as a success."""
     max_envs: int = 8192

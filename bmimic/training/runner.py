@@ -159,6 +159,8 @@ class Trainer:
     def save_checkpoint(self) -> Path:
         it = self.progress.iteration
         path = self.ckpt_dir / f"model_{it}.pt"
+        # Tables first: a checkpoint must never be ahead of the rows a resume keeps.
+        self.flush_tables()
         state = self.checkpoint_state()
         atomic_torch_save(path, state)
         atomic_torch_save(self.ckpt_dir / "latest.pt", state)
@@ -169,7 +171,6 @@ class Trainer:
                 export_onnx(self.alg.get_policy(), self.env, self.ckpt_dir / f"policy_{it}.onnx")
             except Exception as e:  # export must never cost a training run
                 log.warning("ONNX export failed at iteration %d: %s", it, e)
-        self.flush_tables()
         return path
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
@@ -324,6 +325,10 @@ class Trainer:
             )
         if self.writer is not None:
             self._write_scalars(it, row)
+        if not self.progress_bar and self.is_main and (it % 10 == 0):
+            log.info("it %d: episode length %.1f, reward %.3f, failure rate %.3f, lr %.1e, %.0f steps/s", it,
+                     row["mean_episode_length"], row["mean_reward"], row["failure_rate"], row["learning_rate"],
+                     row["fps"])
         return row
 
     def _write_scalars(self, it: int, row: dict) -> None:

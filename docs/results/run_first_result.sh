@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# How the first GPU result (docs/results/) was produced: the sampler_ablation arms (uniform vs
+# adaptive, 3 seeds) on the embedded default motion and on a 60 s window of LAFAN1 dance1_subject1,
+# all jobs at once on one GPU, each stopped by a wall-clock budget (time_limit_s) so that every job
+# gets the same time. Same layout as `python -m bmimic.train -m ...` (outputs/sweeps/<name>/<arm>/seed=<s>/).
+#
+#   LIMIT=900 ENVS=2048 bash docs/results/run_first_result.sh
+#   python -m analysis.report outputs/sweeps/first_default outputs/... (see docs/results/README)
+set -u
+LIMIT=${LIMIT:-900}          # seconds of training per job
+ENVS=${ENVS:-2048}           # worlds per job
+SEEDS=${SEEDS:-"0 1 2"}
+MOTIONS=${MOTIONS:-"default lafan_dance1"}
+NGPU=${NGPU:-1}              # motion k runs on GPU k mod NGPU
+mkdir -p outputs/logs
+k=0
+for motion in $MOTIONS; do
+  gpu=$((k % NGPU)); k=$((k + 1))
+  for sampler in uniform adaptive; do
+    for seed in $SEEDS; do
+      args=(-m "sampler=$sampler" "seed=$seed" "sweep_name=first_$motion" "num_envs=$ENVS"
+            "max_iterations=100000" "time_limit_s=$LIMIT" "logger=none" "progress_bar=false"
+            "eval.every_iters=25" "ppo.save_interval=100")
+      [ "$motion" != default ] && args+=("motion=$motion")
+      CUDA_VISIBLE_DEVICES=$gpu python3 -m bmimic.train "${args[@]}" > "outputs/logs/${motion}_${sampler}_${seed}.log" 2>&1 &
+    done
+  done
+done
+wait
