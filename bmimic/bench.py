@@ -123,8 +123,6 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 
 def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
     """Milliseconds per environment step spent in each part, each timed alone."""
-    from bmimic.envs.tracking_env import TrackingEnv  # noqa: F401
-
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
     obs = env.get_observations()

@@ -120,6 +120,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     from bmimic.training.runner import Trainer
 
     requested = cfg.device
+    smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
     device = resolve_device(requested)
     rank, world = _init_distributed()
     if world > 1:
@@ -129,7 +130,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     on_gpu = device.startswith("cuda")
     log.info("device: %s (requested %s); num_envs %d; max_iterations %d", device, requested, cfg.num_envs,
              cfg.max_iterations)
-    if not on_gpu:
+    if not on_gpu and smoke_defaults:
         log.info("no GPU: this is a smoke-scale run (%d envs, %d iterations) through the whole pipeline; "
                  "on a GPU the same command trains for real", cfg.num_envs, cfg.max_iterations)
     checkpoint, run_dir = find_resume_checkpoint(cfg.resume, run_dir)

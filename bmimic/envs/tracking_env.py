@@ -16,7 +16,7 @@ Subset resets are masked writes over all envs (`torch.where`), so shapes never d
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -31,7 +31,6 @@ from bmimic.envs.quat import (
     quat_apply,
     quat_apply_inverse,
     quat_conj,
-    quat_error_magnitude,
     quat_from_euler_xyz,
     quat_mul,
     yaw_quat,
@@ -200,11 +199,11 @@ class TrackingEnv(VecEnv):
     def _bind_motion(self, motion: Motion) -> None:
         dev = self.device
         name_to_idx = {n: i for i, n in enumerate(motion.body_names)}
-        body_names = [mujoco_name for mujoco_name in self.robot.body_names]
+        body_names = list(self.robot.body_names)  # MuJoCo ids start at 1 (0 is the world)
         tracked_names = [body_names[int(i) - 1] for i in self.robot.tracked_body_ids]
-        missing = [n for n in tracked_names + ["pelvis"] if n not in name_to_idx]
+        missing = [n for n in tracked_names + body_names[:1] if n not in name_to_idx]
         if missing:
-            raise BmimicError(f"motion: has no bodies named {missing}; it does not match robot {self.robot}")
+            raise BmimicError(f"motion: has no bodies named {missing}; it was made for another robot model")
         idx = [name_to_idx[n] for n in tracked_names]
         root = name_to_idx[body_names[0]]
 
@@ -611,8 +610,4 @@ class TrackingEnv(VecEnv):
         pass
 
 
-def state_field_names() -> list[str]:
-    return [f.name for f in fields(TrackingState)]
-
-
-__all__ = ["TrackingEnv", "TrackingState", "quat_error_magnitude"]
+__all__ = ["TrackingEnv", "TrackingState"]

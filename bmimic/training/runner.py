@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import torch
 from rsl_rl.runners import OnPolicyRunner
@@ -354,13 +353,11 @@ class Trainer:
         if it % self.table_every_iters == 0 and hasattr(w, "add_histogram_raw"):
             probs = self.sampler.probabilities().detach().cpu().double().numpy()
             edges = self.env.layout.edges_s.cpu().numpy()
-            bins = np.arange(len(probs))
             w.add_histogram_raw(
                 "Sampler/probability_over_time_s", min=float(edges[0]), max=float(edges[-1]), num=len(probs),
                 sum=float((probs * edges[:-1]).sum()), sum_squares=float((probs * edges[:-1] ** 2).sum()),
                 bucket_limits=edges[1:].tolist(), bucket_counts=probs.tolist(), global_step=it,
             )
-            del bins
 
     def close(self) -> None:
         self.flush_tables()
