@@ -74,8 +74,10 @@ def plot_learning_curve(
     colors = colors or arm_colors(curves["arm"])
     for arm, c in curves.groupby("arm", sort=True):
         c = c.sort_values("iteration")
-        ax.plot(c["iteration"], c["iqm"], color=colors[arm], lw=1.4, label=arm)
-        ax.fill_between(c["iteration"], c["ci_low"], c["ci_high"], color=colors[arm], alpha=0.2, lw=0)
+        x = c["iteration"].to_numpy(dtype=float)  # concatenated tables can arrive as object columns
+        ax.plot(x, c["iqm"].to_numpy(dtype=float), color=colors[arm], lw=1.4, label=arm)
+        ax.fill_between(x, c["ci_low"].to_numpy(dtype=float), c["ci_high"].to_numpy(dtype=float),
+                        color=colors[arm], alpha=0.2, lw=0)
     ax.set_xlabel("iteration")
     ax.set_ylabel(ylabel)
     if title:

@@ -112,6 +112,9 @@ def aggregate_over_seeds(
     rows = []
     for key, group in df.groupby(by, sort=True):
         key = key if isinstance(key, tuple) else (key,)
+        group = group.dropna(subset=[value])
+        if group.empty:  # e.g. no episode finished yet in a very short run: no curve, not an error
+            continue
         wide = group.pivot_table(index=unit, columns=x, values=value, aggfunc="mean")
         matrix = wide.to_numpy(dtype=float)
         point, low, high = bootstrap_ci(

@@ -290,6 +290,14 @@ def test_sweep_end_to_end(tmp_path):
     assert set(index["status"]) == {"done"} and set(index["seed"]) == {0, 1}
     assert set(index["sampler"]) == {"uniform", "adaptive"}
     assert index["final_eval_failure_rate"].notna().all() and index["git_commit"].notna().all()
+    # ... and the real sweep becomes a report: every figure and table exists and is non-empty.
+    report = subprocess.run([sys.executable, "-m", "analysis.report", str(sweep)], cwd=REPO, capture_output=True,
+                            text=True, timeout=600)
+    assert report.returncode == 0, report.stderr[-3000:]
+    files = list((sweep / "report").iterdir())
+    assert (sweep / "report" / "report.md").read_text().count("sampler=") >= 2
+    assert len([f for f in files if f.suffix == ".png"]) >= 5 and len([f for f in files if f.suffix == ".csv"]) >= 5
+    assert all(f.stat().st_size > 0 for f in files)
 
 
 @pytest.mark.slow
