@@ -25,6 +25,12 @@ def graded(model):
     return generate_builtin(model, "graded", seed=0, duration_s=30.0), build_plan(model, "graded", 0, 30.0)
 
 
+def _cross2(a, b) -> np.ndarray:
+    """z of the cross product of 2-D vectors (np.cross on 2-D vectors is deprecated)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
 def _hull_contains(points: np.ndarray, p: np.ndarray) -> bool:
     """Point in the convex hull of 2-D points (Andrew's monotone chain, counter-clockwise)."""
     pts = sorted(map(tuple, points))
@@ -32,14 +38,14 @@ def _hull_contains(points: np.ndarray, p: np.ndarray) -> bool:
     def half(seq):
         out = []
         for q in seq:
-            while len(out) >= 2 and np.cross(np.subtract(out[-1], out[-2]), np.subtract(q, out[-2])) <= 0:
+            while len(out) >= 2 and _cross2(np.subtract(out[-1], out[-2]), np.subtract(q, out[-2])) <= 0:
                 out.pop()
             out.append(q)
         return out[:-1]
 
     hull = np.array(half(pts) + half(pts[::-1]))
     edges = np.roll(hull, -1, axis=0) - hull
-    return bool(np.all(np.cross(edges, p - hull) >= -1e-12))
+    return bool(np.all(_cross2(edges, p - hull) >= -1e-12))
 
 
 def _foot_points(model, body: int) -> tuple[np.ndarray, np.ndarray]:
