@@ -85,7 +85,7 @@ def build(cfg: DictConfig, device: str):
     validate(cfg, motion.duration_s)
     layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
     sampler = make_sampler(cfg.sampler, layout.num_bins, device)
-    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, cfg.num_envs, device, cfg.seed,
+    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, cfg.num_envs, device,
                       sampler=sampler, sampler_cfg=cfg.sampler, mode="train")
     return mjm, robot, motion, layout, sampler, env
 
@@ -98,7 +98,7 @@ def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout):
     total = layout.num_bins * cfg.eval.episodes_per_bin
     n = max(1, min(total, cfg.eval.max_envs))
     env = TrackingEnv(cfg.env, cfg.sim, load_mjmodel(cfg=cfg.robot), robot, motion, layout, n, device,
-                      cfg.seed + 7919, mode="eval")
+                      mode="eval")
     return Evaluator(env, layout, motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s)
 
 

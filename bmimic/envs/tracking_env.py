@@ -105,7 +105,6 @@ class TrackingEnv(VecEnv):
         layout: BinLayout,
         num_envs: int,
         device: str,
-        seed: int,
         sampler=None,
         sampler_cfg=None,
         mode: str = "train",
