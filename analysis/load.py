@@ -289,6 +289,23 @@ def _missing_jobs(rows: list[dict]) -> list[dict]:
     return missing
 
 
+def short_arm_labels(arms) -> tuple[dict[str, str], list[str]]:
+    """Name arms by the overrides that differ between them: ``({arm: label}, shared items)``.
+
+    ``a=1,b=2,c=3`` and ``a=1,b=2,c=4`` become ``c=3`` and ``c=4`` (shared: ``a=1``, ``b=2``); an arm
+    left with nothing is ``base``. Falls back to the full names if shortening would merge two arms.
+    """
+    arms = sorted({a for a in arms if isinstance(a, str)})
+    if len(arms) < 2:
+        return {a: a for a in arms}, []
+    items = {a: a.split(",") for a in arms}
+    shared = [i for i in items[arms[0]] if all(i in items[a] for a in arms[1:])]
+    labels = {a: ",".join(i for i in items[a] if i not in shared) or "base" for a in arms}
+    if len(set(labels.values())) != len(arms):
+        return {a: a for a in arms}, []
+    return labels, shared
+
+
 def load_runs(paths) -> pd.DataFrame:
     """Find and describe every run under ``paths`` (sweep folders, run folders, or parents of runs).
 

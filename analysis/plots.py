@@ -51,7 +51,9 @@ def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x") -> None:
         line(first - 0.5, color="0.3", lw=0.6, ls=":")
     centres = ((spans["first"] + spans["last"]) / 2.0).to_list()
     twin = ax.secondary_xaxis("top") if axis == "x" else ax.secondary_yaxis("right")
-    twin.set_ticks(centres, labels=spans["name"].to_list(), fontsize=7)
+    # Rotated: segments are often only a few bins wide, and horizontal names would overlap.
+    rotation = 90 if axis == "x" else 0
+    twin.set_ticks(centres, labels=spans["name"].to_list(), fontsize=6, rotation=rotation)
     twin.tick_params(length=0)
 
 

@@ -9,6 +9,7 @@ and marked. See analysis.metrics for the definitions the report uses.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -20,7 +21,7 @@ from matplotlib.figure import Figure
 
 from analysis import AnalysisError, plots, tables
 from analysis.files import save_figure, write_csv, write_text
-from analysis.load import load_runs, load_segments, load_table
+from analysis.load import load_runs, load_segments, load_table, short_arm_labels
 from analysis.metrics import bin_table
 from analysis.stats import intervals_overlap
 from analysis.tables import ReportOptions
@@ -114,11 +115,18 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     paths = [Path(p) for p in ([paths] if isinstance(paths, str | Path) else paths)]
     out = Path(out) if out is not None else default_out(paths)
     runs = load_runs(paths)
+    labels, shared = short_arm_labels(runs["arm"])
+    runs["arm_overrides"] = runs["arm"]
+    runs["arm"] = runs["arm"].map(lambda a: labels.get(a, a))
+    if opts.baseline in labels:
+        opts = dataclasses.replace(opts, baseline=labels[opts.baseline])
     write_csv(out / "runs.csv", runs)
     md = ["# bmimic report", "", f"Inputs: {', '.join(f'`{p}`' for p in paths)}  ",
           f"Mastery threshold: failure < {opts.mastery_threshold:g}; success threshold: overall success ≥ "
           f"{opts.success_threshold:g}; intervals: {opts.confidence:.0%} percentile bootstrap over seeds "
           f"({opts.n_resamples} resamples, RNG seed {opts.bootstrap_seed}).", ""]
+    if shared:
+        md += [f"Arms are named by the overrides that differ between them; all share `{','.join(shared)}`.", ""]
     md += _runs_section(runs)
     if not runs["included"].any():
         md += ["No run has usable tables yet; nothing else to report."]

@@ -333,3 +333,14 @@ def test_index_concurrent_writers(tmp_path):
 def test_index_of_empty_sweep(tmp_path):
     assert len(build_index(tmp_path)) == 0
     assert pd.read_csv(write_index(tmp_path)).columns[0] == "job"
+
+
+def test_short_arm_labels_keep_only_what_differs():
+    from analysis.load import short_arm_labels
+
+    labels, shared = short_arm_labels(["a=1,b=2,sampler=uniform", "a=1,b=2,sampler=adaptive", None])
+    assert labels == {"a=1,b=2,sampler=uniform": "sampler=uniform", "a=1,b=2,sampler=adaptive": "sampler=adaptive"}
+    assert shared == ["a=1", "b=2"]
+    labels, _ = short_arm_labels(["k=1,sampler=adaptive", "sampler=adaptive"])
+    assert labels == {"k=1,sampler=adaptive": "k=1", "sampler=adaptive": "base"}
+    assert short_arm_labels(["only"]) == ({"only": "only"}, [])
