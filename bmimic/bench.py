@@ -19,6 +19,7 @@ import argparse
 import json
 import platform
 import sys
+import tempfile
 import time
 from importlib.metadata import version
 
@@ -74,8 +75,8 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     if "sim" in only:
         out["physics_steps_per_s"] = n / _timeit(env.sim.step, sim_steps, device)
 
-    trainer = Trainer(env, None, sampler, cfg.ppo, "/tmp/bmimic-bench", device, "bench", eval_every_iters=0,
-                      logger="none", progress_bar=False, export_onnx=False)
+    trainer = Trainer(env, None, sampler, cfg.ppo, tempfile.mkdtemp(prefix="bmimic-bench-"), device, "bench",
+                      eval_every_iters=0, logger="none", progress_bar=False, export_onnx=False)
     alg = trainer.alg
     obs = env.get_observations()
     state = {"obs": obs}
