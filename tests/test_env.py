@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from bmimic.config import resolve_runtime
+from bmimic.runs import seed_everything
 from bmimic.train import build, build_evaluator
 from tests.conftest import compose
 
@@ -18,6 +19,7 @@ DEVICES = ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else [])
 def built(request):
     """On a GPU machine the same tests also run the CUDA-graph path."""
     device = request.param
+    seed_everything(0)  # the tests below must not depend on what ran before them
     cfg = compose(["motion=easy_only", "num_envs=4", f"device={device}"])
     resolve_runtime(cfg, device)
     mjm, robot, motion, layout, sampler, env = build(cfg, device)
@@ -75,14 +77,19 @@ def test_reset_poses_are_consistent(built):
 
 def test_clip_end_teleports_consistently(built):
     cfg, robot, motion, layout, sampler, env, _ = built
-    env.time_steps[:] = env.segment_end - 1
+    # Every env on the reference at the last frame of its clip, mid-episode (so none terminates now).
+    last = env.segment_end - 1
+    env.time_steps[:] = last
+    env._write_reference_state(torch.ones_like(env.reached_clip_end), last, noise=False)
+    env.sim.forward_kinematics()
+    env.episode_length_buf[:] = 10
     env.step(torch.zeros(4, 29, device=env.device))
     s = env.state
     # Every env was resampled: its anchor is within the RSI noise of the new reference, not stale.
     dist = (s.robot_anchor_pos - s.ref_anchor_pos)[:, :2].norm(dim=-1)
     assert (dist < 0.2).all(), dist
     assert (env.time_steps < env.segment_end).all()
-    assert (env.episode_length_buf > 0).all()  # the episode continued
+    assert (env.episode_length_buf == 11).all()  # the episodes continued
 
 
 def test_failures_reach_the_sampler(built):
