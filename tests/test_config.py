@@ -8,7 +8,7 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
-from bmimic.config import resolve_runtime, validate
+from bmimic.config import ConfigError, resolve_runtime, validate
 from tests.conftest import CONF, compose
 
 GROUPS = ["robot", "motion", "sampler", "ppo", "sim", "env", "eval"]
@@ -136,3 +136,12 @@ def test_sweep_folder_layout():
     cfg = compose(["sampler=uniform", "seed=3", "sweep_name=abl"], return_hydra_config=True)
     assert cfg.hydra.sweep.dir == "outputs/sweeps/abl"
     assert "seed" in cfg.hydra.job.config.override_dirname.exclude_keys
+
+
+def test_reward_terms_are_overridable():
+    cfg = _resolved(["env.rewards.alive.weight=1.0", "env.rewards.action_rate.weight=-0.01"])
+    assert cfg.env.rewards.alive.func == "is_alive" and cfg.env.rewards.alive.weight == 1.0
+    validate(cfg, motion_duration_s=30.0)
+    assert _resolved([]).env.rewards.alive.weight == 0.0  # BeyondMimic's MDP by default
+    with pytest.raises(ConfigError, match="env.rewards.alive.func"):
+        validate(_resolved(["env.rewards.alive.func=is_alivee"]), motion_duration_s=30.0)

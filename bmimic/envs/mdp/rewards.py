@@ -11,7 +11,7 @@ __all__ = [
     "motion_global_anchor_position_error_exp", "motion_global_anchor_orientation_error_exp",
     "motion_relative_body_position_error_exp", "motion_relative_body_orientation_error_exp",
     "motion_global_body_linear_velocity_error_exp", "motion_global_body_angular_velocity_error_exp",
-    "action_rate_l2", "joint_pos_limits", "undesired_contacts",
+    "action_rate_l2", "joint_pos_limits", "undesired_contacts", "is_alive",
 ]
 
 
@@ -67,3 +67,9 @@ def joint_pos_limits(env) -> torch.Tensor:
 def undesired_contacts(env) -> torch.Tensor:
     """Contacts touching a robot body other than the end effectors (feet and hands), per world."""
     return env.undesired_contact_count()
+
+
+def is_alive(env) -> torch.Tensor:
+    """1 per step. Not in BeyondMimic's MDP (its weight is 0 in conf/env/tracking.yaml); raise it,
+    e.g. `env.rewards.alive.weight=1.0`, when ending episodes early pays off at the start of training."""
+    return torch.ones(env.num_envs, device=env.device)
