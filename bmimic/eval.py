@@ -143,22 +143,16 @@ class LoadedRun:
 
 def load_run(path: str | Path, overrides: Sequence[str] = ()) -> LoadedRun:
     """Locate the run, reload and resolve its config, rebuild robot, motion and bins like training."""
-    from bmimic.config import resolve_runtime, validate
-    from bmimic.motion.config import load_motion
-    from bmimic.robot import load_mjmodel, resolve_robot
+    from bmimic.config import resolve_runtime
     from bmimic.runs import resolve_device
-    from bmimic.sampling.bins import BinLayout
+    from bmimic.train import build_task
 
     run_dir, checkpoint = locate_run(path)
     cfg = load_run_config(run_dir, overrides)
     anchor_relative_paths(cfg, run_dir)
     device = resolve_device(cfg.device)
     resolve_runtime(cfg, device)
-    mjm = load_mjmodel(cfg=cfg.robot)
-    robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm, bin_size_s=cfg.sampler.bin_size_seconds)
-    validate(cfg, motion.duration_s)
-    layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
+    mjm, robot, motion, layout = build_task(cfg, device)
     return LoadedRun(run_dir, checkpoint, cfg, device, mjm, robot, motion, layout)
 
 

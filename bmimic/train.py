@@ -71,19 +71,26 @@ def find_resume_checkpoint(resume: str | None, run_dir: Path) -> tuple[Path | No
     return path, run_dir
 
 
-def build(cfg: DictConfig, device: str):
-    """Robot, motion, bins, sampler, environments: everything a run or a tool needs."""
-    from bmimic.envs.tracking_env import TrackingEnv
+def build_task(cfg: DictConfig, device: str):
+    """Robot model, robot info, motion and bins of a composed config (validated against the motion)."""
     from bmimic.motion.config import load_motion
     from bmimic.robot import load_mjmodel, resolve_robot
     from bmimic.sampling.bins import BinLayout
-    from bmimic.sampling.config import make_sampler
 
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
     motion = load_motion(cfg.motion, mjm, bin_size_s=cfg.sampler.bin_size_seconds)
     validate(cfg, motion.duration_s)
     layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
+    return mjm, robot, motion, layout
+
+
+def build(cfg: DictConfig, device: str):
+    """Robot, motion, bins, sampler, environments: everything a run or a tool needs."""
+    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.sampling.config import make_sampler
+
+    mjm, robot, motion, layout = build_task(cfg, device)
     sampler = make_sampler(cfg.sampler, layout.num_bins, device)
     env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, cfg.num_envs, device,
                       sampler=sampler, sampler_cfg=cfg.sampler, mode="train")

@@ -417,8 +417,7 @@ class TrackingEnv(VecEnv):
         self.actions.masked_fill_(mask[:, None], 0.0)
         self.last_actions.masked_fill_(mask[:, None], 0.0)
         self.sim.forward_kinematics()
-        self.state = self._compute_state()
-        self._obs = self._compute_observations()
+        self._observe()
 
     # ============================================================================ VecEnv API
     def get_observations(self) -> TensorDict:
