@@ -142,6 +142,11 @@ def test_reward_terms_are_overridable():
     cfg = _resolved(["env.rewards.alive.weight=1.0", "env.rewards.action_rate.weight=-0.01"])
     assert cfg.env.rewards.alive.func == "is_alive" and cfg.env.rewards.alive.weight == 1.0
     validate(cfg, motion_duration_s=30.0)
-    assert _resolved([]).env.rewards.alive.weight == 0.0  # BeyondMimic's MDP by default
+    assert _resolved([]).env.rewards.alive.weight == 0.0  # not a BeyondMimic term: off by default
+    # The default MDP differs from BeyondMimic's only in the action-rate weight; env=beyondmimic restores it.
+    default, published = _resolved([]).env, _resolved(["env=beyondmimic"]).env
+    assert default.rewards.action_rate.weight == -0.01 and published.rewards.action_rate.weight == -0.1
+    published.rewards.action_rate.weight = -0.01
+    assert published == default
     with pytest.raises(ConfigError, match="env.rewards.alive.func"):
         validate(_resolved(["env.rewards.alive.func=is_alivee"]), motion_duration_s=30.0)
