@@ -34,6 +34,13 @@ def default_out(paths: list[Path]) -> Path:
     return Path(os.path.commonpath([str(p.resolve()) for p in paths])) / "report"
 
 
+def _portable_path(path):
+    """``path`` relative to the working directory when it lies below it, else unchanged."""
+    if not isinstance(path, str):
+        return path
+    return os.path.relpath(path) if Path(path).is_relative_to(Path.cwd()) else path
+
+
 def _fmt(x, digits: int = 3) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "–"
@@ -92,6 +99,11 @@ def _speedup_text(speed: pd.DataFrame, baseline: str, opts: ReportOptions) -> li
                 continue
             noise = r["ci_low"] <= 1.0 <= r["ci_high"]
             tail = "; CI contains 1: within noise" if noise else ""
+            # A ratio against an arm that never got there is a bound, so "within noise" would mislead.
+            if "no baseline seed reached" in r["note"]:
+                tail = "; a lower bound"
+            elif "no arm seed reached" in r["note"]:
+                tail = "; an upper bound"
             parts.append(f"{word} ×{_fmt(r['ratio'])} [{_fmt(r['ci_low'])}, {_fmt(r['ci_high'])}]{tail}")
         note = g.loc["iteration", "note"]
         lines.append(f"- `{arm}` vs `{baseline}`, time to success ≥ {opts.success_threshold:g}: " + "; ".join(parts)
@@ -115,6 +127,8 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     paths = [Path(p) for p in ([paths] if isinstance(paths, str | Path) else paths)]
     out = Path(out) if out is not None else default_out(paths)
     runs = load_runs(paths)
+    for col in ("run_dir", "sweep_dir"):  # the tables travel (docs/, other machines): no absolute paths from here
+        runs[col] = runs[col].map(_portable_path)
     labels, shared = short_arm_labels(runs["arm"])
     runs["arm_overrides"] = runs["arm"]
     runs["arm"] = runs["arm"].map(lambda a: labels.get(a, a))
@@ -135,7 +149,8 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
 
     baseline, baseline_note = tables.choose_baseline(runs, opts.baseline)
     train, eval_df, sampler_df = (load_table(runs, n) for n in ("train_metrics", "eval", "sampler"))
-    bins = bin_table(eval_df, load_segments(runs))
+    segments = load_segments(runs)
+    bins = bin_table(eval_df, segments)
     colors = plots.arm_colors(runs["arm"].dropna())
     overall = tables.overall(eval_df)
     bin_fail = tables.bin_failure(eval_df)
@@ -186,6 +201,13 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
         figures.append(("speedup.png", f"Speedup vs `{baseline}` (baseline / arm, > 1: arm faster)"))
         md += _speedup_text(speed, baseline, opts)
     md += ["", "## Arms", "", md_table(_summary_view(summary)), ""]
+
+    seg = tables.segment_failure(final_bins, eval_df, bins, mastery_df, segments, opts)
+    if len(seg):
+        write_csv(out / "segment_failure.csv", seg)
+        md += ["## Segments", "", "Final failure per motion segment (mean over its bins, IQM over seeds, 95% interval); "
+               "(n/m): n of the segment's m bins never mastered.", "",
+               md_table(_segment_view(seg)), ""]
 
     sens = tables.sensitivity(runs, summary)
     if len(sens):
@@ -244,6 +266,14 @@ def _summary_view(summary: pd.DataFrame) -> pd.DataFrame:
         "wall time to threshold (s)": [_ci(p, lo, hi) for p, lo, hi in zip(
             summary["time_wall_time_s"], summary["time_wall_time_s_low"], summary["time_wall_time_s_high"], strict=True)],
     })
+
+
+def _segment_view(seg: pd.DataFrame) -> pd.DataFrame:
+    seg = seg.assign(cell=[f"{_ci(p, lo, hi)} ({n}/{b})" for p, lo, hi, n, b in zip(
+        seg["final_failure"], seg["final_failure_low"], seg["final_failure_high"], seg["bins_never_mastered"],
+        seg["num_bins"], strict=True)])
+    view = seg.pivot_table(index=["segment", "difficulty"], columns="arm", values="cell", aggfunc="first", sort=False)
+    return view.reset_index()
 
 
 def _mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:

@@ -122,6 +122,33 @@ def final_bin_failure(eval_df: pd.DataFrame, opts: ReportOptions) -> pd.DataFram
     return pd.concat(frames, ignore_index=True)
 
 
+def segment_failure(final_bins: pd.DataFrame, eval_df: pd.DataFrame, bins: pd.DataFrame,
+                    mastery_df: pd.DataFrame, segments: pd.DataFrame | None, opts: ReportOptions) -> pd.DataFrame:
+    """Final failure per ``arm, segment``: each run's last evaluation averaged over the segment's bins,
+    then IQM and interval over seeds; with the segment's difficulty (when the motion names one), its
+    bins, and how many of them the arm never mastered. Empty for a motion of fewer than two segments."""
+    if bins["segment"].nunique() < 2:
+        return pd.DataFrame()
+    last = final_rows(eval_df, by=["run_dir"]).drop(columns=["segment"], errors="ignore")
+    last = last.merge(bins[["bin", "segment"]], on="bin", how="left")
+    per_run = last.groupby(["arm", "segment", "run_dir"], sort=False)["failure_rate"].mean().reset_index()
+    difficulty = {}
+    if segments is not None and "difficulty" in segments.columns:
+        difficulty = dict(zip(segments["name"].astype(str), segments["difficulty"].astype(str), strict=True))
+    order = list(dict.fromkeys(bins.sort_values("bin")["segment"]))
+    never = mastery_df[mastery_df["mastery_iteration"].isna()].groupby(["arm", "segment"]).size()
+    rows = []
+    for (arm, seg), g in per_run.groupby(["arm", "segment"], sort=False):
+        point, low, high = _boot(g["failure_rate"], opts)
+        rows.append({"arm": arm, "segment": seg, "difficulty": difficulty.get(seg, ""),
+                     "num_bins": int((bins["segment"] == seg).sum()), "final_failure": point,
+                     "final_failure_low": low, "final_failure_high": high, "n_seeds": len(g),
+                     "bins_never_mastered": int(never.get((arm, seg), 0))})
+    out = pd.DataFrame(rows)
+    out["order"] = out["segment"].map({s: i for i, s in enumerate(order)})
+    return out.sort_values(["order", "arm"]).drop(columns="order").reset_index(drop=True)
+
+
 def sampling(sampler_df: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
     """Seed-mean sampling probability per ``arm, iteration, bin`` for adaptive arms (sampler != uniform)."""
     adaptive = set(runs.loc[runs["included"] & (runs["sampler"] != "uniform"), "arm"])

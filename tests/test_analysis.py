@@ -200,7 +200,7 @@ def _png_size(path: Path) -> tuple[int, int]:
 
 def test_report_files(report):
     tables = ["runs", "summary", "curves", "bin_failure", "final_bin_failure", "sampling", "mastery",
-              "mastery_speedup", "time_to_threshold", "speedup", "sensitivity"]
+              "mastery_speedup", "time_to_threshold", "speedup", "sensitivity", "segment_failure"]
     figures = ["curve_mean_episode_length", "curve_mean_reward", "curve_eval_failure_rate",
                "bin_failure_heatmap", "final_bin_failure", "sampling_distribution", "mastery", "speedup",
                "sensitivity_sampler.gamma"]
@@ -213,6 +213,29 @@ def test_report_files(report):
     for name in figures:
         assert f"({name}.png)" in md
     assert not list(report.glob("*.tmp")) and not list(report.glob(".*"))
+
+
+def test_report_tables_hold_no_absolute_paths_below_cwd(sweep, tmp_path, monkeypatch):
+    monkeypatch.chdir(sweep.parent)
+    out = build_report([sweep.name], out=tmp_path / "rep", opts=ReportOptions(n_resamples=20))
+    for name in ("runs", "time_to_threshold"):
+        text = (out / f"{name}.csv").read_text()
+        assert str(sweep.parent) not in text, name
+    runs = pd.read_csv(out / "runs.csv")
+    assert runs["run_dir"].str.startswith(sweep.name + "/").all()
+
+
+def test_segment_failure_planted(report):
+    seg = pd.read_csv(report / "segment_failure.csv").set_index(["arm", "segment"])
+    assert list(seg.loc[SLOW].index) == ["walk", "jump"]  # motion order, not alphabetical
+    # SLOW never masters bin 3: its jump segment (bins 2, 3) ends at ((0.02 + 0.01 s) + (0.5 + 0.01 s)) / 2.
+    assert seg.loc[(SLOW, "jump"), "final_failure"] == pytest.approx(0.265)
+    assert seg.loc[(SLOW, "jump"), "bins_never_mastered"] == 1 and seg.loc[(SLOW, "walk"), "bins_never_mastered"] == 0
+    assert seg.loc[(SLOW, "jump"), "difficulty"] == 0.8 and seg.loc[(SLOW, "jump"), "num_bins"] == 2
+    # Uniform's running seed 2 counts at its last evaluation (iteration 45, all bins mastered).
+    assert seg.loc[(UNIFORM, "walk"), "final_failure"] == pytest.approx(0.03)
+    assert seg.loc[(UNIFORM, "walk"), "n_seeds"] == 3
+    assert "## Segments" in (report / "report.md").read_text()
 
 
 def test_report_text_partial_sweep(report, sweep):
@@ -344,3 +367,22 @@ def test_short_arm_labels_keep_only_what_differs():
     labels, _ = short_arm_labels(["k=1,sampler=adaptive", "sampler=adaptive"])
     assert labels == {"k=1,sampler=adaptive": "k=1", "sampler=adaptive": "base"}
     assert short_arm_labels(["only"]) == ({"only": "only"}, [])
+
+
+def test_speedup_text_calls_a_censored_ratio_a_bound_not_noise():
+    from analysis.report import _speedup_text
+    from analysis.tables import ReportOptions
+
+    def table(note):
+        rows = [("A", m, 486.0, 445.0, 1.09, 1.0, 1.22, note) for m in ("iteration", "env_steps", "wall_time_s")]
+        rows.append(("A", "mastery_median", np.nan, np.nan, 1.0, np.nan, np.nan, "48 bins"))
+        return pd.DataFrame(rows, columns=["arm", "measure", "baseline_value", "arm_value", "ratio", "ci_low",
+                                           "ci_high", "note"])
+
+    lower = " ".join(_speedup_text(table("no baseline seed reached it: the ratio is a lower bound"), "U",
+                                   ReportOptions()))
+    assert "iterations ×1.09 [1, 1.22]; a lower bound" in lower and "within noise" not in lower
+    upper = " ".join(_speedup_text(table("no arm seed reached it: the ratio is an upper bound"), "U", ReportOptions()))
+    assert "an upper bound" in upper and "within noise" not in upper
+    both = " ".join(_speedup_text(table("1/3 arm seeds, 0/3 baseline seeds never reached it"), "U", ReportOptions()))
+    assert "CI contains 1: within noise" in both
