@@ -12,16 +12,19 @@ ENVS=${ENVS:-2048}           # worlds per job
 SEEDS=${SEEDS:-"0 1 2"}
 MOTIONS=${MOTIONS:-"default lafan_dance1"}
 NGPU=${NGPU:-1}              # motion k runs on GPU k mod NGPU
+EXTRA=${EXTRA:-}             # further overrides for every job, e.g. an MDP change
+NAME=${NAME:-first}          # sweep folders are outputs/sweeps/${NAME}_<motion>
 mkdir -p outputs/logs
 k=0
 for motion in $MOTIONS; do
   gpu=$((k % NGPU)); k=$((k + 1))
   for sampler in uniform adaptive; do
     for seed in $SEEDS; do
-      args=(-m "sampler=$sampler" "seed=$seed" "sweep_name=first_$motion" "num_envs=$ENVS"
+      args=(-m "sampler=$sampler" "seed=$seed" "sweep_name=${NAME}_$motion" "num_envs=$ENVS"
             "max_iterations=100000" "time_limit_s=$LIMIT" "logger=none" "progress_bar=false"
             "eval.every_iters=25" "ppo.save_interval=100")
       [ "$motion" != default ] && args+=("motion=$motion")
+      args+=($EXTRA)
       CUDA_VISIBLE_DEVICES=$gpu python3 -m bmimic.train "${args[@]}" > "outputs/logs/${motion}_${sampler}_${seed}.log" 2>&1 &
     done
   done
