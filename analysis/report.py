@@ -97,13 +97,10 @@ def _speedup_text(speed: pd.DataFrame, baseline: str, opts: ReportOptions) -> li
             if math.isnan(r["ratio"]):
                 parts.append(f"{word}: – ({r['note']})")
                 continue
-            noise = r["ci_low"] <= 1.0 <= r["ci_high"]
-            tail = "; CI contains 1: within noise" if noise else ""
-            # A ratio against an arm that never got there is a bound, so "within noise" would mislead.
-            if "no baseline seed reached" in r["note"]:
-                tail = "; a lower bound"
-            elif "no arm seed reached" in r["note"]:
-                tail = "; an upper bound"
+            if r["bound"]:  # against an arm that never got there "within noise" would mislead
+                tail = f"; {'a lower' if r['bound'] == 'lower' else 'an upper'} bound"
+            else:
+                tail = "; CI contains 1: within noise" if r["ci_low"] <= 1.0 <= r["ci_high"] else ""
             parts.append(f"{word} ×{_fmt(r['ratio'])} [{_fmt(r['ci_low'])}, {_fmt(r['ci_high'])}]{tail}")
         note = g.loc["iteration", "note"]
         lines.append(f"- `{arm}` vs `{baseline}`, time to success ≥ {opts.success_threshold:g}: " + "; ".join(parts)
@@ -202,7 +199,7 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
         md += _speedup_text(speed, baseline, opts)
     md += ["", "## Arms", "", md_table(_summary_view(summary)), ""]
 
-    seg = tables.segment_failure(final_bins, eval_df, bins, mastery_df, segments, opts)
+    seg = tables.segment_failure(eval_df, bins, mastery_df, segments, opts)
     if len(seg):
         write_csv(out / "segment_failure.csv", seg)
         md += ["## Segments", "", "Final failure per motion segment (mean over its bins, IQM over seeds, 95% interval); "

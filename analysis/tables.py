@@ -122,8 +122,8 @@ def final_bin_failure(eval_df: pd.DataFrame, opts: ReportOptions) -> pd.DataFram
     return pd.concat(frames, ignore_index=True)
 
 
-def segment_failure(final_bins: pd.DataFrame, eval_df: pd.DataFrame, bins: pd.DataFrame,
-                    mastery_df: pd.DataFrame, segments: pd.DataFrame | None, opts: ReportOptions) -> pd.DataFrame:
+def segment_failure(eval_df: pd.DataFrame, bins: pd.DataFrame, mastery_df: pd.DataFrame,
+                    segments: pd.DataFrame | None, opts: ReportOptions) -> pd.DataFrame:
     """Final failure per ``arm, segment``: each run's last evaluation averaged over the segment's bins,
     then IQM and interval over seeds; with the segment's difficulty (when the motion names one), its
     bins, and how many of them the arm never mastered. Empty for a motion of fewer than two segments."""
@@ -207,35 +207,40 @@ def speedups(mastery_df, times, baseline: str, opts: ReportOptions) -> tuple[pd.
     ``arm, measure``: the three time-to-threshold measures (ratio of IQMs over seeds, stratified
     bootstrap interval, seeds that never reached counted at their last evaluation; NaN when neither
     arm ever reached it) and ``mastery_median`` (median over bins of the per-bin ratios; no interval).
+    ``bound`` is "lower" when no baseline seed reached the threshold (the ratio can only be larger),
+    "upper" when no arm seed did, else empty.
     """
     per_bin = mastery_speedup(mastery_df, baseline)
     rows = []
     base_t = times[times["arm"] == baseline]
     for arm in sorted(set(times["arm"]) - {baseline}):
         t = times[times["arm"] == arm]
+        bound = ""
         if not t["reached"].any():
             never = "no arm seed reached it: the ratio is an upper bound (arm counted at its last evaluation)"
+            bound = "upper"
         elif not base_t["reached"].any():
             never = "no baseline seed reached it: the ratio is a lower bound (baseline counted at its last evaluation)"
+            bound = "lower"
         else:
             never = (f"{int((~t['reached']).sum())}/{len(t)} arm seeds, {int((~base_t['reached']).sum())}/"
                      f"{len(base_t)} baseline seeds never reached it (counted at their last evaluation)")
         for measure in MEASURES:
             if not (t["reached"].any() or base_t["reached"].any()):
-                rows.append((arm, measure, np.nan, np.nan, np.nan, np.nan, np.nan, "neither arm reached it"))
+                rows.append((arm, measure, np.nan, np.nan, np.nan, np.nan, np.nan, "neither arm reached it", ""))
                 continue
             b, a = censored(base_t, measure), censored(t, measure)
             ratio, low, high = speedup(b, a, n_resamples=opts.n_resamples, confidence=opts.confidence,
                                        seed=opts.bootstrap_seed)
             note = "" if t["reached"].all() and base_t["reached"].all() else never
-            rows.append((arm, measure, iqm(b), iqm(a), ratio, low, high, note))
+            rows.append((arm, measure, iqm(b), iqm(a), ratio, low, high, note, bound))
         bins = per_bin[per_bin["arm"] == arm]
         ratios = bins["ratio"].dropna()
         note = f"{len(ratios)} bins; {int((bins['censored'] != '').sum())} censored"
         rows.append((arm, "mastery_median", np.nan, np.nan, float(np.median(ratios)) if len(ratios) else np.nan,
-                     np.nan, np.nan, note))
+                     np.nan, np.nan, note, ""))
     table = pd.DataFrame(rows, columns=["arm", "measure", "baseline_value", "arm_value", "ratio", "ci_low",
-                                        "ci_high", "note"])
+                                        "ci_high", "note", "bound"])
     return per_bin, table
 
 

@@ -134,7 +134,7 @@ def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
         "observations": env._compute_observations,
         "rewards": lambda: [fn(env, **p) for fn, p in zip(env.reward_terms.funcs, env.reward_terms.params)],
         "terminations": lambda: [fn(env, **p) for fn, p in zip(env.termination_terms.funcs, env.termination_terms.params)],
-        "sampler_update": lambda: env.sampler.update_counts(*env._segment_counts(ones, zeros, zeros)),
+        "sampler_update": lambda: env.sampler.update_counts(*env._segment_counts(ones, env.time_steps, zeros, zeros)),
         "resets": lambda: env._resample(zeros),
         "policy": lambda: alg.act(obs),
     }

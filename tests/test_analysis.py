@@ -373,16 +373,18 @@ def test_speedup_text_calls_a_censored_ratio_a_bound_not_noise():
     from analysis.report import _speedup_text
     from analysis.tables import ReportOptions
 
-    def table(note):
-        rows = [("A", m, 486.0, 445.0, 1.09, 1.0, 1.22, note) for m in ("iteration", "env_steps", "wall_time_s")]
-        rows.append(("A", "mastery_median", np.nan, np.nan, 1.0, np.nan, np.nan, "48 bins"))
+    def table(note, bound):
+        rows = [("A", m, 486.0, 445.0, 1.09, 1.0, 1.22, note, bound) for m in ("iteration", "env_steps", "wall_time_s")]
+        rows.append(("A", "mastery_median", np.nan, np.nan, 1.0, np.nan, np.nan, "48 bins", ""))
         return pd.DataFrame(rows, columns=["arm", "measure", "baseline_value", "arm_value", "ratio", "ci_low",
-                                           "ci_high", "note"])
+                                           "ci_high", "note", "bound"])
 
-    lower = " ".join(_speedup_text(table("no baseline seed reached it: the ratio is a lower bound"), "U",
+    lower = " ".join(_speedup_text(table("no baseline seed reached it: the ratio is a lower bound", "lower"), "U",
                                    ReportOptions()))
     assert "iterations ×1.09 [1, 1.22]; a lower bound" in lower and "within noise" not in lower
-    upper = " ".join(_speedup_text(table("no arm seed reached it: the ratio is an upper bound"), "U", ReportOptions()))
+    upper = " ".join(_speedup_text(table("no arm seed reached it: the ratio is an upper bound", "upper"), "U",
+                                   ReportOptions()))
     assert "an upper bound" in upper and "within noise" not in upper
-    both = " ".join(_speedup_text(table("1/3 arm seeds, 0/3 baseline seeds never reached it"), "U", ReportOptions()))
+    both = " ".join(_speedup_text(table("1/3 arm seeds, 0/3 baseline seeds never reached it", ""), "U",
+                                  ReportOptions()))
     assert "CI contains 1: within noise" in both

@@ -122,8 +122,8 @@ class TrackingEnv(VecEnv):
         dist = torch.distributed
         self.world_size = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
         self.layout = layout
-        # The default generator (seeded by bmimic.runs.seed_everything): CUDA-graph replay advances it.
-        self.generator = None
+        # Random draws use torch's default generator (seeded by bmimic.runs.seed_everything), which
+        # CUDA-graph replay advances (a private generator would have to be registered with every graph).
         self._half_widths: dict[tuple, torch.Tensor] = {}
         train = mode == "train"
         self.randomize = train and env_cfg.randomization.enabled
@@ -279,7 +279,7 @@ class TrackingEnv(VecEnv):
                 hw = self._half_widths[key] = torch.tensor(key, dtype=torch.float32, device=self.device)
         else:
             hw = float(half_width)
-        u = torch.rand(shape, generator=self.generator, device=self.device)
+        u = torch.rand(shape, device=self.device)
         return (2.0 * u - 1.0) * hw
 
     def _randomize_startup(self) -> None:
@@ -287,7 +287,7 @@ class TrackingEnv(VecEnv):
         r = self.cfg.randomization
         n = self.num_envs
         lo, hi = r.friction_range
-        mu = lo + (hi - lo) * torch.rand(n, 1, generator=self.generator, device=self.device)
+        mu = lo + (hi - lo) * torch.rand(n, 1, device=self.device)
         friction = self.sim.geom_friction
         friction[:, self._foot_geoms, 0] = mu.expand(n, len(self._foot_geoms))
         self.sim.body_ipos[:, self._torso_body] += self._uniform((n, 3), list(r.torso_com_offset_m))
@@ -296,7 +296,7 @@ class TrackingEnv(VecEnv):
 
     def _draw_push_interval(self) -> torch.Tensor:
         lo, hi = self.cfg.randomization.push_interval_s
-        return lo + (hi - lo) * torch.rand(self.num_envs, generator=self.generator, device=self.device)
+        return lo + (hi - lo) * torch.rand(self.num_envs, device=self.device)
 
     # ============================================================================ state
     def _compute_state(self) -> TrackingState:
@@ -397,8 +397,8 @@ class TrackingEnv(VecEnv):
 
     def _resample(self, mask: torch.Tensor) -> None:
         """Masked envs start a new reference segment at a frame the sampler draws (RSI)."""
-        bins = self.sampler.sample(self.num_envs, generator=self.generator)
-        frames = self.layout.sample_frames(bins, generator=self.generator)
+        bins = self.sampler.sample(self.num_envs)
+        frames = self.layout.sample_frames(bins)
         frames = torch.where(mask, frames, self.time_steps)
         self.time_steps.copy_(frames)
         self.segment_start.copy_(torch.where(mask, frames, self.segment_start))
@@ -477,20 +477,23 @@ class TrackingEnv(VecEnv):
 
         if self.mode == "train":
             self._accumulate_episode_stats(dones, terminated)
-            episodes, failures = self._segment_counts(dones, terminated, nonfinite)
+            # Reference segments that end now, counted in one pass: finished episodes (at this
+            # frame) and continuing episodes whose clip ends on the next frame (never failed).
+            next_frame = self.time_steps + 1
+            clip_end = (next_frame >= self.segment_end) & ~dones
+            episodes, failures = self._segment_counts(dones | clip_end, torch.where(dones, self.time_steps, next_frame),
+                                                      terminated, nonfinite)
             self._resample(dones)
             self.episode_length_buf.masked_fill_(dones, 0)
             self.actions.masked_fill_(dones[:, None], 0.0)
             self.last_actions.masked_fill_(dones[:, None], 0.0)
             self.episode_reward_terms.masked_fill_(dones[:, None], 0.0)
             self.time_steps += 1
-            # End of the clip mid-episode: resample and teleport; the episode continues.
-            clip_end = self.time_steps >= self.segment_end
-            e2, f2 = self._segment_counts(clip_end & ~dones, torch.zeros_like(dones), torch.zeros_like(dones))
-            self._resample(clip_end)
+            # End of the clip mid-episode: resample and teleport; the episode continues. (This also
+            # catches a reset that started on the clip's last frame; its segment was not counted.)
+            self._resample(self.time_steps >= self.segment_end)
             # One sampler update per control step (the BeyondMimic EMA's time constant is in steps),
             # after this step's resets were drawn, as in the released code.
-            episodes, failures = episodes + e2, failures + f2
             if self.world_size > 1:
                 # Several GPUs train one policy: every rank's sampler sees every rank's episodes,
                 # so all ranks sample from the same distribution.
@@ -536,13 +539,15 @@ class TrackingEnv(VecEnv):
         self.pop_iteration_stats()
 
     # ============================================================================ sampler & stats
-    def _segment_counts(self, finished: torch.Tensor, terminated: torch.Tensor, nonfinite: torch.Tensor):
-        """Per-bin (episodes, failures) of the reference segments that end now (fixed shapes)."""
+    def _segment_counts(self, finished: torch.Tensor, end_frames: torch.Tensor, terminated: torch.Tensor,
+                        nonfinite: torch.Tensor):
+        """Per-bin (episodes, failures) of the reference segments that end now, each spanning
+        [segment_start, end_frames] (fixed shapes: every env is passed, ``finished`` masks)."""
         cfg = self.sampler_cfg
         counted = finished & ~nonfinite
         failed = failed_mask(terminated, self.episode_length_buf, self.max_episode_length, cfg.failure,
                              cfg.failure_threshold)
-        episodes, failures = attribute(self.segment_start, self.time_steps, failed, self.layout, cfg.attribution,
+        episodes, failures = attribute(self.segment_start, end_frames, failed, self.layout, cfg.attribution,
                                        counted=counted)
         return episodes.to(torch.float64), failures.to(torch.float64)
 
