@@ -68,7 +68,8 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     mjm, robot, motion, layout, sampler, env = build(cfg, device)
     setup_s = time.perf_counter() - t0
     out: dict = {"num_envs": num_envs, "num_bins": layout.num_bins, "motion_s": motion.duration_s,
-                 "setup_s": setup_s, "cuda_graph": env.sim._step_graph is not None}
+                 "setup_s": setup_s, "cuda_graph": env.sim._step_graph is not None,
+                 "compile_env_step": bool(cfg.sim.compile_env_step)}
     n = num_envs
     sim_steps = max(iters * 10, 20)
 

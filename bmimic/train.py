@@ -117,8 +117,11 @@ def _init_distributed() -> tuple[int, int]:
     if world <= 1:
         return 0, 1
     if not torch.distributed.is_initialized():
-        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
-        torch.distributed.init_process_group("nccl")
+        if torch.cuda.is_available():
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+            torch.distributed.init_process_group("nccl")
+        else:  # CPU ranks (gloo): the same code path, for smoke tests without a GPU
+            torch.distributed.init_process_group("gloo")
     return torch.distributed.get_rank(), world
 
 
@@ -131,7 +134,10 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     device = resolve_device(requested)
     rank, world = _init_distributed()
     if world > 1:
-        device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        import torch
+
+        if torch.distributed.get_backend() == "nccl":
+            device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
         cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
     resolve_runtime(cfg, device)
     on_gpu = device.startswith("cuda")
@@ -169,6 +175,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
             trainer.save_checkpoint()
     finally:
         trainer.close()
+        env.close()
         if world > 1:
             import torch
 

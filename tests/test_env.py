@@ -12,15 +12,16 @@ from bmimic.runs import seed_everything
 from bmimic.train import build, build_evaluator
 from tests.conftest import compose
 
-DEVICES = ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else [])
+# (device, sim.compile_env_step): on a GPU machine the same tests also run the CUDA-graph path,
+# eager and fused by torch.compile.
+SETUPS = [("cpu", False)] + ([("cuda:0", False), ("cuda:0", True)] if torch.cuda.is_available() else [])
 
 
-@pytest.fixture(scope="module", params=DEVICES)
+@pytest.fixture(scope="module", params=SETUPS, ids=lambda s: f"{s[0]}{'-compiled' if s[1] else ''}")
 def built(request):
-    """On a GPU machine the same tests also run the CUDA-graph path."""
-    device = request.param
+    device, compiled = request.param
     seed_everything(0)  # the tests below must not depend on what ran before them
-    cfg = compose(["motion=easy_only", "num_envs=4", f"device={device}"])
+    cfg = compose(["motion=easy_only", "num_envs=4", f"device={device}", f"sim.compile_env_step={compiled}"])
     resolve_runtime(cfg, device)
     mjm, robot, motion, layout, sampler, env = build(cfg, device)
     evaluator = build_evaluator(cfg, device, robot, motion, layout)
@@ -124,3 +125,23 @@ def test_uniform_and_eval_envs(built):
     assert len(per_bin) == evaluator.layout.num_bins
     assert per_bin["failure_rate"].between(0, 1).all()
     assert (per_bin["mpkpe_mm"] >= 0).all() and per_bin["mpkpe_mm"].map(math.isfinite).all()
+
+
+def test_step_traces_as_single_graphs(built):
+    """The torch parts of a step trace without graph breaks: no host synchronisation (`.item()`,
+    data-dependent shapes) and no OmegaConf access on the step path. That is what lets
+    `sim.compile_env_step` fuse them and CUDA graphs replay them."""
+    import torch._dynamo as dynamo
+    from omegaconf import DictConfig
+
+    env = built[5]
+    if env.device.type != "cpu":
+        pytest.skip("tracing is device-independent; checked once on the CPU")
+    assert not isinstance(env.cfg, DictConfig) and not isinstance(env.sampler_cfg, DictConfig)
+    for part in (env._pre_physics, env._post_physics, env._observe):
+        explained = dynamo.explain(part)()
+        reasons = [b.reason.splitlines()[0] for b in explained.break_reasons]
+        # break_reasons also lists a break at the very end (e.g. a trailing `.item()`), which
+        # graph_break_count does not count.
+        assert explained.graph_count == 1 and not reasons, (part.__name__, reasons)
+    dynamo.reset()

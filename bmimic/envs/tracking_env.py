@@ -15,12 +15,14 @@ Subset resets are masked writes over all envs (`torch.where`), so shapes never d
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 import torch
+from omegaconf import DictConfig, OmegaConf
 from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
@@ -39,6 +41,8 @@ from bmimic.motion import Motion
 from bmimic.robot import RobotInfo
 from bmimic.sampling.bins import BinLayout, attribute, failed_mask
 from bmimic.sim import SimConfig, Simulator
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -65,6 +69,11 @@ class TrackingState:
     ref_anchor_quat: torch.Tensor
     ref_body_pos_relative: torch.Tensor
     ref_body_quat_relative: torch.Tensor
+
+
+def _plain(cfg):
+    """A composed OmegaConf config as the schema's dataclass instance (others unchanged)."""
+    return OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
 
 
 class _Terms:
@@ -113,12 +122,14 @@ class TrackingEnv(VecEnv):
             raise ValueError(f"mode must be train or eval, got {mode!r}")
         if mode == "train" and sampler is None:
             raise ValueError("a training environment needs a sampler")
-        self.cfg = env_cfg
+        # Plain dataclasses, not OmegaConf nodes: the step reads config fields every call, and plain
+        # attribute access is cheaper and can be traced by torch.compile.
+        self.cfg = _plain(env_cfg)
         self.mode = mode
         self.num_envs = num_envs
         self.device = torch.device(device)
         self.sampler = sampler
-        self.sampler_cfg = sampler_cfg
+        self.sampler_cfg = _plain(sampler_cfg)
         dist = torch.distributed
         self.world_size = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
         self.layout = layout
@@ -520,23 +531,47 @@ class TrackingEnv(VecEnv):
 
         Everything on the step path has fixed shapes and no host synchronisation, so it can be
         replayed; this removes the per-kernel launch cost that otherwise dominates at 4096+ envs.
-        Two eager warm-up steps fill the caches first; their statistics are discarded.
+        With `sim.compile_env_step` the three parts are first fused by torch.compile (fewer, larger
+        kernels in the graphs). Two warm-up steps (compiling, filling caches) run first; their
+        statistics are discarded.
         """
-        if not (self.device.type == "cuda" and self.sim.use_graph) or self.world_size > 1:
-            return  # the multi-GPU step all-reduces sampler counts through NCCL: run it eagerly
-        zeros = torch.zeros_like(self.actions)
-        for _ in range(2):
-            self.step(zeros)
-        torch.cuda.synchronize(self.device)
+        if not (self.device.type == "cuda" and self.sim.use_graph):
+            return
+        # Under torchrun the graph also holds the NCCL all-reduce of the sampler counts: the eager
+        # warm-up steps below create the communicator before capture, as NCCL capture requires.
+        parts = (self._pre_physics, self._post_physics, self._observe)
+        if self.sim.cfg.compile_env_step:
+            compiled = tuple(torch.compile(fn, dynamic=False) for fn in parts)
+            try:
+                self._warm_up(compiled)
+                parts = compiled
+            except Exception as e:  # a missing or broken compiler toolchain costs speed, not the run
+                log.warning("sim.compile_env_step: torch.compile failed (%s: %s); capturing the step "
+                            "uncompiled", type(e).__name__, str(e).splitlines()[0] if str(e) else "")
+        if parts[0] is self._pre_physics:
+            self._warm_up(parts)
         pool = torch.cuda.graph_pool_handle()
         graphs = []
-        for fn in (self._pre_physics, self._post_physics, self._observe):
+        for fn in parts:
             g = torch.cuda.CUDAGraph()
             with torch.cuda.graph(g, pool=pool):
                 fn()
             graphs.append(g)
         self._graphs = tuple(graphs)
         self.pop_iteration_stats()
+
+    def _warm_up(self, parts) -> None:
+        """Two steps through (pre, post, obs) outside capture: compiles, allocates, creates the
+        NCCL communicator under torchrun."""
+        pre, post, obs = parts
+        self._actions_in.zero_()
+        for _ in range(2):
+            pre()
+            self.sim.step()
+            post()
+            self.sim.forward_kinematics()
+            obs()
+        torch.cuda.synchronize(self.device)
 
     # ============================================================================ sampler & stats
     def _segment_counts(self, finished: torch.Tensor, end_frames: torch.Tensor, terminated: torch.Tensor,
@@ -610,7 +645,11 @@ class TrackingEnv(VecEnv):
         return out
 
     def close(self) -> None:
-        pass
+        """Release the captured graphs. Under torchrun this must precede destroy_process_group: a
+        live graph holding an NCCL all-reduce makes it hang (pytorch/pytorch#115388)."""
+        if self._graphs is not None:
+            torch.cuda.synchronize(self.device)
+            self._graphs = None
 
 
 __all__ = ["TrackingEnv", "TrackingState"]

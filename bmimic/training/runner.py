@@ -269,6 +269,12 @@ class Trainer:
                 bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
                                 fps=f"{row['fps']:.0f}")
             out_of_time = time_limit_s is not None and self.progress.wall_time_s >= time_limit_s
+            if self.runner.is_distributed and time_limit_s is not None:
+                # Every rank stops after the same iteration (ranks' clocks differ; a rank that went
+                # on alone would wait forever in the next collective).
+                flag = torch.tensor(float(out_of_time), device=self.device)
+                torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+                out_of_time = bool(flag.item())
             done = self.progress.iteration == end_it or out_of_time
             if self.is_main and (self.eval_every_iters and self.progress.iteration % self.eval_every_iters == 0):
                 self.evaluate()
