@@ -9,8 +9,8 @@ For each env count, in one process on one device:
   (b) collection: environment steps with policy inference, as in a PPO rollout;
   (c) full PPO iterations: collection plus the update;
 plus device memory, the ratios b/a and c/a, and a breakdown of one environment step (physics,
-state, observations, rewards, terminations, sampler, resets, policy) and of the PPO update, timed
-in isolation with device synchronisation. Prints a table and writes JSON (--json).
+state, observations, rewards, terminations, sampler, resets, policy) and the PPO update per
+iteration, each timed in isolation with device synchronisation. Prints a table and writes JSON (--json).
 """
 
 from __future__ import annotations
@@ -111,6 +111,24 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
         out["train_steps_per_s"] = n * cfg.ppo.num_steps_per_env / sec
         out["iteration_s"] = sec
 
+        def rollout_and_returns():
+            for _ in range(cfg.ppo.num_steps_per_env):
+                collect_step()
+            with torch.inference_mode():
+                alg.compute_returns(state["obs"])
+
+        # The update alone (it needs a filled rollout storage, so each timed update follows an
+        # untimed rollout); the iteration's other part is the rollout and returns.
+        update_s = []
+        for _ in range(max(iters, 2)):
+            rollout_and_returns()
+            _sync(device)
+            t0 = time.perf_counter()
+            alg.update()
+            _sync(device)
+            update_s.append(time.perf_counter() - t0)
+        out["ppo_update_s"] = sorted(update_s)[len(update_s) // 2]
+
     if "breakdown" in only:
         out["breakdown_ms"] = breakdown(env, alg, device, sim_steps)
     if device.startswith("cuda"):
@@ -200,6 +218,9 @@ def format_table(runs: list[dict]) -> str:
     for r in runs:
         lines.append(" | ".join(f.format(r[k]) if r.get(k) is not None else "-" for k, _, f in cols))
     for r in runs:
+        if "ppo_update_s" in r:
+            lines.append(f"PPO iteration at {r['num_envs']} envs: {r['iteration_s']:.3f} s, of which the update "
+                         f"{r['ppo_update_s']:.3f} s (median of separately timed updates)")
         if "breakdown_ms" in r:
             lines.append(f"breakdown at {r['num_envs']} envs (ms per env step): "
                          + ", ".join(f"{k} {v:.3f}" for k, v in r["breakdown_ms"].items()))

@@ -26,4 +26,5 @@ def test_bench_cli_on_cpu(tmp_path):
     for key in ("physics_steps_per_s", "collect_steps_per_s", "train_steps_per_s", "collect_over_physics"):
         assert run[key] > 0, key
     assert set(run["breakdown_ms"]) >= {"physics", "observations", "rewards", "resets", "policy", "env_step_total"}
+    assert 0 < run["ppo_update_s"] < run["iteration_s"]  # the update is one part of an iteration
     assert result["environment"]["torch"] and "envs | physics/s" in proc.stdout
