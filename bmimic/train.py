@@ -110,7 +110,8 @@ def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout):
 
 
 def _init_distributed() -> tuple[int, int]:
-    """(rank, world size); under torchrun, join the NCCL group before any env is built."""
+    """(rank, world size); under torchrun, join the process group (NCCL on GPUs, gloo on a CPU-only
+    machine) before any env is built."""
     import torch
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
