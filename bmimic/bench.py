@@ -89,9 +89,15 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
             alg.process_env_step(o, r, d, e)
             state["obs"] = o
 
-    if "collect" in only or "train" in only:
-        steps = cfg.ppo.num_steps_per_env
+    steps = cfg.ppo.num_steps_per_env
 
+    def rollout_and_returns():
+        for _ in range(steps):
+            collect_step()
+        with torch.inference_mode():
+            alg.compute_returns(state["obs"])
+
+    if "collect" in only or "train" in only:
         def rollout():
             for _ in range(steps):
                 collect_step()
@@ -101,21 +107,12 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 
     if "train" in only:
         def iteration():
-            for _ in range(cfg.ppo.num_steps_per_env):
-                collect_step()
-            with torch.inference_mode():
-                alg.compute_returns(state["obs"])
+            rollout_and_returns()
             alg.update()
 
         sec = _timeit(iteration, iters, device, warmup=1)
-        out["train_steps_per_s"] = n * cfg.ppo.num_steps_per_env / sec
+        out["train_steps_per_s"] = n * steps / sec
         out["iteration_s"] = sec
-
-        def rollout_and_returns():
-            for _ in range(cfg.ppo.num_steps_per_env):
-                collect_step()
-            with torch.inference_mode():
-                alg.compute_returns(state["obs"])
 
         # The update alone (it needs a filled rollout storage, so each timed update follows an
         # untimed rollout); the iteration's other part is the rollout and returns.

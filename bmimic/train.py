@@ -128,6 +128,8 @@ def _init_distributed() -> tuple[int, int]:
 
 def train(cfg: DictConfig, run_dir: Path) -> float:
     """Train in `run_dir`; returns the final evaluated failure rate."""
+    import torch
+
     from bmimic.training.runner import Trainer
 
     requested = cfg.device
@@ -135,8 +137,6 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     device = resolve_device(requested)
     rank, world = _init_distributed()
     if world > 1:
-        import torch
-
         if torch.distributed.get_backend() == "nccl":
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
         cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
@@ -178,8 +178,6 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         trainer.close()
         env.close()
         if world > 1:
-            import torch
-
             torch.distributed.destroy_process_group()
     metrics = {
         "final_eval_failure_rate": final["eval_failure_rate"],

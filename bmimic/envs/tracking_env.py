@@ -537,19 +537,9 @@ class TrackingEnv(VecEnv):
         """
         if not (self.device.type == "cuda" and self.sim.use_graph):
             return
-        # Under torchrun the graph also holds the NCCL all-reduce of the sampler counts: the eager
-        # warm-up steps below create the communicator before capture, as NCCL capture requires.
-        parts = (self._pre_physics, self._post_physics, self._observe)
-        if self.sim.cfg.compile_env_step:
-            compiled = tuple(torch.compile(fn, dynamic=False) for fn in parts)
-            try:
-                self._warm_up(compiled)
-                parts = compiled
-            except Exception as e:  # a missing or broken compiler toolchain costs speed, not the run
-                log.warning("sim.compile_env_step: torch.compile failed (%s: %s); capturing the step "
-                            "uncompiled", type(e).__name__, str(e).splitlines()[0] if str(e) else "")
-        if parts[0] is self._pre_physics:
-            self._warm_up(parts)
+        # Under torchrun the graph also holds the NCCL all-reduce of the sampler counts: the
+        # warm-up steps create the communicator before capture, as NCCL capture requires.
+        parts = self._warmed_up_parts()
         pool = torch.cuda.graph_pool_handle()
         graphs = []
         for fn in parts:
@@ -559,6 +549,21 @@ class TrackingEnv(VecEnv):
             graphs.append(g)
         self._graphs = tuple(graphs)
         self.pop_iteration_stats()
+
+    def _warmed_up_parts(self) -> tuple:
+        """(pre, post, obs), compiled when `sim.compile_env_step` and compilation works, after the
+        warm-up steps that capture needs."""
+        parts = (self._pre_physics, self._post_physics, self._observe)
+        if self.sim.cfg.compile_env_step:
+            compiled = tuple(torch.compile(fn, dynamic=False) for fn in parts)
+            try:
+                self._warm_up(compiled)
+                return compiled
+            except Exception as e:  # a missing or broken compiler toolchain costs speed, not the run
+                log.warning("sim.compile_env_step: torch.compile failed (%s: %s); capturing the step "
+                            "uncompiled", type(e).__name__, str(e).splitlines()[0] if str(e) else "")
+        self._warm_up(parts)
+        return parts
 
     def _warm_up(self, parts) -> None:
         """Two steps through (pre, post, obs) outside capture: compiles, allocates, creates the
