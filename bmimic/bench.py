@@ -110,7 +110,7 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
             rollout_and_returns()
             alg.update()
 
-        sec = _timeit(iteration, iters, device, warmup=1)
+        sec = _timeit(iteration, iters, device, warmup=2)  # the second update captures its graphs
         out["train_steps_per_s"] = n * steps / sec
         out["iteration_s"] = sec
 

@@ -145,6 +145,8 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         _fail("ppo.learning_rate", f"must be > 0, got {ppo.learning_rate}")
     if ppo.schedule not in ("adaptive", "fixed"):
         _fail("ppo.schedule", f"must be adaptive or fixed, got {ppo.schedule!r}")
+    if ppo.float32_matmul_precision not in ("highest", "high", "medium"):
+        _fail("ppo.float32_matmul_precision", f"must be highest, high or medium, got {ppo.float32_matmul_precision!r}")
     if ppo.save_interval < 1:
         _fail("ppo.save_interval", f"must be >= 1, got {ppo.save_interval}")
     if cfg.sim.timestep_s <= 0:

@@ -66,6 +66,7 @@ def test_runtime_defaults_cpu_and_gpu():
 
 
 BAD = [
+    (["ppo.float32_matmul_precision=tf32"], "ppo.float32_matmul_precision"),
     (["num_envs=3", "ppo.num_mini_batches=4", "ppo.num_steps_per_env=5"], "ppo.num_mini_batches"),
     (["sampler.lambda_uniform=1.5"], "sampler.lambda_uniform"),
     (["sampler.lambda_uniform=-0.1"], "sampler.lambda_uniform"),

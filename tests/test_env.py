@@ -46,6 +46,27 @@ def test_returned_observations_are_not_overwritten(built):
     assert torch.equal(first["policy"], kept)
 
 
+def test_undesired_contact_count_reads_only_active_slots(built):
+    """Counts per world from the active contact slots; unused slots (stale ids, stale geoms) add nothing."""
+    env = built[5]
+    sim = env.sim
+    saved = [x.clone() for x in (sim.nacon, sim.contact_geom, sim.contact_worldid)]
+    undesired_geom = int(torch.nonzero(env._undesired_body[env._geom_body])[0])
+    other_geom = int(torch.nonzero(~env._undesired_body[env._geom_body])[0])
+    try:
+        sim.nacon.fill_(3)
+        sim.contact_geom[:, 0] = other_geom
+        sim.contact_geom[:, 1] = undesired_geom  # every slot, used or not, names an undesired body
+        sim.contact_worldid.fill_(0)
+        sim.contact_worldid[:2] = 2
+        sim.contact_geom[2, 1] = other_geom  # slot 2 (world 0): no undesired body
+        counts = env.undesired_contact_count()
+        assert counts.tolist() == [0.0, 0.0, 2.0, 0.0]
+    finally:
+        for dst, src in zip((sim.nacon, sim.contact_geom, sim.contact_worldid), saved):
+            dst.copy_(src)
+
+
 def test_observation_and_action_dims(built):
     cfg, robot, motion, layout, sampler, env, _ = built
     obs = env.get_observations()

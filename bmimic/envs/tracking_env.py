@@ -378,7 +378,9 @@ class TrackingEnv(VecEnv):
         geom = sim.contact_geom.long().clamp_min(0)
         bodies = self._geom_body[geom]
         hit = active & (self._undesired_body[bodies[:, 0]] | self._undesired_body[bodies[:, 1]])
-        world = sim.contact_worldid.long().clamp(0, self.num_envs - 1)
+        # Unused slots (most of the pool) add zero to worlds spread by slot number: sent all to one
+        # world (their stale id), their atomic adds serialise (measured: 0.3 ms a step at 4096 envs).
+        world = torch.where(active, sim.contact_worldid.long().clamp(0, self.num_envs - 1), slots % self.num_envs)
         return torch.zeros(self.num_envs, device=self.device).index_add_(0, world, hit.float())
 
     # ============================================================================ resets

@@ -213,18 +213,22 @@ def attribute(
     check_attribution(attribution)
     start_bins = layout.bins_of(start_frames)
     failed = torch.as_tensor(failed, device=layout.device).bool()
+    # Counted in float32 (exact below 2**24 segments per call): compiled, an int64 index_add
+    # becomes a sort-based scatter, float32 a plain atomic add.
     if counted is None:
-        weights = torch.ones_like(start_bins)
+        weights = torch.ones_like(start_bins, dtype=torch.float32)
     else:
         counted = torch.as_tensor(counted, device=layout.device).bool()
-        weights = counted.long()
+        weights = counted.float()
         failed = failed & counted
-    failed = failed.long()
+    failed = failed.float()
     s = layout.num_bins
     if attribution == "start":
-        return bin_counts(start_bins, s, weights), bin_counts(start_bins, s, failed)
-    end_bins = layout.bins_of(end_frames)
-    return visits_histogram(start_bins, end_bins, s, weights), bin_counts(end_bins, s, failed)
+        episodes, failures = bin_counts(start_bins, s, weights), bin_counts(start_bins, s, failed)
+    else:
+        end_bins = layout.bins_of(end_frames)
+        episodes, failures = visits_histogram(start_bins, end_bins, s, weights), bin_counts(end_bins, s, failed)
+    return episodes.long(), failures.long()
 
 
 __all__ = [

@@ -1,4 +1,5 @@
-"""The PPO training loop: rsl-rl-lib's PPO, this project's logging, evaluation and checkpoints.
+"""The PPO training loop: rsl-rl-lib's PPO (as `GraphPPO`, see ppo.py), this project's logging,
+evaluation and checkpoints.
 
 rsl-rl's `OnPolicyRunner` builds the algorithm (models, storage, optimiser, multi-GPU set-up); the
 loop itself is written here so that each iteration can (a) read the environment's statistics with a
@@ -38,7 +39,8 @@ def rsl_rl_train_cfg(ppo, run_name: str) -> dict:
         "torch_compile_mode": ppo.torch_compile_mode,
         "logger": "tensorboard",
         "algorithm": {
-            "class_name": "PPO",
+            "class_name": "bmimic.training.ppo:GraphPPO",
+            "cuda_graphs": ppo.cuda_graphs,
             "learning_rate": ppo.learning_rate,
             "num_learning_epochs": ppo.num_learning_epochs,
             "num_mini_batches": ppo.num_mini_batches,
@@ -118,6 +120,7 @@ class Trainer:
         self.progress_bar = progress_bar
         self.export_onnx_enabled = export_onnx
         self.is_main = is_main_rank
+        torch.set_float32_matmul_precision(ppo_cfg.float32_matmul_precision)
         self.runner = _Runner(env, rsl_rl_train_cfg(ppo_cfg, run_name), log_dir=None, device=device)
         self.alg = self.runner.alg
         self.progress = Progress()
@@ -306,7 +309,7 @@ class Trainer:
             "collection_time_s": collect_s,
             "learning_time_s": learn_s,
             "learning_rate": float(self.alg.learning_rate),
-            "action_std": float(self.alg.get_policy().output_std.detach().mean()),
+            "action_std": float(self.alg.action_std().mean()),
             "nonfinite_resets": stats["nonfinite_resets"],
             "overflow_worlds": stats["overflow_worlds"],
         }
@@ -367,6 +370,7 @@ class Trainer:
 
     def close(self) -> None:
         self.flush_tables()
+        self.alg.release_graphs()  # before destroy_process_group: graphs may hold NCCL calls
         if self.writer is not None:
             self.writer.close()
 
