@@ -91,19 +91,21 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 
     steps = cfg.ppo.num_steps_per_env
 
-    def rollout_and_returns():
+    def rollout():
         for _ in range(steps):
             collect_step()
+
+    def rollout_and_returns():
+        rollout()
         with torch.inference_mode():
             alg.compute_returns(state["obs"])
 
     if "collect" in only or "train" in only:
-        def rollout():
-            for _ in range(steps):
-                collect_step()
+        def rollout_only():
+            rollout()
             alg.storage.clear()
 
-        out["collect_steps_per_s"] = n * steps / _timeit(rollout, iters, device, warmup=1)
+        out["collect_steps_per_s"] = n * steps / _timeit(rollout_only, iters, device, warmup=1)
 
     if "train" in only:
         def iteration():

@@ -164,9 +164,7 @@ def visits_histogram(
     start = torch.as_tensor(start_bins).long()
     end = torch.maximum(torch.as_tensor(end_bins, device=start.device).long(), start)
     w = torch.ones_like(start) if weights is None else torch.as_tensor(weights, device=start.device)
-    diff = torch.zeros(num_bins + 1, dtype=w.dtype, device=start.device)
-    diff.index_add_(0, start, w)
-    diff.index_add_(0, end + 1, -w)
+    diff = bin_counts(torch.cat((start, end + 1)), num_bins + 1, torch.cat((w, -w)))
     return torch.cumsum(diff[:num_bins], 0)
 
 
@@ -213,22 +211,18 @@ def attribute(
     check_attribution(attribution)
     start_bins = layout.bins_of(start_frames)
     failed = torch.as_tensor(failed, device=layout.device).bool()
-    # Counted in float32 (exact below 2**24 segments per call): compiled, an int64 index_add
-    # becomes a sort-based scatter, float32 a plain atomic add.
     if counted is None:
-        weights = torch.ones_like(start_bins, dtype=torch.float32)
+        weights = torch.ones_like(start_bins)
     else:
         counted = torch.as_tensor(counted, device=layout.device).bool()
-        weights = counted.float()
+        weights = counted.long()
         failed = failed & counted
-    failed = failed.float()
+    failed = failed.long()
     s = layout.num_bins
     if attribution == "start":
-        episodes, failures = bin_counts(start_bins, s, weights), bin_counts(start_bins, s, failed)
-    else:
-        end_bins = layout.bins_of(end_frames)
-        episodes, failures = visits_histogram(start_bins, end_bins, s, weights), bin_counts(end_bins, s, failed)
-    return episodes.long(), failures.long()
+        return bin_counts(start_bins, s, weights), bin_counts(start_bins, s, failed)
+    end_bins = layout.bins_of(end_frames)
+    return visits_histogram(start_bins, end_bins, s, weights), bin_counts(end_bins, s, failed)
 
 
 __all__ = [

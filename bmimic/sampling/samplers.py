@@ -99,12 +99,16 @@ def bin_counts(bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None =
     """Histogram of ``bins`` over ``num_bins`` bins (optionally weighted), as a fixed-size tensor.
 
     Unlike ``torch.bincount`` it never reads the data to size its output, so it does not
-    synchronise a CUDA device with the host.
+    synchronise a CUDA device with the host. Integer weights are summed in float32 and
+    returned in their own dtype (long without weights): exact below 2**24 per bin, and compiled into a
+    plain atomic add, where an int64 ``index_add_`` becomes a sort-based scatter.
     """
     if weights is None:
         weights = torch.ones_like(bins, dtype=torch.long)
-    out = torch.zeros(num_bins, dtype=weights.dtype, device=bins.device)
-    return out.index_add_(0, bins, weights)
+    if weights.dtype.is_floating_point:
+        return torch.zeros(num_bins, dtype=weights.dtype, device=bins.device).index_add_(0, bins, weights)
+    out = torch.zeros(num_bins, dtype=torch.float32, device=bins.device).index_add_(0, bins, weights.float())
+    return out.to(weights.dtype)
 
 
 class _BinSampler:

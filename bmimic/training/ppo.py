@@ -193,7 +193,7 @@ class GraphPPO(PPO):
         nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
         self.optimizer.step()
         with torch.no_grad():
-            self._loss_sums += torch.stack((value_loss.detach(), surrogate_loss.detach(), entropy_mean.detach())).float()
+            self._loss_sums += torch.stack((value_loss.detach(), surrogate_loss.detach(), entropy_mean.detach()))
 
     def update(self) -> dict[str, float]:
         st = self.storage
