@@ -94,6 +94,8 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     def rollout():
         for _ in range(steps):
             collect_step()
+        with torch.inference_mode():
+            env.end_rollout()  # the sampler update of update_every=iteration, as in Trainer.learn
 
     def rollout_and_returns():
         rollout()
@@ -144,6 +146,8 @@ def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
     """Milliseconds per environment step spent in each part, each timed alone."""
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
+    acc = env.accounting
+    length = env.episode_length_buf
     obs = env.get_observations()
     parts = {
         "physics": env.sim.step,
@@ -152,8 +156,11 @@ def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
         "observations": env._compute_observations,
         "rewards": lambda: [fn(env, **p) for fn, p in zip(env.reward_terms.funcs, env.reward_terms.params)],
         "terminations": lambda: [fn(env, **p) for fn, p in zip(env.termination_terms.funcs, env.termination_terms.params)],
-        "sampler_update": lambda: env.sampler.update_counts(*env._segment_counts(ones, env.time_steps, zeros, zeros)),
-        "resets": lambda: env._resample(zeros),
+        # Counting every env as finished, plus one sampler update (each step for update_every=step,
+        # once per iteration for update_every=iteration).
+        "sampler_update": lambda: env.sampler.update_counts(
+            *acc.count(ones, zeros, env.time_steps, env.segment_start, zeros, zeros, length)),
+        "resets": lambda: env._resample(zeros, zeros),
         "policy": lambda: alg.act(obs),
     }
     out = {}

@@ -75,13 +75,13 @@ def build_task(cfg: DictConfig, device: str):
     """Robot model, robot info, motion and bins of a composed config (validated against the motion)."""
     from bmimic.motion.config import load_motion
     from bmimic.robot import load_mjmodel, resolve_robot
-    from bmimic.sampling.bins import BinLayout
+    from bmimic.sampling.config import layout_for, min_motion_bin_s
 
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm, bin_size_s=cfg.sampler.bin_size_seconds)
+    motion = load_motion(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler))
     validate(cfg, motion.duration_s)
-    layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
+    layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device)
     return mjm, robot, motion, layout
 
 
@@ -130,6 +130,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     """Train in `run_dir`; returns the final evaluated failure rate."""
     import torch
 
+    from bmimic.sampling.config import describe as describe_sampler
     from bmimic.training.runner import Trainer
 
     requested = cfg.device
@@ -159,11 +160,13 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     mjm, robot, motion, layout, sampler, env = build(cfg, device)
     if main_rank:
         atomic_write_json(run_dir / "motion_segments.json", [s._asdict() for s in motion.segments])
-    log.info("motion: %.1f s, %d frames at %g Hz, %d bins of %g s", motion.duration_s, motion.num_frames,
-             motion.fps, layout.num_bins, cfg.sampler.bin_size_seconds)
+    log.info("motion: %.1f s, %d frames at %g Hz", motion.duration_s, motion.num_frames, motion.fps)
+    for line in describe_sampler(cfg.sampler, layout, sampler):
+        log.info("%s", line)
     evaluator = build_evaluator(cfg, device, robot, motion, layout)
     trainer = Trainer(env, evaluator, sampler, cfg.ppo, run_dir, device, cfg.run_name,
                       eval_every_iters=cfg.eval.every_iters, logger=cfg.logger, wandb_project=cfg.wandb_project,
+                      sampler_log_every=cfg.sampler.log_every,
                       progress_bar=cfg.progress_bar and main_rank, is_main_rank=main_rank)
     if checkpoint is not None:
         trainer.load_checkpoint(checkpoint)

@@ -1,6 +1,7 @@
 """Several ranks, one run, on the CPU (gloo): the code path torchrun takes on GPUs (NCCL).
 
-- every rank's sampler sees every rank's episodes, so all ranks sample from one distribution;
+- every rank's sampler sees every rank's episodes (all-reduced once per iteration with
+  update_every=iteration, every step with update_every=step), so all ranks sample from one distribution;
 - under a wall-clock budget, all ranks stop after the same iteration and the run exits cleanly.
 """
 
@@ -29,7 +30,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _rank_steps_env(rank: int, port: int, out_dir: str) -> None:
+def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> None:
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
     dist.init_process_group("gloo", rank=rank, world_size=WORLD)
     try:
@@ -38,25 +39,27 @@ def _rank_steps_env(rank: int, port: int, out_dir: str) -> None:
         from bmimic.train import build
         from tests.conftest import compose
 
-        cfg = compose(["motion=easy_only", "num_envs=4", "device=cpu", f"seed={rank}"])
+        cfg = compose(["motion=easy_only", "num_envs=4", "device=cpu", f"seed={rank}", f"sampler={sampler_name}"])
         resolve_runtime(cfg, "cpu")
         seed_everything(cfg.seed)  # different worlds per rank, as train.py does
         *_, sampler, env = build(cfg, "cpu")
         assert env.world_size == WORLD
         for _ in range(40):  # random actions: episodes end, and differently on each rank
             env.step(torch.randn(env.num_envs, env.num_actions))
+        env.end_rollout()
         probs = sampler.probabilities().double()
         gathered = [torch.zeros_like(probs) for _ in range(WORLD)]
         dist.all_gather(gathered, probs)
-        local = env.stats_bin_episodes.clone()
-        torch.save({"probs": [g for g in gathered], "episodes": local, "seg_start": env.segment_start.clone()},
+        counted = torch.as_tensor(env.pop_iteration_stats()["bin_episodes"])
+        torch.save({"probs": [g for g in gathered], "episodes": counted, "seg_start": env.segment_start.clone()},
                    os.path.join(out_dir, f"rank{rank}.pt"))
     finally:
         dist.destroy_process_group()
 
 
-def test_ranks_share_one_sampling_distribution(tmp_path):
-    mp.spawn(_rank_steps_env, args=(_free_port(), str(tmp_path)), nprocs=WORLD, join=True)
+@pytest.mark.parametrize("sampler_name", ["adaptive", "adaptive_hybrid"])  # update_every iteration, step
+def test_ranks_share_one_sampling_distribution(tmp_path, sampler_name):
+    mp.spawn(_rank_steps_env, args=(_free_port(), str(tmp_path), sampler_name), nprocs=WORLD, join=True)
     r0 = torch.load(tmp_path / "rank0.pt")
     r1 = torch.load(tmp_path / "rank1.pt")
     p0, p1 = r0["probs"]

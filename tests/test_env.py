@@ -114,19 +114,107 @@ def test_clip_end_teleports_consistently(built):
     assert (env.episode_length_buf == 11).all()  # the episodes continued
 
 
+def _on_reference(env, frames, mask=None):
+    """Put the (masked) envs exactly on the reference at `frames`, mid-episode (counter 10)."""
+    mask = torch.ones(env.num_envs, dtype=torch.bool, device=env.device) if mask is None else mask
+    frames = frames.to(env.device)
+    env.time_steps.copy_(torch.where(mask, frames, env.time_steps))
+    env.segment_start.copy_(torch.where(mask, frames, env.segment_start))
+    env._write_reference_state(mask, env.time_steps, noise=False)
+    env.episode_length_buf.masked_fill_(mask, 10)
+    env.sim.forward_kinematics()
+
+
+def _fall(env, envs):
+    """Pelvis on the floor: these envs end by the anchor-height termination in the next step."""
+    env.sim.qpos[envs, 2] = 0.2
+    env.sim.forward_kinematics()
+
+
+def _fresh_iteration(env):
+    env.end_rollout()
+    env.pop_iteration_stats()
+
+
 def test_failures_reach_the_sampler(built):
     cfg, robot, motion, layout, sampler, env, _ = built
+    assert cfg.sampler.attribution == "start" and cfg.sampler.update_every == "iteration"  # the design
+    _fresh_iteration(env)
+    fps = int(motion.fps)
+    _on_reference(env, torch.full((4,), 5 * fps + 5))
+    env.accounting.start_bin.fill_(3)  # episodes that started in bin 3 ...
+    _fall(env, slice(None))  # ... and fail now, in bin 5
     before = sampler.smoothed_failure().clone()
-    env.segment_start[:] = 3 * int(motion.fps)  # a segment that started in bin 3 ...
-    env.time_steps[:] = 3 * int(motion.fps) + 5  # ... and fails there
-    env.sim.qpos[:, 2] = 0.2  # pelvis on the floor: anchor height termination
-    env.sim.forward_kinematics()
     _, _, dones, extras = env.step(torch.zeros(4, 29, device=env.device))
     assert dones.all() and extras["terminated"].all()
+    env.end_rollout()
     after = sampler.smoothed_failure()
-    assert after[3] > before[3], (after, before, env.stats_bin_failures, env.segment_start, env.time_steps)
+    assert after[3] > before[3], (after, before)
     stats = env.pop_iteration_stats()
-    assert stats["bin_failures"][3] == 4 and stats["failures"] >= 4
+    assert stats["bin_failures"][3] == 4 and stats["bin_episodes"][3] == 4 and stats["bin_failures"].sum() == 4
+    assert stats["failures"] >= 4
+
+
+def test_sampling_distribution_is_fixed_within_an_iteration(built):
+    """update_every=iteration: steps with failures leave P alone; end_rollout makes one update
+    from all of them."""
+    cfg, robot, motion, layout, sampler, env, _ = built
+    from bmimic.sampling import make_sampler
+
+    _fresh_iteration(env)
+    state, probs = sampler.state_dict(), sampler.probabilities()
+    for k in range(3):
+        _on_reference(env, torch.arange(4) * 2 * int(motion.fps) + 7 * k)
+        _fall(env, [k, 3])
+        env.step(torch.zeros(4, 29, device=env.device))
+        assert torch.equal(sampler.probabilities(), probs), k
+    env.end_rollout()
+    assert not torch.equal(sampler.probabilities(), probs)
+    stats = env.pop_iteration_stats()
+    assert stats["bin_failures"].sum() >= 6 and stats["bin_episodes"].sum() >= 6
+    ref = make_sampler(cfg.sampler, layout.num_bins, env.device)
+    ref.load_state_dict(state)
+    ref.update_counts(torch.as_tensor(stats["bin_episodes"]), torch.as_tensor(stats["bin_failures"]))
+    assert torch.allclose(sampler.probabilities(), ref.probabilities(), rtol=0, atol=1e-12)
+
+
+def test_start_bins_survive_clip_end_resamples_and_partial_resets(built):
+    cfg, robot, motion, layout, sampler, env, _ = built
+    acc = env.accounting
+    _fresh_iteration(env)
+    zeros = torch.zeros(4, 29, device=env.device)
+    last = int(env.frame_clip_end[0]) - 1
+    fps = int(motion.fps)
+    # Envs 0 and 1 on their clip's last frame (the reference resamples next step, the episode goes
+    # on); envs 2 and 3 mid-clip. Each env's episode planted as started in a bin it is not in now.
+    _on_reference(env, torch.tensor([last, last, 5 * fps + 3, 8 * fps + 3]))
+    planted = torch.tensor([2, 4, 6, 1], device=env.device)
+    acc.start_bin.copy_(planted)
+    _, _, dones, _ = env.step(zeros)
+    assert not dones.any() and (env.episode_length_buf == 11).all()
+    assert (env.time_steps[:2] < last).all()  # envs 0 and 1 were resampled ...
+    assert acc.start_bin.tolist() == planted.tolist()  # ... and kept their episodes' start bins
+    # A partial reset: envs 0 and 2 fail; 1 and 3 go on, back on the reference.
+    _on_reference(env, env.time_steps.clone(), torch.tensor([False, True, False, True], device=env.device))
+    _fall(env, [0, 2])
+    _, _, dones, extras = env.step(zeros)
+    assert dones.tolist() == [1, 0, 1, 0] and extras["terminated"].tolist() == [True, False, True, False]
+    env.end_rollout()
+    stats = env.pop_iteration_stats()
+    expected = [0.0] * layout.num_bins
+    expected[2] = expected[6] = 1.0  # the planted start bins of envs 0 and 2, not where they failed
+    assert stats["bin_episodes"].tolist() == expected and stats["bin_failures"].tolist() == expected
+    # The reset envs start new episodes in the bins drawn for them; the others keep theirs.
+    assert acc.start_bin[[1, 3]].tolist() == [4, 1]
+    assert torch.equal(acc.start_bin[[0, 2]], layout.bins_of(env.segment_start[[0, 2]]))
+    # Env 1, resampled at the clip end one step earlier, fails now: it counts for bin 4.
+    _on_reference(env, env.time_steps.clone())
+    _fall(env, [1])
+    _, _, dones, _ = env.step(zeros)
+    assert dones.tolist() == [0, 1, 0, 0]
+    env.end_rollout()
+    stats = env.pop_iteration_stats()
+    assert stats["bin_episodes"].tolist() == [1.0 if b == 4 else 0.0 for b in range(layout.num_bins)]
 
 
 def test_nonfinite_world_is_reset_not_fatal(built):

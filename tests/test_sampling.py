@@ -1,7 +1,10 @@
-"""Tests of bmimic.sampling: bins, the three samplers, attribution, config, diagnostics."""
+"""Tests of bmimic.sampling: bins and layouts, the samplers, episode accounting, config and the named
+variants, diagnostics."""
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import io
 import math
 import random
@@ -14,9 +17,12 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from bmimic.sampling import (
+    SAMPLER_NAMES,
     AdaptiveSampler,
     BeyondMimicSampler,
     BinLayout,
+    EpisodeAccounting,
+    ReleasedBinLayout,
     SamplerConfig,
     SamplerConfigError,
     UniformSampler,
@@ -25,13 +31,17 @@ from bmimic.sampling import (
     bin_table,
     bins_of_time,
     failed_mask,
+    layout_for,
+    load_variant,
+    make_layout,
     make_sampler,
     num_bins,
     summary,
     validate_sampler_config,
     visits_histogram,
 )
-from bmimic.sampling.diagnostics import BIN_TABLE_COLUMNS
+from bmimic.sampling.config import SAMPLER_CLASSES, default_values, describe
+from bmimic.sampling.diagnostics import BIN_TABLE_COLUMNS, MAX_SAMPLER_ROWS, log_every
 
 T = True
 F = False
@@ -46,8 +56,11 @@ def _kernel_smooth(x, gamma, K):
     return [sum(gamma**u * x[min(s + u, S - 1)] for u in range(K)) / norm for s in range(S)]
 
 
-def ref_adaptive(S, gamma, lambda_uniform, K, alpha_smooth, batches):
-    """batches: list of (bins, failed) lists. Returns (r, P)."""
+def ref_adaptive(S, gamma, lambda_uniform, K, alpha_smooth, batches, empty_bins="decay"):
+    """batches: list of (bins, failed) lists, one per update. Returns (r, P).
+
+    raw_s = f_s / max(n_s, 1); r <- alpha raw + (1 - alpha) r for every bin ("decay") or only
+    for bins with n_s > 0 ("hold")."""
     r = [0.0] * S
     for bins, failed in batches:
         n = [0] * S
@@ -56,32 +69,36 @@ def ref_adaptive(S, gamma, lambda_uniform, K, alpha_smooth, batches):
             n[b] += 1
             f[b] += int(x)
         for s in range(S):
-            if n[s] > 0:
-                r[s] = (1 - alpha_smooth) * r[s] + alpha_smooth * f[s] / n[s]
+            if n[s] > 0 or empty_bins == "decay":
+                r[s] = alpha_smooth * f[s] / max(n[s], 1) + (1 - alpha_smooth) * r[s]
     c = _kernel_smooth(r, gamma, K)
     total = sum(c)
     p = [ci / total for ci in c] if total > 0 else [1.0 / S] * S
     return r, [lambda_uniform / S + (1 - lambda_uniform) * pi for pi in p]
 
 
-def ref_beyondmimic(S, gamma, K, alpha, uniform_ratio, batches):
+def ref_beyondmimic(S, gamma, K, alpha, uniform_ratio, batches, empty_bins="decay"):
     """batches: list of (bins, failed) lists (possibly empty). Returns (q, P)."""
     q = [0.0] * S
     for bins, failed in batches:
         h = [0] * S
+        n = [0] * S
         for b, x in zip(bins, failed, strict=True):
             h[b] += int(x)
-        q = [alpha * h[s] + (1 - alpha) * q[s] for s in range(S)]
+            n[b] += 1
+        q = [alpha * h[s] + (1 - alpha) * q[s] if n[s] > 0 or empty_bins == "decay" else q[s] for s in range(S)]
     w = _kernel_smooth([qs + uniform_ratio / S for qs in q], gamma, K)
     total = sum(w)
     return q, [wi / total for wi in w]
 
 
 def _random_batches(rng, S, num_batches, max_n):
+    """Per-iteration batches; each draws its bins from a random subset, so many bins are empty."""
     out = []
     for _ in range(num_batches):
         n = rng.randint(0, max_n)
-        out.append(([rng.randrange(S) for _ in range(n)], [rng.random() < 0.4 for _ in range(n)]))
+        live = rng.sample(range(S), rng.randint(1, S))
+        out.append(([rng.choice(live) for _ in range(n)], [rng.random() < 0.4 for _ in range(n)]))
     return out
 
 
@@ -93,16 +110,25 @@ def _feed(sampler, batches):
 # --- samplers: known answers and references ---------------------------------------------------
 
 
-def test_adaptive_worked_example():
-    s = AdaptiveSampler(4, gamma=0.5, lambda_uniform=0.2, K=2, alpha_smooth=0.5)
+@pytest.mark.parametrize(
+    "empty_bins,r2,P2",
+    [
+        # The design: bins 0 and 2 of the second batch have no episodes; every rate moves, so
+        # bin 1's decays (0.25 -> 0.125).
+        ("decay", [0, 0.125, 0.5, 0.25], [0.084783, 0.258696, 0.397826, 0.258696]),
+        # Bins without episodes keep their rate.
+        ("hold", [0, 0.25, 0.5, 0.25], [0.111538, 0.296154, 0.357692, 0.234615]),
+    ],
+)
+def test_adaptive_worked_examples(empty_bins, r2, P2):
+    s = AdaptiveSampler(4, gamma=0.5, lambda_uniform=0.2, K=2, alpha_smooth=0.5, empty_bins=empty_bins)
     s.update(torch.tensor([0, 1, 1, 3]), torch.tensor([F, T, F, T]))
     assert torch.allclose(s.smoothed_failure(), torch.tensor([0, 0.25, 0, 0.5], dtype=torch.float64))
     expected = torch.tensor([0.122727, 0.195455, 0.195455, 0.486364], dtype=torch.float64)
     assert torch.allclose(s.probabilities(), expected, atol=1e-6)
     s.update(torch.tensor([2, 2, 3]), torch.tensor([T, T, F]))
-    assert torch.allclose(s.smoothed_failure(), torch.tensor([0, 0.25, 0.5, 0.25], dtype=torch.float64))
-    expected = torch.tensor([0.111538, 0.296154, 0.357692, 0.234615], dtype=torch.float64)
-    assert torch.allclose(s.probabilities(), expected, atol=1e-6)
+    assert torch.allclose(s.smoothed_failure(), torch.tensor(r2, dtype=torch.float64))
+    assert torch.allclose(s.probabilities(), torch.tensor(P2, dtype=torch.float64), atol=1e-6)
 
 
 def test_beyondmimic_hand_example():
@@ -131,28 +157,30 @@ def test_uniform_ignores_updates():
     assert torch.isnan(s.smoothed_failure()).all()
 
 
+@pytest.mark.parametrize("empty_bins", ["decay", "hold"])
 @pytest.mark.parametrize("seed", range(8))
-def test_adaptive_matches_reference(seed):
+def test_adaptive_matches_reference(seed, empty_bins):
     rng = random.Random(seed)
     S, K = rng.randint(1, 40), rng.randint(1, 8)
     gamma, lam, a = rng.uniform(0.05, 1.0), rng.uniform(0.0, 1.0), rng.uniform(0.01, 1.0)
     batches = _random_batches(rng, S, rng.randint(1, 25), 30)
-    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a)
+    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a, empty_bins=empty_bins)
     _feed(s, batches)
-    r, P = ref_adaptive(S, gamma, lam, K, a, batches)
+    r, P = ref_adaptive(S, gamma, lam, K, a, batches, empty_bins)
     assert np.allclose(s.smoothed_failure().numpy(), r, rtol=0, atol=1e-12)
     assert np.allclose(s.probabilities().numpy(), P, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("empty_bins", ["decay", "hold"])
 @pytest.mark.parametrize("seed", range(8))
-def test_beyondmimic_matches_reference(seed):
+def test_beyondmimic_matches_reference(seed, empty_bins):
     rng = random.Random(100 + seed)
     S, K = rng.randint(1, 40), rng.randint(1, 8)
     gamma, a, eps = rng.uniform(0.05, 1.0), rng.uniform(0.001, 1.0), rng.uniform(0.01, 5.0)
     batches = _random_batches(rng, S, rng.randint(1, 25), 30)
-    s = BeyondMimicSampler(S, gamma=gamma, K=K, alpha=a, uniform_ratio=eps)
+    s = BeyondMimicSampler(S, gamma=gamma, K=K, alpha=a, uniform_ratio=eps, empty_bins=empty_bins)
     _feed(s, batches)
-    q, P = ref_beyondmimic(S, gamma, K, a, eps, batches)
+    q, P = ref_beyondmimic(S, gamma, K, a, eps, batches, empty_bins)
     assert np.allclose(s.smoothed_failure().numpy(), q, rtol=1e-12, atol=1e-12)
     assert np.allclose(s.probabilities().numpy(), P, rtol=0, atol=1e-12)
 
@@ -395,6 +423,38 @@ def test_layout_rejects_bad_bin_size():
         BinLayout(100, 50.0, 0.01)
 
 
+@pytest.mark.parametrize("T,B", [(1500, 31), (1501, 31), (6574, 132)])
+def test_released_layout_matches_the_released_formulas(T, B):
+    """B = T // (1 / (decimation * dt)) + 1; failure bin floor(t B / T); start floor((b + U) / B (T - 1))."""
+    lay = ReleasedBinLayout(T, 50.0)
+    assert lay.num_bins == B == int(T // (1 / (4 * 0.005))) + 1
+    t = list(range(T + 1))  # frame T (past the end) as well
+    assert lay.bins_of(torch.tensor(t)).tolist() == [min(max(x * B // max(T, 1), 0), B - 1) for x in t]
+    bins = torch.randint(0, B, (20_000,), generator=torch.Generator().manual_seed(T))
+    frames = lay.sample_frames(bins, generator=torch.Generator().manual_seed(1))
+    u = torch.rand(20_000, generator=torch.Generator().manual_seed(1), dtype=torch.float64).tolist()
+    assert frames.tolist() == [math.floor((b + x) / B * (T - 1)) for b, x in zip(bins.tolist(), u, strict=True)]
+    assert 0 <= int(frames.min()) and int(frames.max()) <= T - 2
+    # The T vs T-1 mismatch of the released code: a start drawn for bin b lies in bin b or b-1.
+    assert set((bins - lay.bins_of(frames)).tolist()) == {0, 1}
+    # The tables the diagnostics and the evaluation read follow the frame -> bin map.
+    assert int(lay.bin_num_frames.sum()) == T and (lay.bin_num_frames >= 1).all()
+    assert torch.equal(lay.bins_of(lay.bin_first_frame), torch.arange(B))
+    assert torch.equal(lay.bins_of(lay.bin_first_frame - 1)[1:], torch.arange(B - 1))
+    assert float(lay.edges_s[-1]) == T / 50.0
+    assert torch.allclose(lay.edges_s[:-1], lay.bin_first_frame.double() / 50.0)
+
+
+def test_make_layout_picks_the_layout():
+    assert isinstance(make_layout("time", 1500, 50.0, 1.0), BinLayout)
+    released = make_layout("released", 1500, 50.0, None)
+    assert isinstance(released, ReleasedBinLayout) and released.num_bins == 31
+    assert layout_for(load_variant("beyondmimic"), 1500, 50.0).num_bins == 31
+    assert layout_for(load_variant("adaptive"), 1500, 50.0).num_bins == 30
+    with pytest.raises(SamplerConfigError, match="sampler.bins must be one of time, released, got 'frames'"):
+        make_layout("frames", 1500, 50.0, 1.0)
+
+
 def test_sample_frames_uniform_within_bin():
     lay = BinLayout(1525, 50.0, 1.0)
     g = torch.Generator().manual_seed(0)
@@ -467,6 +527,141 @@ def test_failed_mask():
         failed_mask(terminated, length, 100, "fell")
 
 
+# --- episode accounting -----------------------------------------------------------------------------
+
+
+def _accounting(update_every="iteration", attribution="start", failure="short", sampler=None, num_envs=4):
+    layout = BinLayout(50, 5.0, 1.0)  # 10 bins of 5 frames
+    sampler = sampler or AdaptiveSampler(10, K=1, alpha_smooth=0.5, lambda_uniform=0.0)
+    acc = EpisodeAccounting(sampler, layout, num_envs, max_episode_length=100, attribution=attribution,
+                            failure=failure, failure_threshold=0.8, update_every=update_every)
+    return acc, layout, sampler
+
+
+def _b(*xs):
+    return torch.tensor(xs, dtype=torch.bool)
+
+
+def _l(*xs):
+    return torch.tensor(xs, dtype=torch.long)
+
+
+def test_accounting_start_attribution_and_failure_rules():
+    acc, layout, _ = _accounting()
+    acc.start_episodes(_b(T, T, T, T), _l(1, 1, 4, 7))
+    acc.start_episodes(_b(F, T, F, F), _l(0, 9, 0, 0))  # env 1 starts a new episode in bin 9
+    # Env 0 terminates after 10 steps (< 0.8 x 100: a failure), env 1 after 90 (not short: an
+    # episode, no failure), env 2 times out (never a failure), env 3 goes on (not counted).
+    dones, terminated, length = _b(T, T, T, F), _b(T, T, F, F), _l(10, 90, 100, 5)
+    frames = _l(33, 20, 12, 40)  # where the segments are now: irrelevant to start attribution
+    counts = acc.count(dones, _b(F, F, F, T), frames, frames, terminated, _b(F, F, F, F), length)
+    assert counts.dtype == torch.float64 and counts.shape == (2, 10)
+    assert counts[0].tolist() == [0, 1, 0, 0, 1, 0, 0, 0, 0, 1]
+    assert counts[1].tolist() == [0, 1, 0, 0, 0, 0, 0, 0, 0, 0]
+    acc.failure = "terminated"  # any termination fails: env 1 too
+    counts = acc.count(dones, _b(F, F, F, F), frames, frames, terminated, _b(F, F, F, F), length)
+    assert counts[1].tolist() == [0, 1, 0, 0, 0, 0, 0, 0, 0, 1]
+    # A world reset for a non-finite state is never counted.
+    counts = acc.count(dones, _b(F, F, F, F), frames, frames, terminated, _b(T, F, F, F), length)
+    assert counts[0].tolist() == [0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
+
+
+def test_accounting_failure_attribution_counts_segments():
+    acc, layout, _ = _accounting(attribution="failure", failure="terminated")
+    acc.start_episodes(_b(T, T, T, T), _l(9, 9, 9, 9))  # start bins are not used here
+    seg_start, end = _l(3, 12, 40, 0), _l(14, 12, 49, 4)  # bins [0, 2], [2, 2], [8, 9], [0, 0]
+    # env 0 terminates, env 1 times out, env 2's clip ends (it goes on), env 3 continues (not counted)
+    counts = acc.count(_b(T, T, F, F), _b(F, F, T, F), end, seg_start, _b(T, F, F, F), _b(F, F, F, F),
+                       _l(5, 100, 50, 5))
+    assert counts[0].tolist() == [1, 1, 2, 0, 0, 0, 0, 0, 1, 1]
+    assert counts[1].tolist() == [0, 0, 1, 0, 0, 0, 0, 0, 0, 0]
+
+
+@pytest.mark.parametrize("update_every", ["iteration", "step"])
+def test_accounting_update_timing(update_every):
+    acc, _, s = _accounting(update_every)
+    ref = AdaptiveSampler(10, K=1, alpha_smooth=0.5, lambda_uniform=0.0)
+    c1 = torch.zeros(2, 10, dtype=torch.float64)
+    c1[:, 3] = torch.tensor([2.0, 2.0])
+    c2 = torch.zeros(2, 10, dtype=torch.float64)
+    c2[:, 3] = torch.tensor([2.0, 0.0])
+    c2[:, 6] = torch.tensor([1.0, 1.0])
+    p0 = s.probabilities()
+    acc.record(c1.clone())
+    assert torch.equal(s.probabilities(), p0) == (update_every == "iteration")
+    acc.record(c2.clone())
+    acc.end_rollout()
+    if update_every == "iteration":  # one update with the rollout's sum: r_3 = 0.5 * 2/4
+        ref.update_counts(c1[0] + c2[0], c1[1] + c2[1])
+        assert float(s.smoothed_failure()[3]) == 0.25
+    else:  # two updates: r_3 = 0.5 * (0.5 * 1) + 0.5 * 0
+        ref.update_counts(c1[0], c1[1])
+        ref.update_counts(c2[0], c2[1])
+        assert float(s.smoothed_failure()[3]) == 0.25 and float(s.smoothed_failure()[6]) == 0.5
+    assert torch.equal(s.probabilities(), ref.probabilities())
+    episodes, failures = acc.pop_counts()
+    assert episodes.tolist() == (c1[0] + c2[0]).tolist() and failures.tolist() == (c1[1] + c2[1]).tolist()
+    assert acc.pop_counts()[0].sum() == 0
+    rate = s.smoothed_failure()
+    acc.end_rollout()  # iteration: an update without episodes, so every rate decays (the design)
+    expected = rate * 0.5 if update_every == "iteration" else rate
+    assert torch.equal(s.smoothed_failure(), expected)
+
+
+@pytest.mark.parametrize("empty_bins", ["decay", "hold"])
+@pytest.mark.parametrize("seed", range(4))
+def test_accounting_per_iteration_updates_match_reference(seed, empty_bins):
+    """Per-step batches through the accounting, one update per iteration, against the plain-Python
+    transcription fed one batch per iteration (all the iteration's episodes)."""
+    rng = random.Random(1000 + seed)
+    S, K, n = 10, rng.randint(1, 6), 16
+    gamma, lam, a = rng.uniform(0.1, 1.0), rng.uniform(0.0, 0.5), rng.uniform(0.05, 1.0)
+    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a, empty_bins=empty_bins)
+    acc, _, _ = _accounting("iteration", failure="terminated", sampler=s, num_envs=n)
+    none = torch.zeros(n, dtype=torch.bool)
+    frames, length = torch.zeros(n, dtype=torch.long), torch.full((n,), 5)
+    iterations = []
+    for _ in range(rng.randint(1, 12)):
+        bins, failed = [], []
+        for step_bins, step_failed in _random_batches(rng, S, rng.randint(0, 5), n):
+            k = len(step_bins)
+            acc.start_episodes(~none, torch.tensor(step_bins + [0] * (n - k), dtype=torch.long))
+            done = torch.arange(n) < k
+            term = done & torch.tensor(step_failed + [False] * (n - k))
+            acc.record(acc.count(done, none, frames, frames, term, none, length))
+            bins += step_bins
+            failed += step_failed
+        acc.end_rollout()
+        iterations.append((bins, failed))
+    r, P = ref_adaptive(S, gamma, lam, K, a, iterations, empty_bins)
+    assert np.allclose(s.smoothed_failure().numpy(), r, rtol=0, atol=1e-12)
+    assert np.allclose(s.probabilities().numpy(), P, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("attribution", ["start", "failure"])
+@pytest.mark.parametrize("update_every", ["iteration", "step"])
+def test_accounting_step_path_traces_as_one_graph(attribution, update_every):
+    """What the environment's captured step calls (start_episodes, count, record) has no graph
+    break: no host read, no data-dependent shape (tests/test_env.py checks the whole step for the
+    default variant)."""
+    import torch._dynamo as dynamo
+
+    acc, layout, s = _accounting(update_every, attribution=attribution,
+                                 sampler=BeyondMimicSampler(10, K=3), num_envs=8)
+    g = torch.Generator().manual_seed(0)
+    done, clip = torch.rand(8, generator=g) < 0.5, torch.rand(8, generator=g) < 0.3
+    start = torch.randint(0, 50, (8,), generator=g)
+    end, length = torch.clamp(start + 7, max=49), torch.randint(0, 100, (8,), generator=g)
+
+    def step():
+        acc.start_episodes(done, s.sample(8))
+        acc.record(acc.count(done, clip & ~done, end, start, done & clip, ~done & done, length))
+
+    explained = dynamo.explain(step)()
+    assert explained.graph_count == 1 and not explained.break_reasons, explained.break_reasons
+    dynamo.reset()
+
+
 # --- config ---------------------------------------------------------------------------------------
 
 
@@ -476,16 +671,113 @@ def test_default_config_is_valid_and_factory_builds_each_sampler():
         SamplerConfig(name="adaptive", gamma=0.5, K=4, lambda_uniform=0.3, alpha_smooth=0.2), 12
     )
     assert isinstance(ad, AdaptiveSampler)
-    assert ad.hparams() == {"gamma": 0.5, "lambda_uniform": 0.3, "K": 4, "alpha_smooth": 0.2}
+    assert ad.hparams() == {"gamma": 0.5, "lambda_uniform": 0.3, "K": 4, "alpha_smooth": 0.2, "empty_bins": "decay"}
     bm = make_sampler(SamplerConfig(name="beyondmimic", K=1, alpha=0.01, uniform_ratio=0.2), 12)
     assert isinstance(bm, BeyondMimicSampler) and bm.hparams()["alpha"] == 0.01
     assert isinstance(make_sampler(SamplerConfig(name="uniform"), 12), UniformSampler)
 
 
+DESIGN = {"enabled": True, "bin_size_seconds": 1.0, "gamma": 0.9, "lambda_uniform": 0.1, "K": 5, "alpha_smooth": 0.1,
+          "failure_threshold": 0.8, "attribution": "start", "failure": "short", "update_every": "iteration",
+          "empty_bins": "decay"}
+
+
+def test_adaptive_defaults_are_the_design_from_one_source():
+    schema = default_values()
+    assert {k: schema[k] for k in DESIGN} == DESIGN
+    assert dataclasses.asdict(load_variant("adaptive")) == schema  # YAML == schema
+    sampler = inspect.signature(AdaptiveSampler).parameters
+    for key in ("gamma", "lambda_uniform", "K", "alpha_smooth", "empty_bins"):
+        assert sampler[key].default == schema[key], key
+    accounting = inspect.signature(EpisodeAccounting).parameters
+    for key in ("attribution", "failure", "failure_threshold", "update_every"):
+        assert accounting[key].default == schema[key], key
+
+
+@pytest.mark.parametrize("name", SAMPLER_NAMES)
+def test_each_variant_is_named_after_its_file_and_sets_every_key(name):
+    from omegaconf import OmegaConf
+
+    from tests.conftest import CONF
+
+    cfg = load_variant(name)
+    assert cfg.name == name
+    validate_sampler_config(cfg, 30.0)
+    assert set(OmegaConf.load(CONF / "sampler" / f"{name}.yaml")) - {"defaults"} == set(default_values())
+    layout = layout_for(cfg, 1500, 50.0)
+    assert type(make_sampler(cfg, layout.num_bins)) is SAMPLER_CLASSES[name]
+    assert (CONF / "sampler" / f"{name}.yaml").read_text().startswith("# ")  # a header says what it is
+
+
+def test_named_variants_are_what_their_names_say():
+    hybrid = load_variant("adaptive_hybrid")  # the earlier `adaptive`
+    assert dataclasses.asdict(hybrid) == {**default_values(), "name": "adaptive_hybrid", "gamma": 0.8, "K": 3,
+                                          "attribution": "failure", "failure": "terminated",
+                                          "update_every": "step", "empty_bins": "hold"}
+    bm = load_variant("beyondmimic")  # the released code, its bins included
+    assert dataclasses.asdict(bm) == {**default_values(), "name": "beyondmimic", "bins": "released",
+                                      "bin_size_seconds": None, "gamma": 0.8, "K": 1, "attribution": "failure",
+                                      "failure": "terminated", "update_every": "step", "empty_bins": "decay"}
+    assert (bm.alpha, bm.uniform_ratio) == (0.001, 0.1)
+    released = inspect.signature(BeyondMimicSampler).parameters
+    for key in ("gamma", "K", "alpha", "uniform_ratio", "empty_bins"):
+        assert released[key].default == getattr(bm, key), key
+    # sampler=uniform is sampler=adaptive with uniform draws: the same keys, except the name.
+    assert dataclasses.replace(load_variant("uniform"), name="adaptive") == load_variant("adaptive")
+
+
+def test_disabled_sampler_draws_uniformly_and_says_so():
+    cfg = dataclasses.replace(load_variant("adaptive"), enabled=False)
+    layout = layout_for(cfg, 1500, 50.0)
+    off, uniform = make_sampler(cfg, layout.num_bins), make_sampler(load_variant("uniform"), layout.num_bins)
+    assert type(off) is UniformSampler and off.state_dict() == uniform.state_dict()
+    off.update(torch.tensor([3, 3]), torch.tensor([T, T]))
+    assert torch.equal(off.probabilities(), uniform.probabilities())
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    assert torch.equal(off.sample(100, generator=g1), uniform.sample(100, generator=g2))
+    lines = describe(cfg, layout, off)
+    assert "sampler.enabled=false" in lines[0] and "uniformly" in lines[0]
+    assert not any("enabled" in line for line in describe(load_variant("adaptive"), layout, make_sampler(
+        load_variant("adaptive"), layout.num_bins)))
+
+
+@pytest.mark.parametrize("name", SAMPLER_NAMES)
+def test_log_names_the_variant_and_every_value_in_force(name):
+    cfg = load_variant(name)
+    layout = layout_for(cfg, 1500, 50.0)
+    sampler = make_sampler(cfg, layout.num_bins)
+    text = "\n".join(describe(cfg, layout, sampler))
+    assert text.startswith(f"sampler {name} ({type(sampler).__name__})")
+    assert f"{layout.num_bins} {'released' if cfg.bins == 'released' else 'time'} bins" in text
+    for key, value in sampler.hparams().items():
+        assert f"{key}={value}" in text
+    for key in ("attribution", "failure", "update_every"):
+        assert f"{key}={getattr(cfg, key)}" in text
+    assert ("failure_threshold=0.8" in text) == (cfg.failure == "short")
+
+
+def test_bin_size_on_released_bins_is_ignored_with_one_log_line():
+    bm = load_variant("beyondmimic")
+    layout = layout_for(bm, 1500, 50.0)
+    sampler = make_sampler(bm, layout.num_bins)
+    assert not any("does not apply" in line for line in describe(bm, layout, sampler))
+    bm = dataclasses.replace(bm, bin_size_seconds=0.5)
+    validate_sampler_config(bm, 30.0)
+    assert layout_for(bm, 1500, 50.0).num_bins == 31
+    lines = [line for line in describe(bm, layout, sampler) if "does not apply" in line]
+    assert len(lines) == 1 and "sampler.bin_size_seconds=0.5" in lines[0]
+
+
 @pytest.mark.parametrize(
     "key,value,message",
     [
-        ("name", "greedy", "sampler.name must be one of uniform, adaptive, beyondmimic, got 'greedy'"),
+        ("name", "greedy", "sampler.name must be one of adaptive, adaptive_hybrid, beyondmimic, uniform, got 'greedy'"),
+        ("enabled", "yes", "sampler.enabled must be true or false, got 'yes'"),
+        ("bins", "frames", "sampler.bins must be one of time, released, got 'frames'"),
+        ("bin_size_seconds", None, "sampler.bin_size_seconds must be a finite number > 0, got None"),
+        ("empty_bins", "keep", "sampler.empty_bins must be one of decay, hold, got 'keep'"),
+        ("update_every", "episode", "sampler.update_every must be one of iteration, step, got 'episode'"),
+        ("log_every", 0, "sampler.log_every must be an integer >= 1 or null, got 0"),
         ("lambda_uniform", 1.5, "sampler.lambda_uniform must be in [0, 1], got 1.5"),
         ("lambda_uniform", -0.1, "sampler.lambda_uniform must be in [0, 1], got -0.1"),
         ("gamma", 0.0, "sampler.gamma must be in (0, 1], got 0.0"),
@@ -568,27 +860,44 @@ def test_bin_table():
         bin_table(0, lay, torch.zeros(4), torch.zeros(3), UniformSampler(3))
 
 
+def test_sampler_table_interval():
+    assert log_every(None, 30, 10_000) == 1
+    assert log_every(None, 1000, 10_000) == 1
+    assert log_every(3, 30, 10_000) == 3
+    every = log_every(None, 10_000, 10_000)
+    assert every == 100
+    assert 10_000 * (math.ceil(10_000 / every) + 1) <= 1.01 * MAX_SAMPLER_ROWS  # + the last iteration
+    assert log_every(None, 10_000, 50) == 1  # short runs stay complete
+
+
 # --- GPU: the hot path never synchronises with the host ---------------------------------------------
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_hot_path_has_no_host_sync():
+    """Counting, recording, the per-iteration update and sampling, for both layouts and every
+    attribution and update schedule, never wait for the device."""
     dev = torch.device("cuda")
-    lay = BinLayout(3000, 50.0, 1.0, device=dev)
-    samplers = [
-        AdaptiveSampler(lay.num_bins, K=3, device=dev),
-        BeyondMimicSampler(lay.num_bins, K=3, device=dev),
-    ]
+    n = 4096
     g = torch.Generator(device=dev).manual_seed(0)
-    start = torch.randint(0, 3000, (4096,), device=dev, generator=g)
+    start = torch.randint(0, 3000, (n,), device=dev, generator=g)
     end = torch.clamp(start + 100, max=2999)
-    failed = torch.rand(4096, device=dev, generator=g) < 0.2
-    torch.cuda.synchronize()
-    torch.cuda.set_sync_debug_mode("error")
-    try:
-        for s in samplers:
-            for mode in ("failure", "start"):
-                s.update_counts(*attribute(start, end, failed, lay, mode))
-            lay.sample_frames(s.sample(4096, generator=g), generator=g)
-    finally:
-        torch.cuda.set_sync_debug_mode("default")
+    failed = torch.rand(n, device=dev, generator=g) < 0.2
+    done = torch.rand(n, device=dev, generator=g) < 0.1
+    length = torch.randint(0, 500, (n,), device=dev, generator=g)
+    for lay in (BinLayout(3000, 50.0, 1.0, device=dev), ReleasedBinLayout(3000, 50.0, device=dev)):
+        for s in (AdaptiveSampler(lay.num_bins, device=dev), BeyondMimicSampler(lay.num_bins, K=3, device=dev)):
+            for attribution in ("start", "failure"):
+                for update_every in ("iteration", "step"):
+                    acc = EpisodeAccounting(s, lay, n, 500, attribution=attribution, update_every=update_every,
+                                            device=dev)
+                    torch.cuda.synchronize()
+                    torch.cuda.set_sync_debug_mode("error")
+                    try:
+                        bins = s.sample(n, generator=g)
+                        acc.start_episodes(done, bins)
+                        lay.sample_frames(bins, generator=g)
+                        acc.record(acc.count(done, ~done, end, start, failed, ~done & done, length))
+                        acc.end_rollout()
+                    finally:
+                        torch.cuda.set_sync_debug_mode("default")

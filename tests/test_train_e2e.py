@@ -46,8 +46,28 @@ def test_run_folder_contents(trained):
     assert {"iteration", "bin", "bin_start_s", "bin_end_s", "episodes", "failures", "raw_failure_rate",
             "smoothed_failure_rate", "probability"} <= set(sampler.columns)
     assert abs(sampler.groupby("iteration")["probability"].sum() - 1).max() < 1e-6
+    assert sorted(set(sampler["iteration"])) == [0, 1] and len(sampler) == 2 * 10  # every iteration, 10 bins
     ev = pd.read_parquet(trained / "eval.parquet")
     assert ev["iteration"].max() == 2 and ev["failure_rate"].between(0, 1).all()
+
+
+def test_released_bins_and_thinned_sampler_table(tmp_path):
+    """sampler=beyondmimic trains on the released code's bins (10 s at 50 Hz: 500 // 50 + 1 = 11),
+    which the diagnostics and the evaluation use too; log_every=2 keeps iterations 0, 2 and the last."""
+    run = tmp_path / "run"
+    overrides = [a for a in TINY if not a.startswith("max_iterations")]
+    out = run_cli([*overrides, "max_iterations=4", "sampler=beyondmimic", "sampler.log_every=2",
+                   "sampler.bin_size_seconds=0.5", f"hydra.run.dir={run}"], cwd=tmp_path)
+    log = out.stdout + out.stderr
+    assert "sampler beyondmimic (BeyondMimicSampler): 11 released bins" in log
+    assert "update_every=step" in log and "does not apply to the released bins" in log
+    sampler = pd.read_parquet(run / "sampler.parquet")
+    assert sorted(set(sampler["iteration"])) == [0, 2, 3] and set(sampler["bin"]) == set(range(11))
+    edges = sampler[sampler["iteration"] == 0]
+    assert edges["bin_start_s"].iloc[1] == pytest.approx(46 / 50) and edges["bin_end_s"].iloc[-1] == 10.0
+    ev = pd.read_parquet(run / "eval.parquet")
+    assert set(ev["bin"]) == set(range(11))
+    assert json.loads((run / "metrics.json").read_text())["num_bins"] == 11
 
 
 def test_checkpoint_holds_sampler_and_rng(trained):

@@ -4,10 +4,11 @@ One control step (`step`), all batched on the device, no host synchronisation, n
   1. actions -> PD targets (`ctrl`), `decimation` physics steps + kinematics (one CUDA graph on a GPU);
   2. the per-step state (robot bodies, reference frame, relative targets) is computed once;
   3. terminations, then rewards (sum of weight * term * dt);
-  4. finished episodes are charged to the sampler's bins and the sampler is updated;
+  4. finished episodes are counted per bin (`bmimic.sampling.accounting`: attribution, failure rule);
   5. finished envs are reset at frames the sampler draws (reference-state initialisation),
      every env advances one reference frame, envs past the end of their clip are resampled and
-     teleported without ending the episode (BeyondMimic), pushes are applied;
+     teleported without ending the episode (BeyondMimic); the counts go to the sampler (now, or
+     once per iteration at `end_rollout`); pushes are applied;
   6. kinematics are recomputed after those state writes (no stale poses, cf. mjlab #1068) and the
      observations are built from a fresh state.
 Subset resets are masked writes over all envs (`torch.where`), so shapes never depend on data.
@@ -39,7 +40,8 @@ from bmimic.envs.quat import (
 )
 from bmimic.motion import Motion
 from bmimic.robot import RobotInfo
-from bmimic.sampling.bins import BinLayout, attribute, failed_mask
+from bmimic.sampling.accounting import EpisodeAccounting
+from bmimic.sampling.bins import Layout
 from bmimic.sim import SimConfig, Simulator
 
 log = logging.getLogger(__name__)
@@ -111,7 +113,7 @@ class TrackingEnv(VecEnv):
         mjm: mujoco.MjModel,
         robot: RobotInfo,
         motion: Motion,
-        layout: BinLayout,
+        layout: Layout,
         num_envs: int,
         device: str,
         sampler=None,
@@ -152,13 +154,17 @@ class TrackingEnv(VecEnv):
         self._bind_motion(motion)
         self._bind_terms()
         self._alloc_buffers()
+        # Which bin each episode counts for and when the sampler sees the counts.
+        self.accounting = EpisodeAccounting.from_config(
+            self.sampler_cfg, sampler, layout, num_envs, self.max_episode_length, device=self.device,
+            world_size=self.world_size) if train else None
         if self.randomize:
             self._randomize_startup()
         self.sim.capture()
         # Start every env at a sampled frame (train) or frame 0 (eval); the runner never calls reset.
         everyone = torch.ones(num_envs, dtype=torch.bool, device=self.device)
         if train:
-            self._resample(everyone)
+            self._resample(everyone, everyone)
         else:
             self.reset_to_frames(torch.zeros(num_envs, dtype=torch.long, device=self.device))
         self.sim.forward_kinematics()
@@ -260,12 +266,10 @@ class TrackingEnv(VecEnv):
         self.segment_end = torch.full((n,), self.motion_num_frames, dtype=torch.long, device=dev)
         self.push_timer_s = torch.zeros(n, device=dev)
         self._ones = torch.ones(n, dtype=torch.bool, device=dev)
-        s = self.layout.num_bins
         self.rew_buf = torch.zeros(n, device=dev)
         self.episode_reward_terms = torch.zeros(n, len(self.reward_terms), device=dev)
-        # Per-iteration statistics, accumulated on the device and read once per iteration.
-        self.stats_bin_episodes = torch.zeros(s, dtype=torch.float64, device=dev)
-        self.stats_bin_failures = torch.zeros(s, dtype=torch.float64, device=dev)
+        # Per-iteration statistics, accumulated on the device and read once per iteration (the
+        # per-bin counts are the accounting's).
         self.stats_episodes = torch.zeros((), device=dev)
         self.stats_failures = torch.zeros((), device=dev)
         self.stats_length_sum = torch.zeros((), device=dev)
@@ -408,14 +412,16 @@ class TrackingEnv(VecEnv):
         self.sim.qpos[:] = torch.where(m, qpos, self.sim.qpos)
         self.sim.qvel[:] = torch.where(m, qvel, self.sim.qvel)
 
-    def _resample(self, mask: torch.Tensor) -> None:
-        """Masked envs start a new reference segment at a frame the sampler draws (RSI)."""
+    def _resample(self, mask: torch.Tensor, new_episode: torch.Tensor) -> None:
+        """Masked envs start a new reference segment at a frame the sampler draws (RSI); those also
+        in `new_episode` start a new episode there (a clip-end resample keeps the episode's start bin)."""
         bins = self.sampler.sample(self.num_envs)
         frames = self.layout.sample_frames(bins)
         frames = torch.where(mask, frames, self.time_steps)
         self.time_steps.copy_(frames)
         self.segment_start.copy_(torch.where(mask, frames, self.segment_start))
         self.segment_end.copy_(self.frame_clip_end[frames])
+        self.accounting.start_episodes(mask & new_episode, bins)
         self._write_reference_state(mask, frames, noise=self.rsi_noise)
 
     def reset_to_frames(self, frames: torch.Tensor, mask: torch.Tensor | None = None) -> None:
@@ -490,32 +496,25 @@ class TrackingEnv(VecEnv):
 
         if self.mode == "train":
             self._accumulate_episode_stats(dones, terminated)
-            # Reference segments that end now, counted in one pass: finished episodes (at this
-            # frame) and continuing episodes whose clip ends on the next frame (never failed).
+            # What ends now, counted in one pass: finished episodes (at this frame) and, for
+            # attribution=failure, continuing episodes whose clip ends on the next frame (never failed).
             next_frame = self.time_steps + 1
             clip_end = (next_frame >= self.segment_end) & ~dones
-            episodes, failures = self._segment_counts(dones | clip_end, torch.where(dones, self.time_steps, next_frame),
-                                                      terminated, nonfinite)
-            self._resample(dones)
+            counts = self.accounting.count(dones, clip_end, torch.where(dones, self.time_steps, next_frame),
+                                           self.segment_start, terminated, nonfinite, self.episode_length_buf)
+            self._resample(dones, dones)
             self.episode_length_buf.masked_fill_(dones, 0)
             self.actions.masked_fill_(dones[:, None], 0.0)
             self.last_actions.masked_fill_(dones[:, None], 0.0)
             self.episode_reward_terms.masked_fill_(dones[:, None], 0.0)
             self.time_steps += 1
-            # End of the clip mid-episode: resample and teleport; the episode continues. (This also
-            # catches a reset that started on the clip's last frame; its segment was not counted.)
-            self._resample(self.time_steps >= self.segment_end)
-            # One sampler update per control step (the BeyondMimic EMA's time constant is in steps),
-            # after this step's resets were drawn, as in the released code.
-            if self.world_size > 1:
-                # Several GPUs train one policy: every rank's sampler sees every rank's episodes,
-                # so all ranks sample from the same distribution.
-                counts = torch.stack((episodes, failures))
-                torch.distributed.all_reduce(counts)
-                episodes, failures = counts[0], counts[1]
-            self.sampler.update_counts(episodes, failures)
-            self.stats_bin_episodes += episodes
-            self.stats_bin_failures += failures
+            # End of the clip mid-episode: resample and teleport; the episode continues. This also
+            # catches a reset that started on the clip's last frame: that episode has not tracked a
+            # frame yet, so it starts (and counts for) the bin drawn now.
+            self._resample(self.time_steps >= self.segment_end, dones)
+            # After this step's resets were drawn, as in the released code: the sampler update
+            # (update_every=step), or the counts wait for end_rollout (update_every=iteration).
+            self.accounting.record(counts)
             if self.randomize:
                 self._push(self.step_dt)
         else:
@@ -550,6 +549,7 @@ class TrackingEnv(VecEnv):
                 fn()
             graphs.append(g)
         self._graphs = tuple(graphs)
+        self.accounting.discard()
         self.pop_iteration_stats()
 
     def _warmed_up_parts(self) -> tuple:
@@ -581,17 +581,11 @@ class TrackingEnv(VecEnv):
         torch.cuda.synchronize(self.device)
 
     # ============================================================================ sampler & stats
-    def _segment_counts(self, finished: torch.Tensor, end_frames: torch.Tensor, terminated: torch.Tensor,
-                        nonfinite: torch.Tensor):
-        """Per-bin (episodes, failures) of the reference segments that end now, each spanning
-        [segment_start, end_frames] (fixed shapes: every env is passed, ``finished`` masks)."""
-        cfg = self.sampler_cfg
-        counted = finished & ~nonfinite
-        failed = failed_mask(terminated, self.episode_length_buf, self.max_episode_length, cfg.failure,
-                             cfg.failure_threshold)
-        episodes, failures = attribute(self.segment_start, end_frames, failed, self.layout, cfg.attribution,
-                                       counted=counted)
-        return episodes.to(torch.float64), failures.to(torch.float64)
+    def end_rollout(self) -> None:
+        """Once per PPO iteration, after the rollout: the sampler update of update_every=iteration
+        (the design's runner hook); the sampling distribution is fixed until then."""
+        if self.accounting is not None:
+            self.accounting.end_rollout()
 
     def _accumulate_episode_stats(self, dones: torch.Tensor, terminated: torch.Tensor) -> None:
         d = dones.float()
@@ -622,9 +616,14 @@ class TrackingEnv(VecEnv):
     def pop_iteration_stats(self) -> dict:
         """Per-iteration statistics (one host transfer), then reset the accumulators."""
         steps = max(float(self.stats_steps), 1.0)
+        if self.accounting is not None:
+            bin_episodes, bin_failures = self.accounting.pop_counts()
+        else:
+            bin_episodes = bin_failures = np.zeros(self.layout.num_bins)
         out = {
-            "bin_episodes": self.stats_bin_episodes.cpu().numpy().copy(),
-            "bin_failures": self.stats_bin_failures.cpu().numpy().copy(),
+            # Per bin, as the sampler was fed them (after end_rollout for update_every=iteration).
+            "bin_episodes": bin_episodes,
+            "bin_failures": bin_failures,
             "nonfinite_resets": float(self.stats_nonfinite),
             "overflow_worlds": float(self.stats_overflow),
         }
@@ -644,7 +643,7 @@ class TrackingEnv(VecEnv):
         out["Metrics/error_body_pos_m"] = float(errs[1])
         out["Metrics/error_joint_pos_rad"] = float(errs[2])
         for buf in (
-            self.stats_bin_episodes, self.stats_bin_failures, self.stats_terminations, self.stats_errors,
+            self.stats_terminations, self.stats_errors,
             self.stats_nonfinite, self.stats_overflow, self.stats_steps, self.stats_episodes,
             self.stats_failures, self.stats_length_sum, self.stats_reward_sums,
         ):

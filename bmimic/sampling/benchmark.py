@@ -1,12 +1,25 @@
-"""Timing of the sampler hot path: one ``update_counts`` plus one ``sample(num_envs)`` per step.
+"""Timing of the sampler hot path, for both update schedules of a named variant.
 
     python -m bmimic.sampling.benchmark --num-envs 16384 --num-bins 10000 --device cuda
+    python -m bmimic.sampling.benchmark --sampler adaptive_hybrid      # update_every=step
 
-prints one line with microseconds per step. On CUDA the loop is timed with CUDA events (the
-host never waits inside it, as in training); on CPU with ``time.perf_counter``. The same
-probabilities are also sampled with the other method (multinomial vs inverse CDF) so the choice
-of the default (inverse CDF) can be checked on the machine at hand. The test suite runs 10^4
-sequential updates; the long-run stability check of 10^6 updates is ``--iters 1000000``.
+prints one line with microseconds per call. Parts, each timed alone:
+
+- ``count``: one control step's bookkeeping (:meth:`EpisodeAccounting.count` of ~num_envs/50
+  finished episodes into per-bin counts, then ``record``: a sampler update for
+  ``update_every=step``, an add to the pending counts for ``update_every=iteration``);
+- ``update``: one ``update_counts`` (the per-step update, or the one update after a rollout);
+- ``end_rollout``: the per-iteration update as the trainer calls it (``update_every=iteration``);
+- ``sample``: ``sample(num_envs)`` plus the start frames of the drawn bins, with both sampling
+  methods (the default, inverse CDF, and ``torch.multinomial``);
+- ``update_plus_sample``: ``update`` + ``sample`` (the figure docs/benchmarks.md tracks, < 1 ms at
+  16k envs x 10k bins);
+- ``iteration``: a whole rollout's sampler work per control step: ``steps_per_iteration`` x (count +
+  record + sample) plus ``end_rollout``, divided by ``steps_per_iteration``.
+
+On CUDA the loops are timed with CUDA events (the host never waits inside them, as in training); on
+CPU with ``time.perf_counter``. The test suite runs 10^4 sequential updates; the long-run stability
+check of 10^6 updates is ``--iters 1000000``.
 """
 
 from __future__ import annotations
@@ -18,7 +31,11 @@ from typing import Any, Callable
 
 import torch
 
-from bmimic.sampling.config import SamplerConfig, make_sampler
+from bmimic.sampling.accounting import EpisodeAccounting
+from bmimic.sampling.config import SAMPLER_NAMES, layout_for, load_variant, make_sampler
+
+FPS = 50.0
+MAX_EPISODE_LENGTH = 500  # 10 s at 50 Hz, BeyondMimic's
 
 
 def _time_per_call(fn: Callable[[], Any], iters: int, device: torch.device) -> float:
@@ -40,6 +57,11 @@ def _time_per_call(fn: Callable[[], Any], iters: int, device: torch.device) -> f
     return (time.perf_counter() - t0) / iters
 
 
+def _frames_for(bins: str, num_bins: int) -> int:
+    """A motion length (frames at 50 fps) whose layout has ``num_bins`` bins."""
+    return num_bins * int(FPS) if bins == "time" else (num_bins - 1) * int(FPS) + int(FPS) // 2
+
+
 def bench_sampler(
     num_envs: int = 16384,
     num_bins: int = 10000,
@@ -47,43 +69,70 @@ def bench_sampler(
     iters: int = 1000,
     sampler: str = "adaptive",
     seed: int = 0,
+    steps_per_iteration: int = 24,
+    update_every: str | None = None,
 ) -> dict[str, Any]:
-    """Time ``update_counts`` + ``sample(num_envs)`` of ``sampler`` (a config name) on ``device``.
+    """Time the sampler work of variant ``sampler`` (``conf/sampler/<sampler>.yaml``, with 1 s time
+    bins or the released layout, ``update_every`` overridden when given) on ``device``.
 
-    Each step feeds counts of a fixed random batch (about num_envs/50 finished episodes, a 10%
-    failure rate, as at a 50 Hz control rate with ~1 s episodes). Returns microseconds per step
-    for the pair and for each part, the sampling time of both sampling methods, and a check that
-    the probabilities stayed finite and normalised.
+    Each step's batch is fixed: about num_envs/50 finished episodes (50 Hz control, ~1 s episodes),
+    10% of them terminated early. Returns microseconds per call of each part (see the module
+    docstring) and a check that the probabilities stayed finite and normalised.
     """
     dev = torch.device(device)
-    cfg = SamplerConfig(name=sampler, K=3, gamma=0.8)
-    s = make_sampler(cfg, num_bins, dev)
+    cfg = load_variant(sampler)
+    if update_every is not None:
+        cfg.update_every = update_every
+    layout = layout_for(cfg, _frames_for(cfg.bins, num_bins), FPS, device=dev)
+    s = make_sampler(cfg, layout.num_bins, dev)
+    acc = EpisodeAccounting.from_config(cfg, s, layout, num_envs, MAX_EPISODE_LENGTH, device=dev)
     gen = torch.Generator(device=dev).manual_seed(seed)
-    finished = max(1, num_envs // 50)
-    bins = torch.randint(0, num_bins, (finished,), generator=gen, device=dev)
-    failed = torch.rand(finished, generator=gen, device=dev) < 0.1
-    episodes = torch.zeros(num_bins, device=dev).index_add_(0, bins, torch.ones(finished, device=dev))
-    failures = torch.zeros(num_bins, device=dev).index_add_(0, bins, failed.float())
+    n = layout.num_frames
+    dones = torch.rand(num_envs, generator=gen, device=dev) < 1.0 / FPS
+    terminated = dones & (torch.rand(num_envs, generator=gen, device=dev) < 0.1)
+    never = torch.zeros_like(dones)
+    segment_start = torch.randint(0, n, (num_envs,), generator=gen, device=dev)
+    end_frames = torch.clamp(segment_start + int(FPS), max=n - 1)
+    length = torch.randint(0, MAX_EPISODE_LENGTH, (num_envs,), generator=gen, device=dev)
+    acc.start_episodes(~never, layout.bins_of(segment_start))
+    counts = acc.count(dones, never, end_frames, segment_start, terminated, never, length)
 
-    def step() -> None:
-        s.update_counts(episodes, failures)
-        s.sample(num_envs, generator=gen)
+    def count() -> None:
+        acc.record(acc.count(dones, never, end_frames, segment_start, terminated, never, length))
+
+    def update() -> None:
+        s.update_counts(counts[0], counts[1])
+
+    def sample() -> None:
+        layout.sample_frames(s.sample(num_envs, generator=gen), generator=gen)
+
+    def rollout() -> None:
+        for _ in range(steps_per_iteration):
+            count()
+            sample()
+        acc.end_rollout()
+
+    def us(fn: Callable[[], Any], calls: int = iters) -> float:
+        return 1e6 * _time_per_call(fn, calls, dev)
 
     result: dict[str, Any] = {
         "sampler": sampler,
+        "update_every": cfg.update_every,
         "device": str(dev),
         "num_envs": num_envs,
-        "num_bins": num_bins,
+        "num_bins": layout.num_bins,
         "iters": iters,
         "method": s.method,
-        "step_us": 1e6 * _time_per_call(step, iters, dev),
-        "update_us": 1e6 * _time_per_call(lambda: s.update_counts(episodes, failures), iters, dev),
+        "count_us": us(count),
+        "update_us": us(update),
+        "end_rollout_us": us(acc.end_rollout),
+        "iteration_us": us(rollout, max(1, iters // steps_per_iteration)) / steps_per_iteration,
     }
     for method in ("multinomial", "inverse_cdf"):
         s.method = method
-        result[f"sample_{method}_us"] = 1e6 * _time_per_call(
-            lambda: s.sample(num_envs, generator=gen), iters, dev
-        )
+        result[f"sample_{method}_us"] = us(sample)
+    s.method = "inverse_cdf"
+    result["update_plus_sample_us"] = result["update_us"] + result["sample_inverse_cdf_us"]
     p = s.probabilities()
     result["probs_ok"] = bool(torch.isfinite(p).all()) and math.isclose(float(p.sum()), 1.0, abs_tol=1e-9)
     return result
@@ -95,14 +144,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--num-bins", type=int, default=10000)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--iters", type=int, default=1000)
-    parser.add_argument("--sampler", default="adaptive", choices=["uniform", "adaptive", "beyondmimic"])
+    parser.add_argument("--sampler", default="adaptive", choices=list(SAMPLER_NAMES))
+    parser.add_argument("--update-every", default=None, choices=["step", "iteration"],
+                        help="override the variant's sampler.update_every")
+    parser.add_argument("--steps-per-iteration", type=int, default=24)
     args = parser.parse_args(argv)
-    r = bench_sampler(args.num_envs, args.num_bins, args.device, args.iters, args.sampler)
+    r = bench_sampler(args.num_envs, args.num_bins, args.device, args.iters, args.sampler,
+                      steps_per_iteration=args.steps_per_iteration, update_every=args.update_every)
     print(
-        f"{r['sampler']} on {r['device']}: num_envs={r['num_envs']} num_bins={r['num_bins']} iters={r['iters']} "
-        f"method={r['method']} step={r['step_us']:.1f}us update_counts={r['update_us']:.1f}us "
-        f"sample: multinomial={r['sample_multinomial_us']:.1f}us inverse_cdf={r['sample_inverse_cdf_us']:.1f}us "
-        f"probs_ok={r['probs_ok']}"
+        f"{r['sampler']} (update_every={r['update_every']}) on {r['device']}: num_envs={r['num_envs']} "
+        f"num_bins={r['num_bins']} iters={r['iters']} method={r['method']} "
+        f"update+sample={r['update_plus_sample_us']:.1f}us update={r['update_us']:.1f}us "
+        f"count={r['count_us']:.1f}us end_rollout={r['end_rollout_us']:.1f}us "
+        f"sample: inverse_cdf={r['sample_inverse_cdf_us']:.1f}us multinomial={r['sample_multinomial_us']:.1f}us "
+        f"iteration/step={r['iteration_us']:.1f}us probs_ok={r['probs_ok']}"
     )
 
 

@@ -11,8 +11,24 @@ Quotients within 1e-9 (relative) of an integer are snapped to it first, so float
 moves a boundary: ``num_bins(30.0, 1.0) == 30`` and frame 9 at 30 fps is in bin 3 for b = 0.1 s
 even though ``9/30/0.1 == 2.9999999999999996``.
 
-A :class:`BinLayout` maps frames to bins and draws a start frame uniformly among the frames of a
-bin. When b is not a multiple of the frame period the last bin can be a sliver shorter than one
+Two bin layouts map frames to bins and draw start frames; which one a run uses is ``sampler.bins``
+(:func:`make_layout`), and the same layout serves sampling, attribution, diagnostics and the
+evaluation tables:
+
+- :class:`BinLayout` (``bins: time``): the time bins above; a start frame is drawn uniformly among
+  the frames of the bin.
+- :class:`ReleasedBinLayout` (``bins: released``): the bins of the released BeyondMimic code
+  (HybridRobotics/whole_body_tracking, ``mdp/commands.py``). For a motion of T frames at f frames
+  per second (f = 50, the control rate, in the released code and in bmimic),
+  :math:`B = \lfloor T / f \rfloor + 1` bins; frame t is in bin
+  :math:`\min(\lfloor t B / T \rfloor, B-1)` (where the released code charges a failure), and a start
+  frame for bin b is drawn as :math:`\lfloor (b + U) / B \cdot (T-1) \rfloor`, U uniform in [0, 1).
+  ``bin_size_seconds`` does not apply. The two formulas use T and T-1: a start drawn for bin b can
+  lie in bin b-1 by the first formula (the first frame or so of each bin's draw range), as in the
+  released code. Start frames are computed in float64; the released code's float32 can round b + U
+  up to b + 1 (and so start at frame T-1) for U within 2^-24 (b+1) of 1.
+
+When b is not a multiple of the frame period the last bin can be a sliver shorter than one
 frame period that holds no frame; such a bin is dropped (its time joins the previous bin), so
 every bin of a layout holds at least one frame and ``layout.num_bins`` may be one less than
 ``num_bins(T, b)`` in that case.
@@ -44,15 +60,35 @@ from typing import Any
 
 import torch
 
-from bmimic.sampling.config import (
-    ATTRIBUTIONS,
-    FAILURES,
+from bmimic.sampling.samplers import (
     SamplerConfigError,
-    check_attribution,
-    check_bin_size,
-    check_failure,
+    bin_counts,
+    check_choice,
+    check_fraction,
+    fail,
+    is_number,
 )
-from bmimic.sampling.samplers import bin_counts
+
+ATTRIBUTIONS = ("failure", "start")
+FAILURES = ("terminated", "short")
+LAYOUTS = ("time", "released")
+
+
+def check_bin_size(bin_size_seconds: Any, motion_duration_s: float | None = None) -> None:
+    """A finite bin size > 0 and, when the motion's duration is given, at most that long."""
+    if not (is_number(bin_size_seconds) and 0.0 < bin_size_seconds < math.inf):
+        fail("bin_size_seconds", "a finite number > 0", bin_size_seconds)
+    if motion_duration_s is not None and bin_size_seconds > motion_duration_s:
+        fail("bin_size_seconds", f"<= the motion duration ({motion_duration_s:g} s)", bin_size_seconds)
+
+
+def check_attribution(attribution: Any) -> None:
+    check_choice("attribution", attribution, ATTRIBUTIONS)
+
+
+def check_failure(failure: Any, failure_threshold: Any) -> None:
+    check_choice("failure", failure, FAILURES)
+    check_fraction("failure_threshold", failure_threshold)
 
 _SNAP_RTOL = 1e-9
 
@@ -87,54 +123,86 @@ def bins_of_time(t_s: torch.Tensor, bin_size_seconds: float, num_bins: int) -> t
     return q.floor().long().clamp_(0, num_bins - 1)
 
 
-class BinLayout:
+class _FrameBins:
     """Frame <-> bin maps of one motion (N frames at ``fps``), precomputed on ``device``.
 
     Attributes:
-        num_frames, fps, bin_size_seconds, duration_s, num_bins.
+        kind: the layout's name in ``sampler.bins``.
+        num_frames, fps, duration_s, num_bins.
         frame_to_bin: LongTensor[N], the bin of each frame.
         bin_first_frame: LongTensor[S], first frame of each bin.
         bin_num_frames: LongTensor[S], number of frames in each bin (>= 1).
-        edges_s: float64 Tensor[S+1], bin edges in seconds (last = T).
+        edges_s: float64 Tensor[S+1], bin edges in seconds (the time of each bin's first frame,
+            then T).
     """
 
-    def __init__(self, num_frames: int, fps: float, bin_size_seconds: float, device: Any = "cpu"):
+    kind = ""
+
+    def __init__(self, num_frames: int, fps: float) -> None:
         if not (isinstance(num_frames, int) and num_frames >= 1):
             raise SamplerConfigError(f"motion num_frames must be an integer >= 1, got {num_frames!r}")
         if not (isinstance(fps, (int, float)) and 0.0 < fps < math.inf):
             raise SamplerConfigError(f"motion fps must be a finite number > 0, got {fps!r}")
         self.num_frames = num_frames
         self.fps = float(fps)
-        self.bin_size_seconds = float(bin_size_seconds)
         self.duration_s = num_frames / self.fps
-        s = num_bins(self.duration_s, bin_size_seconds)
-        frames_per_bin = self.fps * self.bin_size_seconds
-        if _snap(frames_per_bin) < 1.0:
-            raise SamplerConfigError(
-                f"sampler.bin_size_seconds must be at least one frame period ({1.0 / self.fps:g} s at "
-                f"{self.fps:g} fps), got {bin_size_seconds!r}"
-            )
-        # Built on the CPU in float64 once, then moved: exact and cheap.
-        frame_to_bin = bins_of_time(
-            torch.arange(num_frames, dtype=torch.float64) / self.fps, bin_size_seconds, s
-        )
-        # With >= 1 frame per bin only the last bin can be empty (a sliver shorter than a frame).
-        s = int(frame_to_bin[-1]) + 1
-        counts = torch.bincount(frame_to_bin, minlength=s)
-        self.num_bins = s
+
+    def _set_frame_to_bin(self, frame_to_bin: torch.Tensor, device: Any) -> None:
+        """Derive every table from the (CPU, non-decreasing, gap-free) frame -> bin map."""
+        counts = torch.bincount(frame_to_bin)
+        if not bool((counts >= 1).all()):
+            raise SamplerConfigError(f"{type(self).__name__}: a bin holds no frame")
+        self.num_bins = len(counts)
+        first = torch.cumsum(counts, 0) - counts
         self.frame_to_bin = frame_to_bin.to(device)
         self.bin_num_frames = counts.to(device)
-        self.bin_first_frame = (torch.cumsum(counts, 0) - counts).to(device)
-        edges = torch.arange(s + 1, dtype=torch.float64) * self.bin_size_seconds
-        edges[-1] = self.duration_s
-        self.edges_s = edges.to(device)
+        self.bin_first_frame = first.to(device)
+        self.edges_s = self._edges_s(first).to(device)
         self.device = self.frame_to_bin.device
+
+    def _edges_s(self, first_frame: torch.Tensor) -> torch.Tensor:
+        edges = torch.cat((first_frame.double() / self.fps, torch.tensor([self.duration_s], dtype=torch.float64)))
+        return edges
 
     def bins_of(self, frames: torch.Tensor) -> torch.Tensor:
         """Bin of each frame index (LongTensor). Frames past the end (e.g. frame N, time T)
         count in the last bin; negative frames in the first."""
         frames = torch.as_tensor(frames, device=self.device).long()
         return self.frame_to_bin[frames.clamp(0, self.num_frames - 1)]
+
+    def sample_frames(self, bins: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """A start frame for each bin (LongTensor, same shape as bins)."""
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """One line for the run's log."""
+        raise NotImplementedError
+
+
+class BinLayout(_FrameBins):
+    """Time bins of ``bin_size_seconds`` (``sampler.bins: time``); see the module docstring."""
+
+    kind = "time"
+
+    def __init__(self, num_frames: int, fps: float, bin_size_seconds: float, device: Any = "cpu"):
+        super().__init__(num_frames, fps)
+        self.bin_size_seconds = float(bin_size_seconds)
+        s = num_bins(self.duration_s, bin_size_seconds)
+        if _snap(self.fps * self.bin_size_seconds) < 1.0:
+            raise SamplerConfigError(
+                f"sampler.bin_size_seconds must be at least one frame period ({1.0 / self.fps:g} s at "
+                f"{self.fps:g} fps), got {bin_size_seconds!r}"
+            )
+        # Built on the CPU in float64 once, then moved: exact and cheap. With >= 1 frame per bin
+        # only the last bin can be empty (a sliver shorter than a frame); bincount drops it.
+        frame_to_bin = bins_of_time(torch.arange(num_frames, dtype=torch.float64) / self.fps, bin_size_seconds, s)
+        self._set_frame_to_bin(frame_to_bin, device)
+
+    def _edges_s(self, first_frame: torch.Tensor) -> torch.Tensor:
+        # Multiples of the bin size (not first-frame times), so edges read 0, b, 2b, ... exactly.
+        edges = torch.arange(len(first_frame) + 1, dtype=torch.float64) * self.bin_size_seconds
+        edges[-1] = self.duration_s
+        return edges
 
     def sample_frames(self, bins: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """A frame drawn uniformly among the frames of each bin (LongTensor, same shape as bins)."""
@@ -144,11 +212,53 @@ class BinLayout:
         offset = torch.minimum((u * count).long(), count - 1)
         return self.bin_first_frame[bins] + offset
 
+    def describe(self) -> str:
+        return f"{self.num_bins} time bins of {self.bin_size_seconds:g} s over {self.duration_s:g} s"
+
     def __repr__(self) -> str:
         return (
             f"BinLayout(num_frames={self.num_frames}, fps={self.fps:g}, "
             f"bin_size_seconds={self.bin_size_seconds:g}, num_bins={self.num_bins})"
         )
+
+
+class ReleasedBinLayout(_FrameBins):
+    """The released BeyondMimic code's bins (``sampler.bins: released``); see the module docstring."""
+
+    kind = "released"
+
+    def __init__(self, num_frames: int, fps: float, device: Any = "cpu"):
+        super().__init__(num_frames, fps)
+        t = num_frames
+        # int(T // (1 / control_dt)) + 1 in the released code; one frame per control step.
+        self._B = int(t // self.fps) + 1
+        self._set_frame_to_bin(torch.clamp(torch.arange(t) * self._B // t, 0, self._B - 1), device)
+        assert self.num_bins == self._B  # T / B >= 1 frame per bin, so no bin is empty
+
+    def sample_frames(self, bins: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """floor((b + U) / B * (T - 1)) with U uniform in [0, 1) (LongTensor, same shape as bins)."""
+        bins = torch.as_tensor(bins, device=self.device).long()
+        u = torch.rand(bins.shape, generator=generator, dtype=torch.float64, device=self.device)
+        return ((bins + u) / self.num_bins * (self.num_frames - 1)).long()
+
+    def describe(self) -> str:
+        return (f"{self.num_bins} released bins (B = T // {self.fps:g} + 1 over T = {self.num_frames} frames, "
+                f"{self.duration_s:g} s)")
+
+    def __repr__(self) -> str:
+        return f"ReleasedBinLayout(num_frames={self.num_frames}, fps={self.fps:g}, num_bins={self.num_bins})"
+
+
+Layout = BinLayout | ReleasedBinLayout
+
+
+def make_layout(bins: str, num_frames: int, fps: float, bin_size_seconds: float | None,
+                device: Any = "cpu") -> Layout:
+    """The bin layout ``bins`` ("time" or "released") of a motion of ``num_frames`` at ``fps``."""
+    check_choice("bins", bins, LAYOUTS)
+    if bins == "released":
+        return ReleasedBinLayout(num_frames, fps, device=device)
+    return BinLayout(num_frames, fps, bin_size_seconds, device=device)
 
 
 def visits_histogram(
@@ -193,7 +303,7 @@ def attribute(
     start_frames: torch.Tensor,
     end_frames: torch.Tensor,
     failed: torch.Tensor,
-    layout: BinLayout,
+    layout: Layout,
     attribution: str,
     counted: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -202,7 +312,7 @@ def attribute(
     Args:
         start_frames, end_frames: LongTensor[n], first and last frame of each segment.
         failed: BoolTensor[n].
-        layout: the motion's :class:`BinLayout`.
+        layout: the motion's bin layout.
         attribution: "failure" (episodes = visits over [start_bin, end_bin], failures at the end
             bin) or "start" (both at the start bin).
         counted: optional BoolTensor[n]; only these segments are counted. It lets the environment
@@ -228,11 +338,15 @@ def attribute(
 __all__ = [
     "ATTRIBUTIONS",
     "FAILURES",
+    "LAYOUTS",
     "BinLayout",
+    "Layout",
+    "ReleasedBinLayout",
     "attribute",
     "bin_edges_s",
     "bins_of_time",
     "failed_mask",
+    "make_layout",
     "num_bins",
     "visits_histogram",
 ]

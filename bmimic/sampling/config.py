@@ -1,70 +1,103 @@
-"""Sampler options (the Hydra group ``sampler``), their validation, and the sampler factory.
+"""Sampler options (the Hydra group ``sampler``), their validation, and the factories.
 
-Every field of :class:`SamplerConfig` is set by each YAML under ``conf/sampler/`` so sweeps can
-override any of them, e.g. ``sampler.gamma=0.5,0.8,0.9``. Fields a sampler does not use are
-still validated, so a sweep never silently carries a nonsensical value.
+Each YAML under ``conf/sampler/`` is a named variant; its ``name`` equals its file name and decides
+the sampler class (:data:`SAMPLER_CLASSES`). Every variant sets every field of
+:class:`SamplerConfig`, so any design choice can be overridden on any variant, one at a time
+(``sampler=adaptive sampler.attribution=failure``). Fields a variant does not use are still
+validated, so a sweep never silently carries a nonsensical value.
 
-Which fields each sampler reads:
+=================  ==================  ========================================================
+variant (name)     class               what it is
+=================  ==================  ========================================================
+adaptive           AdaptiveSampler     the design (the schema defaults below)
+adaptive_hybrid    AdaptiveSampler     the earlier ``adaptive``: the design's formulas with the
+                                       released code's bookkeeping (results in docs/results)
+beyondmimic        BeyondMimicSampler  the released code, its bins included
+uniform            UniformSampler      uniform start bins (the baseline)
+=================  ==================  ========================================================
 
-=============  ==========================================================================
-uniform        ``bin_size_seconds`` (bins are still used for diagnostics)
-adaptive       ``bin_size_seconds, gamma, lambda_uniform, K, alpha_smooth``
-beyondmimic    ``bin_size_seconds, gamma, K, alpha, uniform_ratio``
-=============  ==========================================================================
+Which fields each part reads:
 
-``attribution``, ``failure`` and ``failure_threshold`` decide how the environment turns finished
-episodes into per-bin counts (see :func:`bmimic.sampling.bins.attribute` and
-:func:`bmimic.sampling.bins.failed_mask`).
+- the sampler class: ``gamma, K, empty_bins`` and ``lambda_uniform, alpha_smooth`` (adaptive) or
+  ``alpha, uniform_ratio`` (beyondmimic); the uniform sampler reads none;
+- the bin layout (:func:`bmimic.sampling.bins.make_layout`): ``bins`` and, for time bins,
+  ``bin_size_seconds``;
+- the episode accounting (:class:`bmimic.sampling.accounting.EpisodeAccounting`): ``attribution,
+  failure, failure_threshold, update_every`` (for every sampler, uniform included, since the
+  per-bin counts are also the diagnostics);
+- the trainer: ``log_every``.
+
+``enabled: false`` draws start bins uniformly whatever the variant (the design's switch back to
+uniform sampling); the run then equals ``sampler=uniform`` except for the recorded name.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, fields
+from typing import Any, Optional
 
-from bmimic import BmimicError
+from bmimic.sampling.accounting import UPDATE_EVERY
+from bmimic.sampling.bins import (
+    LAYOUTS,
+    Layout,
+    check_attribution,
+    check_bin_size,
+    check_failure,
+    make_layout,
+)
+from bmimic.sampling.samplers import (
+    AdaptiveSampler,
+    BeyondMimicSampler,
+    SamplerConfigError,
+    UniformSampler,
+    check_choice,
+    fail,
+)
 
-SAMPLER_NAMES = ("uniform", "adaptive", "beyondmimic")
-ATTRIBUTIONS = ("failure", "start")
-FAILURES = ("terminated", "short")
-
-
-class SamplerConfigError(BmimicError, ValueError):
-    """A sampler option, or a sampler input that depends on one, is invalid."""
+SAMPLER_CLASSES = {
+    "adaptive": AdaptiveSampler,
+    "adaptive_hybrid": AdaptiveSampler,
+    "beyondmimic": BeyondMimicSampler,
+    "uniform": UniformSampler,
+}
+"""Variant name (= YAML file name) -> sampler class."""
+SAMPLER_NAMES = tuple(SAMPLER_CLASSES)
 
 
 @dataclass
 class SamplerConfig:
+    """The schema of ``conf/sampler/*.yaml``; its defaults are the design (``sampler=adaptive``)."""
+
     name: str = "adaptive"
-    """Which sampler: "uniform", "adaptive" (paper form) or "beyondmimic" (released-code form)."""
+    """The variant: adaptive (the design), adaptive_hybrid, beyondmimic (released code) or uniform;
+    equals the YAML's file name and decides the sampler class."""
 
-    bin_size_seconds: float = 1.0
-    """Length of one time bin of the reference motion, in seconds (the last bin may be shorter)."""
+    enabled: bool = True
+    """false: draw start bins uniformly (the design's switch back to uniform sampling)."""
 
-    gamma: float = 0.8
+    bins: str = "time"
+    """Bin layout: "time" = bins of bin_size_seconds; "released" = the released code's
+    B = T // 50 + 1 bins over T frames at 50 Hz (bin_size_seconds does not apply)."""
+
+    bin_size_seconds: Optional[float] = 1.0
+    """Time bins: length of one bin of the reference motion in seconds (the last may be shorter);
+    null with bins=released."""
+
+    gamma: float = 0.9
     """Decay of the look-ahead kernel gamma^u, u = 0..K-1, in (0, 1]."""
 
     lambda_uniform: float = 0.1
     """Adaptive sampler: share of probability mass spread uniformly, in [0, 1]; P_s >= lambda_uniform/S."""
 
-    K: int = 3
+    K: int = 5
     """Length of the look-ahead kernel in bins (1 = no smoothing across bins)."""
 
     alpha_smooth: float = 0.1
     """Adaptive sampler: EMA weight of a new failure-rate observation, in (0, 1]."""
 
-    attribution: str = "failure"
-    """Which bin an episode is charged to: "failure" = the bin of the frame where it ended (every bin
-    it passed through counts as visited), "start" = the bin it started in."""
-
-    failure: str = "terminated"
-    """What counts as a failed episode: "terminated" = any termination other than a time-out,
-    "short" = a termination before failure_threshold x the max episode length (episode length <
-    failure_threshold x max length; time-outs and clip ends never fail)."""
-
-    failure_threshold: float = 0.8
-    """For failure="short": fraction of the max episode length below which an episode failed, in (0, 1]."""
+    empty_bins: str = "decay"
+    """"decay": every update moves every bin (a bin without finished episodes decays towards 0, the
+    design's formula); "hold": bins without finished episodes keep their value."""
 
     alpha: float = 0.001
     """BeyondMimic sampler: EMA weight of each update's failure histogram, in (0, 1]."""
@@ -72,108 +105,115 @@ class SamplerConfig:
     uniform_ratio: float = 0.1
     """BeyondMimic sampler: uniform_ratio/S is added to the EMA counts before smoothing (> 0)."""
 
+    attribution: str = "start"
+    """Which bin a finished episode counts for: "start" = the bin it started in (kept through
+    clip-end resamples); "failure" = every bin its reference segment passed through counts a visit
+    and a failure counts in the bin where it ended (rate = failures per visit)."""
 
-def _fail(key: str, rule: str, value: Any) -> None:
-    raise SamplerConfigError(f"sampler.{key} must be {rule}, got {value!r}")
+    failure: str = "short"
+    """What counts as a failed episode: "short" = ended by a termination before failure_threshold x
+    the max episode length; "terminated" = any termination (time-outs never fail)."""
 
+    failure_threshold: float = 0.8
+    """For failure="short": fraction of the max episode length below which a termination is a
+    failure, in (0, 1]."""
 
-def _is_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
+    update_every: str = "iteration"
+    """"iteration": one sampler update per PPO iteration, after the rollout, from every episode that
+    finished during it; "step": one update per control step (the released code)."""
 
-
-# Range checks shared by validate_sampler_config and the sampler constructors, so a bad value
-# gets the same message whichever way it arrives. Comparisons are written `not (lo < x <= hi)`
-# so that NaN fails them.
-def check_gamma(gamma: float) -> None:
-    if not (_is_number(gamma) and 0.0 < gamma <= 1.0):
-        _fail("gamma", "in (0, 1]", gamma)
-
-
-def check_K(K: int) -> None:
-    if not (isinstance(K, int) and not isinstance(K, bool) and K >= 1):
-        _fail("K", "an integer >= 1", K)
-
-
-def check_lambda_uniform(lambda_uniform: float) -> None:
-    if not (_is_number(lambda_uniform) and 0.0 <= lambda_uniform <= 1.0):
-        _fail("lambda_uniform", "in [0, 1]", lambda_uniform)
+    log_every: Optional[int] = None
+    """sampler.parquet gets one row per bin every this many iterations and at the last one; null:
+    1, or thinned to stay under about a million rows when there are more than 1,000 bins."""
 
 
-def check_alpha_smooth(alpha_smooth: float) -> None:
-    if not (_is_number(alpha_smooth) and 0.0 < alpha_smooth <= 1.0):
-        _fail("alpha_smooth", "in (0, 1]", alpha_smooth)
-
-
-def check_alpha(alpha: float) -> None:
-    if not (_is_number(alpha) and 0.0 < alpha <= 1.0):
-        _fail("alpha", "in (0, 1]", alpha)
-
-
-def check_uniform_ratio(uniform_ratio: float) -> None:
-    if not (_is_number(uniform_ratio) and 0.0 < uniform_ratio < math.inf):
-        _fail("uniform_ratio", "a finite number > 0", uniform_ratio)
-
-
-def check_bin_size(bin_size_seconds: float, motion_duration_s: float) -> None:
-    if not (_is_number(bin_size_seconds) and 0.0 < bin_size_seconds < math.inf):
-        _fail("bin_size_seconds", "a finite number > 0", bin_size_seconds)
-    if bin_size_seconds > motion_duration_s:
-        _fail("bin_size_seconds", f"<= the motion duration ({motion_duration_s:g} s)", bin_size_seconds)
-
-
-def check_attribution(attribution: str) -> None:
-    if attribution not in ATTRIBUTIONS:
-        _fail("attribution", f"one of {', '.join(ATTRIBUTIONS)}", attribution)
-
-
-def check_failure(failure: str, failure_threshold: float) -> None:
-    if failure not in FAILURES:
-        _fail("failure", f"one of {', '.join(FAILURES)}", failure)
-    if not (_is_number(failure_threshold) and 0.0 < failure_threshold <= 1.0):
-        _fail("failure_threshold", "in (0, 1]", failure_threshold)
-
-
-def validate_sampler_config(cfg: Any, motion_duration_s: float) -> None:
+def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) -> None:
     """Check every field of a sampler config (a :class:`SamplerConfig` or the composed Hydra node).
 
     Raises :class:`SamplerConfigError` with a one-line message naming the first bad key.
     """
-    if cfg.name not in SAMPLER_NAMES:
-        _fail("name", f"one of {', '.join(SAMPLER_NAMES)}", cfg.name)
-    check_bin_size(cfg.bin_size_seconds, motion_duration_s)
-    check_gamma(cfg.gamma)
-    check_lambda_uniform(cfg.lambda_uniform)
-    check_K(cfg.K)
-    check_alpha_smooth(cfg.alpha_smooth)
-    check_alpha(cfg.alpha)
-    check_uniform_ratio(cfg.uniform_ratio)
+    check_choice("name", cfg.name, SAMPLER_NAMES)
+    if not isinstance(cfg.enabled, bool):
+        fail("enabled", "true or false", cfg.enabled)
+    check_choice("bins", cfg.bins, LAYOUTS)
+    if cfg.bins == "time" or cfg.bin_size_seconds is not None:
+        check_bin_size(cfg.bin_size_seconds, motion_duration_s if cfg.bins == "time" else None)
+    for cls in dict.fromkeys(SAMPLER_CLASSES.values()):
+        cls.check_config(cfg)
     check_attribution(cfg.attribution)
     check_failure(cfg.failure, cfg.failure_threshold)
+    check_choice("update_every", cfg.update_every, UPDATE_EVERY)
+    if cfg.log_every is not None and not (isinstance(cfg.log_every, int) and not isinstance(cfg.log_every, bool)
+                                          and cfg.log_every >= 1):
+        fail("log_every", "an integer >= 1 or null", cfg.log_every)
 
 
 def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu"):
-    """Build the sampler ``cfg.name`` over ``num_bins`` bins on ``device``."""
-    # Imported here because the samplers import this module's range checks.
-    from bmimic.sampling.samplers import AdaptiveSampler, BeyondMimicSampler, UniformSampler
+    """Build the sampler of variant ``cfg.name`` over ``num_bins`` bins on ``device`` (uniform
+    when ``cfg.enabled`` is false)."""
+    check_choice("name", cfg.name, SAMPLER_NAMES)
+    cls = SAMPLER_CLASSES[cfg.name] if getattr(cfg, "enabled", True) is not False else UniformSampler
+    return cls.from_config(cfg, num_bins, device)
 
-    if cfg.name == "uniform":
-        return UniformSampler(num_bins, device=device)
-    if cfg.name == "adaptive":
-        return AdaptiveSampler(
-            num_bins,
-            gamma=cfg.gamma,
-            lambda_uniform=cfg.lambda_uniform,
-            K=cfg.K,
-            alpha_smooth=cfg.alpha_smooth,
-            device=device,
-        )
-    if cfg.name == "beyondmimic":
-        return BeyondMimicSampler(
-            num_bins,
-            gamma=cfg.gamma,
-            K=cfg.K,
-            alpha=cfg.alpha,
-            uniform_ratio=cfg.uniform_ratio,
-            device=device,
-        )
-    _fail("name", f"one of {', '.join(SAMPLER_NAMES)}", cfg.name)
+
+def layout_for(cfg: Any, num_frames: int, fps: float, device: Any = "cpu") -> Layout:
+    """The bin layout ``cfg.bins`` of a motion of ``num_frames`` frames at ``fps``."""
+    return make_layout(cfg.bins, num_frames, fps, cfg.bin_size_seconds, device=device)
+
+
+def min_motion_bin_s(cfg: Any) -> float:
+    """The bin size a motion must be at least two of (0 with the released layout, whose bin count
+    follows the motion)."""
+    return float(cfg.bin_size_seconds) if cfg.bins == "time" else 0.0
+
+
+def describe(cfg: Any, layout: Layout, sampler: Any) -> list[str]:
+    """The lines the run's log gets: the variant and every sampler value in force."""
+    lines = []
+    name = cfg.name
+    if cfg.enabled is False:
+        lines.append(f"sampler {name}: sampler.enabled=false, so start bins are drawn uniformly "
+                     "(as sampler=uniform; the values below only shape the per-bin diagnostics)")
+    hp = " ".join(f"{k}={v}" for k, v in sampler.hparams().items())
+    lines.append(
+        f"sampler {name} ({type(sampler).__name__}): {layout.describe()}; {hp + '; ' if hp else ''}"
+        f"attribution={cfg.attribution} failure={cfg.failure}"
+        f"{f' failure_threshold={cfg.failure_threshold:g}' if cfg.failure == 'short' else ''} "
+        f"update_every={cfg.update_every} log_every={'null' if cfg.log_every is None else cfg.log_every}"
+    )
+    if cfg.bins == "released" and cfg.bin_size_seconds is not None:
+        lines.append(f"sampler.bin_size_seconds={cfg.bin_size_seconds:g} does not apply to the released bins "
+                     f"(sampler.bins=released: {layout.num_bins} bins from the motion's length); ignored")
+    return lines
+
+
+def load_variant(name: str) -> SamplerConfig:
+    """The named variant ``conf/sampler/<name>.yaml`` as a :class:`SamplerConfig` (without Hydra)."""
+    from omegaconf import OmegaConf
+
+    from bmimic.launch import CONF_DIR
+
+    check_choice("name", name, SAMPLER_NAMES)
+    node = OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml")
+    node.pop("defaults", None)
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SamplerConfig), node))
+
+
+def default_values() -> dict[str, Any]:
+    """The schema's defaults, field by field."""
+    return {f.name: f.default for f in fields(SamplerConfig)}
+
+
+__all__ = [
+    "SAMPLER_CLASSES",
+    "SAMPLER_NAMES",
+    "SamplerConfig",
+    "SamplerConfigError",
+    "default_values",
+    "describe",
+    "layout_for",
+    "load_variant",
+    "make_sampler",
+    "min_motion_bin_s",
+    "validate_sampler_config",
+]

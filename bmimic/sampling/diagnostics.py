@@ -13,7 +13,11 @@ r"""Per-iteration summaries of a sampler, for ``train_metrics.parquet`` and ``sa
 ``iteration, bin, bin_start_s, bin_end_s, episodes, failures, raw_failure_rate,
 smoothed_failure_rate, probability``; ``raw_failure_rate`` = failures / episodes (NaN where a bin
 had none) and ``smoothed_failure_rate`` = ``sampler.smoothed_failure()`` (the adaptive sampler's
-EMA rate r, the BeyondMimic sampler's EMA failure count q, NaN for the uniform sampler).
+EMA rate r, the BeyondMimic sampler's EMA failure count q, NaN for the uniform sampler). The counts
+are those the sampler was fed during the iteration and the probabilities those after its update,
+i.e. the distribution the next iteration samples from.
+
+:func:`log_every` decides how often the trainer writes those rows.
 """
 
 from __future__ import annotations
@@ -24,8 +28,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bmimic.sampling.bins import BinLayout
-from bmimic.sampling.config import SamplerConfigError
+from bmimic.sampling.samplers import SamplerConfigError
+
+MAX_SAMPLER_ROWS = 1_000_000
+"""sampler.log_every=null thins sampler.parquet of runs with more than 1,000 bins to about this many rows."""
 
 BIN_TABLE_COLUMNS = (
     "iteration",
@@ -38,6 +44,17 @@ BIN_TABLE_COLUMNS = (
     "smoothed_failure_rate",
     "probability",
 )
+
+
+def log_every(setting: int | None, num_bins: int, iterations: int) -> int:
+    """Iterations between two sampler tables: ``setting`` when given; else 1, or for more than
+    1,000 bins the smallest interval that keeps ``num_bins x iterations / interval`` rows under
+    :data:`MAX_SAMPLER_ROWS`."""
+    if setting is not None:
+        return int(setting)
+    if num_bins <= 1000:
+        return 1
+    return max(1, math.ceil(num_bins * max(iterations, 1) / MAX_SAMPLER_ROWS))
 
 
 def sampling_entropy(probs: torch.Tensor) -> float:
@@ -72,13 +89,14 @@ def summary(
 
 def bin_table(
     iteration: int,
-    layout: BinLayout | torch.Tensor,
+    layout,
     episodes_per_bin: torch.Tensor,
     failures_per_bin: torch.Tensor,
     sampler,
 ) -> pd.DataFrame:
-    """One row per bin (columns :data:`BIN_TABLE_COLUMNS`); ``layout`` is a BinLayout or edges [S+1] in s."""
-    edges = layout.edges_s if isinstance(layout, BinLayout) else torch.as_tensor(layout)
+    """One row per bin (columns :data:`BIN_TABLE_COLUMNS`); ``layout`` is a bin layout (anything
+    with ``edges_s``) or the edges [S+1] in seconds."""
+    edges = layout.edges_s if hasattr(layout, "edges_s") else torch.as_tensor(layout)
     edges = edges.detach().double().cpu().numpy()
     s = len(edges) - 1
     episodes = torch.as_tensor(episodes_per_bin).detach().double().cpu().numpy()

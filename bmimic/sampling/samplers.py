@@ -1,8 +1,8 @@
-r"""Samplers that choose the time bin each episode starts in.
+r"""Samplers that choose the bin each episode starts in.
 
-A motion is cut into S bins (see :mod:`bmimic.sampling.bins`). A sampler keeps a distribution P
+A motion is cut into S bins (see :mod:`bmimic.sampling.bins` for the layouts). A sampler keeps a distribution P
 over the bins, draws start bins from it and updates it from the outcome of finished episodes.
-All three samplers share one interface::
+All samplers share one interface::
 
     s.update(bins, failed, visits=None)   # one batch of finished episodes
     s.update_counts(episodes, failures)   # the same from per-bin counts, no host synchronisation
@@ -23,16 +23,19 @@ hard part; the right end is padded by repeating the last bin.
 
 **UniformSampler**: :math:`P_s = 1/S`; updates are ignored.
 
-**AdaptiveSampler** (paper form). A smoothed failure rate r (initially 0) moves only where the
-batch has episodes:
+**AdaptiveSampler** (the design: BeyondMimic section III-F as written up in the project's design
+notes). A smoothed failure rate r (initially 0) is updated from each batch's raw rates:
 
 .. math::
-    r_s \leftarrow (1-\alpha_{smooth})\, r_s + \alpha_{smooth}\, f_s / n_s \quad (n_s > 0),\qquad
+    \mathrm{raw}_s = f_s / \max(n_s, 1),\qquad
+    r_s \leftarrow \alpha_{smooth}\, \mathrm{raw}_s + (1-\alpha_{smooth})\, r_s,\qquad
     c = \mathcal{K} r,\qquad
     p_s = c_s / \textstyle\sum_j c_j \ \ (\text{uniform while } \sum_j c_j = 0),\qquad
     P_s = \lambda_{uniform}/S + (1-\lambda_{uniform})\, p_s .
 
-So :math:`P_s \ge \lambda_{uniform}/S` always: a true uniform floor.
+With ``empty_bins="decay"`` (the design's formula) every bin is updated, so a bin without episodes
+in the batch decays towards 0; with ``empty_bins="hold"`` only bins with :math:`n_s > 0` move and the
+others keep their rate. :math:`P_s \ge \lambda_{uniform}/S` always: a true uniform floor.
 
 **BeyondMimicSampler** (semantics of the released HybridRobotics/whole_body_tracking code). Every
 update, including one with no finished episodes, decays an EMA of failure *counts* (not rates):
@@ -41,7 +44,8 @@ update, including one with no finished episodes, decays an EMA of failure *count
     q \leftarrow \alpha\, f + (1-\alpha)\, q,\qquad
     w = \mathcal{K}\,(q + \epsilon/S),\qquad P = w / \textstyle\sum_j w_j,
 
-with :math:`\epsilon` = ``uniform_ratio``. Because q is a count, the weight of the uniform term,
+with :math:`\epsilon` = ``uniform_ratio`` (``empty_bins="hold"`` would keep q where the batch has
+no episodes; the released code decays every bin). Because q is a count, the weight of the uniform term,
 :math:`\epsilon / (\sum_j q_j + \epsilon)`, depends on the number of environments and on how often
 the policy fails; it is not a floor. The released code updates once per control step and draws
 the resets of a step *before* adding that step's failures.
@@ -64,22 +68,56 @@ accumulate no visible rounding error; the cost is negligible at S <= 10^4.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
 
-from bmimic.sampling.config import (
-    SamplerConfigError,
-    check_alpha,
-    check_alpha_smooth,
-    check_gamma,
-    check_K,
-    check_lambda_uniform,
-    check_uniform_ratio,
-)
+from bmimic import BmimicError
+
+
+class SamplerConfigError(BmimicError, ValueError):
+    """A sampler option, or a sampler input that depends on one, is invalid."""
+
 
 _DTYPE = torch.float64
 _METHODS = ("inverse_cdf", "multinomial")
+EMPTY_BINS = ("decay", "hold")
+
+
+# Range checks. Each sampler class checks the keys it reads (``check_config``), the constructors
+# call the same functions, so a bad value gets the same one-line message whichever way it arrives.
+# Comparisons are written `not (lo < x <= hi)` so that NaN fails them.
+def fail(key: str, rule: str, value: Any) -> None:
+    """Raise SamplerConfigError("sampler.<key> must be <rule>, got <value>")."""
+    raise SamplerConfigError(f"sampler.{key} must be {rule}, got {value!r}")
+
+
+def is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def check_fraction(key: str, x: Any, closed_below: bool = False) -> None:
+    """x in (0, 1] (or [0, 1] with closed_below)."""
+    ok = is_number(x) and (0.0 <= x <= 1.0 if closed_below else 0.0 < x <= 1.0)
+    if not ok:
+        fail(key, "in [0, 1]" if closed_below else "in (0, 1]", x)
+
+
+def check_choice(key: str, x: Any, choices: tuple[str, ...]) -> None:
+    if x not in choices:
+        fail(key, f"one of {', '.join(choices)}", x)
+
+
+def check_K(K: Any) -> None:
+    if not (isinstance(K, int) and not isinstance(K, bool) and K >= 1):
+        fail("K", "an integer >= 1", K)
+
+
+def check_uniform_ratio(uniform_ratio: Any) -> None:
+    if not (is_number(uniform_ratio) and 0.0 < uniform_ratio < math.inf):
+        fail("uniform_ratio", "a finite number > 0", uniform_ratio)
+
 
 
 def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype = _DTYPE, device: Any = "cpu") -> torch.Tensor:
@@ -115,6 +153,15 @@ class _BinSampler:
     """Shared plumbing: cached probabilities and CDF, sampling, update(), state dict."""
 
     kind = ""
+
+    @classmethod
+    def check_config(cls, cfg: Any) -> None:
+        """Range checks of the sampler keys this class reads (a SamplerConfig or a Hydra node)."""
+
+    @classmethod
+    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "_BinSampler":
+        """The sampler that ``cfg`` describes, over ``num_bins`` bins."""
+        return cls(num_bins, device=device)
 
     def __init__(self, num_bins: int, device: Any = "cpu", method: str = "inverse_cdf"):
         if not (isinstance(num_bins, int) and not isinstance(num_bins, bool) and num_bins >= 1):
@@ -257,25 +304,44 @@ class UniformSampler(_BinSampler):
 
 
 class _LookaheadSampler(_BinSampler):
-    """A sampler whose weights are smoothed with the look-ahead kernel."""
+    """A sampler whose weights are smoothed with the look-ahead kernel and whose state is an EMA."""
 
-    def __init__(self, num_bins: int, gamma: float, K: int, device: Any, method: str):
-        check_gamma(gamma)
+    def __init__(self, num_bins: int, gamma: float, K: int, empty_bins: str, device: Any, method: str):
+        check_fraction("gamma", gamma)
         check_K(K)
+        check_choice("empty_bins", empty_bins, EMPTY_BINS)
         super().__init__(num_bins, device=device, method=method)
         self.gamma = float(gamma)
         self.K = int(K)
+        self.empty_bins = str(empty_bins)
         self._kernel = lookahead_kernel(self.gamma, self.K, device=self.device)
         self._index = lookahead_index(num_bins, self.K, device=self.device)
+
+    @classmethod
+    def check_config(cls, cfg: Any) -> None:
+        check_fraction("gamma", cfg.gamma)
+        check_K(cfg.K)
+        check_choice("empty_bins", cfg.empty_bins, EMPTY_BINS)
 
     def _smooth(self, x: torch.Tensor) -> torch.Tensor:
         if self.K == 1:
             return x
         return x[self._index] @ self._kernel
 
+    def _ema(self, state: torch.Tensor, target: torch.Tensor, episodes: torch.Tensor, weight: float) -> None:
+        """state <- weight * target + (1 - weight) * state in place; with empty_bins="hold" bins
+        without episodes lerp towards their own value, i.e. stay exactly unchanged."""
+        if self.empty_bins == "hold":
+            target = torch.where(episodes > 0, target, state)
+        state.lerp_(target, weight)
+
 
 class AdaptiveSampler(_LookaheadSampler):
-    """Paper form: EMA of per-bin failure rates, look-ahead kernel, uniform mixture (see module doc)."""
+    """The design: EMA of per-bin failure rates, look-ahead kernel, uniform mixture (see module doc).
+
+    The defaults are the design's, and equal those of ``conf/sampler/adaptive.yaml`` and
+    :class:`bmimic.sampling.config.SamplerConfig` (a test keeps the three equal).
+    """
 
     kind = "adaptive"
 
@@ -286,20 +352,30 @@ class AdaptiveSampler(_LookaheadSampler):
         lambda_uniform: float = 0.1,
         K: int = 5,
         alpha_smooth: float = 0.1,
+        empty_bins: str = "decay",
         device: Any = "cpu",
         method: str = "inverse_cdf",
     ):
-        check_lambda_uniform(lambda_uniform)
-        check_alpha_smooth(alpha_smooth)
-        super().__init__(num_bins, gamma, K, device, method)
+        check_fraction("lambda_uniform", lambda_uniform, closed_below=True)
+        check_fraction("alpha_smooth", alpha_smooth)
+        super().__init__(num_bins, gamma, K, empty_bins, device, method)
         self.lambda_uniform = float(lambda_uniform)
         self.alpha_smooth = float(alpha_smooth)
         self._rate = torch.zeros(num_bins, dtype=_DTYPE, device=self.device)
 
+    @classmethod
+    def check_config(cls, cfg: Any) -> None:
+        super().check_config(cfg)
+        check_fraction("lambda_uniform", cfg.lambda_uniform, closed_below=True)
+        check_fraction("alpha_smooth", cfg.alpha_smooth)
+
+    @classmethod
+    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "AdaptiveSampler":
+        return cls(num_bins, gamma=cfg.gamma, lambda_uniform=cfg.lambda_uniform, K=cfg.K,
+                   alpha_smooth=cfg.alpha_smooth, empty_bins=cfg.empty_bins, device=device)
+
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        observed = failures / episodes.clamp(min=1.0)
-        # Bins without episodes lerp towards their own value, i.e. stay exactly unchanged.
-        self._rate.lerp_(torch.where(episodes > 0, observed, self._rate), self.alpha_smooth)
+        self._ema(self._rate, failures / episodes.clamp(min=1.0), episodes, self.alpha_smooth)
         self._recompute()
 
     def _recompute(self) -> None:
@@ -321,6 +397,7 @@ class AdaptiveSampler(_LookaheadSampler):
             "lambda_uniform": self.lambda_uniform,
             "K": self.K,
             "alpha_smooth": self.alpha_smooth,
+            "empty_bins": self.empty_bins,
         }
 
     def _state_tensors(self) -> dict[str, torch.Tensor]:
@@ -328,7 +405,10 @@ class AdaptiveSampler(_LookaheadSampler):
 
 
 class BeyondMimicSampler(_LookaheadSampler):
-    """Released-code form: EMA of failure counts plus uniform_ratio/S, look-ahead kernel (see module doc)."""
+    """Released-code form: EMA of failure counts plus uniform_ratio/S, look-ahead kernel (see module doc).
+
+    The defaults are the released code's (HybridRobotics/whole_body_tracking, ``MotionCommandCfg``).
+    """
 
     kind = "beyondmimic"
 
@@ -339,20 +419,33 @@ class BeyondMimicSampler(_LookaheadSampler):
         K: int = 1,
         alpha: float = 0.001,
         uniform_ratio: float = 0.1,
+        empty_bins: str = "decay",
         device: Any = "cpu",
         method: str = "inverse_cdf",
     ):
-        check_alpha(alpha)
+        check_fraction("alpha", alpha)
         check_uniform_ratio(uniform_ratio)
-        super().__init__(num_bins, gamma, K, device, method)
+        super().__init__(num_bins, gamma, K, empty_bins, device, method)
         self.alpha = float(alpha)
         self.uniform_ratio = float(uniform_ratio)
         self._count = torch.zeros(num_bins, dtype=_DTYPE, device=self.device)
         self._recompute()
 
+    @classmethod
+    def check_config(cls, cfg: Any) -> None:
+        super().check_config(cfg)
+        check_fraction("alpha", cfg.alpha)
+        check_uniform_ratio(cfg.uniform_ratio)
+
+    @classmethod
+    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "BeyondMimicSampler":
+        return cls(num_bins, gamma=cfg.gamma, K=cfg.K, alpha=cfg.alpha, uniform_ratio=cfg.uniform_ratio,
+                   empty_bins=cfg.empty_bins, device=device)
+
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        # Every call decays q, also when no episode finished (failures all zero).
-        self._count.lerp_(failures, self.alpha)
+        # With empty_bins="decay" (the released code) every call decays q, also when no episode
+        # finished (failures all zero).
+        self._ema(self._count, failures, episodes, self.alpha)
         self._recompute()
 
     def _recompute(self) -> None:
@@ -365,7 +458,8 @@ class BeyondMimicSampler(_LookaheadSampler):
         return self._count.clone()
 
     def hparams(self) -> dict[str, Any]:
-        return {"gamma": self.gamma, "K": self.K, "alpha": self.alpha, "uniform_ratio": self.uniform_ratio}
+        return {"gamma": self.gamma, "K": self.K, "alpha": self.alpha, "uniform_ratio": self.uniform_ratio,
+                "empty_bins": self.empty_bins}
 
     def _state_tensors(self) -> dict[str, torch.Tensor]:
         return {"count": self._count}

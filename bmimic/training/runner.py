@@ -3,7 +3,8 @@ evaluation and checkpoints.
 
 rsl-rl's `OnPolicyRunner` builds the algorithm (models, storage, optimiser, multi-GPU set-up); the
 loop itself is written here so that each iteration can (a) read the environment's statistics with a
-single host transfer instead of rsl-rl's per-step `.cpu()` bookkeeping, (b) log the sampler's per-bin
+single host transfer instead of rsl-rl's per-step `.cpu()` bookkeeping, (b) update the sampler once
+after the rollout (`env.end_rollout()`, for `sampler.update_every=iteration`) and log its per-bin
 state, (c) run the sampler-independent evaluation and (d) write atomic checkpoints that also hold
 the sampler and RNG states, so `resume` reproduces iteration count, learning rate and sampler state.
 """
@@ -106,7 +107,7 @@ class Trainer:
     """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables."""
 
     def __init__(self, env, evaluator, sampler, ppo_cfg, run_dir: str | os.PathLike, device: str,
-                 run_name: str, eval_every_iters: int, table_every_iters: int = 10,
+                 run_name: str, eval_every_iters: int, sampler_log_every: int | None = None,
                  logger: str = "tensorboard", wandb_project: str = "bmimic", progress_bar: bool = True,
                  export_onnx: bool = True, is_main_rank: bool = True) -> None:
         self.env = env
@@ -116,7 +117,9 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.device = device
         self.eval_every_iters = eval_every_iters
-        self.table_every_iters = max(1, table_every_iters)
+        # sampler.log_every (null: decided in learn() from the number of bins and iterations).
+        self.sampler_log_every = sampler_log_every
+        self._sampler_every = 1
         self.progress_bar = progress_bar
         self.export_onnx_enabled = export_onnx
         self.is_main = is_main_rank
@@ -246,6 +249,11 @@ class Trainer:
         start_it = self.progress.iteration
         end_it = num_iterations
         steps_per_it = self.ppo_cfg.num_steps_per_env * env.num_envs * self.runner.gpu_world_size
+        self._sampler_every = diagnostics.log_every(self.sampler_log_every, env.layout.num_bins, end_it)
+        if self.sampler_log_every is None and self._sampler_every > 1:
+            log.info("sampler.parquet: %d bins x %d iterations, so one table every %d iterations and at the last "
+                     "(sampler.log_every=null keeps it under about %.0e rows)", env.layout.num_bins, end_it,
+                     self._sampler_every, diagnostics.MAX_SAMPLER_ROWS)
         bar = None
         if self.progress_bar and self.is_main and end_it > start_it:
             from tqdm import tqdm
@@ -259,6 +267,9 @@ class Trainer:
                     obs, rewards, dones, extras = env.step(actions.to(env.device))
                     obs, rewards, dones = obs.to(self.device), rewards.to(self.device), dones.to(self.device)
                     alg.process_env_step(obs, rewards, dones, extras)
+                # The design's runner hook: one sampler update with every episode of the rollout
+                # (sampler.update_every=iteration; a no-op when the env updates it every step).
+                env.end_rollout()
                 t1 = time.perf_counter()
                 alg.compute_returns(obs)
             losses = alg.update()
@@ -266,11 +277,6 @@ class Trainer:
             self.progress.iteration = it + 1
             self.progress.env_steps += steps_per_it
             self.progress.wall_time_s += t2 - t0
-            row = self._log_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
-                                fps=f"{row['fps']:.0f}")
             out_of_time = time_limit_s is not None and self.progress.wall_time_s >= time_limit_s
             if self.runner.is_distributed and time_limit_s is not None:
                 # Every rank stops after the same iteration (ranks' clocks differ; a rank that went
@@ -279,6 +285,11 @@ class Trainer:
                 torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
                 out_of_time = bool(flag.item())
             done = self.progress.iteration == end_it or out_of_time
+            row = self._log_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
+                                fps=f"{row['fps']:.0f}")
             if self.is_main and (self.eval_every_iters and self.progress.iteration % self.eval_every_iters == 0):
                 self.evaluate()
             if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
@@ -290,7 +301,8 @@ class Trainer:
         if bar is not None:
             bar.close()
 
-    def _log_iteration(self, it: int, losses: dict, collect_s: float, learn_s: float, steps: int) -> dict:
+    def _log_iteration(self, it: int, losses: dict, collect_s: float, learn_s: float, steps: int,
+                       last: bool = False) -> dict:
         stats = self.env.pop_iteration_stats()
         s = diagnostics.summary(self.sampler, torch.as_tensor(stats["bin_episodes"]),
                                 torch.as_tensor(stats["bin_failures"]), total_episodes=stats["episodes"])
@@ -326,20 +338,21 @@ class Trainer:
             log.warning("iteration %d: %d world-steps overflowed the contact/constraint buffers; raise "
                         "sim.nconmax / sim.njmax", it, int(stats["overflow_worlds"]))
         self.train_rows.append(row)
-        if it % self.table_every_iters == 0:
+        sampler_table = it % self._sampler_every == 0 or last
+        if sampler_table:
             self.sampler_rows.append(
                 diagnostics.bin_table(it, self.env.layout, torch.as_tensor(stats["bin_episodes"]),
                                       torch.as_tensor(stats["bin_failures"]), self.sampler)
             )
         if self.writer is not None:
-            self._write_scalars(it, row)
+            self._write_scalars(it, row, sampler_table)
         if not self.progress_bar and self.is_main and (it % 10 == 0):
             log.info("it %d: episode length %.1f, reward %.3f, failure rate %.3f, lr %.1e, %.0f steps/s", it,
                      row["mean_episode_length"], row["mean_reward"], row["failure_rate"], row["learning_rate"],
                      row["fps"])
         return row
 
-    def _write_scalars(self, it: int, row: dict) -> None:
+    def _write_scalars(self, it: int, row: dict, sampler_histogram: bool = False) -> None:
         w = self.writer
         names = {
             "mean_episode_length": "Train/mean_episode_length", "mean_reward": "Train/mean_reward",
@@ -359,7 +372,7 @@ class Trainer:
                        "metrics": "Metrics"}[prefix] + "/" + name
             if tag is not None:
                 w.add_scalar(tag, v, it)
-        if it % self.table_every_iters == 0 and hasattr(w, "add_histogram_raw"):
+        if sampler_histogram and hasattr(w, "add_histogram_raw"):
             probs = self.sampler.probabilities().detach().cpu().double().numpy()
             edges = self.env.layout.edges_s.cpu().numpy()
             w.add_histogram_raw(

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # How the first GPU result (docs/results/) was produced: the sampler_ablation arms (uniform vs
-# adaptive, 3 seeds) on the embedded default motion and on a 60 s window of LAFAN1 dance1_subject1,
+# adaptive_hybrid, called adaptive when the result was made; 3 seeds) on the embedded default motion and on a 60 s window of LAFAN1 dance1_subject1,
 # all jobs at once on one GPU, each stopped by a wall-clock budget (time_limit_s) so that every job
 # gets the same time. Same layout as `python -m bmimic.train -m ...` (outputs/sweeps/<name>/<arm>/seed=<s>/).
 #
@@ -18,7 +18,7 @@ mkdir -p outputs/logs
 k=0
 for motion in $MOTIONS; do
   gpu=$((k % NGPU)); k=$((k + 1))
-  for sampler in uniform adaptive; do
+  for sampler in uniform adaptive_hybrid; do
     for seed in $SEEDS; do
       args=(-m "sampler=$sampler" "seed=$seed" "sweep_name=${NAME}_$motion" "num_envs=$ENVS"
             "max_iterations=100000" "time_limit_s=$LIMIT" "logger=none" "progress_bar=false"
