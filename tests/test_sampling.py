@@ -768,6 +768,24 @@ def test_bin_size_on_released_bins_is_ignored_with_one_log_line():
     assert len(lines) == 1 and "sampler.bin_size_seconds=0.5" in lines[0]
 
 
+@pytest.mark.parametrize("arm,key,value", [
+    ("attribution_failure", "attribution", "failure"),
+    ("failure_terminated", "failure", "terminated"),
+    ("update_every_step", "update_every", "step"),
+    ("empty_bins_hold", "empty_bins", "hold"),
+])
+def test_design_choice_arms_change_one_key_of_the_design(arm, key, value):
+    from omegaconf import OmegaConf
+
+    from tests.conftest import compose
+
+    design = OmegaConf.to_object(compose(["+sweep=design_choices"]).sampler)
+    assert design == load_variant("adaptive")
+    cfg = OmegaConf.to_object(compose(["+sweep=design_choices", f"design_choice={arm}"]).sampler)
+    changed = {k for k, v in dataclasses.asdict(cfg).items() if v != getattr(design, k)}
+    assert changed == {key} and getattr(cfg, key) == value
+
+
 @pytest.mark.parametrize(
     "key,value,message",
     [

@@ -48,6 +48,7 @@ STUDIES = {
     "kernel": (4 * 3, {"sampler.K"}),
     "bin_size": (4 * 3, {"sampler.bin_size_seconds"}),
     "variants": (8 * 3, {"sampler", "sampler.attribution", "sampler.failure"}),
+    "design_choices": (5 * 5, {"design_choice"}),
 }
 
 
