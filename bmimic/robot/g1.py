@@ -13,7 +13,7 @@ BeyondMimic default pose. There are no sensors: they cost simulation time and no
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import mujoco
 import numpy as np
@@ -225,7 +225,7 @@ def _look_at_xyaxes(eye: np.ndarray, target: np.ndarray) -> list[float]:
     return [*right, *np.cross(right, forward)]
 
 
-def _add_world(spec: mujoco.MjSpec) -> None:
+def add_world(spec: mujoco.MjSpec) -> None:
     """Checkered floor plane and a light, unless the spec already has them."""
     world = spec.worldbody
     if not any(g.type == mujoco.mjtGeom.mjGEOM_PLANE for g in world.geoms):
@@ -248,7 +248,8 @@ def _add_world(spec: mujoco.MjSpec) -> None:
                         dir=[0.0, 0.0, -1.0], diffuse=[0.7, 0.7, 0.7], castshadow=False)
 
 
-def _add_tracking_camera(spec: mujoco.MjSpec, root: mujoco.MjsBody) -> None:
+def add_tracking_camera(spec: mujoco.MjSpec, root: mujoco.MjsBody) -> None:
+    """A camera named `tracking` on `root` that follows the robot (videos), unless the spec has one."""
     if any(c.name == "tracking" for c in spec.cameras):
         return
     eye = np.array([1.4, -1.9, 0.35])
@@ -307,7 +308,7 @@ def build_g1_spec(cfg: RobotConfig | None = None) -> mujoco.MjSpec:
     spec.compiler.degree = False
     # Masses and inertias come from the table only; the primitives must not add any.
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
-    _add_world(spec)
+    add_world(spec)
 
     bodies = {"world": spec.worldbody}
     for link in _LINKS:
@@ -323,7 +324,7 @@ def build_g1_spec(cfg: RobotConfig | None = None) -> mujoco.MjSpec:
 
     _add_collision_geoms(bodies, cfg.foot_friction)
     _add_visual_geoms(bodies)
-    _add_tracking_camera(spec, bodies["pelvis"])
+    add_tracking_camera(spec, bodies["pelvis"])
     spec.visual.global_.offwidth = 1280
     spec.visual.global_.offheight = 720
     configure_spec(spec, cfg)
@@ -337,7 +338,7 @@ def configure_spec(spec: mujoco.MjSpec, cfg: RobotConfig, options: SimOptions = 
     because the actuators supply all the joint-space damping. Geoms are left as they are: a user file
     keeps its own collision and friction settings (`cfg.foot_friction` applies to the built-in G1).
     """
-    joint_names = _checked_joint_names(spec)
+    joint_names = checked_joint_names(spec)
     joints = {j.name: j for j in spec.joints}
     armature, effort = joint_actuator_params(cfg, joint_names)
     kp, kd = pd_gains(armature, cfg)
@@ -350,12 +351,7 @@ def configure_spec(spec: mujoco.MjSpec, cfg: RobotConfig, options: SimOptions = 
         joint.armature = float(armature[i])
         joint.damping = [0.0, 0.0, 0.0]  # linear and polynomial terms
         joint.frictionloss = 0.0
-        spec.add_actuator(
-            name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT,
-            gaintype=mujoco.mjtGain.mjGAIN_FIXED, gainprm=[kp[i]] + [0.0] * 9,
-            biastype=mujoco.mjtBias.mjBIAS_AFFINE, biasprm=[0.0, -kp[i], -kd[i]] + [0.0] * 7,
-            ctrllimited=mujoco.mjtLimited.mjLIMITED_FALSE,
-            forcelimited=mujoco.mjtLimited.mjLIMITED_TRUE, forcerange=[-effort[i], effort[i]])
+        add_pd_actuator(spec, name, kp[i], kd[i], effort[i])
 
     spec.option.timestep = options.timestep_s
     spec.option.integrator = options.integrator
@@ -364,27 +360,40 @@ def configure_spec(spec: mujoco.MjSpec, cfg: RobotConfig, options: SimOptions = 
     spec.option.ls_iterations = options.ls_iterations
     spec.option.cone = options.cone
 
-    _add_world(spec)
-    _add_tracking_camera(spec, _root_body(spec))
+    add_world(spec)
+    add_tracking_camera(spec, root_body(spec))
     _add_default_keyframe(spec, cfg, joint_names)
 
 
-def _root_body(spec: mujoco.MjSpec) -> mujoco.MjsBody:
+def add_pd_actuator(spec: mujoco.MjSpec, joint: str, kp: float, kd: float, effort_limit_nm: float) -> None:
+    """A position-style PD actuator on `joint`, named after it (mjlab's G1 actuator model):
+    force = clamp(kp (ctrl - q) - kd qdot, +-effort_limit_nm), with the kd term in the bias, so the
+    implicit integrators treat the damping implicitly."""
+    spec.add_actuator(
+        name=joint, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT,
+        gaintype=mujoco.mjtGain.mjGAIN_FIXED, gainprm=[float(kp)] + [0.0] * 9,
+        biastype=mujoco.mjtBias.mjBIAS_AFFINE, biasprm=[0.0, -float(kp), -float(kd)] + [0.0] * 7,
+        ctrllimited=mujoco.mjtLimited.mjLIMITED_FALSE,
+        forcelimited=mujoco.mjtLimited.mjLIMITED_TRUE, forcerange=[-float(effort_limit_nm), float(effort_limit_nm)])
+
+
+def root_body(spec: mujoco.MjSpec) -> mujoco.MjsBody:
+    """The body of the spec's (first) free joint: the floating base."""
     free = [j for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_FREE]
     return free[0].parent
 
 
-def _checked_joint_names(spec: mujoco.MjSpec) -> list[str]:
-    """Hinge joint names in spec order, after checking they are exactly the G1's and there is one free joint."""
+def checked_joint_names(spec: mujoco.MjSpec, expected: Sequence[str] = G1_JOINT_NAMES,
+                        what: str = "the G1 (the 29 hinge joints of bmimic.robot.G1_JOINT_NAMES)") -> list[str]:
+    """Hinge joint names in spec order, after checking they are exactly `expected` (any order) and there
+    is one free joint."""
     hinges = [j.name for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_HINGE]
     others = [j.name or "<unnamed>" for j in spec.joints
               if j.type not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_FREE)]
-    missing = [n for n in G1_JOINT_NAMES if n not in hinges]
-    extra = [n for n in hinges if n not in G1_JOINT_NAMES] + others
-    if missing or extra or len(hinges) != len(G1_JOINT_NAMES):
-        raise RobotModelError(
-            f"model joints do not match the G1: missing {missing}, extra {extra} "
-            f"(needs the 29 hinge joints of bmimic.robot.G1_JOINT_NAMES)")
+    missing = [n for n in expected if n not in hinges]
+    extra = [n for n in hinges if n not in expected] + others
+    if missing or extra or len(hinges) != len(expected):
+        raise RobotModelError(f"model joints do not match {what}: missing {missing}, extra {extra}")
     n_free = sum(j.type == mujoco.mjtJoint.mjJNT_FREE for j in spec.joints)
     if n_free != 1:
         raise RobotModelError(f"model needs exactly one free joint (the floating base), has {n_free}")
@@ -411,7 +420,8 @@ def _compile(spec: mujoco.MjSpec, source: str) -> mujoco.MjModel:
         raise RobotModelError(f"{source}: MuJoCo could not compile it: {exc}") from None
 
 
-def _missing_mesh_files(spec: mujoco.MjSpec, mjcf: Path) -> list[str]:
+def missing_mesh_files(spec: mujoco.MjSpec, mjcf: Path) -> list[str]:
+    """Mesh files the spec (read from `mjcf`) references that are not on disk."""
     mesh_dir = mjcf.parent / (spec.meshdir or "")
     missing = []
     for mesh in spec.meshes:
@@ -420,16 +430,21 @@ def _missing_mesh_files(spec: mujoco.MjSpec, mjcf: Path) -> list[str]:
     return missing
 
 
+def parse_mjcf(path: Path, key: str) -> mujoco.MjSpec:
+    """The MJCF at `path` as an MjSpec (not compiled); errors name the setting `key` it came from."""
+    if not path.is_file():
+        raise RobotModelError(f"{key}: {path} does not exist")
+    try:
+        return mujoco.MjSpec.from_file(str(path))
+    except ValueError as exc:
+        raise RobotModelError(f"{key}: cannot parse {path}: {exc}") from None
+
+
 def load_user_spec(mjcf_path: str | Path, cfg: RobotConfig) -> mujoco.MjSpec:
     """A user's G1 MJCF (e.g. with meshes), checked and configured like the built-in model."""
     path = Path(mjcf_path).expanduser().resolve()
-    if not path.is_file():
-        raise RobotModelError(f"robot.mjcf_path: {path} does not exist")
-    try:
-        spec = mujoco.MjSpec.from_file(str(path))
-    except ValueError as exc:
-        raise RobotModelError(f"robot.mjcf_path: cannot parse {path}: {exc}") from None
-    missing = _missing_mesh_files(spec, path)
+    spec = parse_mjcf(path, "robot.mjcf_path")
+    missing = missing_mesh_files(spec, path)
     if missing:
         raise RobotModelError(
             f"robot.mjcf_path: {path} references {len(missing)} missing mesh files (first: {missing[0]}); "

@@ -170,10 +170,10 @@ class Trainer:
         atomic_torch_save(path, state)
         atomic_torch_save(self.ckpt_dir / "latest.pt", state)
         if self.export_onnx_enabled:
-            from bmimic.training.export import export_onnx
+            from bmimic.training.export import export_checkpoint_onnx
 
-            try:
-                export_onnx(self.alg.get_policy(), self.env, self.ckpt_dir / f"policy_{it}.onnx")
+            try:  # policy_<it>.onnx and the BeyondMimic-compatible motion_policy_<it>.onnx
+                export_checkpoint_onnx(self.alg.get_policy(), self.env, self.ckpt_dir, it)
             except Exception as e:  # export must never cost a training run
                 log.warning("ONNX export failed at iteration %d: %s", it, e)
         return path

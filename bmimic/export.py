@@ -1,0 +1,63 @@
+"""`python -m bmimic.export RUN_DIR_OR_CHECKPOINT [--out DIR]`: write a checkpoint's ONNX files.
+
+Training writes them at every checkpoint; this command (re)writes them for a run trained before the
+BeyondMimic-compatible file existed, or for one checkpoint of it:
+
+    checkpoints/policy_<it>.onnx          obs -> actions, with deployment metadata
+    checkpoints/motion_policy_<it>.onnx   (obs, time_step) -> actions + reference at time_step, the
+                                          motion baked in (BeyondMimic's format; bmimic.sim2sim runs it)
+
+The run's config is reloaded as `bmimic.eval` does, and a one-world evaluation environment on the CPU
+supplies the robot, motion and observation layout. Bad input prints one `error: ...` line (status 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Sequence
+
+log = logging.getLogger("bmimic.export")
+
+
+def export_run(path: str | Path, out_dir: Path | None = None) -> list[Path]:
+    """Export the run's latest checkpoint (or the given one); returns the written files."""
+    from bmimic.eval import build_policy, load_checkpoint, load_run
+    from bmimic.train import build_evaluator
+    from bmimic.training.export import export_checkpoint_onnx
+
+    run = load_run(path, ["device=cpu", "eval.max_envs=1"])
+    state = load_checkpoint(run.checkpoint, run.device)
+    env = build_evaluator(run.cfg, run.device, run.robot, run.motion, run.layout).env
+    policy = build_policy(state, env, run.cfg.ppo, run.device, run.checkpoint)
+    iteration = int(state.get("iter", -1))
+    return export_checkpoint_onnx(policy, env, out_dir or run.run_dir / "checkpoints", iteration)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m bmimic.export", description=__doc__.splitlines()[0].split(": ", 1)[1])
+    p.add_argument("path", help="a run folder (its latest checkpoint) or a checkpoint file in one")
+    p.add_argument("--out", type=Path, help="folder for the files (default RUN_DIR/checkpoints)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from bmimic.eval import first_line, quiet_warp, user_errors
+
+    args = parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    quiet_warp()
+    try:
+        paths = export_run(args.path, args.out)
+    except user_errors() as e:
+        print(f"error: {first_line(e)}", file=sys.stderr)
+        return 2
+    for p in paths:
+        print(p)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
