@@ -1,6 +1,12 @@
 """bmimic: Hydra-configured ablations of adaptive motion sampling for BeyondMimic-style tracking."""
 
+from pathlib import Path
+
 __version__ = "0.1.0"
+
+CONF_DIR = Path(__file__).resolve().parent / "conf"
+"""The Hydra config tree. In a checkout `bmimic/conf` links to the top-level conf/ (whose sweep/ links
+to sweeps/); a wheel carries copies of both, so every command works from any directory."""
 
 
 class BmimicError(Exception):

@@ -202,7 +202,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     return float(metrics["final_eval_failure_rate"])
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float:
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
@@ -263,5 +263,28 @@ def _update_sweep_index(run_dir: Path) -> None:
         log.warning("could not update the sweep index: %s", e)
 
 
+def inspect_sweep_argv(argv: list[str]) -> list[str]:
+    """Hydra runs `-m` only; with --cfg, --help or --info it refuses. For those, print the sweep's jobs
+    (as YAML comments, so --cfg's output stays YAML) and return the command line that shows its first
+    job the same way, without -m."""
+    from hydra._internal.utils import get_args_parser
+
+    args = get_args_parser().parse_args(argv[1:])
+    if not args.multirun or not (args.cfg or args.help or args.info):
+        return argv
+    try:
+        jobs = launch.sweep_overrides(args.overrides)
+    except Exception:  # overrides that do not compose: Hydra reports them below, in its own words
+        jobs = [args.overrides]
+    if args.cfg:
+        print(f"# -m: {len(jobs)} jobs (python -m bmimic.launch list {' '.join(args.overrides)} lists their "
+              "folders and status); the config of job 0 follows")
+        for i, job in enumerate(jobs):
+            print(f"#   job {i}: {' '.join(job)}")
+    rest = [a for a in argv[1:] if a not in ("-m", "--multirun", *args.overrides)]
+    return [argv[0], *rest, *jobs[0]]
+
+
 if __name__ == "__main__":
+    sys.argv = inspect_sweep_argv(sys.argv)
     main()
