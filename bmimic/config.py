@@ -17,7 +17,7 @@ from omegaconf import MISSING, OmegaConf
 
 from bmimic import BmimicError
 from bmimic.envs.config import EnvConfig
-from bmimic.motion.config import MotionConfig
+from bmimic.motion.config import DataConfig, MotionConfig
 from bmimic.robot.config import RobotConfig
 from bmimic.sampling.config import SamplerConfig
 from bmimic.sim.config import SimConfig
@@ -73,6 +73,8 @@ class TrainConfig:
     """W&B project when logger=wandb."""
     progress_bar: bool = True
     """Show a tqdm progress bar with ETA (off in non-interactive logs if you prefer)."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Where the user's motion datasets are (data.lafan_dir: the LAFAN1 G1 folder)."""
     defaults: List[Any] = field(default_factory=list)
     """Hydra defaults list (set in conf/train.yaml)."""
 

@@ -104,16 +104,16 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
 
 
 def anchor_relative_paths(cfg, run_dir: Path) -> None:
-    """Relative input paths (motion.path, robot.mjcf_path) were relative to the directory training was
-    started in; resolve them against it (from .hydra/hydra.yaml) when they do not exist from here."""
+    """Relative input paths (motion.path, robot.mjcf_path, data.lafan_dir) were relative to the directory
+    training was started in; resolve them against it (from .hydra/hydra.yaml) when they do not exist from here."""
     from omegaconf import OmegaConf
 
     try:
         launch_dir = Path(OmegaConf.load(run_dir / ".hydra" / "hydra.yaml").hydra.runtime.cwd)
     except Exception:  # no hydra.yaml (a hand-made run folder): paths stay relative to here
         return
-    for group, key in (("motion", "path"), ("robot", "mjcf_path")):
-        value = cfg[group].get(key)
+    for group, key in (("motion", "path"), ("robot", "mjcf_path"), ("data", "lafan_dir")):
+        value = (cfg.get(group) or {}).get(key)
         if value and not Path(value).expanduser().is_absolute() and not Path(value).exists():
             if (launch_dir / value).exists():
                 cfg[group][key] = str(launch_dir / value)

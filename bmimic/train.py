@@ -79,7 +79,7 @@ def build_task(cfg: DictConfig, device: str):
 
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm, bin_size_s=cfg.sampler.bin_size_seconds)
+    motion = load_motion(cfg.motion, mjm, bin_size_s=cfg.sampler.bin_size_seconds, lafan_dir=cfg.data.lafan_dir)
     validate(cfg, motion.duration_s)
     layout = BinLayout(motion.num_frames, motion.fps, cfg.sampler.bin_size_seconds, device=device)
     return mjm, robot, motion, layout

@@ -303,8 +303,10 @@ def test_relative_input_paths_resolve_against_the_training_launch_dir(tmp_path, 
         d.mkdir(parents=True)
     (launch / "clips" / "a.npz").write_bytes(b"")
     OmegaConf.save(OmegaConf.create({"hydra": {"runtime": {"cwd": str(launch)}}}), run / ".hydra" / "hydra.yaml")
-    cfg = OmegaConf.create({"motion": {"path": "clips/a.npz"}, "robot": {"mjcf_path": "missing.xml"}})
+    cfg = OmegaConf.create({"motion": {"path": "clips/a.npz"}, "robot": {"mjcf_path": "missing.xml"},
+                            "data": {"lafan_dir": "clips"}})
     monkeypatch.chdir(elsewhere)
     bm_eval.anchor_relative_paths(cfg, run)
     assert cfg.motion.path == str(launch / "clips" / "a.npz")
+    assert cfg.data.lafan_dir == str(launch / "clips")
     assert cfg.robot.mjcf_path == "missing.xml"  # not found there either: left for load to report
