@@ -2,6 +2,8 @@
 
 from pathlib import Path
 
+from bmimic.console import exit_if_mujoco_gl_is_broken
+
 __version__ = "0.1.0"
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
@@ -11,3 +13,6 @@ to sweeps/); a wheel carries copies of both, so every command works from any dir
 
 class BmimicError(Exception):
     """An error the user can fix (bad config, bad file); printed as one line, never a traceback."""
+
+
+exit_if_mujoco_gl_is_broken()

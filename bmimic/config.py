@@ -73,6 +73,8 @@ class TrainConfig:
     """W&B project when logger=wandb."""
     progress_bar: bool = True
     """Show a tqdm progress bar with ETA (off in non-interactive logs if you prefer)."""
+    verbose: bool = False
+    """Also show Warp's start-up and kernel-module lines and rsl-rl's model printouts."""
     data: DataConfig = field(default_factory=DataConfig)
     """Where the user's motion datasets are (data.lafan_dir: the LAFAN1 G1 folder)."""
     defaults: List[Any] = field(default_factory=list)

@@ -39,6 +39,7 @@ import pandas as pd
 import torch
 
 from bmimic import BmimicError
+from bmimic.console import quiet_warp
 
 log = logging.getLogger("bmimic.eval")
 
@@ -444,16 +445,6 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
     p.add_argument("--out", type=Path, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
     return p
-
-
-def quiet_warp() -> None:
-    try:
-        import warp as wp
-
-        wp.config.quiet = True
-        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-kernel "Module ... load" lines
-    except ImportError:  # pragma: no cover - warp is a hard dependency
-        pass
 
 
 def main(argv: Sequence[str] | None = None) -> int:

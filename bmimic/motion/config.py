@@ -20,7 +20,6 @@ import mujoco
 import numpy as np
 
 from bmimic.motion import builtin
-from bmimic.motion.convert import convert_csv
 from bmimic.motion.motion import Motion, MotionDataError
 
 CONVERTER_VERSION = "1"
@@ -181,6 +180,9 @@ def load_motion(
         if suffix == ".npz":
             motion = Motion.load(path, mjmodel, assume_model_order=bool(cfg.assume_model_order))
         elif suffix == ".csv":
+            # imported here, not with the package, so `python -m bmimic.motion.convert` runs without a warning
+            from bmimic.motion.convert import convert_csv
+
             h = hashlib.sha256(path.read_bytes())
             h.update(
                 f"|fps_in={float(cfg.fps_in)!r}|fps_out={CONTROL_FPS!r}|{CONVERTER_VERSION}|"
