@@ -99,8 +99,17 @@ def _arm_dir(override_dirname: str) -> str:
     return override_dirname if override_dirname else "base"
 
 
+def _train_help(*, _root_) -> str:
+    """`--help`'s text (conf/train.yaml: hydra.help.template); `$` escaped for Hydra's string.Template."""
+    from bmimic.cli_help import train_help
+
+    return train_help(_root_).replace("$", "$$")
+
+
 if not OmegaConf.has_resolver("bmimic.arm_dir"):
     OmegaConf.register_new_resolver("bmimic.arm_dir", _arm_dir)
+if not OmegaConf.has_resolver("bmimic.help"):
+    OmegaConf.register_new_resolver("bmimic.help", _train_help)
 register_configs()
 
 

@@ -1,7 +1,8 @@
-"""What a newcomer sees: a quiet console with one start-up summary, one-line GL errors."""
+"""What a newcomer sees: `--help`, a quiet console with one start-up summary, one-line GL errors."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import subprocess
 import sys
@@ -9,13 +10,53 @@ import sys
 import pytest
 
 from bmimic import render
+from bmimic.cli_help import field_docs
+from bmimic.config import TrainConfig
 from tests.conftest import TINY, cli_env
+
+GROUPS = ("robot", "motion", "sampler", "ppo", "sim", "env", "eval")
 
 
 def _run(*args: str, env: dict | None = None, cwd=None, merge: bool = False) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, *args], capture_output=not merge, text=True, timeout=900, cwd=cwd,
                           env={**cli_env(), **(env or {})},
                           **({"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT} if merge else {}))
+
+
+# --------------------------------------------------------------------------------------------- --help
+@dataclasses.dataclass
+class _Documented:
+    speed_mps: float = 1.0
+    """How fast, in metres
+    per second."""
+    undocumented: int = 0
+    name: str = "x"
+    """A name."""
+
+
+def test_field_docs_known_answer():
+    assert field_docs(_Documented) == {"speed_mps": "How fast, in metres per second.", "name": "A name."}
+
+
+def test_help_lists_options_and_documented_keys():
+    out = _run("-m", "bmimic.train", "--help", "sampler=uniform")
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = out.stdout
+    assert "_schema" not in text and "== Config ==" not in text  # no schemas, no config dump
+    lines = text.splitlines()
+    for group in GROUPS:
+        options = [line for line in lines if line.startswith(f"{group}: ")]
+        assert len(options) == 1, group
+    assert "uniform*" in text and "adaptive," in text  # the current choice is starred
+    assert re.search(r"^motion: .*lafan_dance1, lafan_dance1_full", text, flags=re.M)
+    assert re.search(r"^\+sweep: .*sampler_ablation", text, flags=re.M)
+    docs = field_docs(TrainConfig)
+    keys = [f.name for f in dataclasses.fields(TrainConfig) if f.name not in (*GROUPS, "defaults", "data")]
+    for key in keys:
+        (i,) = [n for n, line in enumerate(lines) if line.startswith(f"{key}=")]
+        assert lines[i + 1].strip() and lines[i + 1].split()[0] == docs[key].split()[0], key  # its doc follows
+    assert "seed=0" in lines and "    Derives every random stream: torch, numpy, python, warp and the motion" in text
+    assert any(line.startswith("data.lafan_dir=") for line in lines) and "BMIMIC_LAFAN_DIR" in text
 
 
 # --------------------------------------------------------------------------------------------- console

@@ -74,6 +74,11 @@ def test_cfg_job_from_any_directory(installed):
     assert cfg.sampler.name == "uniform" and cfg.motion.name == "graded"
 
 
+def test_help_from_any_directory(installed):
+    text = run(installed, "-m", "bmimic.train", "--help").stdout
+    assert "motion: default*, easy_only, file, lafan_dance1" in text and "_schema" not in text
+
+
 def test_a_sweep_composes_from_any_directory(installed):
     out = run(installed, "-m", "bmimic.train", "-m", "+sweep=sampler_ablation", "--cfg", "job").stdout
     assert out.startswith("# -m: 10 jobs")
