@@ -43,7 +43,7 @@ NEEDED_TABLES = ("train_metrics", "eval")
 IGNORED_OVERRIDE_KEYS = {
     "seed", "sweep_name", "run_name", "task_name", "device", "resume", "sweep", "logger",
     "progress_bar", "max_iterations", "num_envs", "time_limit_s", "eval.every_iters", "ppo.save_interval",
-    "wandb_project",
+    "wandb_project", "verbose", "data.lafan_dir",
 }
 """Override keys that do not define an arm: the ``exclude_keys`` of conf/train.yaml's override_dirname."""
 

@@ -54,12 +54,13 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     from hydra import compose, initialize_config_dir
 
     import bmimic.config  # noqa: F401
+    from bmimic import CONF_DIR
     from bmimic.config import resolve_runtime
-    from bmimic.runs import REPO_ROOT, seed_everything
+    from bmimic.runs import seed_everything
     from bmimic.train import build
     from bmimic.training.runner import Trainer
 
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("train", overrides=[f"num_envs={num_envs}", f"device={device}", *overrides])
     resolve_runtime(cfg, device)
     seed_everything(cfg.seed)

@@ -17,7 +17,7 @@ from omegaconf import MISSING, OmegaConf
 
 from bmimic import BmimicError
 from bmimic.envs.config import EnvConfig
-from bmimic.motion.config import MotionConfig
+from bmimic.motion.config import DataConfig, MotionConfig
 from bmimic.robot.config import RobotConfig
 from bmimic.sampling.config import SamplerConfig
 from bmimic.sim.config import SimConfig
@@ -73,6 +73,10 @@ class TrainConfig:
     """W&B project when logger=wandb."""
     progress_bar: bool = True
     """Show a tqdm progress bar with ETA (off in non-interactive logs if you prefer)."""
+    verbose: bool = False
+    """Also show Warp's start-up and kernel-module lines and rsl-rl's model printouts."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Where the user's motion datasets are (data.lafan_dir: the LAFAN1 G1 folder)."""
     defaults: List[Any] = field(default_factory=list)
     """Hydra defaults list (set in conf/train.yaml)."""
 
@@ -95,8 +99,17 @@ def _arm_dir(override_dirname: str) -> str:
     return override_dirname if override_dirname else "base"
 
 
+def _train_help(*, _root_) -> str:
+    """`--help`'s text (conf/train.yaml: hydra.help.template); `$` escaped for Hydra's string.Template."""
+    from bmimic.cli_help import train_help
+
+    return train_help(_root_).replace("$", "$$")
+
+
 if not OmegaConf.has_resolver("bmimic.arm_dir"):
     OmegaConf.register_new_resolver("bmimic.arm_dir", _arm_dir)
+if not OmegaConf.has_resolver("bmimic.help"):
+    OmegaConf.register_new_resolver("bmimic.help", _train_help)
 register_configs()
 
 

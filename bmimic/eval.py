@@ -39,6 +39,7 @@ import pandas as pd
 import torch
 
 from bmimic import BmimicError
+from bmimic.console import quiet_warp
 
 log = logging.getLogger("bmimic.eval")
 
@@ -104,16 +105,16 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
 
 
 def anchor_relative_paths(cfg, run_dir: Path) -> None:
-    """Relative input paths (motion.path, robot.mjcf_path) were relative to the directory training was
-    started in; resolve them against it (from .hydra/hydra.yaml) when they do not exist from here."""
+    """Relative input paths (motion.path, robot.mjcf_path, data.lafan_dir) were relative to the directory
+    training was started in; resolve them against it (from .hydra/hydra.yaml) when they do not exist from here."""
     from omegaconf import OmegaConf
 
     try:
         launch_dir = Path(OmegaConf.load(run_dir / ".hydra" / "hydra.yaml").hydra.runtime.cwd)
     except Exception:  # no hydra.yaml (a hand-made run folder): paths stay relative to here
         return
-    for group, key in (("motion", "path"), ("robot", "mjcf_path")):
-        value = cfg[group].get(key)
+    for group, key in (("motion", "path"), ("robot", "mjcf_path"), ("data", "lafan_dir")):
+        value = (cfg.get(group) or {}).get(key)
         if value and not Path(value).expanduser().is_absolute() and not Path(value).exists():
             if (launch_dir / value).exists():
                 cfg[group][key] = str(launch_dir / value)
@@ -444,16 +445,6 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
     p.add_argument("--out", type=Path, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
     return p
-
-
-def quiet_warp() -> None:
-    try:
-        import warp as wp
-
-        wp.config.quiet = True
-        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-kernel "Module ... load" lines
-    except ImportError:  # pragma: no cover - warp is a hard dependency
-        pass
 
 
 def main(argv: Sequence[str] | None = None) -> int:

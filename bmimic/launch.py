@@ -37,9 +37,10 @@ from typing import Any, Sequence
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from bmimic import CONF_DIR
+
 log = logging.getLogger("bmimic.launch")
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 SWEEPS_DIR = CONF_DIR / "sweep"
 ERRORS_LOG = "errors.log"
 

@@ -149,7 +149,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}", file=sys.stderr)
         return 2
 
-    from bmimic.eval import first_line, quiet_warp, user_errors
+    from bmimic.console import quiet_warp
+    from bmimic.eval import first_line, user_errors
 
     quiet_warp()
     try:

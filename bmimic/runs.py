@@ -25,10 +25,14 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 # --------------------------------------------------------------------------------------------- atomic I/O
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
-    """Call `write(tmp_path)` and move the result onto `path` in one rename."""
+    """Call `write(tmp_path)` and move the result onto `path` in one rename.
+
+    The temp file ends in `path`'s own suffix (`.play.mp4.tmp-x1y2.mp4`): writers that choose the
+    format by extension (imageio's FFMPEG writer) accept it.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         write(tmp)

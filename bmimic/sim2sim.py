@@ -146,8 +146,10 @@ class PolicySpec:
     """First frame of each clip of the motion."""
     segments: list
     """Labelled time ranges of the motion (bmimic.motion.Segment)."""
+    bin_layout: str
+    """Kind of the run's bins: "time" (bin_size_s wide) or "released" (BeyondMimic's layout)."""
     bin_size_s: float
-    """Time-bin width of the run's sampler and evaluation."""
+    """Time-bin width of the run's sampler and evaluation (the mean bin length for the released layout)."""
     iteration: int | None
     """Training iteration of the checkpoint, when recorded."""
 
@@ -261,6 +263,7 @@ def read_policy(path: str | Path) -> PolicySpec:
         num_frames=scalar("motion_num_frames", int),
         clip_starts=numbers("motion_clip_starts", len(names("motion_clip_starts"))).astype(np.int64),
         segments=segments(),
+        bin_layout=meta.get("bin_layout", "time"),  # files exported before the released layout existed
         bin_size_s=scalar("bin_size_s"),
         iteration=int(meta["iteration"]) if meta.get("iteration", "").lstrip("-").isdigit() else None,
     )
@@ -887,7 +890,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
     import pandas as pd
 
     from bmimic.eval import EvalResult, bin_table, episode_table, segment_table
-    from bmimic.sampling.bins import BinLayout
+    from bmimic.sampling.bins import make_layout
     from bmimic.training.evaluation import Evaluator, stratified_start_frames, summarize
 
     spec = read_policy(policy_path)
@@ -901,7 +904,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
         raise Sim2SimError(f"--episodes-per-bin {episodes_per_bin} / --horizon-s {horizon_s}: need >= 1 and > 0")
     ref = read_reference(policy_session(policy_path), spec)
     mjm, model_note = build_model(spec, model, run_dir, joint_dynamics)
-    layout = BinLayout(spec.num_frames, spec.fps, spec.bin_size_s)
+    layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s)
     frames = stratified_start_frames(layout.bin_first_frame.numpy(), layout.bin_num_frames.numpy(), episodes_per_bin)
     horizon_steps = max(1, int(round(horizon_s / spec.control_dt_s)))
     log.info("sim2sim %s on %s: %d bins x %d episodes, horizon %g s, %d workers", policy_path.name, model_note,

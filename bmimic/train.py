@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from bmimic import BmimicError, launch
 from bmimic.config import resolve_runtime, validate
+from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.runs import (
     atomic_write_json,
     read_status,
@@ -79,18 +80,19 @@ def build_task(cfg: DictConfig, device: str):
 
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler))
+    motion = load_motion(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir)
     validate(cfg, motion.duration_s)
     layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device)
     return mjm, robot, motion, layout
 
 
-def build(cfg: DictConfig, device: str):
-    """Robot, motion, bins, sampler, environments: everything a run or a tool needs."""
+def build(cfg: DictConfig, device: str, task: tuple | None = None):
+    """Robot, motion, bins, sampler, environments: everything a run or a tool needs (`task`: what
+    `build_task` returned, when the caller already has it)."""
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.sampling.config import make_sampler
 
-    mjm, robot, motion, layout = build_task(cfg, device)
+    mjm, robot, motion, layout = task if task is not None else build_task(cfg, device)
     sampler = make_sampler(cfg.sampler, layout.num_bins, device)
     env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, cfg.num_envs, device,
                       sampler=sampler, sampler_cfg=cfg.sampler, mode="train")
@@ -135,6 +137,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
 
     requested = cfg.device
     smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
+    quiet_warp(cfg.verbose)
     device = resolve_device(requested)
     rank, world = _init_distributed()
     if world > 1:
@@ -142,12 +145,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
         cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
     resolve_runtime(cfg, device)
-    on_gpu = device.startswith("cuda")
-    log.info("device: %s (requested %s); num_envs %d; max_iterations %d", device, requested, cfg.num_envs,
-             cfg.max_iterations)
-    if not on_gpu and smoke_defaults:
-        log.info("no GPU: this is a smoke-scale run (%d envs, %d iterations) through the whole pipeline; "
-                 "on a GPU the same command trains for real", cfg.num_envs, cfg.max_iterations)
+    smoke = not device.startswith("cuda") and smoke_defaults
     checkpoint, run_dir = find_resume_checkpoint(cfg.resume, run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
@@ -157,17 +155,20 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         atomic_write_json(run_dir / "resolved_config.json", OmegaConf.to_container(cfg, resolve=True))
     seed_everything(cfg.seed)
 
-    mjm, robot, motion, layout, sampler, env = build(cfg, device)
+    task = build_task(cfg, device)
+    if main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
+        log.info(start_summary(cfg, requested, world, smoke, task[2], task[3], run_dir))
+    mjm, robot, motion, layout, sampler, env = build(cfg, device, task)
     if main_rank:
         atomic_write_json(run_dir / "motion_segments.json", [s._asdict() for s in motion.segments])
-    log.info("motion: %.1f s, %d frames at %g Hz", motion.duration_s, motion.num_frames, motion.fps)
     for line in describe_sampler(cfg.sampler, layout, sampler):
         log.info("%s", line)
     evaluator = build_evaluator(cfg, device, robot, motion, layout)
-    trainer = Trainer(env, evaluator, sampler, cfg.ppo, run_dir, device, cfg.run_name,
-                      eval_every_iters=cfg.eval.every_iters, logger=cfg.logger, wandb_project=cfg.wandb_project,
-                      sampler_log_every=cfg.sampler.log_every,
-                      progress_bar=cfg.progress_bar and main_rank, is_main_rank=main_rank)
+    with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
+        trainer = Trainer(env, evaluator, sampler, cfg.ppo, run_dir, device, cfg.run_name,
+                          eval_every_iters=cfg.eval.every_iters, logger=cfg.logger,
+                          wandb_project=cfg.wandb_project, sampler_log_every=cfg.sampler.log_every,
+                          progress_bar=cfg.progress_bar and main_rank, is_main_rank=main_rank)
     if checkpoint is not None:
         trainer.load_checkpoint(checkpoint)
     try:
@@ -205,7 +206,30 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     return float(metrics["final_eval_failure_rate"])
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: bool, motion, layout,
+                  run_dir: Path) -> str:
+    """The start-up block: device, envs, motion, bins, sampler variant and run folder."""
+    choices = HydraConfig.get().runtime.choices if HydraConfig.initialized() else {}
+    m = cfg.motion
+    source = {"builtin": f"built-in {m.builtin}", "lafan": f"LAFAN1 {m.clip}"}.get(m.source, str(m.path))
+    if m.start_s is not None or m.end_s is not None:
+        source += f", {m.start_s or 0:g}-{'end' if m.end_s is None else format(m.end_s, 'g')} s"
+    variant = choices.get("sampler") or cfg.sampler.name
+    ranks = f" per rank, {world} ranks" if world > 1 else ""
+    title = ("no GPU: this is a smoke-scale run through the whole pipeline; on a GPU the same command "
+             "trains for real" if smoke else "training")
+    return summary_block(title, [
+        ("device", f"{cfg.device} (requested {requested_device})"),
+        ("envs", f"{cfg.num_envs}{ranks}"),
+        ("iterations", f"{cfg.max_iterations} of {cfg.ppo.num_steps_per_env} steps per env"),
+        ("motion", f"{choices.get('motion') or m.name}: {source}; {motion.duration_s:.1f} s at {motion.fps:g} Hz"),
+        ("bins", layout.describe()),
+        ("sampler", variant if variant == cfg.sampler.name else f"{variant} ({cfg.sampler.name})"),
+        ("run folder", str(run_dir)),
+    ])
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float:
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
@@ -266,5 +290,28 @@ def _update_sweep_index(run_dir: Path) -> None:
         log.warning("could not update the sweep index: %s", e)
 
 
+def inspect_sweep_argv(argv: list[str]) -> list[str]:
+    """Hydra runs `-m` only; with --cfg, --help or --info it refuses. For those, print the sweep's jobs
+    (as YAML comments, so --cfg's output stays YAML) and return the command line that shows its first
+    job the same way, without -m."""
+    from hydra._internal.utils import get_args_parser
+
+    args = get_args_parser().parse_args(argv[1:])
+    if not args.multirun or not (args.cfg or args.help or args.info):
+        return argv
+    try:
+        jobs = launch.sweep_overrides(args.overrides)
+    except Exception:  # overrides that do not compose: Hydra reports them below, in its own words
+        jobs = [args.overrides]
+    if args.cfg:
+        print(f"# -m: {len(jobs)} jobs (python -m bmimic.launch list {' '.join(args.overrides)} lists their "
+              "folders and status); the config of job 0 follows")
+        for i, job in enumerate(jobs):
+            print(f"#   job {i}: {' '.join(job)}")
+    rest = [a for a in argv[1:] if a not in ("-m", "--multirun", *args.overrides)]
+    return [argv[0], *rest, *jobs[0]]
+
+
 if __name__ == "__main__":
+    sys.argv = inspect_sweep_argv(sys.argv)
     main()

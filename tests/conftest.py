@@ -10,6 +10,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
 SHARED_MOTIONS = REPO.parent / "shared" / "motions"
+"""The development copy of three LAFAN1 G1 clips (not shipped: CC BY-NC-ND); tests using it skip without it."""
+if SHARED_MOTIONS.is_dir():  # data.lafan_dir defaults to $BMIMIC_LAFAN_DIR; subprocesses inherit it
+    os.environ.setdefault("BMIMIC_LAFAN_DIR", str(SHARED_MOTIONS))
 
 # Tiny sizes for end-to-end runs of the real command line on a CPU.
 TINY = [

@@ -82,7 +82,7 @@ def gl_backend() -> str:
 def test_eval_writes_every_table(run_eval):
     for name in bm_eval.TABLES:
         assert (run_eval["dir"] / name).stat().st_size > 0
-    assert not list(run_eval["dir"].glob(".*.tmp")), "atomic writes left temp files"
+    assert not list(run_eval["dir"].glob(".*.tmp-*")), "atomic writes left temp files"
 
 
 def test_eval_episode_table(run_eval):
@@ -226,6 +226,19 @@ def test_gif_writer_keeps_every_frame(tmp_path, monkeypatch):
         render.write_video(frames, tmp_path / "v.avi", fps=50)
 
 
+def test_mp4_round_trip_keeps_every_frame(tmp_path):
+    """The atomic write's temp file keeps the .mp4 suffix, so imageio's FFMPEG writer accepts it."""
+    pytest.importorskip("imageio_ffmpeg", reason="MP4 needs the `video` extra: pip install -e '.[video]'")
+    import imageio.v2 as imageio
+
+    frames = [np.full((32, 48, 3), 30 * i, dtype=np.uint8) for i in range(7)]  # a grey ramp, one level per frame
+    path = render.write_video(frames, tmp_path / "clip.mp4", fps=25)
+    assert path == tmp_path / "clip.mp4" and os.listdir(tmp_path) == ["clip.mp4"]  # no temp file left behind
+    back = imageio.mimread(path)
+    assert len(back) == 7 and back[0].shape == (32, 48, 3)
+    assert [float(f.mean()) for f in back] == pytest.approx([30.0 * i for i in range(7)], abs=4)  # lossy codec
+
+
 def test_gl_selection_reports_every_backend(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", "")  # empty = unset for select_gl_backend; restored (unset) after the test
     monkeypatch.delitem(sys.modules, "mujoco")  # pretend mujoco is not imported yet (restored after)
@@ -290,8 +303,10 @@ def test_relative_input_paths_resolve_against_the_training_launch_dir(tmp_path, 
         d.mkdir(parents=True)
     (launch / "clips" / "a.npz").write_bytes(b"")
     OmegaConf.save(OmegaConf.create({"hydra": {"runtime": {"cwd": str(launch)}}}), run / ".hydra" / "hydra.yaml")
-    cfg = OmegaConf.create({"motion": {"path": "clips/a.npz"}, "robot": {"mjcf_path": "missing.xml"}})
+    cfg = OmegaConf.create({"motion": {"path": "clips/a.npz"}, "robot": {"mjcf_path": "missing.xml"},
+                            "data": {"lafan_dir": "clips"}})
     monkeypatch.chdir(elsewhere)
     bm_eval.anchor_relative_paths(cfg, run)
     assert cfg.motion.path == str(launch / "clips" / "a.npz")
+    assert cfg.data.lafan_dir == str(launch / "clips")
     assert cfg.robot.mjcf_path == "missing.xml"  # not found there either: left for load to report

@@ -36,8 +36,29 @@ def test_two_setup_commands_and_ci_runs_the_second():
     install_and_run, install_and_test = setup_commands()
     assert install_and_run.endswith("python -m bmimic.train")
     assert "pytest" in install_and_test
-    ci = (REPO / ".ci" / "run").read_text().splitlines()
+    section = README.split("## Set-up", 1)[1].split("\n## ", 1)[0]
+    assert section.index("download.pytorch.org/whl/cpu") < section.index("```bash")  # the CPU note comes first
+    assert "These two commands are the whole set-up" in section
+    ci = [line.strip() for line in (REPO / ".ci" / "run").read_text().splitlines()]
     assert install_and_test in ci, "the CI script must run the README's test command verbatim"
+
+
+def test_ci_installs_into_a_fresh_venv_as_the_readme_says():
+    lines = [line.strip() for line in (REPO / ".ci" / "run").read_text().splitlines()
+             if line.strip() and not line.startswith("#")]
+    commands = [c.strip() for line in lines for c in line.split("&&")]
+    venv = next(i for i, c in enumerate(commands) if re.fullmatch(r"python3? -m venv \S+", c))
+    assert "--system-site-packages" not in commands[venv]
+    assert any(c.startswith("tmp=") and "mktemp -d" in c for c in commands[:venv])  # a temporary folder
+    assert re.fullmatch(r"\. \"?\S+/bin/activate\"?", commands[venv + 1])
+    torch = [i for i, c in enumerate(commands) if re.search(r"pip install.* torch\b", c)]
+    test = commands.index(setup_commands()[1].split("&&")[0].strip())
+    assert len(torch) == 1 and venv < torch[0] < test
+    assert re.search(r"torch==\d", commands[torch[0]]), "never an unpinned torch: it pulls the CUDA build"
+    assert venv < commands.index("ruff check .") < test and commands[-1] == "pytest"
+    # nothing else is installed into the venv: what the tests need comes from the README's extras
+    installs = [c for c in commands if c.startswith("pip install")]
+    assert installs == ["pip install -q ruff", commands[torch[0]], setup_commands()[1].split("&&")[0].strip()]
 
 
 TRAIN_EXAMPLES = [line for line in code_lines() if line.startswith("python -m bmimic.train") and "--" not in line]
@@ -48,9 +69,7 @@ def test_readme_train_examples_compose(line):
     args = shlex.split(line)[3:]
     multirun = "-m" in args
     args = [a for a in args if a != "-m"]
-    task = [a for a in args if not a.startswith("hydra")]
-    if any(a.startswith("motion=lafan") for a in task):
-        pass  # composes without the data; the file is only read when a run starts
+    task = [a for a in args if not a.startswith("hydra")]  # motion=lafan_*: the clip is read when a run starts
     cfg = compose(task, return_hydra_config=multirun)
     assert cfg.sampler.name in ("uniform", "adaptive", "beyondmimic")
 

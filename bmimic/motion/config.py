@@ -1,4 +1,7 @@
-"""Motion configuration (`conf/motion/*.yaml`) and `load_motion`, which turns it into a `Motion`.
+"""Motion configuration (`conf/motion/*.yaml`, `data`) and `load_motion`, which turns it into a `Motion`.
+
+LAFAN1 clips are named relative to one folder, `data.lafan_dir` (default: the environment variable
+BMIMIC_LAFAN_DIR), by `lafan_clip_path`; a missing folder or clip is one line saying where to get it.
 
 Generated and converted motions are cached as npz under `cache_dir`, keyed by everything they depend
 on (source content or generator settings, the generator/converter version and the robot model's
@@ -17,12 +20,25 @@ import mujoco
 import numpy as np
 
 from bmimic.motion import builtin
-from bmimic.motion.convert import convert_csv
 from bmimic.motion.motion import Motion, MotionDataError
 
 CONVERTER_VERSION = "1"
 """Part of the CSV cache key; bump whenever conversion output changes."""
 CONTROL_FPS = 50.0
+LAFAN_ENV = "BMIMIC_LAFAN_DIR"
+"""Environment variable that `data.lafan_dir` defaults to (conf/train.yaml)."""
+LAFAN_SOURCE = ("folder g1/ of the LAFAN1 Retargeting Dataset, "
+                "https://huggingface.co/datasets/unitreerobotics/LAFAN1_Retargeting_Dataset")
+"""Where users get the LAFAN1 G1 clips (CC BY-NC-ND 4.0, not shipped with bmimic)."""
+
+
+@dataclasses.dataclass
+class DataConfig:
+    """Where the user's motion datasets are (the `data` node of conf/train.yaml)."""
+
+    lafan_dir: Optional[str] = None
+    """Folder of the LAFAN1 G1 CSV clips (the dataset's g1/ folder); conf/train.yaml defaults it to
+    $BMIMIC_LAFAN_DIR. The `lafan_*` motion options name clips in it."""
 
 
 @dataclasses.dataclass
@@ -32,7 +48,10 @@ class MotionConfig:
     name: str = "default"
     """Label of this motion (run names, plots)."""
     source: str = "builtin"
-    """"builtin" (generated in code, no data needed) or "file" (an npz or a LAFAN1 G1 CSV at `path`)."""
+    """"builtin" (generated in code, no data needed), "lafan" (the LAFAN1 G1 clip `clip` in
+    data.lafan_dir) or "file" (an npz or a LAFAN1 G1 CSV at `path`)."""
+    clip: Optional[str] = None
+    """LAFAN1 clip for source "lafan", e.g. "dance1_subject1" (the CSV of that name in data.lafan_dir)."""
     path: Optional[str] = None
     """Motion file for source "file": `.npz` (BeyondMimic format with names) or `.csv` (LAFAN1 G1,
     converted and cached). Relative paths are resolved against the directory the command was started in."""
@@ -63,6 +82,26 @@ def resolve_path(path: str) -> Path:
     except ImportError:
         pass
     return Path(path).expanduser().resolve()
+
+
+def lafan_clip_path(clip: str, lafan_dir: str | os.PathLike | None) -> Path:
+    """The CSV of LAFAN1 clip `clip` (e.g. "dance1_subject1", ".csv" optional) in `lafan_dir`.
+
+    Raises MotionDataError, one line naming what is missing, where to download it and what to set,
+    when `lafan_dir` is unset or missing or has no such clip. Relative folders are taken from the
+    directory the command was started in.
+    """
+    name = clip if Path(clip).suffix.lower() == ".csv" else f"{clip}.csv"
+    how = f"download {LAFAN_SOURCE} and set {LAFAN_ENV}=/path/to/g1 (or data.lafan_dir=/path/to/g1)"
+    if lafan_dir is None or not str(lafan_dir).strip():
+        raise MotionDataError(f"LAFAN1 clip {name}: data.lafan_dir is not set; {how}")
+    folder = resolve_path(str(lafan_dir))
+    if not folder.is_dir():
+        raise MotionDataError(f"LAFAN1 clip {name}: data.lafan_dir {folder} is not a folder; {how}")
+    path = folder / name
+    if not path.is_file():
+        raise MotionDataError(f"LAFAN1 clip {name}: not in data.lafan_dir {folder}; {how}")
+    return path
 
 
 def model_fingerprint(mjmodel: mujoco.MjModel) -> str:
@@ -106,8 +145,11 @@ def load_motion(
     mjmodel: mujoco.MjModel,
     cache_dir: str | os.PathLike = "outputs/cache",
     bin_size_s: float = 1.0,
+    lafan_dir: str | os.PathLike | None = None,
 ) -> Motion:
     """The configured motion at 50 Hz in model order, windowed to [start_s, end_s].
+
+    `lafan_dir` (data.lafan_dir) is the folder that source "lafan" names its clip in.
 
     Raises MotionDataError (one line naming the field or file) for bad settings or data, including a
     window shorter than two time bins of `bin_size_s`.
@@ -123,16 +165,24 @@ def load_motion(
             mjmodel,
             lambda: builtin.generate_builtin(mjmodel, cfg.builtin, int(cfg.seed), float(cfg.duration_s)),
         )
-    elif cfg.source == "file":
-        if not cfg.path:
+    elif cfg.source in ("file", "lafan"):
+        if cfg.source == "lafan":
+            if not cfg.clip:
+                raise MotionDataError("motion.clip: required when motion.source is 'lafan' (e.g. dance1_subject1)")
+            path = lafan_clip_path(str(cfg.clip), lafan_dir)
+        elif not cfg.path:
             raise MotionDataError("motion.path: required when motion.source is 'file'")
-        path = resolve_path(str(cfg.path))
+        else:
+            path = resolve_path(str(cfg.path))
         if not path.is_file():
             raise MotionDataError(f"motion.path: {path}: file not found")
         suffix = path.suffix.lower()
         if suffix == ".npz":
             motion = Motion.load(path, mjmodel, assume_model_order=bool(cfg.assume_model_order))
         elif suffix == ".csv":
+            # imported here, not with the package, so `python -m bmimic.motion.convert` runs without a warning
+            from bmimic.motion.convert import convert_csv
+
             h = hashlib.sha256(path.read_bytes())
             h.update(
                 f"|fps_in={float(cfg.fps_in)!r}|fps_out={CONTROL_FPS!r}|{CONVERTER_VERSION}|"
@@ -146,7 +196,7 @@ def load_motion(
         else:
             raise MotionDataError(f"motion.path: {path}: expected a .npz or .csv file")
     else:
-        raise MotionDataError(f"motion.source: expected 'builtin' or 'file', got {cfg.source!r}")
+        raise MotionDataError(f"motion.source: expected 'builtin', 'lafan' or 'file', got {cfg.source!r}")
 
     if abs(motion.fps - CONTROL_FPS) > 1e-6:
         raise MotionDataError(

@@ -104,7 +104,9 @@ def policy_metadata(env, iteration: int | None = None, run_path: str = "") -> di
         "motion_num_frames": str(int(motion.num_frames)),
         "motion_clip_starts": ",".join(str(int(s)) for s in np.asarray(motion.clip_starts).reshape(-1)),
         "motion_segments": json.dumps([s._asdict() for s in motion.segments]),
-        "bin_size_s": repr(float(layout.bin_size_seconds)),
+        "bin_layout": layout.kind,  # "time" (bin_size_s wide) or "released" (BeyondMimic's B = T // 50 + 1)
+        # the released layout has no fixed width: its mean bin length, for the record
+        "bin_size_s": repr(float(getattr(layout, "bin_size_seconds", layout.duration_s / layout.num_bins))),
     }
 
 

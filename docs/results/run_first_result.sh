@@ -5,6 +5,7 @@
 # gets the same time. Same layout as `python -m bmimic.train -m ...` (outputs/sweeps/<name>/<arm>/seed=<s>/).
 #
 #   LIMIT=900 ENVS=2048 bash docs/results/run_first_result.sh
+# motion=lafan_dance1 reads dance1_subject1.csv from $BMIMIC_LAFAN_DIR (the LAFAN1 G1 folder; README: Data).
 #   python -m analysis.report outputs/sweeps/first_default outputs/... (see docs/results/README)
 set -u
 LIMIT=${LIMIT:-900}          # seconds of training per job
