@@ -26,7 +26,7 @@ def run_cli(args, cwd):
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("e2e")
     run = root / "run"
-    run_cli([*TINY, "ppo.save_interval=1", f"hydra.run.dir={run}", "sampler=adaptive"], cwd=root)
+    run_cli([*TINY, "ppo.save_interval=1", f"hydra.run.dir={run}", "sampler=adaptive", "eval.robust=true"], cwd=root)
     return run
 
 
@@ -48,6 +48,10 @@ def test_run_folder_contents(trained):
     assert abs(sampler.groupby("iteration")["probability"].sum() - 1).max() < 1e-6
     ev = pd.read_parquet(trained / "eval.parquet")
     assert ev["iteration"].max() == 2 and ev["failure_rate"].between(0, 1).all()
+    assert (ev["visits"] >= ev["start_episodes"]).all() and (ev["failures"] <= ev["visits"]).all()
+    robust = pd.read_parquet(trained / "eval_robust.parquet")  # eval.robust=true: once more, perturbed
+    assert robust["iteration"].unique().tolist() == [2] and list(robust.columns) == list(ev.columns)
+    assert 0.0 <= metrics["final_robust_eval_failure_rate"] <= 1.0
 
 
 def test_checkpoint_holds_sampler_and_rng(trained):
