@@ -460,6 +460,23 @@ def test_committed_study_layout(tmp_path, capsys):
     assert "--mastery-persist" in capsys.readouterr().err
 
 
+def test_equal_env_steps_comparison_only_when_steps_per_iteration_differ():
+    from analysis.tables import per_run_metrics
+
+    def overall(run, arm, steps_per_it, failure):
+        its = np.arange(0, 41, 10)
+        return pd.DataFrame({"run_dir": run, "arm": arm, "seed": 0, "iteration": its, "env_steps": its * steps_per_it,
+                             "wall_time_s": its * 1.0, "failure_rate": failure(its)})
+
+    same = pd.concat([overall("a", "a", 100, lambda i: 1 - i / 40), overall("b", "b", 100, lambda i: 1 - i / 80)])
+    assert "final_failure_equal_env_steps" not in per_run_metrics(None, same, None, pd.DataFrame(), pd.DataFrame())
+    # Arm b collects twice the env steps per iteration: at equal env steps (4000) it has done 20 iterations.
+    both = pd.concat([overall("a", "a", 100, lambda i: 1 - i / 40), overall("b", "b", 200, lambda i: 1 - i / 80)])
+    m = per_run_metrics(None, both, None, pd.DataFrame(), pd.DataFrame())
+    assert m["final_failure"].set_index("arm")["value"].to_dict() == {"a": 0.0, "b": 0.5}
+    assert m["final_failure_equal_env_steps"].set_index("arm")["value"].to_dict() == {"a": 0.0, "b": 0.75}
+
+
 def test_plural():
     assert plural(1, "bin") == "1 bin" and plural(0, "bin") == "0 bins" and plural(2, "seed") == "2 seeds"
 
