@@ -38,10 +38,10 @@ def _axes(ax, figsize=FIGSIZE):
     return fig, fig.add_subplot()
 
 
-def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x") -> None:
+def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: bool = False) -> None:
     """Label the bin axis with segment names: boundaries as thin lines, names on the opposite side
     (horizontal where every name fits its span, else rotated; long names shortened); hatch the
-    horizon-truncated bins."""
+    horizon-truncated bins (over the cells of a heatmap with ``hatch_above``, else behind the lines)."""
     (ax.xaxis if axis == "x" else ax.yaxis).set_major_locator(MaxNLocator(integer=True))
     if bins is None or not len(bins):
         return
@@ -49,7 +49,8 @@ def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x") -> None:
     if "horizon_truncated" in bins and bins["horizon_truncated"].any():
         span = ax.axvspan if axis == "x" else ax.axhspan
         for b in bins.loc[bins["horizon_truncated"].astype(bool), "bin"]:
-            span(b - 0.5, b + 0.5, facecolor="none", edgecolor="0.55", hatch="///", lw=0, zorder=0.5)
+            span(b - 0.5, b + 0.5, facecolor="none", edgecolor="0.55", hatch="///", lw=0,
+                 zorder=3 if hatch_above else 0.5)
     if not bins["segment"].astype(bool).any():
         return
     change = bins["segment"].ne(bins["segment"].shift()).cumsum()
@@ -149,7 +150,7 @@ def plot_bin_heatmap(
     ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     if title:
         ax.set_title(title, fontsize=8)
-    _mark_segments(ax, bins)
+    _mark_segments(ax, bins, hatch_above=True)
     if colorbar:
         fig.colorbar(image, ax=ax, label=value.replace("_", " "), shrink=0.9)
     return fig

@@ -197,10 +197,12 @@ def _evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
                      "bins whose episodes run out of clip before the horizon are not flagged.")
     truncated = bins.loc[bins["horizon_truncated"], "bin"].tolist()
     if truncated:
-        lines.append(f"- Horizon-truncated {'bin' if len(truncated) == 1 else 'bins'} "
-                     f"{', '.join(map(str, truncated))}: their episodes reach the end of the clip before the "
-                     "evaluation horizon, so they are hatched in the figures and count as mastered only when an "
-                     "episode tracked all their frames after entering from an earlier bin.")
+        one = len(truncated) == 1
+        its, they = ("its", "it is") if one else ("their", "they are")
+        lines.append(f"- Horizon-truncated {'bin' if one else 'bins'} {', '.join(map(str, truncated))}: {its} "
+                     f"episodes reach the end of the clip before the evaluation horizon, so {they} hatched in the "
+                     f"figures and count{'s' if one else ''} as mastered only when an episode tracked all of "
+                     f"{its} frames after entering from an earlier bin.")
     return lines + ([""] if lines else [])
 
 
