@@ -23,8 +23,8 @@ INDEX_NAME = "index.csv"
 LOCK_NAME = ".index.lock"
 
 METRIC_KEYS = (
-    "final_eval_failure_rate", "final_eval_success_rate", "iterations", "env_steps", "wall_time_s",
-    "mean_episode_length", "max_episode_length", "num_bins",
+    "final_eval_failure_rate", "final_eval_success_rate", "final_robust_eval_failure_rate", "iterations",
+    "env_steps", "wall_time_s", "mean_episode_length", "max_episode_length", "num_bins",
 )
 """metrics.json keys copied into the index (absent keys stay empty, e.g. for running jobs)."""
 
@@ -68,7 +68,10 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
             "git_commit": provenance.get("git_commit", git.get("commit")),
             "git_dirty": provenance.get("git_dirty", git.get("dirty")),
         })
-    return pd.DataFrame(rows, columns=INDEX_COLUMNS)
+    index = pd.DataFrame(rows, columns=INDEX_COLUMNS)
+    for key in METRIC_KEYS:  # numbers, also where no job has the key yet (e.g. no robust evaluation)
+        index[key] = pd.to_numeric(index[key], errors="coerce")
+    return index
 
 
 @contextlib.contextmanager

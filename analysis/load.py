@@ -27,6 +27,7 @@ TABLES = {
     "train_metrics": "train_metrics.parquet",
     "eval": "eval.parquet",
     "sampler": "sampler.parquet",
+    "eval_robust": "eval_robust.parquet",
 }
 """Table name -> file name in the run folder."""
 
@@ -34,11 +35,13 @@ REQUIRED_COLUMNS = {
     "train_metrics": ["iteration", "env_steps", "wall_time_s", "mean_episode_length", "mean_reward"],
     "eval": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
     "sampler": ["iteration", "bin", "probability"],
+    "eval_robust": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""
 
 NEEDED_TABLES = ("train_metrics", "eval")
-"""Tables a run must have to be included; ``sampler`` is optional (its plot skips runs without it)."""
+"""Tables a run must have to be included; ``sampler`` and ``eval_robust`` (written with
+``eval.robust=true``) are optional (what uses them skips runs without them)."""
 
 IGNORED_OVERRIDE_KEYS = {
     "seed", "sweep_name", "run_name", "task_name", "device", "resume", "sweep", "logger",
@@ -363,8 +366,8 @@ def load_runs(paths) -> pd.DataFrame:
 def load_table(runs: pd.DataFrame, name: str) -> pd.DataFrame:
     """One table of every included run, stacked: ``run_dir, arm, seed`` then the table's columns.
 
-    ``name`` is ``"eval"``, ``"train_metrics"`` or ``"sampler"`` (schemas in docs/architecture.md).
-    Runs without the file are skipped (only possible for ``sampler``, which is optional); a file
+    ``name`` is a key of TABLES (schemas in docs/architecture.md). Runs without the file are skipped
+    (only possible for the optional tables); a file
     that is unreadable or lacks a needed column raises AnalysisError naming it. With no rows, an
     empty frame with the needed columns is returned.
     """

@@ -1,28 +1,64 @@
-"""Task metrics over tidy tables: overall failure, bin mastery, time to a success threshold, speedup.
+"""Task metrics over tidy tables: overall failure, bin mastery per seed, time to a success threshold,
+censored per-arm medians and speedups.
 
 Definitions (used by the report and its text):
 
 - *overall failure* of an evaluation = the unweighted mean of ``failure_rate`` over bins (every part
-  of the motion counts the same, however many episodes a bin got); *overall success* = 1 - that.
-- a bin's *mastery iteration* = the first evaluation iteration at which its failure rate is below
-  the threshold. It need not stay below afterwards (a bin that is mastered and later forgotten keeps
-  its first mastery iteration). Never below -> NaN ("never").
-- *time to threshold* = the first evaluation at which overall success >= the threshold, read as
-  iteration, env steps and wall time of that evaluation. Never -> NaN.
-- *speedup* = baseline / arm, so > 1 means the arm is faster.
+  of the motion counts the same); *overall success* = 1 - that. ``failure_rate`` is failures per
+  visit, charged to the bin where the failure happened (bmimic.training.evaluation).
+- an evaluation *counts a bin as mastered* when its failure rate is below the threshold and, if the
+  bin is ``horizon_truncated`` (its episodes run out of clip before the horizon), at least one
+  episode tracked all of its frames after entering it from an earlier bin (``tracked_through``).
+- a bin's *mastery iteration* in one run (seed) = the first evaluation from which the bin counts as
+  mastered at every evaluation for the rest of the run, or for at least ``persist`` consecutive
+  evaluations. Never -> censored at the run's last evaluation.
+- *time to threshold* = the first evaluation from which overall success >= the threshold, with the
+  same persistence, in iterations, env steps and wall time. Never -> censored.
+- per arm, times are summarised by their Kaplan-Meier median over seeds (stats.km_median): defined
+  only when more than half of the seeds got there, else "not reached".
+- *speedup* = baseline median / arm median, so > 1 means the arm is faster; its ``status`` is
+  ``estimate`` (both medians defined), ``lower_bound`` (the baseline's median was not reached but the
+  arm's was: the ratio is at least the baseline's last follow-up over the arm's median),
+  ``upper_bound`` (the reverse) or ``not_estimable`` (neither reached).
 
 All functions are pure: they take frames and return new frames or numbers.
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 import pandas as pd
 
-from analysis.stats import DEFAULT_RESAMPLES, bootstrap_ci, iqm
+from analysis.stats import (
+    DEFAULT_RESAMPLES,
+    bootstrap_interval,
+    censored_pvalue,
+    km_median,
+    restricted_km_median,
+)
 
 MEASURES = ("iteration", "env_steps", "wall_time_s")
-"""How time to threshold is measured: training iterations, environment steps, seconds."""
+"""How time is measured: training iterations, environment steps, seconds of training."""
+
+SPEEDUP_STATUSES = ("estimate", "lower_bound", "upper_bound", "not_estimable")
+"""Values of the speedup ``status`` column."""
+
+
+def counts_as_mastered(per_bin: pd.DataFrame, threshold: float) -> pd.Series:
+    """Whether each row (one bin of one evaluation) counts as mastered (module docstring).
+
+    Reads ``failure_rate`` and, where present, ``horizon_truncated`` and ``tracked_through`` (tables
+    from before those columns existed are taken as not truncated).
+    """
+    below = per_bin["failure_rate"].astype(float) < threshold
+    if "horizon_truncated" not in per_bin:
+        return below
+    truncated = per_bin["horizon_truncated"].fillna(False).astype(bool)
+    through = per_bin["tracked_through"].fillna(0) if "tracked_through" in per_bin else 0
+    return below & (~truncated | (through >= 1))
 
 
 def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
@@ -46,105 +82,160 @@ def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     return out[[*by, "iteration", "env_steps", "wall_time_s", "failure_rate", "success_rate", "num_bins"]]
 
 
-def mastery_iterations(bin_failure: pd.DataFrame, threshold: float = 0.1, by=()) -> pd.DataFrame:
-    """Each bin's mastery iteration: the first evaluation with ``failure_rate < threshold``.
+def first_sustained(ok, persist: int) -> int:
+    """Index of the first entry from which ``ok`` holds for ``persist`` consecutive entries, or for
+    every remaining entry when fewer are left; -1 if none. ``first_sustained([0, 1, 0, 1, 1], 2) == 3``,
+    ``first_sustained([0, 0, 1], 2) == 2`` (true for the rest of the run)."""
+    ok = np.asarray(ok, dtype=bool)
+    n = len(ok)
+    if persist < 1:
+        raise ValueError(f"persist must be >= 1, got {persist}")
+    # run[i] = length of the run of trues starting at i
+    run = np.zeros(n + 1, dtype=int)
+    for i in range(n - 1, -1, -1):
+        run[i] = run[i + 1] + 1 if ok[i] else 0
+    hits = np.flatnonzero((run[:n] >= persist) | ((run[:n] > 0) & (run[:n] == n - np.arange(n))))
+    return int(hits[0]) if len(hits) else -1
 
-    ``bin_failure`` has ``iteration, bin, failure_rate`` (plus the ``by`` columns), one row per
-    (group, iteration, bin); pass an arm's seed-mean curve or one run's curve. Returns
-    ``by + [bin, mastery_iteration, mastered, last_iteration]``: ``mastery_iteration`` is NaN where
-    the bin never dropped below the threshold, ``last_iteration`` the last evaluation seen (the
-    censoring point for bins never mastered).
+
+def mastery_per_seed(eval_df: pd.DataFrame, threshold: float = 0.1, persist: int = 2) -> pd.DataFrame:
+    """Each run's mastery iteration of each bin (module docstring).
+
+    ``eval_df`` has ``run_dir, arm, seed, iteration, env_steps, wall_time_s, bin, failure_rate`` (and
+    optionally ``horizon_truncated, tracked_through``). Returns ``run_dir, arm, seed, bin, mastered,
+    iteration, env_steps, wall_time_s, last_iteration, last_env_steps, last_wall_time_s,
+    horizon_truncated``: the measures at the mastery evaluation (NaN when never) and at the run's
+    last evaluation (the censoring point); ``horizon_truncated`` is the bin's flag at the last one.
     """
-    by = list(by)
+    df = eval_df.assign(_ok=counts_as_mastered(eval_df, threshold).to_numpy())
+    if "horizon_truncated" not in df:
+        df["horizon_truncated"] = False
     rows = []
-    for key, group in bin_failure.groupby([*by, "bin"], sort=True):
-        group = group.sort_values("iteration")
-        below = group.loc[group["failure_rate"] < threshold, "iteration"]
-        first = float(below.iloc[0]) if len(below) else np.nan
-        rows.append((*key, first, bool(len(below)), float(group["iteration"].max())))
-    return pd.DataFrame(rows, columns=[*by, "bin", "mastery_iteration", "mastered", "last_iteration"])
+    for (run_dir, arm, seed, b), g in df.sort_values("iteration").groupby(["run_dir", "arm", "seed", "bin"],
+                                                                        sort=True, dropna=False):
+        i = first_sustained(g["_ok"].to_numpy(), persist)
+        hit = [float(g[m].iloc[i]) if i >= 0 else math.nan for m in MEASURES]
+        last = [float(g[m].iloc[-1]) for m in MEASURES]
+        rows.append((run_dir, arm, seed, b, i >= 0, *hit, *last, bool(g["horizon_truncated"].iloc[-1])))
+    return pd.DataFrame(rows, columns=["run_dir", "arm", "seed", "bin", "mastered", *MEASURES,
+                                       *(f"last_{m}" for m in MEASURES), "horizon_truncated"])
 
 
 def time_to_threshold(
-    curve: pd.DataFrame, threshold: float = 0.9, value: str = "success_rate", by=("run_dir", "arm", "seed")
+    curve: pd.DataFrame, threshold: float = 0.9, value: str = "success_rate", persist: int = 2,
+    by=("run_dir", "arm", "seed"),
 ) -> pd.DataFrame:
-    """When each group's ``value`` first reaches ``threshold`` (``>=``), in each of MEASURES.
+    """When each group's ``value`` first reaches ``threshold`` (``>=``) and stays there (``persist``).
 
     ``curve`` has ``iteration, env_steps, wall_time_s`` and ``value`` per evaluation (e.g. the output
-    of overall_failure). Returns ``by + [reached, iteration, env_steps, wall_time_s,
-    last_iteration, last_env_steps, last_wall_time_s]``: the measures at the first evaluation that
-    reached it (NaN if none did) and at the last evaluation (the censoring point).
+    of overall_failure). Returns ``by + [reached, iteration, env_steps, wall_time_s, last_iteration,
+    last_env_steps, last_wall_time_s]``: the measures at that evaluation (NaN if none) and at the
+    last evaluation (the censoring point).
     """
     by = list(by)
     rows = []
     for key, group in curve.groupby(by, sort=True, dropna=False):
         key = key if isinstance(key, tuple) else (key,)
         group = group.sort_values("iteration")
-        hit = group[group[value] >= threshold]
-        first = [float(hit[m].iloc[0]) if len(hit) else np.nan for m in MEASURES]
+        i = first_sustained((group[value] >= threshold).to_numpy(), persist)
+        first = [float(group[m].iloc[i]) if i >= 0 else math.nan for m in MEASURES]
         last = [float(group[m].iloc[-1]) for m in MEASURES]
-        rows.append((*key, bool(len(hit)), *first, *last))
+        rows.append((*key, i >= 0, *first, *last))
     return pd.DataFrame(rows, columns=[*by, "reached", *MEASURES, *(f"last_{m}" for m in MEASURES)])
 
 
-def censored(times: pd.DataFrame, measure: str) -> np.ndarray:
-    """Time to threshold in ``measure`` with runs that never reached it counted at their last
-    evaluation: a lower bound on their true time, so an arm that rarely reaches the threshold is
-    never made to look slower than the data shows."""
-    return np.where(times["reached"], times[measure], times[f"last_{measure}"]).astype(float)
+def event_times(times: pd.DataFrame, measure: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(time, event)`` of time-to-event rows (``reached``/``mastered`` plus ``<measure>`` and
+    ``last_<measure>``): the event time where it happened, else the censoring time."""
+    event = (times["reached"] if "reached" in times else times["mastered"]).to_numpy(dtype=bool)
+    time = np.where(event, times[measure].to_numpy(dtype=float), times[f"last_{measure}"].to_numpy(dtype=float))
+    return time, event
+
+
+@dataclass(frozen=True)
+class ArmTime:
+    """The per-arm summary of censored times (e.g. iterations to mastering one bin) over seeds."""
+
+    n: int
+    """Seeds."""
+    n_reached: int
+    """Seeds that had the event."""
+    median: float
+    """Kaplan-Meier median; NaN when not reached."""
+    follow_up: float
+    """Largest time any seed was followed (its last evaluation or event): a lower bound on a median
+    that was not reached."""
+
+
+def arm_time(time, event) -> ArmTime:
+    """ArmTime of one arm's ``(time, event)`` per seed."""
+    time = np.asarray(time, dtype=float)
+    event = np.asarray(event, dtype=bool)
+    if not len(time):
+        return ArmTime(0, 0, math.nan, math.nan)
+    return ArmTime(len(time), int(event.sum()), float(km_median(time, event)), float(time.max()))
+
+
+@dataclass(frozen=True)
+class Speedup:
+    """Speedup of an arm against a baseline (baseline median / arm median; > 1: the arm is faster)."""
+
+    ratio: float
+    """The estimate (``estimate``) or the bound (``lower_bound``, ``upper_bound``); NaN otherwise."""
+    ci_low: float
+    """Bootstrap interval (only for ``estimate`` with enough seeds), else NaN."""
+    ci_high: float
+    """See ci_low."""
+    ci_method: str
+    """``bootstrap_bca``, ``bootstrap_percentile`` or '' (no interval)."""
+    status: str
+    """One of SPEEDUP_STATUSES."""
+    p_value: float
+    """Two-sided permutation test of the two arms' censored times (stats.censored_pvalue)."""
+
+
+def _ratio(base: float, arm: float) -> float:
+    if arm == 0:
+        return 1.0 if base == 0 else math.inf
+    return base / arm
 
 
 def speedup(
-    baseline, arm, n_resamples: int = DEFAULT_RESAMPLES, confidence: float = 0.95, seed: int = 0
-) -> tuple[float, float, float]:
-    """Speedup ``IQM(baseline) / IQM(arm)`` of per-seed times, with a stratified bootstrap interval.
+    base_time, base_event, arm_time_, arm_event, bootstrap: bool, n_resamples: int = DEFAULT_RESAMPLES,
+    confidence: float = 0.95, seed: int = 0, n_permutations: int = 9999,
+) -> Speedup:
+    """Speedup of censored per-seed times ``arm`` against ``baseline`` (module docstring for ``status``).
 
-    ``baseline`` and ``arm`` are per-seed times (e.g. iterations to threshold); seeds are resampled
-    within each arm. > 1 means the arm needs less time. Returns ``(ratio, low, high)``; an arm whose
-    IQM is 0 gives an infinite ratio.
+    With ``bootstrap`` (every arm has enough seeds) and both medians defined, the interval is a
+    stratified bootstrap over seeds (each arm resampled on its own) of the ratio of medians; a
+    resample in which a median is not reached uses that arm's last follow-up time there
+    (stats.restricted_km_median).
     """
-    def ratio(b, a):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return iqm(b, axis=0) / iqm(a, axis=0)
+    bt, be = np.asarray(base_time, float), np.asarray(base_event, bool)
+    at, ae = np.asarray(arm_time_, float), np.asarray(arm_event, bool)
+    b, a = arm_time(bt, be), arm_time(at, ae)
+    p = censored_pvalue(at, ae, bt, be, n_resamples=n_permutations, seed=seed) if a.n and b.n else math.nan
+    b_ok, a_ok = not math.isnan(b.median), not math.isnan(a.median)
+    if b_ok and a_ok:
+        ratio = _ratio(b.median, a.median)
+        low = high = math.nan
+        method = ""
+        if bootstrap and a.n >= 2 and b.n >= 2 and math.isfinite(ratio):
+            def stat(ib, ia, axis=-1):
+                ib, ia = ib.astype(int), ia.astype(int)
+                mb = restricted_km_median(bt[ib], be[ib], axis=-1)
+                ma = restricted_km_median(at[ia], ae[ia], axis=-1)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    return np.where(ma == 0, np.where(mb == 0, 1.0, np.inf), mb / np.where(ma == 0, 1.0, ma))
 
-    return bootstrap_ci(
-        np.asarray(baseline, float), np.asarray(arm, float),
-        statistic=ratio, n_resamples=n_resamples, confidence=confidence, seed=seed,
-    )
-
-
-def mastery_speedup(mastery: pd.DataFrame, baseline: str) -> pd.DataFrame:
-    """Per-bin mastery speedup of every arm against ``baseline``: baseline / arm mastery iteration.
-
-    ``mastery`` is mastery_iterations(..., by=["arm"]). Censoring: a bin never mastered by either
-    arm is excluded (ratio NaN, ``censored="both never"``); a bin mastered by one arm only counts
-    the other as mastered at its last evaluation (``censored="baseline never"``: the ratio is a
-    lower bound; ``"arm never"``: an upper bound). Equal zero iterations give 1, an arm at 0 against
-    a positive baseline gives inf. Returns ``arm, bin, baseline_iteration, arm_iteration, ratio,
-    censored`` for every arm but the baseline.
-    """
-    if baseline not in set(mastery["arm"]):
-        raise ValueError(f"baseline arm {baseline!r} not among arms {sorted(set(mastery['arm']))}")
-    base = mastery[mastery["arm"] == baseline].set_index("bin")
-    rows = []
-    for arm, group in mastery[mastery["arm"] != baseline].groupby("arm", sort=True):
-        for r in group.itertuples(index=False):
-            if r.bin not in base.index:
-                continue
-            b = base.loc[r.bin]
-            b_it = b["mastery_iteration"] if b["mastered"] else b["last_iteration"]
-            a_it = r.mastery_iteration if r.mastered else r.last_iteration
-            note = {(True, True): "", (False, True): "baseline never", (True, False): "arm never"}.get(
-                (bool(b["mastered"]), bool(r.mastered)), "both never"
-            )
-            if note == "both never":
-                ratio = np.nan
-            elif a_it == 0:
-                ratio = 1.0 if b_it == 0 else np.inf
-            else:
-                ratio = b_it / a_it
-            rows.append((arm, r.bin, float(b_it), float(a_it), float(ratio), note))
-    return pd.DataFrame(rows, columns=["arm", "bin", "baseline_iteration", "arm_iteration", "ratio", "censored"])
+            low, high, method = bootstrap_interval((np.arange(b.n, dtype=float), np.arange(a.n, dtype=float)),
+                                                   stat, n_resamples, confidence, seed)
+        return Speedup(ratio, low, high, method, "estimate", p)
+    if a_ok:  # the baseline never got there within its follow-up: the arm is at least this much faster
+        return Speedup(_ratio(b.follow_up, a.median), math.nan, math.nan, "", "lower_bound", p)
+    if b_ok:
+        return Speedup(_ratio(b.median, a.follow_up), math.nan, math.nan, "", "upper_bound", p)
+    return Speedup(math.nan, math.nan, math.nan, "", "not_estimable", p)
 
 
 def final_rows(df: pd.DataFrame, by=("run_dir",)) -> pd.DataFrame:
@@ -154,16 +245,27 @@ def final_rows(df: pd.DataFrame, by=("run_dir",)) -> pd.DataFrame:
     return df[df["iteration"] == last].reset_index(drop=True)
 
 
+def at_budget(df: pd.DataFrame, measure: str, budget: float, by=("run_dir",)) -> pd.DataFrame:
+    """Each group's rows of its last evaluation with ``measure <= budget`` (groups with none are left out)."""
+    by = list(by)
+    df = df[df[measure] <= budget]
+    if not len(df):
+        return df.reset_index(drop=True)
+    last = df.groupby(by)[measure].transform("max")
+    return df[df[measure] == last].reset_index(drop=True)
+
+
 def bin_table(eval_df: pd.DataFrame, segments: pd.DataFrame | None = None) -> pd.DataFrame:
-    """One row per bin: ``bin, bin_start_s, bin_end_s, segment, label``.
+    """One row per bin: ``bin, bin_start_s, bin_end_s, segment, label, horizon_truncated``.
 
     A bin's segment is the motion segment (from motion_segments.json) containing the bin's midpoint,
     else the eval table's ``segment`` column, else empty; ``label`` reads ``"<bin> <segment>"``.
+    ``horizon_truncated`` is true when any evaluation flagged the bin (False for older tables).
     """
-    bins = eval_df.groupby("bin", sort=True).agg(bin_start_s=("bin_start_s", "min"), bin_end_s=("bin_end_s", "max"))
-    bins = bins.reset_index()
+    g = eval_df.groupby("bin", sort=True)
+    bins = g.agg(bin_start_s=("bin_start_s", "min"), bin_end_s=("bin_end_s", "max")).reset_index()
     if "segment" in eval_df.columns:
-        bins["segment"] = eval_df.groupby("bin", sort=True)["segment"].first().astype(str).to_numpy()
+        bins["segment"] = g["segment"].first().fillna("").astype(str).to_numpy()
     else:
         bins["segment"] = ""
     if segments is not None and len(segments):
@@ -172,4 +274,8 @@ def bin_table(eval_df: pd.DataFrame, segments: pd.DataFrame | None = None) -> pd
             inside = (mid >= seg.start_s) & (mid < seg.end_s)
             bins.loc[inside, "segment"] = str(seg.name)
     bins["label"] = [f"{b} {s}".strip() for b, s in zip(bins["bin"], bins["segment"], strict=True)]
+    if "horizon_truncated" in eval_df.columns:
+        bins["horizon_truncated"] = g["horizon_truncated"].any().astype(bool).to_numpy()
+    else:
+        bins["horizon_truncated"] = False
     return bins

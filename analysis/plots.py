@@ -17,8 +17,8 @@ FIGSIZE = (6.0, 3.6)
 
 SENSITIVITY_LABELS = {
     "final_failure": "final overall failure",
-    "mastery_median": "median mastery iteration",
-    "time_iteration": "iterations to success threshold",
+    "bins_mastered": "bins mastered",
+    "time_iteration": "iterations to success threshold (median)",
 }
 """Axis labels of the arm-summary metrics drawn by plot_sensitivity."""
 
@@ -38,23 +38,46 @@ def _axes(ax, figsize=FIGSIZE):
     return fig, fig.add_subplot()
 
 
-def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x") -> None:
-    """Label the bin axis with segment names: boundaries as thin lines, names on the opposite side."""
+def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: bool = False) -> None:
+    """Label the bin axis with segment names: boundaries as thin lines, names on the opposite side
+    (horizontal where every name fits its span, else rotated; long names shortened); hatch the
+    horizon-truncated bins (over the cells of a heatmap with ``hatch_above``, else behind the lines)."""
     (ax.xaxis if axis == "x" else ax.yaxis).set_major_locator(MaxNLocator(integer=True))
-    if bins is None or not len(bins) or not bins["segment"].astype(bool).any():
+    if bins is None or not len(bins):
         return
     bins = bins.sort_values("bin").reset_index(drop=True)
+    if "horizon_truncated" in bins and bins["horizon_truncated"].any():
+        span = ax.axvspan if axis == "x" else ax.axhspan
+        for b in bins.loc[bins["horizon_truncated"].astype(bool), "bin"]:
+            span(b - 0.5, b + 0.5, facecolor="none", edgecolor="0.55", hatch="///", lw=0,
+                 zorder=3 if hatch_above else 0.5)
+    if not bins["segment"].astype(bool).any():
+        return
     change = bins["segment"].ne(bins["segment"].shift()).cumsum()
     spans = bins.groupby(change).agg(name=("segment", "first"), first=("bin", "first"), last=("bin", "last"))
     line = ax.axvline if axis == "x" else ax.axhline
     for first in spans["first"].iloc[1:]:
         line(first - 0.5, color="0.3", lw=0.6, ls=":")
     centres = ((spans["first"] + spans["last"]) / 2.0).to_list()
+    names = [n if len(n) <= 18 else n[:17] + "…" for n in spans["name"].astype(str)]
     twin = ax.secondary_xaxis("top") if axis == "x" else ax.secondary_yaxis("right")
-    # Rotated: segments are often only a few bins wide, and horizontal names would overlap.
-    rotation = 90 if axis == "x" else 0
-    twin.set_ticks(centres, labels=spans["name"].to_list(), fontsize=6, rotation=rotation)
+    # Characters that fit a segment's span at fontsize 7 on a ~5 inch axis: about 70 per axis width.
+    width_bins = max(len(bins), 1)
+    fits = all(len(n) <= 70 * (r.last - r.first + 1) / width_bins for n, r in zip(names, spans.itertuples(),
+                                                                                 strict=True))
+    rotation = 0 if (fits or axis != "x") else 90
+    twin.set_ticks(centres, labels=names, fontsize=7, rotation=rotation)
     twin.tick_params(length=0)
+
+
+def _marker(n_points: int) -> dict:
+    """Markers where a line has few points (a single evaluation is otherwise invisible)."""
+    return {"marker": "o", "ms": 4} if n_points <= 25 else {}
+
+
+def _seed_values(per_seed) -> np.ndarray:
+    """Per-seed values from a ``"a;b;c"`` cell (censored ``>t`` entries dropped)."""
+    return np.array([float(v) for v in str(per_seed).split(";") if v and not v.startswith(">")], dtype=float)
 
 
 def _edges(centres: np.ndarray) -> np.ndarray:
@@ -66,24 +89,32 @@ def _edges(centres: np.ndarray) -> np.ndarray:
 
 
 def plot_learning_curve(
-    curves: pd.DataFrame, ylabel: str = "", ax=None, colors: dict | None = None, title: str | None = None
+    curves: pd.DataFrame, ylabel: str = "", ax=None, colors: dict | None = None, title: str | None = None,
+    per_seed: pd.DataFrame | None = None,
 ) -> Figure:
-    """IQM over seeds against iteration, one line per arm, with its 95 % bootstrap band.
+    """Point estimate over seeds against iteration, one line per arm, with its band and each seed.
 
-    ``curves`` has ``arm, iteration, iqm, ci_low, ci_high`` (stats.aggregate_over_seeds for one metric).
+    ``curves`` has ``arm, iteration, point, ci_low, ci_high`` (tables.learning_curves for one metric);
+    ``per_seed`` (``arm, run_dir, iteration, value``) adds one thin line per seed.
     """
     fig, ax = _axes(ax)
     colors = colors or arm_colors(curves["arm"])
+    if per_seed is not None and len(per_seed):
+        for (arm, _), c in per_seed.sort_values("iteration").groupby(["arm", "run_dir"], sort=True):
+            x = c["iteration"].to_numpy(dtype=float)
+            ax.plot(x, c["value"].to_numpy(dtype=float), color=colors.get(arm, "0.5"), lw=0.6, alpha=0.45,
+                    **({"marker": ".", "ms": 3} if len(x) <= 25 else {}))
     for arm, c in curves.groupby("arm", sort=True):
         c = c.sort_values("iteration")
         x = c["iteration"].to_numpy(dtype=float)  # concatenated tables can arrive as object columns
-        ax.plot(x, c["iqm"].to_numpy(dtype=float), color=colors[arm], lw=1.4, label=arm)
+        ax.plot(x, c["point"].to_numpy(dtype=float), color=colors[arm], lw=1.6, label=arm, **_marker(len(x)))
         ax.fill_between(x, c["ci_low"].to_numpy(dtype=float), c["ci_high"].to_numpy(dtype=float),
                         color=colors[arm], alpha=0.2, lw=0)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("iteration")
     ax.set_ylabel(ylabel)
     if title:
-        ax.set_title(title, fontsize=9)
+        ax.set_title(title, fontsize=8)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     return fig
@@ -116,9 +147,10 @@ def plot_bin_heatmap(
                           grid.to_numpy(dtype=float), cmap=cmap, vmin=vmin, vmax=vmax, shading="flat")
     ax.set_xlabel("bin")
     ax.set_ylabel("iteration")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     if title:
         ax.set_title(title, fontsize=8)
-    _mark_segments(ax, bins)
+    _mark_segments(ax, bins, hatch_above=True)
     if colorbar:
         fig.colorbar(image, ax=ax, label=value.replace("_", " "), shrink=0.9)
     return fig
@@ -147,18 +179,26 @@ def plot_bin_heatmaps(
 def plot_final_bin_failure(
     final: pd.DataFrame, ax=None, bins: pd.DataFrame | None = None, colors: dict | None = None
 ) -> Figure:
-    """Final evaluated failure per bin: IQM over seeds with 95 % bootstrap bands, one line per arm.
+    """Failure per bin at the final comparison point: point estimate over seeds with its band (bootstrap
+    interval or range of the seeds) and each seed as a dot, one line per arm.
 
-    ``final`` has ``arm, bin, iqm, ci_low, ci_high``.
+    ``final`` has ``arm, bin, point, ci_low, ci_high, per_seed`` (tables.final_bin_failure).
     """
     fig, ax = _axes(ax)
     colors = colors or arm_colors(final["arm"])
-    for arm, f in final.groupby("arm", sort=True):
+    arms = sorted(final["arm"].unique())
+    for i, (arm, f) in enumerate(final.groupby("arm", sort=True)):
         f = f.sort_values("bin")
-        ax.plot(f["bin"], f["iqm"], marker="o", ms=3, color=colors[arm], lw=1.2, label=arm)
-        ax.fill_between(f["bin"], f["ci_low"], f["ci_high"], color=colors[arm], alpha=0.2, lw=0)
+        x = f["bin"].to_numpy(dtype=float)
+        ax.plot(x, f["point"], marker="o", ms=3, color=colors[arm], lw=1.2, label=arm)
+        ax.fill_between(x, f["ci_low"].to_numpy(dtype=float), f["ci_high"].to_numpy(dtype=float),
+                        color=colors[arm], alpha=0.2, lw=0)
+        jitter = (i - (len(arms) - 1) / 2) * 0.12
+        for b, cell in zip(x, f["per_seed"], strict=True):
+            v = _seed_values(cell)
+            ax.scatter(np.full(len(v), b + jitter), v, s=6, color=colors[arm], alpha=0.6, lw=0)
     ax.set_xlabel("bin")
-    ax.set_ylabel("final failure rate")
+    ax.set_ylabel("failure rate")
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -167,47 +207,84 @@ def plot_final_bin_failure(
 
 
 def plot_mastery(
-    mastery: pd.DataFrame, ax=None, bins: pd.DataFrame | None = None, colors: dict | None = None,
-    threshold: float | None = None,
+    mastery: pd.DataFrame, per_seed: pd.DataFrame | None = None, ax=None, bins: pd.DataFrame | None = None,
+    colors: dict | None = None, threshold: float | None = None,
 ) -> Figure:
-    """Mastery iteration per bin, one line per arm; bins never mastered are drawn as x at the arm's
-    last evaluation (a lower bound). ``mastery`` is metrics.mastery_iterations(..., by=["arm"])."""
+    """Median mastery iteration over seeds per bin, one line per arm; each seed as a dot (x at its last
+    evaluation when it had not mastered the bin by then); a bin whose median was not reached as an
+    open triangle at the arm's last follow-up (a lower bound). ``mastery`` is tables.mastery,
+    ``per_seed`` tables.mastery_seeds."""
     fig, ax = _axes(ax)
     colors = colors or arm_colors(mastery["arm"])
-    for arm, m in mastery.groupby("arm", sort=True):
+    arms = sorted(mastery["arm"].unique())
+    for i, (arm, m) in enumerate(mastery.groupby("arm", sort=True)):
         m = m.sort_values("bin")
-        ax.plot(m["bin"], m["mastery_iteration"], marker="o", ms=3, color=colors[arm], lw=1.2, label=arm)
-        never = m[~m["mastered"]]
+        jitter = (i - (len(arms) - 1) / 2) * 0.12
+        ax.plot(m["bin"], m["mastery_iteration"], marker="o", ms=4, color=colors[arm], lw=1.2, label=arm)
+        never = m[m["mastery_iteration"].isna()]
         if len(never):
-            ax.scatter(never["bin"], never["last_iteration"], marker="x", color=colors[arm], s=30)
+            ax.scatter(never["bin"], never["follow_up"], marker="^", facecolors="none", edgecolors=colors[arm], s=30)
+        if per_seed is not None and len(per_seed):
+            s = per_seed[per_seed["arm"] == arm]
+            got = s[s["mastered"]]
+            ax.scatter(got["bin"] + jitter, got["iteration"], s=6, color=colors[arm], alpha=0.6, lw=0)
+            cen = s[~s["mastered"]]
+            ax.scatter(cen["bin"] + jitter, cen["last_iteration"], s=10, marker="x", color=colors[arm], alpha=0.6,
+                       lw=0.8)
     ax.set_xlabel("bin")
     ax.set_ylabel("mastery iteration")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     if threshold is not None:
-        ax.set_title(f"first evaluation with failure < {threshold:g} (x: never, at last evaluation)", fontsize=8)
+        ax.set_title(f"median over seeds of the first sustained failure < {threshold:g}\n"
+                     "dots: seeds; x: seed not there by its last evaluation; open ^: median not reached", fontsize=7)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     _mark_segments(ax, bins)
     return fig
 
 
-def plot_speedup(speedup: pd.DataFrame, ax=None, colors: dict | None = None) -> Figure:
-    """Speedup against the baseline per arm and measure, with 95 % bootstrap intervals; 1 = no change.
+STATUS_MARKS = {"estimate": "", "lower_bound": "≥", "upper_bound": "≤", "not_estimable": "n/e"}
+"""How plot_speedup labels a bar of each speedup status."""
 
-    ``speedup`` has ``arm, measure, ratio, ci_low, ci_high`` (NaN intervals are drawn without bars).
+
+def plot_speedup(speedup: pd.DataFrame, per_seed: pd.DataFrame | None = None, ax=None,
+                 colors: dict | None = None) -> Figure:
+    """Speedup against the baseline per arm and measure; 1 = no change. Bars show the estimate or the
+    bound (labelled ≥ / ≤; n/e: not estimable, no bar), whiskers the bootstrap interval where there is
+    one, dots ``per_seed`` (``arm, measure, value``: baseline median / that arm seed's time).
     """
     fig, ax = _axes(ax)
     colors = colors or arm_colors(speedup["arm"])
     measures = list(dict.fromkeys(speedup["measure"]))
     arms = sorted(speedup["arm"].unique())
     width = 0.8 / max(len(arms), 1)
+    top = 1.0
     for i, arm in enumerate(arms):
         s = speedup[speedup["arm"] == arm].set_index("measure").reindex(measures)
         x = np.arange(len(measures)) + (i - (len(arms) - 1) / 2) * width
         ratio = s["ratio"].to_numpy(dtype=float)
-        err = np.vstack([ratio - s["ci_low"].to_numpy(dtype=float), s["ci_high"].to_numpy(dtype=float) - ratio])
-        ax.bar(x, np.nan_to_num(ratio, posinf=0.0), width, color=colors[arm], label=arm)
-        ax.errorbar(x, ratio, yerr=np.nan_to_num(np.abs(err), posinf=0.0), fmt="none", ecolor="0.2", capsize=3, lw=1)
+        shown = np.where(np.isfinite(ratio), ratio, 0.0)
+        ax.bar(x, shown, width, color=colors[arm], label=arm, alpha=0.85)
+        low, high = s["ci_low"].to_numpy(dtype=float), s["ci_high"].to_numpy(dtype=float)
+        has = np.isfinite(low) & np.isfinite(high) & np.isfinite(ratio)
+        if has.any():
+            ax.errorbar(x[has], ratio[has], yerr=np.abs(np.vstack([ratio[has] - low[has], high[has] - ratio[has]])),
+                        fmt="none", ecolor="0.2", capsize=3, lw=1)
+            top = max(top, float(np.max(high[has])))
+        for xi, r, status in zip(x, ratio, s["status"].fillna("not_estimable"), strict=True):
+            mark = STATUS_MARKS.get(status, "")
+            if mark:
+                ax.annotate(mark, (xi, r if np.isfinite(r) else 0.0), ha="center", va="bottom", fontsize=8,
+                            xytext=(0, 2), textcoords="offset points")
+        if per_seed is not None and len(per_seed):
+            for j, measure in enumerate(measures):
+                v = per_seed[(per_seed["arm"] == arm) & (per_seed["measure"] == measure)]["value"].to_numpy(float)
+                v = v[np.isfinite(v)]
+                ax.scatter(np.full(len(v), x[j]), v, s=8, color="0.15", zorder=3, lw=0)
+                top = max(top, float(v.max()) if len(v) else top)
+        top = max(top, float(np.nanmax(np.where(np.isfinite(ratio), ratio, np.nan))) if np.isfinite(ratio).any() else top)
     ax.axhline(1.0, color="0.2", lw=0.8, ls="--")
+    ax.set_ylim(0, top * 1.15)
     ax.set_xticks(np.arange(len(measures)), labels=[m.replace("_", " ") for m in measures], fontsize=8)
     ax.set_ylabel("speedup (baseline / arm)")
     ax.grid(alpha=0.3, axis="y")
@@ -216,11 +293,14 @@ def plot_speedup(speedup: pd.DataFrame, ax=None, colors: dict | None = None) -> 
 
 
 def plot_sensitivity(
-    sens: pd.DataFrame, metric: str, ax=None, reference: dict | None = None, colors: dict | None = None
+    sens: pd.DataFrame, metric: str, ax=None, reference: dict | None = None, colors: dict | None = None,
+    per_seed: pd.DataFrame | None = None,
 ) -> Figure:
-    """One swept key against a metric: IQM with 95 % interval per value, one line per combination of
-    the other swept keys (``series``); ``reference`` {label: value} draws horizontal lines (e.g. the
-    baseline arm). ``sens`` has ``key, value, series, metric, iqm, ci_low, ci_high`` for one key."""
+    """One swept key against a metric: point estimate with its interval (bootstrap or range of the seeds)
+    per value, one line per combination of the other swept keys (``series``), each seed as a dot
+    (``per_seed``: ``arm, value`` rows of tables.per_run_metrics for this metric); ``reference``
+    {label: value} draws horizontal lines (e.g. the baseline arm). ``sens`` has ``key, value, series,
+    arm, metric, point, ci_low, ci_high`` for one key."""
     fig, ax = _axes(ax, figsize=(4.8, 3.4))
     s = sens[sens["metric"] == metric]
     key = s["key"].iloc[0] if len(s) else ""
@@ -228,15 +308,21 @@ def plot_sensitivity(
     palette = colors or arm_colors(series)
     for name in series:
         d = s[s["series"] == name].sort_values("value")
-        y = d["iqm"].to_numpy(dtype=float)
+        y = d["point"].to_numpy(dtype=float)
         err = np.abs(np.vstack([y - d["ci_low"].to_numpy(dtype=float), d["ci_high"].to_numpy(dtype=float) - y]))
         ax.errorbar(d["value"].astype(float), y, yerr=np.nan_to_num(err), marker="o", ms=4, capsize=3,
                     color=palette.get(name), label=name or key)
+        if per_seed is not None and len(per_seed):
+            x_of = dict(zip(d["arm"], d["value"].astype(float), strict=True))
+            pts = per_seed[per_seed["arm"].isin(x_of)]
+            ax.scatter(pts["arm"].map(x_of), pts["value"], s=8, color=palette.get(name), alpha=0.6, lw=0)
     for i, (label, value) in enumerate((reference or {}).items()):
         if np.isfinite(value):
             ax.axhline(value, color=f"{0.2 + 0.2 * i:.1f}", lw=0.8, ls="--", label=label)
     ax.set_xlabel(key)
     ax.set_ylabel(SENSITIVITY_LABELS.get(metric, metric.replace("_", " ")))
+    if metric in ("bins_mastered", "time_iteration"):
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     return fig

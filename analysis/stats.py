@@ -1,21 +1,51 @@
-"""Statistics over seeds: interquartile mean and percentile bootstrap intervals.
+"""Statistics over seeds: point estimates, intervals, permutation tests and censored medians.
 
-Seeds are the unit of resampling. With several groups (arms) each group is resampled on its own
-(a stratified bootstrap), so a ratio between arms keeps each arm's seed count. All randomness comes
-from ``numpy.random.default_rng(seed)``: the same inputs give the same interval, which keeps reports
-reproducible.
+The rules a reviewer would apply, in one place:
+
+- Point estimate: the interquartile mean (IQM) from ``MIN_SEEDS_IQM`` = 4 seeds up, else the mean;
+  every estimate carries its label (``point_label``).
+- Interval: a bootstrap over seeds (``scipy.stats.bootstrap``; BCa where it is defined, else
+  percentile; several samples are resampled independently, i.e. stratified by arm) only when every
+  arm of the comparison has at least ``MIN_SEEDS_BOOTSTRAP`` = 5 seeds. With fewer seeds a bootstrap
+  interval mostly shows which seeds were drawn (with 3 seeds the "95 %" percentile interval is
+  about the range of the seeds and covers the mean about 75 % of the time), so the per-seed values
+  and their range are shown instead, labelled "range of n seeds" (``ci_method="range"``).
+- A difference between two arms gets a two-sided permutation-test p-value
+  (``scipy.stats.permutation_test``), exact (every relabelling) when there are at most
+  ``EXACT_PERMUTATIONS`` of them, else from ``n_resamples`` random ones.
+- Times to an event (a bin mastered, a success threshold reached) are censored at a seed's last
+  evaluation when the event never came. Their per-arm summary is the Kaplan-Meier median
+  (``km_median``): defined only when more than half of the seeds had the event (earlier censoring
+  handled as in Kaplan-Meier), else "not reached". Two arms' times are compared with a permutation
+  test of Gehan's generalised Wilcoxon scores (``gehan_scores``), which treat a censored time as
+  "later than anything observed before it".
+
+All randomness comes from fixed seeds, so the same runs always give the same report.
 """
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable
 
 import numpy as np
-import pandas as pd
+from scipy import stats as sps
 
 DEFAULT_RESAMPLES = 2000
-"""Bootstrap resamples used by the report; enough for stable 95 % percentile bounds."""
+"""Bootstrap resamples used by the report."""
+
+MIN_SEEDS_BOOTSTRAP = 5
+"""Fewest seeds per arm for which bootstrap intervals are drawn (else the range of the seeds)."""
+
+MIN_SEEDS_IQM = 4
+"""Fewest seeds for which the point estimate is the IQM (else the mean)."""
+
+EXACT_PERMUTATIONS = 20_000
+"""Permutation tests enumerate every relabelling up to this many (e.g. 7 vs 7 seeds: 3432)."""
+
+CI_METHODS = ("bootstrap_bca", "bootstrap_percentile", "range")
+"""Values of the ``ci_method`` column."""
 
 
 def iqm(values, axis: int | None = None):
@@ -44,95 +74,205 @@ def iqm(values, axis: int | None = None):
     return float(out) if out.ndim == 0 else out
 
 
-def _iqm_seeds(x):
-    return iqm(x, axis=0)
+def point_label(n: int) -> str:
+    """``"iqm"`` from MIN_SEEDS_IQM seeds up, else ``"mean"``: which statistic ``point`` takes."""
+    return "iqm" if n >= MIN_SEEDS_IQM else "mean"
 
 
-def bootstrap_ci(
-    *samples,
-    statistic: Callable = _iqm_seeds,
-    n_resamples: int = DEFAULT_RESAMPLES,
-    confidence: float = 0.95,
-    seed: int = 0,
-):
-    """Point estimate and percentile bootstrap interval of ``statistic(*samples)``.
+def point(values, axis: int | None = None):
+    """The point estimate over seeds: IQM from MIN_SEEDS_IQM finite values up, else the mean."""
+    x = np.asarray(values, dtype=float)
+    if axis is None:
+        x = x.reshape(-1)
+        return iqm(x) if np.sum(~np.isnan(x)) >= MIN_SEEDS_IQM else _nanmean(x)
+    n = np.sum(~np.isnan(x), axis=axis)
+    return np.where(n >= MIN_SEEDS_IQM, iqm(x, axis=axis), _nanmean(x, axis=axis))
 
-    Each sample is an array whose first axis is seeds (``[n_seeds]`` or ``[n_seeds, n_points]``);
-    every resample draws seeds with replacement from each sample independently (stratified by
-    sample). ``statistic`` must reduce axis 0 (the seeds) and act elementwise on any further axes,
-    e.g. ``lambda x: iqm(x, axis=0)`` (the default) or ``lambda b, a: iqm(b, axis=0) / iqm(a, axis=0)``
-    for a ratio of two arms: resamples are evaluated in batches stacked on axis 1, which makes
-    thousands of resamples cost a few array operations. Returns ``(point, low, high)``, floats or
-    arrays of the statistic's shape; resamples that give NaN (e.g. no seed with a value) are ignored.
-    """
-    if not samples:
-        raise ValueError("bootstrap_ci needs at least one sample")
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    arrays = [np.asarray(s, dtype=float) for s in samples]
-    for a in arrays:
-        if a.ndim == 0 or a.shape[0] == 0:
-            raise ValueError("bootstrap_ci: every sample needs at least one seed")
-    point = np.asarray(statistic(*arrays), dtype=float)
-    rng = np.random.default_rng(seed)
-    indices = [rng.integers(0, a.shape[0], size=(a.shape[0], n_resamples)) for a in arrays]
-    batch = max(1, int(4_000_000 // max(a.size for a in arrays)))
-    draws = np.concatenate([
-        np.asarray(statistic(*(a[idx[:, i:i + batch]] for a, idx in zip(arrays, indices, strict=True))), float)
-        for i in range(0, n_resamples, batch)
-    ])
-    alpha = (1.0 - confidence) / 2.0
+
+def _nanmean(x, axis=None):
     with warnings.catch_warnings():
-        # A point where every resample is NaN gets a NaN interval; numpy warns about that.
-        warnings.simplefilter("ignore", RuntimeWarning)
-        low, high = np.nanquantile(draws, [alpha, 1.0 - alpha], axis=0)
-    if point.ndim == 0:
-        return float(point), float(low), float(high)
-    return point, np.asarray(low), np.asarray(high)
+        warnings.simplefilter("ignore", RuntimeWarning)  # a slice with no value: NaN, not a warning
+        return np.nanmean(x, axis=axis)
 
 
-def aggregate_over_seeds(
-    df: pd.DataFrame,
-    value: str,
-    by: list[str],
-    x: str,
+def bootstrap_interval(
+    samples: tuple[np.ndarray, ...],
+    statistic: Callable,
     n_resamples: int = DEFAULT_RESAMPLES,
     confidence: float = 0.95,
     seed: int = 0,
-    unit: str = "seed",
-) -> pd.DataFrame:
-    """IQM over seeds with a bootstrap interval, for each group in ``by`` and each value of ``x``.
+) -> tuple[float, float, str]:
+    """``(low, high, ci_method)`` of ``statistic(*samples, axis=-1)`` by ``scipy.stats.bootstrap``.
 
-    ``df`` is tidy with columns ``unit`` (the resampled unit: ``seed``, or ``run_dir`` so that two
-    runs that share a seed stay two samples), ``x``, ``value`` and ``by``. Within a group the units
-    are resampled together across all ``x`` (a seed's whole curve moves as one). Returns columns
-    ``by + [x, "iqm", "mean", "ci_low", "ci_high", "n_seeds"]``; ``n_seeds`` counts the units with a
-    value at that ``x`` (fewer where a run stopped early).
+    Each sample is a 1-D array over seeds, resampled independently of the others. BCa is tried first;
+    where it is undefined (degenerate data, e.g. every seed equal, or NaN acceleration) the
+    percentile interval of the same resamples is used. ``statistic`` must be vectorised (reduce the
+    last axis).
     """
-    rows = []
-    for key, group in df.groupby(by, sort=True):
-        key = key if isinstance(key, tuple) else (key,)
-        group = group.dropna(subset=[value])
-        if group.empty:  # e.g. no episode finished yet in a very short run: no curve, not an error
-            continue
-        wide = group.pivot_table(index=unit, columns=x, values=value, aggfunc="mean")
-        matrix = wide.to_numpy(dtype=float)
-        point, low, high = bootstrap_ci(
-            matrix,
-            n_resamples=n_resamples,
-            confidence=confidence,
-            seed=seed,
-        )
-        point, low, high = np.atleast_1d(point), np.atleast_1d(low), np.atleast_1d(high)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # an x where no seed has a value
-            mean = np.nanmean(matrix, axis=0)
-        n = np.sum(~np.isnan(matrix), axis=0)
-        for j, xv in enumerate(wide.columns):
-            rows.append((*key, xv, point[j], mean[j], low[j], high[j], int(n[j])))
-    return pd.DataFrame(rows, columns=[*by, x, "iqm", "mean", "ci_low", "ci_high", "n_seeds"])
+    data = tuple(np.asarray(s, dtype=float) for s in samples)
+    if any(len(s) < 2 for s in data):
+        raise ValueError("bootstrap_interval: every sample needs at least 2 seeds")
+    kw = dict(statistic=statistic, n_resamples=n_resamples, confidence_level=confidence, vectorized=True,
+              rng=np.random.default_rng(seed))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy warns when BCa is undefined; that case is handled below
+        res = sps.bootstrap(data, method="BCa", **kw)
+        low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        if math.isfinite(low) and math.isfinite(high) and low <= high:
+            return low, high, "bootstrap_bca"
+        kw["rng"] = np.random.default_rng(seed)
+        res = sps.bootstrap(data, method="percentile", **kw)
+    return float(res.confidence_interval.low), float(res.confidence_interval.high), "bootstrap_percentile"
 
 
-def intervals_overlap(a_low: float, a_high: float, b_low: float, b_high: float) -> bool:
-    """Whether two intervals share a point (the report's "within noise" test for two arms)."""
-    return bool(max(a_low, b_low) <= min(a_high, b_high))
+def seed_interval(
+    values, bootstrap: bool, n_resamples: int = DEFAULT_RESAMPLES, confidence: float = 0.95, seed: int = 0
+) -> tuple[float, float, float, str]:
+    """``(point, low, high, ci_method)`` of one arm's per-seed values (NaNs dropped).
+
+    ``bootstrap`` (the caller's decision: every arm of the comparison has MIN_SEEDS_BOOTSTRAP seeds)
+    gives a bootstrap interval of the point statistic; otherwise the interval is the range of the
+    seeds (``"range"``). No value: all NaN.
+    """
+    x = np.asarray(values, dtype=float).reshape(-1, 1)
+    if np.isnan(x).all():
+        return math.nan, math.nan, math.nan, ""
+    p, low, high, method = curve_intervals(x, bootstrap, n_resamples, confidence, seed)
+    return float(p[0]), float(low[0]), float(high[0]), method[0]
+
+
+def curve_intervals(
+    matrix: np.ndarray, bootstrap: bool, n_resamples: int = DEFAULT_RESAMPLES, confidence: float = 0.95,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """``seed_interval`` of every column of ``matrix`` [seeds, points] (NaN: that seed has no value
+    there), as arrays ``(point, low, high, ci_method)``. Columns with the same seeds present are
+    bootstrapped together (scipy evaluates them as one vectorised batch)."""
+    m = np.asarray(matrix, dtype=float)
+    cols = m.shape[1]
+    pt = np.asarray(point(m, axis=0), dtype=float).reshape(cols)
+    low, high = np.full(cols, np.nan), np.full(cols, np.nan)
+    method = [""] * cols
+    present = ~np.isnan(m)
+    count = present.sum(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lo_r, hi_r = np.nanmin(m, axis=0), np.nanmax(m, axis=0)
+    for j in np.flatnonzero(count > 0):
+        if not bootstrap or count[j] < 2 or lo_r[j] == hi_r[j]:
+            low[j], high[j] = (lo_r[j], hi_r[j]) if not bootstrap or count[j] < 2 else (pt[j], pt[j])
+            method[j] = "range" if not bootstrap or count[j] < 2 else "bootstrap_percentile"
+    todo = [j for j in range(cols) if not method[j] and count[j] > 0]
+    patterns: dict[bytes, list[int]] = {}
+    for j in todo:
+        patterns.setdefault(present[:, j].tobytes(), []).append(j)
+    for cols_j in patterns.values():
+        sub = m[present[:, cols_j[0]]][:, cols_j]
+        n = sub.shape[0]
+        stat = (lambda a, axis=-1: iqm(a, axis=axis)) if n >= MIN_SEEDS_IQM else np.mean
+        for kind in ("BCa", "percentile"):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = sps.bootstrap((sub,), stat, n_resamples=n_resamples, confidence_level=confidence,
+                                    vectorized=True, axis=0, method=kind, rng=np.random.default_rng(seed))
+            lo, hi = np.atleast_1d(res.confidence_interval.low), np.atleast_1d(res.confidence_interval.high)
+            for k, j in enumerate(cols_j):
+                if not method[j] and np.isfinite(lo[k]) and np.isfinite(hi[k]) and lo[k] <= hi[k]:
+                    low[j], high[j] = lo[k], hi[k]
+                    method[j] = "bootstrap_bca" if kind == "BCa" else "bootstrap_percentile"
+    return pt, low, high, method
+
+
+def permutation_pvalue(a, b, statistic: Callable | None = None, n_resamples: int = 9999, seed: int = 0) -> float:
+    """Two-sided permutation-test p-value of ``statistic(a, b)`` (default: difference of means).
+
+    Exact (every split of the pooled values into groups of the two sizes) when there are at most
+    EXACT_PERMUTATIONS splits, else from ``n_resamples`` random splits. NaN with fewer than one value
+    per group. With 3 vs 3 seeds there are 20 splits, so no p-value can be below 0.1.
+    """
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    a, b = a[~np.isnan(a)], b[~np.isnan(b)]
+    if not len(a) or not len(b):
+        return math.nan
+    if np.all(np.concatenate([a, b]) == a[0]):
+        return 1.0
+    if statistic is None:
+        def statistic(x, y, axis=-1):
+            return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+    splits = math.comb(len(a) + len(b), len(a))
+    res = sps.permutation_test(
+        (a, b), statistic, permutation_type="independent", alternative="two-sided", vectorized=True,
+        n_resamples=np.inf if splits <= EXACT_PERMUTATIONS else n_resamples, rng=np.random.default_rng(seed),
+    )
+    return float(min(1.0, res.pvalue))
+
+
+def km_median(time, event, axis: int = -1):
+    """Kaplan-Meier median of times with right-censoring, along ``axis``.
+
+    ``time`` is the event time where ``event`` is true, else the censoring time (the event had not
+    happened by then). The survival curve S drops by the fraction of those still at risk at each
+    event (events before censorings at equal times). The median is the first time where S < 0.5;
+    where S stays exactly 0.5 from an event on, the midpoint between that event and the next one
+    (which gives the ordinary median for uncensored data). NaN when S never gets below 0.5: fewer
+    than half of the seeds had the event ("not reached").
+    """
+    t = np.moveaxis(np.asarray(time, dtype=float), axis, -1)
+    e = np.moveaxis(np.asarray(event, dtype=bool), axis, -1)
+    n = t.shape[-1]
+    if n == 0:
+        return np.full(t.shape[:-1], np.nan) if t.ndim > 1 else math.nan
+    order = np.argsort(np.where(e, 0, 1), axis=-1, kind="stable")  # events first ...
+    t, e = np.take_along_axis(t, order, -1), np.take_along_axis(e, order, -1)
+    order = np.argsort(t, axis=-1, kind="stable")  # ... then by time, keeping that order at ties
+    t, e = np.take_along_axis(t, order, -1), np.take_along_axis(e, order, -1)
+    at_risk = n - np.arange(n)
+    surv = np.cumprod(np.where(e, 1.0 - 1.0 / at_risk, 1.0), axis=-1)
+    eps = 1e-9
+    le = surv <= 0.5 + eps
+    lt = surv < 0.5 - eps
+    j = np.argmax(le, axis=-1)[..., None]
+    k = np.argmax(lt, axis=-1)[..., None]
+    tj = np.take_along_axis(t, j, -1)[..., 0]
+    tk = np.take_along_axis(t, k, -1)[..., 0]
+    half = np.abs(np.take_along_axis(surv, j, -1)[..., 0] - 0.5) <= eps
+    out = np.where(half, np.where(lt.any(-1), 0.5 * (tj + tk), np.nan), tj)
+    out = np.where(le.any(-1), out, np.nan)
+    return float(out) if out.ndim == 0 else out
+
+
+def gehan_scores(time, event) -> np.ndarray:
+    """Gehan's score of each subject in a pooled sample, as lateness: (# surely earlier than it) -
+    (# surely later than it).
+
+    ``i`` is surely earlier than ``j`` when ``i`` had its event and ``t_i < t_j``, or ``t_i == t_j``
+    with ``j`` censored. Summed over one group these give Gehan's generalised Wilcoxon statistic; a
+    permutation test of the groups' mean scores compares two sets of censored times (lower: sooner).
+    For uncensored data it is the Wilcoxon rank-sum test.
+    """
+    t = np.asarray(time, dtype=float)
+    e = np.asarray(event, dtype=bool)
+    ti, tj = t[:, None], t[None, :]
+    earlier = e[:, None] & ((ti < tj) | ((ti == tj) & ~e[None, :]))  # earlier[i, j]: i surely before j
+    return earlier.sum(axis=0) - earlier.sum(axis=1)
+
+
+def censored_pvalue(time_a, event_a, time_b, event_b, n_resamples: int = 9999, seed: int = 0) -> float:
+    """Two-sided permutation p-value for a difference between two arms' censored times (Gehan scores)."""
+    time = np.concatenate([np.asarray(time_a, float), np.asarray(time_b, float)])
+    event = np.concatenate([np.asarray(event_a, bool), np.asarray(event_b, bool)])
+    if not event.any():
+        return math.nan  # no seed of either arm had the event: nothing to compare
+    scores = gehan_scores(time, event).astype(float)
+    na = len(np.asarray(time_a))
+    return permutation_pvalue(scores[:na], scores[na:], n_resamples=n_resamples, seed=seed)
+
+
+def restricted_km_median(time, event, axis: int = -1):
+    """km_median, with "not reached" replaced by the largest follow-up time (a lower bound on the
+    median): finite, so bootstrap resamples of an arm whose median is sometimes not reached still
+    give a number. Only used inside resamples; the reported status comes from km_median itself."""
+    med = km_median(time, event, axis=axis)
+    follow = np.max(np.moveaxis(np.asarray(time, dtype=float), axis, -1), axis=-1)
+    return np.where(np.isnan(med), follow, med) if np.ndim(med) else (follow if math.isnan(med) else med)

@@ -1,12 +1,14 @@
 """The report's tables, computed from the tidy frames of ``analysis.load``.
 
 Each function takes the loaded tables and returns one tidy frame that is written as a CSV and
-drawn by ``analysis.plots``. Intervals are 95 % percentile bootstraps over seeds with a fixed RNG
-seed (``ReportOptions.bootstrap_seed``), so the same runs always give the same report.
+drawn by ``analysis.plots``. The statistics follow ``analysis.stats`` (IQM from 4 seeds, bootstrap
+intervals only when every arm has 5 seeds, else the range of the seeds; permutation p-values) and
+the metric definitions ``analysis.metrics``. Fixed RNG seeds: the same runs always give the same report.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,15 +17,23 @@ import pandas as pd
 from analysis import AnalysisError
 from analysis.metrics import (
     MEASURES,
-    censored,
-    final_rows,
-    mastery_iterations,
-    mastery_speedup,
+    arm_time,
+    at_budget,
+    event_times,
+    mastery_per_seed,
     overall_failure,
     speedup,
     time_to_threshold,
 )
-from analysis.stats import DEFAULT_RESAMPLES, aggregate_over_seeds, bootstrap_ci, iqm
+from analysis.stats import (
+    DEFAULT_RESAMPLES,
+    MIN_SEEDS_BOOTSTRAP,
+    MIN_SEEDS_IQM,
+    curve_intervals,
+    iqm,
+    permutation_pvalue,
+    seed_interval,
+)
 
 
 @dataclass(frozen=True)
@@ -31,7 +41,10 @@ class ReportOptions:
     """Thresholds and statistics settings of a report."""
 
     mastery_threshold: float = 0.1
-    """A bin is mastered at the first evaluation where its failure rate is below this."""
+    """A bin counts as mastered at an evaluation where its failure rate is below this."""
+
+    mastery_persist: int = 2
+    """Mastery (and time to threshold) needs this many consecutive evaluations, or the rest of the run."""
 
     success_threshold: float = 0.9
     """Overall evaluated success (1 - mean failure over bins) an arm must reach for time to threshold."""
@@ -45,8 +58,21 @@ class ReportOptions:
     confidence: float = 0.95
     """Coverage of the bootstrap intervals."""
 
+    alpha: float = 0.05
+    """A difference is claimed when its permutation-test p-value is below this."""
+
+    n_permutations: int = 9999
+    """Random relabellings of a permutation test too large to enumerate (stats.EXACT_PERMUTATIONS)."""
+
     bootstrap_seed: int = 0
-    """RNG seed of every bootstrap, for reproducible reports."""
+    """RNG seed of every bootstrap and permutation test, for reproducible reports."""
+
+    budget_tolerance: float = 0.05
+    """The report warns when the runs compared completed iteration counts differing by more than this
+    fraction of the largest."""
+
+    max_curve_points: int = 200
+    """Training curves are drawn at most at this many evenly spaced iterations (plus the last)."""
 
 
 CURVE_METRICS = {
@@ -56,13 +82,11 @@ CURVE_METRICS = {
 }
 """Learning-curve metric -> (source table, axis label)."""
 
+SUMMARY_COLUMNS = ["arm", "n_seeds", "metric", "mean", "iqm", "ci_low", "ci_high", "ci_method", "per_seed"]
+"""Columns of summary.csv: one row per arm and metric."""
 
-def _boot(values, opts: ReportOptions) -> tuple[float, float, float]:
-    values = np.asarray(values, dtype=float)
-    values = values[~np.isnan(values)]
-    if not len(values):
-        return np.nan, np.nan, np.nan
-    return bootstrap_ci(values, n_resamples=opts.n_resamples, confidence=opts.confidence, seed=opts.bootstrap_seed)
+SPEEDUP_COLUMNS = ["arm", "baseline", "measure", "ratio", "ci_low", "ci_high", "status", "p_value"]
+"""Columns of speedup.csv: one row per arm and measure."""
 
 
 def choose_baseline(runs: pd.DataFrame, baseline: str | None) -> tuple[str | None, str]:
@@ -81,18 +105,272 @@ def choose_baseline(runs: pd.DataFrame, baseline: str | None) -> tuple[str | Non
     return uniform[0], note
 
 
-def learning_curves(train: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
-    """``arm, metric, iteration, iqm, mean, ci_low, ci_high, n_seeds`` for every CURVE_METRICS entry."""
+def seeds_per_arm(runs: pd.DataFrame) -> pd.Series:
+    """Included runs per arm (the seeds every statistic is over)."""
+    inc = runs[runs["included"]]
+    return inc.groupby("arm")["run_dir"].nunique()
+
+
+def use_bootstrap(runs: pd.DataFrame) -> bool:
+    """Bootstrap intervals only when every arm with usable runs has MIN_SEEDS_BOOTSTRAP seeds."""
+    n = seeds_per_arm(runs)
+    return bool(len(n)) and int(n.min()) >= MIN_SEEDS_BOOTSTRAP
+
+
+def interval_label(runs: pd.DataFrame, opts: ReportOptions) -> str:
+    """How the report's intervals are made, in words."""
+    n = seeds_per_arm(runs)
+    if use_bootstrap(runs):
+        return (f"{opts.confidence:.0%} bootstrap intervals over seeds (BCa where defined, else percentile; "
+                f"{opts.n_resamples} resamples, RNG seed {opts.bootstrap_seed})")
+    fewest = int(n.min()) if len(n) else 0
+    return (f"no bootstrap intervals: an arm has {fewest} seed{'s' if fewest != 1 else ''} (< {MIN_SEEDS_BOOTSTRAP}); "
+            "brackets give the range of the seeds (\"range of n seeds\")")
+
+
+def thin_iterations(iterations, max_points: int) -> np.ndarray:
+    """At most ``max_points`` evenly spaced values of the sorted unique ``iterations``, plus the last."""
+    its = np.unique(np.asarray(iterations))
+    if len(its) <= max_points:
+        return its
+    keep = np.unique(np.r_[np.linspace(0, len(its) - 1, max_points).round().astype(int), len(its) - 1])
+    return its[keep]
+
+
+def seed_curves(train: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """Per-run curves ``arm, run_dir, seed, metric, iteration, value`` for every CURVE_METRICS entry
+    (training metrics at most ``max_curve_points`` iterations): the thin lines of the figures."""
     frames = []
     for metric, (source, _) in CURVE_METRICS.items():
         df = train if source == "train_metrics" else overall.rename(columns={"failure_rate": metric})
-        if not len(df):
+        if not len(df) or metric not in df:
             continue
-        curve = aggregate_over_seeds(df, metric, by=["arm"], x="iteration", n_resamples=opts.n_resamples,
-                                     confidence=opts.confidence, seed=opts.bootstrap_seed, unit="run_dir")
-        curve.insert(1, "metric", metric)
-        frames.append(curve)
+        if source == "train_metrics":
+            df = df[df["iteration"].isin(thin_iterations(df["iteration"], opts.max_curve_points))]
+        frames.append(df[["arm", "run_dir", "seed", "iteration", metric]].rename(columns={metric: "value"})
+                      .assign(metric=metric).dropna(subset=["value"]))
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def learning_curves(per_seed: pd.DataFrame, runs: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """``arm, metric, iteration, n_seeds, point, point_label, mean, iqm, ci_low, ci_high, ci_method`` over
+    the seeds of ``per_seed`` (seed_curves)."""
+    boot = use_bootstrap(runs)
+    frames = []
+    for (metric, arm), g in (per_seed.groupby(["metric", "arm"], sort=True) if len(per_seed) else ()):
+        wide = g.pivot_table(index="run_dir", columns="iteration", values="value", aggfunc="mean")
+        m = wide.to_numpy(dtype=float)
+        p, low, high, method = curve_intervals(m, boot, opts.n_resamples, opts.confidence, opts.bootstrap_seed)
+        n = (~np.isnan(m)).sum(axis=0)
+        with np.errstate(all="ignore"):
+            mean = np.nanmean(m, axis=0)
+        q = np.where(n >= MIN_SEEDS_IQM, iqm(m, axis=0), np.nan)
+        frames.append(pd.DataFrame({
+            "arm": arm, "metric": metric, "iteration": wide.columns.to_numpy(), "n_seeds": n, "point": p,
+            "point_label": np.where(n >= MIN_SEEDS_IQM, "iqm", "mean"), "mean": mean, "iqm": q,
+            "ci_low": low, "ci_high": high, "ci_method": method,
+        }))
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def budgets(runs: pd.DataFrame, train: pd.DataFrame) -> pd.DataFrame:
+    """Per included run: completed ``iterations``, ``env_steps`` and ``wall_time_s`` (training's last row)."""
+    if not len(train):
+        return pd.DataFrame(columns=["run_dir", "arm", "seed", "iterations", "env_steps", "wall_time_s"])
+    last = train.sort_values("iteration").groupby("run_dir").tail(1)
+    out = last[["run_dir", "arm", "seed"]].copy()
+    out["iterations"] = last["iteration"].to_numpy() + 1  # rows are numbered from iteration 0
+    out["env_steps"] = last["env_steps"].to_numpy()
+    out["wall_time_s"] = last["wall_time_s"].to_numpy()
+    return out.sort_values(["arm", "seed"]).reset_index(drop=True)
+
+
+def budget_warning(budget: pd.DataFrame, opts: ReportOptions) -> str | None:
+    """A sentence when the runs completed iteration counts that differ by more than the tolerance."""
+    if len(budget) < 2:
+        return None
+    lo, hi = budget["iterations"].min(), budget["iterations"].max()
+    if hi <= 0 or (hi - lo) / hi <= opts.budget_tolerance:
+        return None
+    per_arm = budget.groupby("arm")["iterations"].agg(["min", "max"])
+    detail = "; ".join(f"`{a}` {int(r['min'])}" + (f"-{int(r['max'])}" if r["max"] != r["min"] else "")
+                       for a, r in per_arm.iterrows())
+    return (f"**Warning: unequal budgets.** The runs completed {int(lo)}-{int(hi)} iterations "
+            f"({(hi - lo) / hi:.0%} apart; {detail}). Final numbers are compared at the last evaluation every "
+            "run has; time-to-threshold of the shorter runs is censored earlier. Runs stopped by wall time "
+            "(`time_limit_s`) while sharing a GPU get unequal work: compare arms with `max_iterations`.")
+
+
+def common_budget(overall: pd.DataFrame) -> dict[str, float]:
+    """Per measure, the largest value every run's evaluations reach (the equal-budget comparison point)."""
+    return {m: float(overall.groupby("run_dir")[m].max().min()) for m in ("iteration", "env_steps")}
+
+
+def final_overall(overall: pd.DataFrame, measure: str = "iteration") -> pd.DataFrame:
+    """Each run's evaluation at the common budget in ``measure`` (metrics.at_budget)."""
+    return at_budget(overall, measure, common_budget(overall)[measure])
+
+
+def _per_seed(values: pd.Series) -> str:
+    return ";".join(f"{float(v):.6g}" for v in values)
+
+
+def summary_rows(arm: str, metric: str, per_run: pd.DataFrame, value: str, boot: bool, opts: ReportOptions) -> dict:
+    """One summary.csv row from a frame with one row per run (``seed`` and ``value``)."""
+    per_run = per_run.sort_values("seed")
+    v = per_run[value].to_numpy(dtype=float)
+    v = v[~np.isnan(v)]
+    _, low, high, method = seed_interval(v, boot, opts.n_resamples, opts.confidence, opts.bootstrap_seed)
+    return {
+        "arm": arm, "n_seeds": len(v), "metric": metric,
+        "mean": float(np.mean(v)) if len(v) else math.nan,
+        "iqm": iqm(v) if len(v) >= MIN_SEEDS_IQM else math.nan,
+        "ci_low": low, "ci_high": high, "ci_method": method, "per_seed": _per_seed(v),
+    }
+
+
+def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget) -> dict[str, pd.DataFrame]:
+    """metric -> one row per run (``run_dir, arm, seed, value``): the per-seed numbers summary.csv is over.
+
+    - ``final_failure``: overall failure at the last evaluation iteration every run has;
+    - ``final_failure_equal_env_steps``: the same at equal env steps (only when runs differ in env
+      steps per iteration);
+    - ``final_failure_robust``: the last robust evaluation (eval_robust.parquet), where present;
+    - ``bins_mastered``: bins the run mastered (persistent, counts_as_mastered);
+    - ``iterations``, ``env_steps``, ``wall_time_s``: what the run completed.
+    """
+    out = {}
+    keep = ["run_dir", "arm", "seed"]
+    if len(overall):
+        f = final_overall(overall, "iteration")
+        out["final_failure"] = f[keep].assign(value=f["failure_rate"].to_numpy())
+        steps_per_it = overall[overall["iteration"] > 0].eval("env_steps / iteration").round(6)
+        if steps_per_it.nunique() > 1:
+            f = final_overall(overall, "env_steps")
+            out["final_failure_equal_env_steps"] = f[keep].assign(value=f["failure_rate"].to_numpy())
+    if robust_overall is not None and len(robust_overall):
+        f = robust_overall.sort_values("iteration").groupby("run_dir").tail(1)
+        out["final_failure_robust"] = f[keep].assign(value=f["failure_rate"].to_numpy())
+    if len(mastery_seeds):
+        m = mastery_seeds.groupby(keep, dropna=False)["mastered"].sum().reset_index()
+        out["bins_mastered"] = m[keep].assign(value=m["mastered"].astype(float).to_numpy())
+    for col in ("iterations", "env_steps", "wall_time_s"):
+        if len(budget):
+            out[col] = budget[keep].assign(value=budget[col].astype(float).to_numpy())
+    return out
+
+
+def summary(per_run: dict[str, pd.DataFrame], runs: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """summary.csv: SUMMARY_COLUMNS, one row per arm and metric of ``per_run``."""
+    boot = use_bootstrap(runs)
+    rows = []
+    for metric, df in per_run.items():
+        for arm, g in df.groupby("arm", sort=True):
+            rows.append(summary_rows(arm, metric, g, "value", boot, opts))
+    return pd.DataFrame(rows, columns=SUMMARY_COLUMNS)
+
+
+def comparisons(per_run: dict[str, pd.DataFrame], metric: str, opts: ReportOptions) -> pd.DataFrame:
+    """Every arm against the arm with the lowest point estimate of ``metric`` (lower is better):
+    ``metric, arm, best, point, best_point, difference, p_value, claim`` where ``claim`` means
+    p < alpha (two-sided permutation test of the per-seed values) and the points differ."""
+    if metric not in per_run:
+        return pd.DataFrame()
+    df = per_run[metric]
+    values = {a: g.sort_values("seed")["value"].to_numpy(dtype=float) for a, g in df.groupby("arm", sort=True)}
+    points = {a: (iqm(v) if len(v) >= MIN_SEEDS_IQM else float(np.mean(v))) for a, v in values.items()}
+    best = min(points, key=lambda a: (points[a], a))
+    rows = []
+    for arm, v in values.items():
+        if arm == best:
+            continue
+        p = permutation_pvalue(v, values[best], n_resamples=opts.n_permutations, seed=opts.bootstrap_seed)
+        diff = points[arm] - points[best]
+        rows.append((metric, arm, best, points[arm], points[best], diff, p, bool(diff != 0 and p < opts.alpha)))
+    return pd.DataFrame(rows, columns=["metric", "arm", "best", "point", "best_point", "difference", "p_value", "claim"])
+
+
+def run_times(overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """Time to the success threshold per run (metrics.time_to_threshold, with persistence)."""
+    return time_to_threshold(overall, opts.success_threshold, persist=opts.mastery_persist,
+                             by=["run_dir", "arm", "seed"])
+
+
+def time_summary(times: pd.DataFrame) -> pd.DataFrame:
+    """Per arm and measure: ``n_seeds, n_reached, median, follow_up, per_seed`` (Kaplan-Meier median over
+    seeds; NaN = not reached; per_seed lists event times, censored ones as ``>t``)."""
+    rows = []
+    for arm, g in times.groupby("arm", sort=True):
+        g = g.sort_values("seed")
+        for m in MEASURES:
+            t, e = event_times(g, m)
+            s = arm_time(t, e)
+            per_seed = ";".join(f"{x:.6g}" if ev else f">{x:.6g}" for x, ev in zip(t, e, strict=True))
+            rows.append((arm, m, s.n, s.n_reached, s.median, s.follow_up, per_seed))
+    return pd.DataFrame(rows, columns=["arm", "measure", "n_seeds", "n_reached", "median", "follow_up", "per_seed"])
+
+
+def mastery_seeds(eval_df: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """metrics.mastery_per_seed with the report's threshold and persistence."""
+    return mastery_per_seed(eval_df, opts.mastery_threshold, opts.mastery_persist)
+
+
+def mastery(mastery_seed_df: pd.DataFrame, bins: pd.DataFrame) -> pd.DataFrame:
+    """Per ``arm, bin``: ``segment, horizon_truncated, n_seeds, n_mastered, mastery_iteration`` (the
+    Kaplan-Meier median over seeds, NaN = not reached), ``follow_up`` and ``per_seed`` (iterations,
+    ``>t`` for seeds censored at t)."""
+    rows = []
+    for (arm, b), g in mastery_seed_df.groupby(["arm", "bin"], sort=True):
+        g = g.sort_values("seed")
+        t, e = event_times(g, "iteration")
+        s = arm_time(t, e)
+        per_seed = ";".join(f"{x:.6g}" if ev else f">{x:.6g}" for x, ev in zip(t, e, strict=True))
+        rows.append((arm, b, s.n, s.n_reached, s.median, s.follow_up, per_seed))
+    out = pd.DataFrame(rows, columns=["arm", "bin", "n_seeds", "n_mastered", "mastery_iteration", "follow_up",
+                                      "per_seed"])
+    return out.merge(bins[["bin", "segment", "horizon_truncated"]], on="bin", how="left")
+
+
+def speedups(times: pd.DataFrame, mastery_seed_df: pd.DataFrame, baseline: str, runs: pd.DataFrame,
+             opts: ReportOptions) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``(speedup, per_bin)``: speedup.csv (SPEEDUP_COLUMNS; measures: time to the success threshold in
+    iterations, env steps and wall time) and the per-bin mastery speedups (``arm, baseline, bin`` then
+    the same columns), each arm against ``baseline`` (metrics.speedup)."""
+    boot = use_bootstrap(runs)
+    kw = dict(bootstrap=boot, n_resamples=opts.n_resamples, confidence=opts.confidence, seed=opts.bootstrap_seed,
+              n_permutations=opts.n_permutations)
+    rows, bin_rows = [], []
+    base_t = times[times["arm"] == baseline].sort_values("seed")
+    for arm in sorted(set(times["arm"]) - {baseline}):
+        t = times[times["arm"] == arm].sort_values("seed")
+        for m in MEASURES:
+            s = speedup(*event_times(base_t, m), *event_times(t, m), **kw)
+            rows.append((arm, baseline, m, s.ratio, s.ci_low, s.ci_high, s.status, s.p_value))
+    base_m = mastery_seed_df[mastery_seed_df["arm"] == baseline]
+    for (arm, b), g in mastery_seed_df[mastery_seed_df["arm"] != baseline].groupby(["arm", "bin"], sort=True):
+        bm = base_m[base_m["bin"] == b]
+        if not len(bm):
+            continue
+        s = speedup(*event_times(bm.sort_values("seed"), "iteration"), *event_times(g.sort_values("seed"), "iteration"),
+                    **kw)
+        bin_rows.append((arm, baseline, b, s.ratio, s.ci_low, s.ci_high, s.status, s.p_value))
+    cols = ["arm", "baseline", "bin", *SPEEDUP_COLUMNS[3:]]
+    return pd.DataFrame(rows, columns=SPEEDUP_COLUMNS), pd.DataFrame(bin_rows, columns=cols)
+
+
+def speedup_per_seed(times: pd.DataFrame, baseline: str) -> pd.DataFrame:
+    """``arm, seed, measure, value``: the baseline's median time over each arm seed's time (seeds that
+    reached the threshold, while the baseline's median is defined): the dots of the speedup figure."""
+    rows = []
+    base = times[times["arm"] == baseline]
+    for m in MEASURES:
+        median = arm_time(*event_times(base, m)).median
+        if math.isnan(median):
+            continue
+        for r in times[(times["arm"] != baseline) & times["reached"]].itertuples(index=False):
+            value = getattr(r, m)
+            rows.append((r.arm, r.seed, m, median / value if value else math.inf))
+    return pd.DataFrame(rows, columns=["arm", "seed", "measure", "value"])
 
 
 def bin_failure(eval_df: pd.DataFrame) -> pd.DataFrame:
@@ -104,32 +382,39 @@ def bin_failure(eval_df: pd.DataFrame) -> pd.DataFrame:
     )
 
 
-def final_bin_failure(eval_df: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
-    """Each run's last evaluation per bin, aggregated over seeds: ``arm, bin, iqm, ci_low, ci_high,
-    n_seeds, iteration_min, iteration_max`` (the iterations differ when a run is still going)."""
-    last = final_rows(eval_df, by=["run_dir"])
+def final_bin_failure(eval_df: pd.DataFrame, runs: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """Per ``arm, bin`` at the common final iteration: ``n_seeds, point, point_label, ci_low, ci_high,
+    ci_method, per_seed, iteration``."""
+    if not len(eval_df):
+        return pd.DataFrame()
+    common = float(eval_df.groupby("run_dir")["iteration"].max().min())
+    last = at_budget(eval_df, "iteration", common)
+    boot = use_bootstrap(runs)
     frames = []
     for arm, g in last.groupby("arm", sort=True):
-        wide = g.pivot_table(index="run_dir", columns="bin", values="failure_rate", aggfunc="mean")
-        point, low, high = bootstrap_ci(wide.to_numpy(dtype=float), n_resamples=opts.n_resamples,
-                                        confidence=opts.confidence, seed=opts.bootstrap_seed)
-        its = g.groupby("bin")["iteration"]
+        wide = g.pivot_table(index="seed", columns="bin", values="failure_rate", aggfunc="mean").sort_index()
+        m = wide.to_numpy(dtype=float)
+        p, low, high, method = curve_intervals(m, boot, opts.n_resamples, opts.confidence, opts.bootstrap_seed)
+        n = (~np.isnan(m)).sum(axis=0)
         frames.append(pd.DataFrame({
-            "arm": arm, "bin": wide.columns, "iqm": point, "ci_low": low, "ci_high": high,
-            "n_seeds": wide.notna().sum().to_numpy(), "iteration_min": its.min().to_numpy(),
-            "iteration_max": its.max().to_numpy(),
+            "arm": arm, "bin": wide.columns, "n_seeds": n, "point": p,
+            "point_label": np.where(n >= MIN_SEEDS_IQM, "iqm", "mean"), "ci_low": low, "ci_high": high,
+            "ci_method": method, "per_seed": [_per_seed(pd.Series(col[~np.isnan(col)])) for col in m.T],
+            "iteration": common,
         }))
     return pd.concat(frames, ignore_index=True)
 
 
 def segment_failure(eval_df: pd.DataFrame, bins: pd.DataFrame, mastery_df: pd.DataFrame,
-                    segments: pd.DataFrame | None, opts: ReportOptions) -> pd.DataFrame:
-    """Final failure per ``arm, segment``: each run's last evaluation averaged over the segment's bins,
-    then IQM and interval over seeds; with the segment's difficulty (when the motion names one), its
-    bins, and how many of them the arm never mastered. Empty for a motion of fewer than two segments."""
+                    segments: pd.DataFrame | None, runs: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """Final failure per ``arm, segment`` at the common final iteration: the mean over the segment's
+    bins per run, then point and interval over seeds; with the segment's difficulty (when the motion
+    names one), its bins, and how many of them the arm has not mastered (median not reached). Empty
+    for a motion of fewer than two segments."""
     if bins["segment"].nunique() < 2:
         return pd.DataFrame()
-    last = final_rows(eval_df, by=["run_dir"]).drop(columns=["segment"], errors="ignore")
+    common = float(eval_df.groupby("run_dir")["iteration"].max().min())
+    last = at_budget(eval_df, "iteration", common).drop(columns=["segment"], errors="ignore")
     last = last.merge(bins[["bin", "segment"]], on="bin", how="left")
     per_run = last.groupby(["arm", "segment", "run_dir"], sort=False)["failure_rate"].mean().reset_index()
     difficulty = {}
@@ -137,13 +422,15 @@ def segment_failure(eval_df: pd.DataFrame, bins: pd.DataFrame, mastery_df: pd.Da
         difficulty = dict(zip(segments["name"].astype(str), segments["difficulty"].astype(str), strict=True))
     order = list(dict.fromkeys(bins.sort_values("bin")["segment"]))
     never = mastery_df[mastery_df["mastery_iteration"].isna()].groupby(["arm", "segment"]).size()
+    boot = use_bootstrap(runs)
     rows = []
     for (arm, seg), g in per_run.groupby(["arm", "segment"], sort=False):
-        point, low, high = _boot(g["failure_rate"], opts)
+        p, low, high, method = seed_interval(g["failure_rate"], boot, opts.n_resamples, opts.confidence,
+                                             opts.bootstrap_seed)
         rows.append({"arm": arm, "segment": seg, "difficulty": difficulty.get(seg, ""),
-                     "num_bins": int((bins["segment"] == seg).sum()), "final_failure": point,
-                     "final_failure_low": low, "final_failure_high": high, "n_seeds": len(g),
-                     "bins_never_mastered": int(never.get((arm, seg), 0))})
+                     "num_bins": int((bins["segment"] == seg).sum()), "final_failure": p,
+                     "final_failure_low": low, "final_failure_high": high, "ci_method": method,
+                     "n_seeds": len(g), "bins_not_mastered": int(never.get((arm, seg), 0))})
     out = pd.DataFrame(rows)
     out["order"] = out["segment"].map({s: i for i, s in enumerate(order)})
     return out.sort_values(["order", "arm"]).drop(columns="order").reset_index(drop=True)
@@ -156,92 +443,19 @@ def sampling(sampler_df: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
     return df.groupby(["arm", "iteration", "bin"], sort=True)["probability"].mean().reset_index()
 
 
-def mastery(bin_fail: pd.DataFrame, bins: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
-    """Mastery iteration per ``arm, bin`` from the arm's seed-mean failure, with the bin's segment."""
-    m = mastery_iterations(bin_fail, opts.mastery_threshold, by=["arm"])
-    return m.merge(bins[["bin", "segment"]], on="bin", how="left")
-
-
-def run_times(overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
-    """Time to the success threshold per run (metrics.time_to_threshold)."""
-    return time_to_threshold(overall, opts.success_threshold, by=["run_dir", "arm", "seed"])
-
-
-def arm_summary(runs, overall, mastery_df, times, opts: ReportOptions) -> pd.DataFrame:
-    """One row per arm with usable runs: seeds, final overall failure (IQM and interval over seeds),
-    median mastery iteration over bins (never-mastered bins at their last evaluation), bins never
-    mastered, and time to threshold in each measure (IQM and interval over seeds; seeds that never
-    reached it counted at their last evaluation) with the number of seeds that reached it."""
-    rows = []
-    final = final_rows(overall, by=["run_dir"])
-    for arm in sorted(set(runs.loc[runs["included"], "arm"])):
-        r = runs[runs["arm"] == arm]
-        row = {
-            "arm": arm,
-            "sampler": r["sampler"].iloc[0],
-            "n_seeds": int(r["included"].sum()),
-            "n_running": int((r["included"] & (r["status"] == "running")).sum()),
-            "n_excluded": int((~r["included"]).sum()),
-        }
-        f = final[final["arm"] == arm]
-        row["final_failure"], row["final_failure_low"], row["final_failure_high"] = _boot(f["failure_rate"], opts)
-        m = mastery_df[mastery_df["arm"] == arm]
-        at = np.where(m["mastered"], m["mastery_iteration"], m["last_iteration"])
-        row["mastery_median"] = float(np.median(at)) if len(at) else np.nan
-        row["bins_never_mastered"] = int((~m["mastered"]).sum())
-        row["num_bins"] = len(m)
-        t = times[times["arm"] == arm]
-        row["n_reached"] = int(t["reached"].sum())
-        for measure in MEASURES:
-            values = censored(t, measure) if row["n_reached"] else np.full(len(t), np.nan)
-            point, low, high = _boot(values, opts)
-            row[f"time_{measure}"], row[f"time_{measure}_low"], row[f"time_{measure}_high"] = point, low, high
-        rows.append(row)
-    return pd.DataFrame(rows)
-
-
-def speedups(mastery_df, times, baseline: str, opts: ReportOptions) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Speedup of every arm against ``baseline`` (baseline / arm; > 1 means the arm is faster).
-
-    Returns ``(per_bin, table)``: ``per_bin`` is metrics.mastery_speedup; ``table`` has one row per
-    ``arm, measure``: the three time-to-threshold measures (ratio of IQMs over seeds, stratified
-    bootstrap interval, seeds that never reached counted at their last evaluation; NaN when neither
-    arm ever reached it) and ``mastery_median`` (median over bins of the per-bin ratios; no interval).
-    ``bound`` is "lower" when no baseline seed reached the threshold (the ratio can only be larger),
-    "upper" when no arm seed did, else empty.
-    """
-    per_bin = mastery_speedup(mastery_df, baseline)
-    rows = []
-    base_t = times[times["arm"] == baseline]
-    for arm in sorted(set(times["arm"]) - {baseline}):
-        t = times[times["arm"] == arm]
-        bound = ""
-        if not t["reached"].any():
-            never = "no arm seed reached it: the ratio is an upper bound (arm counted at its last evaluation)"
-            bound = "upper"
-        elif not base_t["reached"].any():
-            never = "no baseline seed reached it: the ratio is a lower bound (baseline counted at its last evaluation)"
-            bound = "lower"
-        else:
-            never = (f"{int((~t['reached']).sum())}/{len(t)} arm seeds, {int((~base_t['reached']).sum())}/"
-                     f"{len(base_t)} baseline seeds never reached it (counted at their last evaluation)")
-        for measure in MEASURES:
-            if not (t["reached"].any() or base_t["reached"].any()):
-                rows.append((arm, measure, np.nan, np.nan, np.nan, np.nan, np.nan, "neither arm reached it", ""))
-                continue
-            b, a = censored(base_t, measure), censored(t, measure)
-            ratio, low, high = speedup(b, a, n_resamples=opts.n_resamples, confidence=opts.confidence,
-                                       seed=opts.bootstrap_seed)
-            note = "" if t["reached"].all() and base_t["reached"].all() else never
-            rows.append((arm, measure, iqm(b), iqm(a), ratio, low, high, note, bound))
-        bins = per_bin[per_bin["arm"] == arm]
-        ratios = bins["ratio"].dropna()
-        note = f"{len(ratios)} bins; {int((bins['censored'] != '').sum())} censored"
-        rows.append((arm, "mastery_median", np.nan, np.nan, float(np.median(ratios)) if len(ratios) else np.nan,
-                     np.nan, np.nan, note, ""))
-    table = pd.DataFrame(rows, columns=["arm", "measure", "baseline_value", "arm_value", "ratio", "ci_low",
-                                        "ci_high", "note", "bound"])
-    return per_bin, table
+def arm_overview(summary_df: pd.DataFrame, time_df: pd.DataFrame) -> pd.DataFrame:
+    """One row per arm, wide: ``<metric>`` point, ``<metric>_low``/``_high``, ``<metric>_method`` for every
+    summary metric, and ``time_<measure>`` (Kaplan-Meier median) with ``n_reached``."""
+    rows = {}
+    for r in summary_df.itertuples(index=False):
+        row = rows.setdefault(r.arm, {"arm": r.arm, "n_seeds": r.n_seeds})
+        row[r.metric] = r.iqm if not (isinstance(r.iqm, float) and math.isnan(r.iqm)) else r.mean
+        row[f"{r.metric}_low"], row[f"{r.metric}_high"], row[f"{r.metric}_method"] = r.ci_low, r.ci_high, r.ci_method
+    for r in time_df.itertuples(index=False):
+        row = rows.setdefault(r.arm, {"arm": r.arm, "n_seeds": r.n_seeds})
+        row[f"time_{r.measure}"] = r.median
+        row["n_reached"] = r.n_reached
+    return pd.DataFrame(list(rows.values()))
 
 
 def swept_keys(runs: pd.DataFrame) -> list[str]:
@@ -260,21 +474,24 @@ def _explicit_keys(overrides: str) -> set[str]:
     return {item.split("=", 1)[0].lstrip("+") for item in str(overrides).split(",") if "=" in item}
 
 
-def sensitivity(runs: pd.DataFrame, summary: pd.DataFrame) -> pd.DataFrame:
-    """Final failure, median mastery iteration and iterations to threshold against each swept key.
+SENSITIVITY_METRICS = {
+    "final_failure": ("final_failure", "final_failure_low", "final_failure_high"),
+    "bins_mastered": ("bins_mastered", "bins_mastered_low", "bins_mastered_high"),
+    "time_iteration": ("time_iteration", None, None),
+}
+"""Sensitivity metric -> (point, low, high) columns of arm_overview (no interval for censored medians)."""
+
+
+def sensitivity(runs: pd.DataFrame, overview: pd.DataFrame) -> pd.DataFrame:
+    """Final failure, bins mastered and iterations to threshold against each swept key.
 
     For key ``k`` the arms compared are those whose sampler is one that some arm sets ``k`` for
     explicitly (a uniform arm also carries an unused ``gamma`` default, which must not become a
     point); ``series`` names the arm's other overrides, so a grid over two keys gives one line per
-    value of the other. Returns ``key, value, series, arm, metric, iqm, ci_low, ci_high``.
+    value of the other. Returns ``key, value, series, arm, metric, point, ci_low, ci_high``.
     """
     arms = runs[runs["included"]].drop_duplicates("arm").set_index("arm")
-    metrics = {
-        "final_failure": ("final_failure", "final_failure_low", "final_failure_high"),
-        "mastery_median": ("mastery_median", None, None),
-        "time_iteration": ("time_iteration", "time_iteration_low", "time_iteration_high"),
-    }
-    s = summary.set_index("arm")
+    s = overview.set_index("arm")
     rows = []
     for key in swept_keys(runs):
         setters = {a for a in arms.index if key in _explicit_keys(arms.loc[a, "overrides"])}
@@ -285,11 +502,13 @@ def sensitivity(runs: pd.DataFrame, summary: pd.DataFrame) -> pd.DataFrame:
                 continue
             others = [i for i in str(arms.loc[arm, "overrides"]).split(",") if i.split("=", 1)[0] != key]
             series = ",".join(others)
-            for metric, (col, lo, hi) in metrics.items():
-                point = s.loc[arm, col]
-                rows.append((key, float(value), series, arm, metric, point,
-                             s.loc[arm, lo] if lo else point, s.loc[arm, hi] if hi else point))
-    return pd.DataFrame(rows, columns=["key", "value", "series", "arm", "metric", "iqm", "ci_low", "ci_high"])
+            for metric, (col, lo, hi) in SENSITIVITY_METRICS.items():
+                if col not in s.columns:
+                    continue
+                p = s.loc[arm, col]
+                rows.append((key, float(value), series, arm, metric, p,
+                             s.loc[arm, lo] if lo and lo in s.columns else p, s.loc[arm, hi] if hi and hi in s.columns else p))
+    return pd.DataFrame(rows, columns=["key", "value", "series", "arm", "metric", "point", "ci_low", "ci_high"])
 
 
 def overall(eval_df: pd.DataFrame) -> pd.DataFrame:

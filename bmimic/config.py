@@ -123,7 +123,7 @@ def resolve_runtime(cfg, device: str) -> None:
     if cfg.max_iterations is None:
         cfg.max_iterations = cfg.ppo.max_iterations if on_gpu else CPU_DEFAULT_MAX_ITERATIONS
     if cfg.eval.episodes_per_bin is None:
-        cfg.eval.episodes_per_bin = 16 if on_gpu else 1
+        cfg.eval.episodes_per_bin = 32 if on_gpu else 1
 
 
 def _fail(key: str, problem: str) -> None:
@@ -183,6 +183,8 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         _fail("eval.horizon_s", f"must be > 0, got {cfg.eval.horizon_s}")
     if cfg.eval.episodes_per_bin is not None and cfg.eval.episodes_per_bin < 1:
         _fail("eval.episodes_per_bin", f"must be >= 1, got {cfg.eval.episodes_per_bin}")
+    if cfg.eval.max_mpkpe_rel_mm is not None and not cfg.eval.max_mpkpe_rel_mm > 0:
+        _fail("eval.max_mpkpe_rel_mm", f"must be > 0 or null, got {cfg.eval.max_mpkpe_rel_mm}")
     if cfg.time_limit_s is not None and cfg.time_limit_s <= 0:
         _fail("time_limit_s", f"must be > 0 or null, got {cfg.time_limit_s}")
     if cfg.logger not in ("tensorboard", "wandb", "none"):

@@ -10,12 +10,14 @@ Robot, motion, time bins and the evaluation environment are rebuilt like trainin
 (`bmimic.train.build_evaluator`), the actor is rebuilt from the checkpoint, and the
 sampler-independent evaluation runs with the deterministic policy: `episodes_per_bin` episodes
 start at stratified frames of every bin and run for `horizon_s`; an episode that terminates before
-then is a failure. Tables go to RUN_DIR/eval/<checkpoint>/ (latest.pt is named after its iteration,
-model_<it>, so re-evaluating after more training never overwrites an older result):
+then (or, with eval.max_mpkpe_rel_mm, tracks worse than that on average) is a failure, charged to the
+bin where it happened (bmimic.training.evaluation). Tables go to RUN_DIR/eval/<checkpoint>/
+(latest.pt is named after its iteration, model_<it>, so re-evaluating after more training never
+overwrites an older result):
 
-    eval_episodes.parquet  one row per episode
-    eval_bins.parquet      one row per time bin
-    eval_segments.csv      one row per labelled motion segment (by the segment an episode starts in)
+    eval_episodes.parquet  one row per episode (start, end and failure frame and bin, errors)
+    eval_bins.parquet      one row per time bin: visits, failures, failure_rate, start counts, errors
+    eval_segments.csv      one row per motion segment, counted like the bins (visits, failures there)
     eval_summary.json      overall numbers (keys as in metrics.json: eval_success_rate, eval_mpkpe_mm, ...)
 
 Bad input (missing folder, no checkpoint, a checkpoint that does not match the run's config) prints
@@ -214,7 +216,8 @@ def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
 
 
 def episode_table(raw: pd.DataFrame, evaluator, motion, step_dt: float, iteration: int) -> pd.DataFrame:
-    """One row per episode: where it started, whether it survived, how long, and its mean errors."""
+    """One row per episode: where it started and ended, whether and where it failed, how long it lived,
+    and its mean errors (raw: Evaluator.run_episodes(...).episodes)."""
     from bmimic.training.evaluation import ERROR_COLUMNS
 
     edges = evaluator.layout.edges_s.cpu().numpy()
@@ -222,6 +225,8 @@ def episode_table(raw: pd.DataFrame, evaluator, motion, step_dt: float, iteratio
     segment, difficulty = segment_at(motion.segments, start_s)
     bins = raw["bin"].to_numpy()
     failed = raw["failed"].to_numpy().astype(bool)
+    failure_frame = raw["failure_frame"].to_numpy().astype(int)
+    fail_bin = evaluator.layout.frame_to_bin.cpu().numpy()[np.where(failed, failure_frame, 0)]
     return pd.DataFrame({
         "iteration": int(iteration),
         "episode": np.arange(len(raw)),
@@ -232,47 +237,55 @@ def episode_table(raw: pd.DataFrame, evaluator, motion, step_dt: float, iteratio
         "difficulty": difficulty,
         "start_frame": raw["start_frame"].to_numpy().astype(int),
         "start_s": start_s,
+        "end_frame": raw["end_frame"].to_numpy().astype(int),
         "failed": failed,
         "success": ~failed,
+        "terminated": raw["terminated"].to_numpy().astype(bool),
+        "error_failed": raw["error_failed"].to_numpy().astype(bool),
+        "failure_frame": failure_frame,
+        "failure_bin": np.where(failed, fail_bin, -1),
+        "horizon_truncated": raw["horizon_truncated"].to_numpy().astype(bool),
         "steps": raw["steps"].to_numpy().astype(int),
         "survival_s": raw["steps"].to_numpy() * step_dt,
         **{c: raw[c].to_numpy(dtype=float) for c in ERROR_COLUMNS},
     })
 
 
-def _aggregate(episodes: pd.DataFrame, key: str) -> pd.DataFrame:
-    from bmimic.training.evaluation import ERROR_COLUMNS
-
-    g = episodes.groupby(key, sort=False)
-    out = g[["survival_s", *ERROR_COLUMNS]].mean()
-    out.insert(0, "failures", g["failed"].sum().astype(int))
-    out.insert(0, "episodes", g["failed"].count().astype(int))
-    out.insert(2, "success_rate", 1.0 - out["failures"] / out["episodes"])
-    out.insert(3, "failure_rate", out["failures"] / out["episodes"])
-    return out.rename(columns={"survival_s": "mean_survival_s"}).reset_index()
+def _with_rates(table: pd.DataFrame, survival_s: np.ndarray) -> pd.DataFrame:
+    """success_rate (1 - failure_rate) and `mean_survival_s` (of the episodes started in each row's group)."""
+    table.insert(table.columns.get_loc("failure_rate") + 1, "success_rate", 1.0 - table["failure_rate"])
+    table.insert(table.columns.get_loc("start_failures") + 1, "mean_survival_s", survival_s)
+    return table
 
 
-def bin_table(episodes: pd.DataFrame, evaluator) -> pd.DataFrame:
-    """One row per time bin (every bin has episodes_per_bin episodes)."""
-    per_bin = _aggregate(episodes, "bin").sort_values("bin", ignore_index=True)
-    edges = evaluator.layout.edges_s.cpu().numpy()
-    labels = evaluator.segment_of_bin()  # the segment covering the bin's midpoint, as in eval.parquet
-    b = per_bin["bin"].to_numpy()
+def bin_table(rollouts, episodes: pd.DataFrame, evaluator) -> pd.DataFrame:
+    """One row per time bin: failures where they happened per visit (training's eval.parquet columns),
+    the start-bin counts, and the mean survival of the episodes started in it."""
+    per_bin = evaluator.bin_table(rollouts)
     per_bin.insert(0, "iteration", int(episodes["iteration"].iloc[0]))
-    per_bin.insert(2, "bin_start_s", edges[b])
-    per_bin.insert(3, "bin_end_s", edges[b + 1])
-    per_bin.insert(4, "segment", [labels[i] for i in b])
-    return per_bin
+    survival = episodes.groupby("bin")["survival_s"].mean().reindex(per_bin["bin"]).to_numpy(dtype=float)
+    return _with_rates(per_bin, survival)
 
 
-def segment_table(episodes: pd.DataFrame, segments) -> pd.DataFrame:
-    """One row per motion segment that episodes started in, in time order ('' = no segment)."""
-    per_seg = _aggregate(episodes, "segment")
-    meta = {s.name: s for s in segments}
-    per_seg.insert(1, "difficulty", [meta[n].difficulty if n in meta else "" for n in per_seg["segment"]])
-    per_seg.insert(2, "start_s", [meta[n].start_s if n in meta else math.nan for n in per_seg["segment"]])
-    per_seg.insert(3, "end_s", [meta[n].end_s if n in meta else math.nan for n in per_seg["segment"]])
-    return per_seg.sort_values("start_s", na_position="last", ignore_index=True)
+def segment_table(rollouts, episodes: pd.DataFrame, motion) -> pd.DataFrame:
+    """One row per stretch of the motion covered by one segment ('' = no segment), in time order, with
+    the same per-visit accounting as the bins: visits, failures where they happened, start counts."""
+    from bmimic.training.evaluation import aggregate
+
+    names, levels = segment_at(motion.segments, np.arange(motion.num_frames) / motion.fps)
+    names = np.asarray(names, dtype=object)
+    stretch = np.r_[0, np.cumsum(names[1:] != names[:-1])]  # contiguous frames of one label
+    per_seg = aggregate(rollouts.episodes, stretch, rollouts.frame_errors)
+    ids = per_seg.pop("bin").to_numpy()
+    first = np.searchsorted(stretch, ids)
+    last = np.searchsorted(stretch, ids, side="right") - 1
+    per_seg.insert(0, "segment", names[first])
+    per_seg.insert(1, "difficulty", np.asarray(levels, dtype=object)[first])
+    per_seg.insert(2, "start_s", first / motion.fps)
+    per_seg.insert(3, "end_s", (last + 1) / motion.fps)
+    started = stretch[episodes["start_frame"].to_numpy()]
+    survival = episodes.groupby(started)["survival_s"].mean().reindex(ids).to_numpy(dtype=float)
+    return _with_rates(per_seg, survival)
 
 
 # --------------------------------------------------------------------------------------------- evaluation
@@ -309,11 +322,11 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = ()) -> EvalResult:
              run.checkpoint, iteration, run.device, run.layout.num_bins, cfg.eval.episodes_per_bin,
              cfg.eval.horizon_s, env.num_envs)
     t0 = time.perf_counter()
-    raw = evaluator.run_episodes(policy)
+    rollouts = evaluator.run_episodes(policy)
     wall = time.perf_counter() - t0
-    episodes = episode_table(raw, evaluator, run.motion, env.step_dt, iteration)
-    bins = bin_table(episodes, evaluator)
-    segments = segment_table(episodes, run.motion.segments)
+    episodes = episode_table(rollouts.episodes, evaluator, run.motion, env.step_dt, iteration)
+    bins = bin_table(rollouts, episodes, evaluator)
+    segments = segment_table(rollouts, episodes, run.motion)
     progress = state.get("progress") or {}
     summary = {
         **summarize(bins),
@@ -322,6 +335,8 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = ()) -> EvalResult:
         "num_bins": int(run.layout.num_bins),
         "episodes_per_bin": int(cfg.eval.episodes_per_bin),
         "horizon_s": float(cfg.eval.horizon_s),
+        "max_mpkpe_rel_mm": cfg.eval.max_mpkpe_rel_mm,
+        "horizon_truncated_bins": int(bins["horizon_truncated"].sum()),
         "eval_worlds": int(env.num_envs),
         "eval_wall_time_s": wall,
         "checkpoint": str(run.checkpoint),
@@ -354,7 +369,8 @@ def write_tables(result: EvalResult, out_dir: Path) -> Path:
 
 # --------------------------------------------------------------------------------------------- report
 _SHOWN = {
-    "episodes": ("episodes", "{:d}"),
+    "visits": ("visits", "{:d}"),
+    "failures": ("failures", "{:d}"),
     "success_rate": ("success", "{:.3f}"),
     "mpkpe_mm": ("MPKPE_mm", "{:.1f}"),
     "mpkpe_rel_mm": ("rel_MPKPE_mm", "{:.1f}"),
@@ -367,9 +383,10 @@ _SHOWN = {
 MAX_BINS_SHOWN = 30
 
 
-def _format_rows(df: pd.DataFrame, label_cols: dict[str, str]) -> str:
+def _format_rows(df: pd.DataFrame, label_cols: dict[str, str], titles: dict[str, str] | None = None) -> str:
     shown = pd.DataFrame({title: df[col].astype(str) for col, title in label_cols.items()})
     for col, (title, fmt) in _SHOWN.items():
+        title = (titles or {}).get(col, title)
         shown[title] = [fmt.format(int(v) if fmt == "{:d}" else float(v)) for v in df[col]]
     return shown.to_string(index=False)
 
@@ -388,17 +405,20 @@ def format_report(result: EvalResult) -> str:
                                                                              result.segments["end_s"])],
     )
     lines += ["per segment:", _format_rows(seg, {"segment": "segment", "difficulty": "difficulty", "span": "t_s"}), ""]
-    bins = result.bins.assign(span=[f"{a:.1f}-{b:.1f}" for a, b in zip(result.bins["bin_start_s"],
-                                                                          result.bins["bin_end_s"])])
+    bins = result.bins.assign(span=[f"{a:.1f}-{b:.1f}" + ("*" if t else "") for a, b, t in zip(
+        result.bins["bin_start_s"], result.bins["bin_end_s"], result.bins["horizon_truncated"])])
     title = "per bin:"
     if len(bins) > MAX_BINS_SHOWN:
         bins = bins.sort_values(["success_rate", "mpkpe_mm"], ascending=[True, False]).head(MAX_BINS_SHOWN // 3)
         title = f"worst {len(bins)} of {len(result.bins)} bins:"
     lines += [title, _format_rows(bins, {"bin": "bin", "span": "t_s", "segment": "segment"}), ""]
-    overall = pd.DataFrame([{"episodes": s["episodes"], "success_rate": s["eval_success_rate"],
+    overall = pd.DataFrame([{"visits": s["episodes"], "failures": s["failures"], "success_rate": s["eval_success_rate"],
                              **{c: s[f"eval_{c}"] for c in _SHOWN if f"eval_{c}" in s}}])
-    lines += ["overall:", _format_rows(overall, {}),
-              f"bins mastered (failure rate < 0.1): {s['eval_bins_mastered_frac']:.2f}"]
+    lines += ["overall:", _format_rows(overall, {}, titles={"visits": "episodes"}),
+              f"bins mastered (failure rate < 0.1; a horizon-truncated bin only when tracked through): "
+              f"{s['eval_bins_mastered_frac']:.2f}",
+              "failures are charged to the bin (segment) where they happened, per visit; "
+              "* = horizon-truncated (its episodes reach the clip end before the horizon)"]
     if result.out_dir is not None:
         lines.append(f"tables: {result.out_dir}")
     return "\n".join(lines)

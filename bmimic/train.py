@@ -99,7 +99,8 @@ def build(cfg: DictConfig, device: str, task: tuple | None = None):
     return mjm, robot, motion, layout, sampler, env
 
 
-def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout):
+def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout, robust: bool = False):
+    """The sampler-independent evaluator (robust: with domain randomisation, observation noise, pushes)."""
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.robot import load_mjmodel
     from bmimic.training.evaluation import Evaluator
@@ -107,8 +108,28 @@ def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout):
     total = layout.num_bins * cfg.eval.episodes_per_bin
     n = max(1, min(total, cfg.eval.max_envs))
     env = TrackingEnv(cfg.env, cfg.sim, load_mjmodel(cfg=cfg.robot), robot, motion, layout, n, device,
-                      mode="eval")
-    return Evaluator(env, layout, motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s)
+                      mode="eval", robust=robust)
+    return Evaluator(env, layout, motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s,
+                     max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
+
+
+def robust_evaluation(cfg: DictConfig, device: str, robot, motion, layout, trainer, run_dir: Path) -> dict:
+    """`eval.robust`: the final evaluation again with DR, noise and pushes on -> eval_robust.parquet;
+    returns its summary (metrics.json keys `final_robust_eval_*`)."""
+    from bmimic.runs import atomic_write_parquet
+    from bmimic.training.evaluation import summarize
+
+    evaluator = build_evaluator(cfg, device, robot, motion, layout, robust=True)
+    policy = trainer.alg.get_policy()
+    policy.eval()
+    p = trainer.progress
+    per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
+    atomic_write_parquet(run_dir / "eval_robust.parquet", per_bin)
+    evaluator.env.close()
+    summary = summarize(per_bin, prefix="robust_eval")
+    log.info("robust eval at iteration %d: failure rate %.3f (clean: see eval.parquet)", p.iteration,
+             summary["robust_eval_failure_rate"])
+    return {f"final_{k}": v for k, v in summary.items()}
 
 
 def _init_distributed() -> tuple[int, int]:
@@ -176,6 +197,8 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         final = trainer.progress.last_eval
         if not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
             final = trainer.evaluate()
+        robust = robust_evaluation(cfg, device, robot, motion, layout, trainer, run_dir) if (
+            cfg.eval.robust and main_rank) else {}
         if main_rank:
             trainer.save_checkpoint()
     finally:
@@ -188,6 +211,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         "final_eval_success_rate": final["eval_success_rate"],
         "final_eval_mpkpe_mm": final["eval_mpkpe_mm"],
         "final_eval_bins_mastered_frac": final["eval_bins_mastered_frac"],
+        **robust,
         "iterations": trainer.progress.iteration,
         "env_steps": trainer.progress.env_steps,
         "wall_time_s": trainer.progress.wall_time_s,

@@ -1,10 +1,11 @@
 """Synthetic run folders with planted answers, for the analysis tests.
 
 Every run has ``NUM_BINS`` bins of ``BIN_SIZE_S`` seconds, trains for iterations 0..``last_iteration``
-and is evaluated every ``EVAL_EVERY`` iterations. Bin ``b`` of a run with seed ``s`` fails at rate
-``0.5 + 0.01 s`` before its planted mastery iteration and ``0.02 + 0.01 s`` from it on (always below
-0.1), so the seed-mean curve of an arm crosses 0.1 exactly at the planted iteration. Overall success
-(1 - mean failure over the 4 bins) is >= 0.9 exactly once every bin is mastered.
+and is evaluated every ``EVAL_EVERY`` iterations (and at its last iteration). Bin ``b`` of a run with
+seed ``s`` fails at rate ``0.5 + 0.01 (s mod 5)`` before its planted mastery iteration and
+``0.02 + 0.01 (s mod 5)`` from it on (always below 0.1 and staying there), so every seed masters the
+bin exactly at the planted iteration. Overall success (1 - mean failure over the 4 bins) is >= 0.9
+exactly once every bin is mastered.
 
 ``make_sweep`` builds the planted sweep (PLANTED holds its answers):
 
@@ -59,11 +60,16 @@ PLANTED = {
 }
 
 
+EPISODES_PER_BIN = 100
+"""Evaluation episodes started per bin; visits are twice that (every episode spans two bins)."""
+
+
 def _failure(mastery: list[float | None], seed: int, iteration: int) -> np.ndarray:
     rates = []
     for m in mastery:
         mastered = m is not None and not np.isnan(m) and iteration >= m
-        rates.append(0.02 + 0.01 * seed if mastered else 0.5 + 0.01 * seed)
+        level = 0.01 * (seed % 5)  # seeds differ a little, always on their side of the 0.1 threshold
+        rates.append(0.02 + level if mastered else 0.5 + level)
     return np.array(rates)
 
 
@@ -80,8 +86,16 @@ def write_run(
     seconds_per_iteration: float = 1.0,
     write_tables: bool = True,
     error: str | None = None,
+    eval_every: int = EVAL_EVERY,
+    old_eval: bool = False,
+    truncated_bins: tuple[int, ...] = (),
 ) -> Path:
-    """Write one complete run folder whose bin ``b`` is mastered at ``mastery[b]`` (None: never)."""
+    """Write one complete run folder whose bin ``b`` is mastered at ``mastery[b]`` (None: never).
+
+    ``old_eval`` writes eval.parquet as before per-visit accounting (``episodes`` per start bin, no
+    ``visits``/``horizon_truncated``); ``truncated_bins`` are flagged horizon-truncated with no episode
+    tracked through them, so they never count as mastered.
+    """
     run_dir = Path(run_dir)
     (run_dir / ".hydra").mkdir(parents=True, exist_ok=True)
     cfg = {"seed": seed, "sampler": {"name": sampler, "bin_size_seconds": BIN_SIZE_S, **(sampler_cfg or {})}}
@@ -120,16 +134,25 @@ def write_run(
         for b in range(NUM_BINS):
             start, end = b * BIN_SIZE_S, (b + 1) * BIN_SIZE_S
             sampler_rows.append((int(it), b, start, end, 25, int(25 * fail[b]), fail[b], fail[b], prob[b]))
-            if it % EVAL_EVERY == 0:
+            if it % eval_every == 0 or it == last_iteration:
                 segment = next(s["name"] for s in SEGMENTS if s["start_s"] <= start < s["end_s"])
+                visits = 2 * EPISODES_PER_BIN
+                truncated = b in truncated_bins
                 eval_rows.append((
                     int(it), int(it) * STEPS_PER_ITERATION, it * seconds_per_iteration, b, start, end,
-                    segment, 100, int(100 * fail[b]), fail[b], 50.0, 30.0, 0.1, 0.05,
+                    segment, visits, round(fail[b] * visits), fail[b], EPISODES_PER_BIN,
+                    round(fail[b] * EPISODES_PER_BIN),
+                    truncated, 0 if truncated else EPISODES_PER_BIN, 50.0, 30.0, 0.1, 0.05,
                 ))
-    pd.DataFrame(eval_rows, columns=[
-        "iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "segment", "episodes",
-        "failures", "failure_rate", "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "joint_pos_err_rad",
-    ]).to_parquet(run_dir / "eval.parquet", index=False)
+    eval_df = pd.DataFrame(eval_rows, columns=[
+        "iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "segment", "visits",
+        "failures", "failure_rate", "start_episodes", "start_failures", "horizon_truncated", "tracked_through",
+        "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "joint_pos_err_rad",
+    ])
+    if old_eval:
+        eval_df = eval_df.drop(columns=["visits", "start_failures", "horizon_truncated", "tracked_through"]).rename(
+            columns={"start_episodes": "episodes"})
+    eval_df.to_parquet(run_dir / "eval.parquet", index=False)
     pd.DataFrame(sampler_rows, columns=[
         "iteration", "bin", "bin_start_s", "bin_end_s", "episodes", "failures", "raw_failure_rate",
         "smoothed_failure_rate", "probability",
@@ -171,4 +194,21 @@ def make_sweep(root: str | Path, name: str = "ablation") -> Path:
         write_run(sweep / SLOW / f"seed={seed}", sampler="adaptive", seed=seed,
                   overrides=["sampler=adaptive", "sampler.gamma=0.9"], mastery=slow,
                   sampler_cfg={"gamma": 0.9}, seconds_per_iteration=1.25)
+    return sweep
+
+
+def make_speedup_sweep(root: str | Path, n_seeds: int = 10, ratio: float = 2.0, rng_seed: int = 0,
+                       name: str = "speedup") -> Path:
+    """Two arms of ``n_seeds`` seeds each: ``sampler=uniform`` masters bin ``b`` at about 20 (b + 1)
+    iterations and ``sampler=adaptive`` at about 20 (b + 1) / ratio, each seed scaled by its own factor
+    drawn from U(0.75, 1.3) (so seeds differ and the ratio of the arms' medians is about ``ratio``),
+    rounded to the evaluation grid of EVAL_EVERY iterations. Runs end at iteration 150."""
+    rng = np.random.default_rng(rng_seed)
+    sweep = Path(root) / name
+    for sampler, scale in (("uniform", 1.0), ("adaptive", 1.0 / ratio)):
+        for seed in range(n_seeds):
+            f = rng.uniform(0.75, 1.3)
+            mastery = [float(EVAL_EVERY * np.ceil(20.0 * (b + 1) * scale * f / EVAL_EVERY)) for b in range(NUM_BINS)]
+            write_run(sweep / f"sampler={sampler}" / f"seed={seed}", sampler=sampler, seed=seed,
+                      overrides=[f"sampler={sampler}"], mastery=mastery, last_iteration=150)
     return sweep

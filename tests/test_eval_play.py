@@ -88,8 +88,11 @@ def test_eval_writes_every_table(run_eval):
 def test_eval_episode_table(run_eval):
     ep = run_eval["episodes"]
     expected = {"iteration", "episode", "bin", "bin_start_s", "bin_end_s", "segment", "difficulty", "start_frame",
-                "start_s", "failed", "success", "steps", "survival_s", *ERROR_COLUMNS}
+                "start_s", "end_frame", "failed", "success", "terminated", "failure_frame", "failure_bin",
+                "horizon_truncated", "steps", "survival_s", *ERROR_COLUMNS}
     assert expected <= set(ep.columns)
+    assert (ep["end_frame"] >= ep["start_frame"]).all()
+    assert (ep.loc[ep["failed"], "failure_bin"] >= ep.loc[ep["failed"], "bin"]).all()  # never before the start
     assert len(ep) == NUM_BINS * 2
     assert sorted(ep["bin"].value_counts().tolist()) == [2] * NUM_BINS
     assert (ep["success"] == ~ep["failed"]).all()
@@ -104,27 +107,34 @@ def test_eval_episode_table(run_eval):
 
 def test_eval_bin_table(run_eval):
     bins, ep = run_eval["bins"], run_eval["episodes"]
-    expected = {"iteration", "bin", "bin_start_s", "bin_end_s", "segment", "episodes", "failures", "success_rate",
-                "failure_rate", "mean_survival_s", *ERROR_COLUMNS}
+    expected = {"iteration", "bin", "bin_start_s", "bin_end_s", "segment", "visits", "failures", "success_rate",
+                "failure_rate", "start_episodes", "start_failures", "horizon_truncated", "tracked_through",
+                "mean_survival_s", *ERROR_COLUMNS}
     assert expected <= set(bins.columns)
     assert bins["bin"].tolist() == list(range(NUM_BINS))
     np.testing.assert_allclose(bins["bin_start_s"], np.arange(NUM_BINS))
-    assert (bins["episodes"] == 2).all()
+    assert (bins["start_episodes"] == 2).all() and (bins["visits"] >= bins["start_episodes"]).all()
     assert bins["success_rate"].between(0, 1).all()
     np.testing.assert_allclose(bins["success_rate"] + bins["failure_rate"], 1.0)
-    np.testing.assert_allclose(bins["mpkpe_mm"], ep.groupby("bin")["mpkpe_mm"].mean().to_numpy())
-    assert bins["failures"].sum() == ep["failed"].sum()
+    np.testing.assert_allclose(bins["failure_rate"], bins["failures"] / bins["visits"])
+    assert bins["failures"].sum() == ep["failed"].sum()  # each failure is charged to exactly one bin
+    assert bins["failures"].tolist() == ep[ep["failed"]]["failure_bin"].value_counts().reindex(
+        range(NUM_BINS), fill_value=0).tolist()
+    assert bins["start_failures"].tolist() == ep.groupby("bin")["failed"].sum().tolist()
+    # Per-step errors where they were measured: the steps of all bins add up to the episodes' steps.
+    assert bins["eval_steps"].sum() == ep["steps"].sum()
+    np.testing.assert_allclose(np.average(bins["mpkpe_mm"], weights=bins["eval_steps"]),
+                               np.average(ep["mpkpe_mm"], weights=ep["steps"]), rtol=1e-5)
     assert np.isfinite(bins[list(ERROR_COLUMNS)].to_numpy()).all()
 
 
 def test_eval_segment_table_covers_the_motion_segments(run_eval, tiny_run):
     seg, ep = run_eval["segments"], run_eval["episodes"]
     manifest = json.loads((tiny_run / "motion_segments.json").read_text())
-    started_in = set(ep["segment"])
-    assert set(seg["segment"]) == started_in
-    assert started_in <= {s["name"] for s in manifest} | {""}
-    assert seg["episodes"].sum() == len(ep)
-    assert seg["start_s"].is_monotonic_increasing
+    assert set(ep["segment"]) <= set(seg["segment"]) <= {s["name"] for s in manifest} | {""}
+    assert seg["start_episodes"].sum() == len(ep) and seg["failures"].sum() == ep["failed"].sum()
+    assert (seg["visits"] >= seg["start_episodes"]).all()
+    assert seg["start_s"].is_monotonic_increasing and (seg["end_s"] > seg["start_s"]).all()
     assert seg["success_rate"].between(0, 1).all()
 
 
@@ -135,7 +145,7 @@ def test_eval_summary_matches_the_tables(run_eval, tiny_run):
     assert s["iteration"] == 1 and s["label"] == "model_1" and s["device"] == "cpu"
     assert 0.0 <= s["eval_success_rate"] <= 1.0
     assert s["eval_success_rate"] == pytest.approx(ep["success"].mean())
-    assert s["eval_mpkpe_mm"] == pytest.approx(ep["mpkpe_mm"].mean())
+    assert s["eval_mpkpe_mm"] == pytest.approx(np.average(ep["mpkpe_mm"], weights=ep["steps"]), rel=1e-5)
     for c in ERROR_COLUMNS:
         assert math.isfinite(s[f"eval_{c}"]) and s[f"eval_{c}"] >= 0
     assert s["eval_worlds"] == 4

@@ -43,11 +43,11 @@ SWEEPS = REPO / "sweeps"
 # study -> (number of jobs, the keys its jobs vary besides the seed)
 STUDIES = {
     "sampler_ablation": (2 * 5, {"sampler"}),
-    "gamma": (5 * 3, {"sampler.gamma"}),
-    "lambda": (5 * 3, {"sampler.lambda_uniform"}),
-    "kernel": (4 * 3, {"sampler.K"}),
-    "bin_size": (4 * 3, {"sampler.bin_size_seconds"}),
-    "variants": (8 * 3, {"sampler", "sampler.attribution", "sampler.failure"}),
+    "gamma": (5 * 5, {"sampler.gamma"}),
+    "lambda": (5 * 5, {"sampler.lambda_uniform"}),
+    "kernel": (4 * 5, {"sampler.K"}),
+    "bin_size": (4 * 5, {"sampler.bin_size_seconds"}),
+    "variants": (8 * 5, {"sampler", "sampler.attribution", "sampler.failure"}),
     "design_choices": (5 * 5, {"design_choice"}),
 }
 
@@ -81,6 +81,9 @@ def test_study_composes_and_expands(study):
     assert cfg.sweep_name == study
     assert {"motion", "max_iterations", "seed"} <= set(params)
     assert int(params.max_iterations) > 0
+    # Arms are compared at equal iterations, with at least the 5 seeds bootstrap intervals need.
+    assert "time_limit_s" not in params and cfg.time_limit_s is None
+    assert len(str(params.seed).split(",")) >= 5
     for key, value in params.items():  # every key is a real config key or group option (typo guard)
         if (CONF_DIR / key).is_dir():
             for option in str(value).split(","):

@@ -26,7 +26,7 @@ def run_cli(args, cwd):
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("e2e")
     run = root / "run"
-    run_cli([*TINY, "ppo.save_interval=1", f"hydra.run.dir={run}", "sampler=adaptive"], cwd=root)
+    run_cli([*TINY, "ppo.save_interval=1", f"hydra.run.dir={run}", "sampler=adaptive", "eval.robust=true"], cwd=root)
     return run
 
 
@@ -49,6 +49,10 @@ def test_run_folder_contents(trained):
     assert sorted(set(sampler["iteration"])) == [0, 1] and len(sampler) == 2 * 10  # every iteration, 10 bins
     ev = pd.read_parquet(trained / "eval.parquet")
     assert ev["iteration"].max() == 2 and ev["failure_rate"].between(0, 1).all()
+    assert (ev["visits"] >= ev["start_episodes"]).all() and (ev["failures"] <= ev["visits"]).all()
+    robust = pd.read_parquet(trained / "eval_robust.parquet")  # eval.robust=true: once more, perturbed
+    assert robust["iteration"].unique().tolist() == [2] and list(robust.columns) == list(ev.columns)
+    assert 0.0 <= metrics["final_robust_eval_failure_rate"] <= 1.0
 
 
 def test_released_bins_and_thinned_sampler_table(tmp_path):

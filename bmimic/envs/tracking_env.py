@@ -103,7 +103,8 @@ class TrackingEnv(VecEnv):
 
     `mode="train"`: domain randomisation, observation noise, pushes and automatic resets at frames
     drawn by `sampler`. `mode="eval"`: none of those; the caller places envs with `reset_to_frames`
-    and reads terminations, and the reference stops at the end of each clip.
+    and reads terminations, and the reference stops at the end of each clip. `robust=True` (eval
+    only) turns domain randomisation, observation noise and pushes back on, as configured for training.
     """
 
     def __init__(
@@ -119,6 +120,7 @@ class TrackingEnv(VecEnv):
         sampler=None,
         sampler_cfg=None,
         mode: str = "train",
+        robust: bool = False,
     ) -> None:
         if mode not in ("train", "eval"):
             raise ValueError(f"mode must be train or eval, got {mode!r}")
@@ -139,8 +141,9 @@ class TrackingEnv(VecEnv):
         # CUDA-graph replay advances (a private generator would have to be registered with every graph).
         self._half_widths: dict[tuple, torch.Tensor] = {}
         train = mode == "train"
-        self.randomize = train and env_cfg.randomization.enabled
-        self.noise_enabled = train and env_cfg.observation_noise
+        self.robust = robust and not train
+        self.randomize = (train or self.robust) and env_cfg.randomization.enabled
+        self.noise_enabled = (train or self.robust) and env_cfg.observation_noise
         self.rsi_noise = train
 
         randomized = ("geom_friction", "body_ipos") if self.randomize else ()
@@ -520,6 +523,9 @@ class TrackingEnv(VecEnv):
         else:
             self.time_steps.copy_(torch.minimum(self.time_steps + 1, self.segment_end - 1))
             self.reached_clip_end = self.time_steps >= self.segment_end - 1
+            if self.randomize:  # robust evaluation
+                self._push(self.step_dt)
+                self.sim.forward_kinematics()
         self._dones_long = dones.long()
         self.extras = {"time_outs": truncated, "log": {}, "terminated": terminated}
 

@@ -2,20 +2,67 @@
 
 Training-time failure statistics are biased by the sampler (adaptive arms visit hard bins more), so
 "when is a bin mastered" is measured here instead: `episodes_per_bin` episodes start at evenly spaced
-frames inside each bin, run the deterministic policy for `horizon_s` (or to the end of the clip), and
-an episode that terminates before then is a failure of the bin it started in. Tracking errors are
-averaged over the steps an episode is alive.
+frames inside each bin and run the deterministic policy for `horizon_s` (or to the end of their clip).
+
+Failures are charged where they happen. A 2 s horizon spans two or three 1 s bins, so per bin:
+
+- `visits`: episodes alive at a frame of the bin at some step (an episode visits every bin from its
+  start frame to its last frame; frames advance one per step, so that is a contiguous range);
+- `failures`: episodes that failed at a frame of the bin; `failure_rate = failures / visits`;
+- `start_episodes`, `start_failures`: the same counted at the bin an episode started in (the old,
+  start-bin view);
+- `horizon_truncated`: some episode that started in the bin reaches the end of its clip before
+  `horizon_s` (the clip's last bins): its failure rate comes from shorter exposure;
+- `tracked_through`: episodes that entered the bin from an earlier bin and were still alive at its
+  last frame, i.e. tracked all of the bin's frames after a run-up. A horizon-truncated bin counts as
+  mastered only when this is at least 1 (analysis.metrics.counts_as_mastered), so the clip's last
+  bins are not "mastered" by an untrained policy whose episodes simply run out of clip.
+
+An episode fails when it terminates (any termination but a time-out), or, with `max_mpkpe_rel_mm`
+set, when its mean root-relative MPKPE exceeds it; a termination is charged to the frame it happened
+at, a tracking failure to the frame with the episode's largest root-relative MPKPE. Tracking errors
+per bin are means over the evaluation steps taken at frames of that bin.
+
+`aggregate` turns tidy per-episode rows (plus optional per-frame error sums) into the per-bin table;
+the Evaluator and any other evaluator (e.g. a native-MuJoCo one) share it.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
 import torch
 
+from analysis.metrics import counts_as_mastered
 from bmimic.envs.quat import quat_error_magnitude
+from bmimic.sampling.bins import visits_histogram
+from bmimic.sampling.samplers import bin_counts
+
+ERROR_COLUMNS = (
+    "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
+    "joint_vel_err_radps", "ee_pos_err_mm",
+)
+REL_MPKPE = ERROR_COLUMNS.index("mpkpe_rel_mm")
+
+EPISODE_COLUMNS = (
+    "start_frame", "end_frame", "failed", "failure_frame", "terminated", "steps", "horizon_truncated",
+)
+"""Per-episode columns `aggregate` reads (error means may follow): the first frame and the last frame
+the episode was alive at (the clip's last frame for one that reached it), whether it failed and at
+which frame (-1 if not), whether it terminated, steps alive, and whether its clip ends before the
+horizon (the clip's exclusive end frame minus 1 minus the start frame < horizon steps)."""
+
+BIN_COLUMNS = (
+    "bin", "visits", "failures", "failure_rate", "start_episodes", "start_failures", "terminations",
+    "tracking_failures", "horizon_truncated", "tracked_through", "eval_steps",
+)
+"""The counts of the per-bin table, in order; the error columns (means per step) follow."""
+
+MASTERED_BELOW = 0.1
+"""Failure rate below which a bin counts as mastered in the run's own summary (the report's default)."""
 
 
 def stratified_start_frames(bin_first_frame: np.ndarray, bin_num_frames: np.ndarray, per_bin: int) -> np.ndarray:
@@ -25,16 +72,100 @@ def stratified_start_frames(bin_first_frame: np.ndarray, bin_num_frames: np.ndar
     return (bin_first_frame[:, None] + offsets).reshape(-1)
 
 
-ERROR_COLUMNS = (
-    "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
-    "joint_vel_err_radps", "ee_pos_err_mm",
-)
+def _counts(bins: np.ndarray, num_bins: int, weights: np.ndarray | None = None) -> np.ndarray:
+    w = None if weights is None else torch.as_tensor(np.asarray(weights, dtype=np.int64))
+    return bin_counts(torch.as_tensor(bins, dtype=torch.long), num_bins, w).numpy()
+
+
+def _visits(lo: np.ndarray, hi: np.ndarray, num_bins: int, weights: np.ndarray) -> np.ndarray:
+    return visits_histogram(torch.as_tensor(lo, dtype=torch.long), torch.as_tensor(hi, dtype=torch.long), num_bins,
+                            torch.as_tensor(np.asarray(weights, dtype=np.int64))).numpy()
+
+
+def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Per-bin evaluation table from tidy per-episode rows: one row per bin, columns BIN_COLUMNS, then
+    the mean of every error column of `frame_errors` over the steps taken at the bin's frames.
+
+    Args:
+        episodes: one row per episode with EPISODE_COLUMNS (`failure_frame`, `terminated` and
+            `horizon_truncated` may be absent: failures are then charged at `end_frame`, all failures
+            count as terminations and no bin is truncated).
+        frame_to_bin: [F] bin of each motion frame, non-decreasing (BinLayout.frame_to_bin); any
+            monotone frame grouping works (e.g. contiguous motion segments).
+        frame_errors: optional, one row per frame (F rows): `steps` (evaluation steps taken at that
+            frame) and per-step error sums (e.g. `mpkpe_mm`).
+    Raises ValueError (one line) on a missing column or a frame outside the motion.
+    """
+    f2b = np.asarray(frame_to_bin, dtype=np.int64).reshape(-1)
+    if not len(f2b) or np.any(np.diff(f2b) < 0):
+        raise ValueError("aggregate: frame_to_bin must be a non-empty, non-decreasing array of bins")
+    num_frames, num_bins = len(f2b), int(f2b[-1]) + 1
+    if f2b[0] != 0 or np.any(np.diff(f2b) > 1):
+        raise ValueError("aggregate: every bin 0..S-1 of frame_to_bin must hold at least one frame")
+    missing = [c for c in ("start_frame", "end_frame", "failed") if c not in episodes.columns]
+    if missing:
+        raise ValueError(f"aggregate: episodes lack columns {missing}")
+    start = episodes["start_frame"].to_numpy(dtype=np.int64)
+    end = episodes["end_frame"].to_numpy(dtype=np.int64)
+    if len(start) and (start.min() < 0 or end.max() >= num_frames or np.any(end < start)):
+        raise ValueError(f"aggregate: episode frames must satisfy 0 <= start_frame <= end_frame < {num_frames}")
+    failed = episodes["failed"].to_numpy(dtype=bool)
+    failure_frame = episodes["failure_frame"].to_numpy(dtype=np.int64) if "failure_frame" in episodes else end
+    terminated = episodes["terminated"].to_numpy(dtype=bool) if "terminated" in episodes else failed
+    truncated = (episodes["horizon_truncated"].to_numpy(dtype=bool) if "horizon_truncated" in episodes
+                 else np.zeros(len(start), dtype=bool))
+    if np.any(failed & ((failure_frame < start) | (failure_frame > end))):
+        raise ValueError("aggregate: a failed episode's failure_frame must lie between its start_frame and end_frame")
+
+    start_bin, end_bin = f2b[start], f2b[end]
+    fail_bin = f2b[np.where(failed, failure_frame, start)]
+    bin_last = np.searchsorted(f2b, np.arange(num_bins), side="right") - 1
+    # Bins an episode covered completely after entering from an earlier bin: from the one after its
+    # start bin to its end bin (that one only when the episode was still alive at its last frame).
+    through_hi = end_bin - (end < bin_last[end_bin])
+    through = through_hi >= start_bin + 1
+    through_lo = np.minimum(start_bin + 1, num_bins - 1)  # in range even where `through` is false
+    out = pd.DataFrame({
+        "bin": np.arange(num_bins),
+        "visits": _visits(start_bin, end_bin, num_bins, np.ones(len(start))),
+        "failures": _counts(fail_bin, num_bins, failed),
+        "start_episodes": _counts(start_bin, num_bins),
+        "start_failures": _counts(start_bin, num_bins, failed),
+        "terminations": _counts(fail_bin, num_bins, failed & terminated),
+        "tracking_failures": _counts(fail_bin, num_bins, failed & ~terminated),
+        "horizon_truncated": _counts(start_bin, num_bins, truncated) > 0,
+        "tracked_through": _visits(through_lo, np.maximum(through_hi, through_lo), num_bins, through),
+    })
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out.insert(3, "failure_rate", out["failures"] / out["visits"].where(out["visits"] > 0))
+    if frame_errors is None:
+        out["eval_steps"] = 0
+        return out
+    if len(frame_errors) != num_frames or "steps" not in frame_errors:
+        raise ValueError(f"aggregate: frame_errors needs {num_frames} rows (one per frame) and a steps column")
+    sums = frame_errors.groupby(f2b).sum()
+    out["eval_steps"] = sums["steps"].to_numpy().astype(np.int64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for c in frame_errors.columns.drop("steps"):
+            out[c] = sums[c].to_numpy() / out["eval_steps"].where(out["eval_steps"] > 0).to_numpy()
+    return out
+
+
+class Rollouts(NamedTuple):
+    """What one evaluation pass produced."""
+
+    episodes: pd.DataFrame
+    """One row per episode: `bin` (its start bin), EPISODE_COLUMNS, `error_failed` and the episode's
+    mean of every ERROR_COLUMNS entry over its alive steps."""
+    frame_errors: pd.DataFrame
+    """One row per motion frame: `steps` taken at it and the per-step sums of ERROR_COLUMNS."""
 
 
 class Evaluator:
-    """Runs evaluation episodes in a dedicated `mode="eval"` environment."""
+    """Runs evaluation episodes in a dedicated `mode="eval"` environment (robust: with DR, noise, pushes)."""
 
-    def __init__(self, env, layout, segments, episodes_per_bin: int, horizon_s: float) -> None:
+    def __init__(self, env, layout, segments, episodes_per_bin: int, horizon_s: float,
+                 max_mpkpe_rel_mm: float | None = None) -> None:
         self.env = env
         self.layout = layout
         self.segments = list(segments)
@@ -43,6 +174,7 @@ class Evaluator:
         self.frames = stratified_start_frames(first, count, episodes_per_bin)
         self.bins = np.repeat(np.arange(layout.num_bins), episodes_per_bin)
         self.horizon_steps = max(1, int(round(horizon_s / env.step_dt)))
+        self.max_mpkpe_rel_mm = max_mpkpe_rel_mm
 
     def segment_of_bin(self) -> list[str]:
         """Label of each bin: the segment covering the bin's midpoint ('' without a manifest)."""
@@ -59,59 +191,88 @@ class Evaluator:
         return labels
 
     @torch.inference_mode()
-    def run_episodes(self, policy) -> pd.DataFrame:
-        """One row per evaluation episode: bin, start_frame, failed, steps and mean errors."""
+    def run_episodes(self, policy) -> Rollouts:
+        """Every evaluation episode, in waves of the env's size; no host synchronisation per step."""
         env = self.env
-        n = env.num_envs
+        n, dev = env.num_envs, env.device
+        frame_to_bin = self.layout.frame_to_bin
+        num_frames = int(frame_to_bin.shape[0])
+        frame_sums = torch.zeros(num_frames, len(ERROR_COLUMNS) + 1, device=dev)  # steps, then error sums
         rows = []
-        for start in range(0, len(self.frames), n):
-            frames = self.frames[start : start + n]
+        for first in range(0, len(self.frames), n):
+            frames = self.frames[first : first + n]
             m = len(frames)
             padded = np.concatenate([frames, np.full(n - m, frames[-1])])
-            env.reset_to_frames(torch.as_tensor(padded, device=env.device))
-            in_wave = torch.arange(n, device=env.device) < m
-            alive = in_wave.clone()
-            failed = torch.zeros(n, dtype=torch.bool, device=env.device)
-            steps = torch.zeros(n, device=env.device)
-            sums = torch.zeros(n, len(ERROR_COLUMNS), device=env.device)
+            env.reset_to_frames(torch.as_tensor(padded, device=dev))
+            alive = torch.arange(n, device=dev) < m
+            start = env.time_steps.clone()
+            # Steps an episode can take before its clip ends (reached_clip_end stops it after them).
+            truncated = (env.segment_end - 1 - start) < self.horizon_steps
+            end_frame = start.clone()
+            worst_frame = start.clone()
+            worst_rel = torch.full((n,), -1.0, device=dev)
+            terminated = torch.zeros(n, dtype=torch.bool, device=dev)
+            steps = torch.zeros(n, device=dev)
+            sums = torch.zeros(n, len(ERROR_COLUMNS), device=dev)
             obs = env.get_observations()
             for _ in range(self.horizon_steps):
+                frame = env.time_steps.clone()  # the frame this step is judged at (terminations)
+                end_frame = torch.where(alive, frame, end_frame)
                 actions = policy(obs, stochastic_output=False)
                 obs, _, _, extras = env.step(actions)
-                alive_f = alive.float()
-                sums += _errors(env) * alive_f[:, None]
-                steps += alive_f
-                terminated = extras["terminated"] & alive
-                failed |= terminated
-                alive &= ~terminated & ~env.reached_clip_end
-            means = (sums / steps.clamp_min(1)[:, None]).cpu().numpy()
-            wave = pd.DataFrame(means[:m], columns=list(ERROR_COLUMNS))
-            wave.insert(0, "steps", steps[:m].cpu().numpy().astype(int))
-            wave.insert(0, "failed", failed[:m].cpu().numpy())
-            wave.insert(0, "start_frame", frames)
-            wave.insert(0, "bin", self.bins[start : start + m])
-            rows.append(wave)
-        return pd.concat(rows, ignore_index=True)
+                alive_f = alive.float()[:, None]
+                err = _errors(env) * alive_f
+                sums += err
+                steps += alive_f[:, 0]
+                frame_sums.index_add_(0, frame, torch.cat((alive_f, err), dim=-1))
+                worse = alive & (err[:, REL_MPKPE] > worst_rel)
+                worst_rel = torch.where(worse, err[:, REL_MPKPE], worst_rel)
+                worst_frame = torch.where(worse, frame, worst_frame)
+                stop = extras["terminated"] & alive
+                terminated |= stop
+                # An episode that reaches the end of its clip tracked up to the clip's last frame.
+                end_frame = torch.where(alive & ~stop & env.reached_clip_end, env.time_steps, end_frame)
+                alive &= ~stop & ~env.reached_clip_end
+            means = sums / steps.clamp_min(1)[:, None]
+            error_failed = torch.zeros_like(terminated)
+            if self.max_mpkpe_rel_mm is not None:
+                error_failed = ~terminated & (means[:, REL_MPKPE] > self.max_mpkpe_rel_mm)
+            failed = terminated | error_failed
+            failure_frame = torch.where(terminated, end_frame, torch.where(error_failed, worst_frame, -1))
+            ints = torch.stack((start, end_frame, failure_frame, steps.long(), terminated.long(),
+                                error_failed.long(), truncated.long()), dim=-1)[:m].cpu().numpy()
+            wave = pd.DataFrame(means[:m].cpu().numpy(), columns=list(ERROR_COLUMNS))
+            head = pd.DataFrame({
+                "bin": self.bins[first : first + m],
+                "start_frame": ints[:, 0],
+                "end_frame": ints[:, 1],
+                "failed": failed[:m].cpu().numpy(),
+                "failure_frame": ints[:, 2],
+                "terminated": ints[:, 4].astype(bool),
+                "error_failed": ints[:, 5].astype(bool),
+                "steps": ints[:, 3],
+                "horizon_truncated": ints[:, 6].astype(bool),
+            })
+            rows.append(pd.concat([head, wave], axis=1))
+        frame_errors = pd.DataFrame(frame_sums.double().cpu().numpy(), columns=["steps", *ERROR_COLUMNS])
+        return Rollouts(pd.concat(rows, ignore_index=True), frame_errors)
+
+    def bin_table(self, rollouts: Rollouts) -> pd.DataFrame:
+        """`aggregate` of one evaluation with the bins' edges and segment labels."""
+        per_bin = aggregate(rollouts.episodes, self.layout.frame_to_bin.cpu().numpy(), rollouts.frame_errors)
+        edges = self.layout.edges_s.cpu().numpy()
+        labels = self.segment_of_bin()
+        per_bin.insert(1, "bin_start_s", edges[per_bin["bin"]])
+        per_bin.insert(2, "bin_end_s", edges[per_bin["bin"] + 1])
+        per_bin.insert(3, "segment", [labels[b] for b in per_bin["bin"]])
+        return per_bin
 
     def evaluate(self, policy, iteration: int, env_steps: int, wall_time_s: float) -> pd.DataFrame:
         """Per-bin table (eval.parquet rows) for one evaluation."""
-        episodes = self.run_episodes(policy)
-        grouped = episodes.groupby("bin")
-        per_bin = grouped[list(ERROR_COLUMNS)].mean()
-        per_bin["failures"] = grouped["failed"].sum()
-        per_bin["episodes"] = grouped["failed"].count()
-        per_bin = per_bin.reset_index()
-        edges = self.layout.edges_s.cpu().numpy()
-        labels = self.segment_of_bin()
-        per_bin["failure_rate"] = per_bin["failures"] / per_bin["episodes"]
-        per_bin.insert(0, "segment", [labels[b] for b in per_bin["bin"]])
-        per_bin.insert(0, "bin_end_s", edges[per_bin["bin"] + 1])
-        per_bin.insert(0, "bin_start_s", edges[per_bin["bin"]])
+        per_bin = self.bin_table(self.run_episodes(policy))
         per_bin.insert(0, "wall_time_s", float(wall_time_s))
         per_bin.insert(0, "env_steps", int(env_steps))
         per_bin.insert(0, "iteration", int(iteration))
-        per_bin["failures"] = per_bin["failures"].astype(int)
-        per_bin["episodes"] = per_bin["episodes"].astype(int)
         return per_bin
 
 
@@ -138,15 +299,22 @@ def _errors(env) -> torch.Tensor:
     )
 
 
-def summarize(per_bin: pd.DataFrame) -> dict[str, float]:
-    """Overall numbers of one evaluation (episode-weighted)."""
-    episodes = per_bin["episodes"].sum()
+def summarize(per_bin: pd.DataFrame, prefix: str = "eval") -> dict[str, float]:
+    """Overall numbers of one evaluation: the fraction of episodes that failed (each failure is charged
+    to exactly one bin, so it is failures / start_episodes summed), the fraction of bins mastered
+    (counts_as_mastered at MASTERED_BELOW) and step-weighted mean errors. Keys `<prefix>_...`."""
+    episodes = int(per_bin["start_episodes"].sum())
+    steps = per_bin["eval_steps"].to_numpy(dtype=float)
     out = {
-        "eval_failure_rate": float(per_bin["failures"].sum() / max(episodes, 1)),
-        "eval_bins_mastered_frac": float((per_bin["failure_rate"] < 0.1).mean()),
+        f"{prefix}_failure_rate": float(per_bin["failures"].sum() / max(episodes, 1)),
+        f"{prefix}_bins_mastered_frac": float(counts_as_mastered(per_bin, MASTERED_BELOW).mean()),
     }
-    out["eval_success_rate"] = 1.0 - out["eval_failure_rate"]
+    out[f"{prefix}_success_rate"] = 1.0 - out[f"{prefix}_failure_rate"]
     for c in ERROR_COLUMNS:
-        v = float(np.average(per_bin[c], weights=per_bin["episodes"])) if episodes else math.nan
-        out[f"eval_{c}"] = v
+        if c in per_bin and steps.sum() > 0:
+            ok = steps > 0
+            out[f"{prefix}_{c}"] = float(np.average(per_bin[c].to_numpy(dtype=float)[ok], weights=steps[ok]))
+        else:
+            out[f"{prefix}_{c}"] = math.nan
     return out
+
