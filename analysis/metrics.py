@@ -3,9 +3,10 @@ censored per-arm medians and speedups.
 
 Definitions (used by the report and its text):
 
-- *overall failure* of an evaluation = the unweighted mean of ``failure_rate`` over bins (every part
-  of the motion counts the same); *overall success* = 1 - that. ``failure_rate`` is failures per
-  visit, charged to the bin where the failure happened (bmimic.training.evaluation).
+- *overall failure* of an evaluation = the fraction of its episodes that failed (starts are
+  stratified, the same number in every bin, so every part of the motion counts the same); *overall
+  success* = 1 - that; the same number as the run's ``eval_failure_rate``. A bin's ``failure_rate``
+  is failures per visit, charged to the bin where the failure happened (bmimic.training.evaluation).
 - an evaluation *counts a bin as mastered* when its failure rate is below the threshold and, if the
   bin is ``horizon_truncated`` (its episodes run out of clip before the horizon), at least one
   episode tracked all of its frames after entering it from an earlier bin (``tracked_through``).
@@ -65,19 +66,26 @@ def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     """Overall evaluated failure and success per run and evaluation iteration.
 
     Returns ``by + [iteration, env_steps, wall_time_s, failure_rate, success_rate, num_bins]`` where
-    ``failure_rate`` is the mean over the bins evaluated at that iteration.
+    ``failure_rate`` is the fraction of evaluation episodes that failed: every failed episode is charged
+    to exactly one bin, so it is the sum of ``failures`` over the sum of ``start_episodes`` (``episodes``
+    in tables written before per-visit accounting). Starts are stratified, the same number per bin, so
+    every part of the motion counts the same. This is the run's own ``eval_failure_rate``
+    (bmimic.training.evaluation.summarize), so report, metrics.json and console agree.
     """
     by = list(by)
+    starts = "start_episodes" if "start_episodes" in eval_df.columns else "episodes"
     out = (
         eval_df.groupby([*by, "iteration"], sort=True)
         .agg(
             env_steps=("env_steps", "max"),
             wall_time_s=("wall_time_s", "max"),
-            failure_rate=("failure_rate", "mean"),
+            failures=("failures", "sum"),
+            starts=(starts, "sum"),
             num_bins=("bin", "nunique"),
         )
         .reset_index()
     )
+    out["failure_rate"] = out["failures"] / out["starts"].where(out["starts"] > 0)
     out["success_rate"] = 1.0 - out["failure_rate"]
     return out[[*by, "iteration", "env_steps", "wall_time_s", "failure_rate", "success_rate", "num_bins"]]
 

@@ -25,6 +25,7 @@ All randomness comes from fixed seeds, so the same runs always give the same rep
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from collections.abc import Callable
@@ -201,11 +202,32 @@ def permutation_pvalue(a, b, statistic: Callable | None = None, n_resamples: int
         def statistic(x, y, axis=-1):
             return np.mean(x, axis=axis) - np.mean(y, axis=axis)
     splits = math.comb(len(a) + len(b), len(a))
+    if min(len(a), len(b)) < 2:
+        # scipy refuses a group of one value; the exact test is still defined (few splits).
+        return _exact_permutation_pvalue(a, b, statistic)
     res = sps.permutation_test(
         (a, b), statistic, permutation_type="independent", alternative="two-sided", vectorized=True,
         n_resamples=np.inf if splits <= EXACT_PERMUTATIONS else n_resamples, rng=np.random.default_rng(seed),
     )
     return float(min(1.0, res.pvalue))
+
+
+def _exact_permutation_pvalue(a: np.ndarray, b: np.ndarray, statistic: Callable) -> float:
+    """Two-sided exact permutation p-value over every split, as scipy defines it:
+    2 x min(P(T >= t), P(T <= t)), capped at 1 (for groups too small for scipy)."""
+    pooled = np.concatenate([a, b])
+    idx = np.arange(len(pooled))
+    null = []
+    for chosen in itertools.combinations(idx, len(a)):
+        mask = np.zeros(len(pooled), dtype=bool)
+        mask[list(chosen)] = True
+        null.append(float(statistic(pooled[mask], pooled[~mask], axis=-1)))
+    null = np.asarray(null)
+    observed = float(statistic(a, b, axis=-1))
+    tol = 1e-12 * max(1.0, abs(observed))
+    greater = np.mean(null >= observed - tol)
+    less = np.mean(null <= observed + tol)
+    return float(min(1.0, 2.0 * min(greater, less)))
 
 
 def km_median(time, event, axis: int = -1):

@@ -61,7 +61,8 @@ PLANTED = {
 
 
 EPISODES_PER_BIN = 100
-"""Evaluation episodes started per bin; visits are twice that (every episode spans two bins)."""
+"""Evaluation episodes started per bin; each stays in its start bin, so visits equal starts and the
+overall failure (failed episodes / episodes) is the mean of the planted per-bin rates."""
 
 
 def _failure(mastery: list[float | None], seed: int, iteration: int) -> np.ndarray:
@@ -136,7 +137,7 @@ def write_run(
             sampler_rows.append((int(it), b, start, end, 25, int(25 * fail[b]), fail[b], fail[b], prob[b]))
             if it % eval_every == 0 or it == last_iteration:
                 segment = next(s["name"] for s in SEGMENTS if s["start_s"] <= start < s["end_s"])
-                visits = 2 * EPISODES_PER_BIN
+                visits = EPISODES_PER_BIN
                 truncated = b in truncated_bins
                 eval_rows.append((
                     int(it), int(it) * STEPS_PER_ITERATION, it * seconds_per_iteration, b, start, end,

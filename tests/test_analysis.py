@@ -106,6 +106,11 @@ def test_permutation_pvalues_are_exact_for_small_n():
     assert permutation_pvalue([1, 2, 3], [1, 2, 3]) == 1.0
     assert permutation_pvalue([0.0] * 5, [1.0] * 5) == pytest.approx(2 / 252)
     assert math.isnan(permutation_pvalue([], [1.0]))
+    # One seed against two (scipy refuses a group of one): 3 splits, the observed one is the most
+    # extreme on one side, so p = 2 x 1/3 (capped at 1), and the same with the groups swapped.
+    assert permutation_pvalue([0.0], [1.0, 2.0]) == pytest.approx(2 / 3)
+    assert permutation_pvalue([1.0, 2.0], [0.0]) == pytest.approx(2 / 3)
+    assert permutation_pvalue([5.0], [4.0]) == 1.0
 
 
 def test_km_median_known_answers():
