@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -38,3 +40,17 @@ def cli_env() -> dict:
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     return env
+
+
+def wait_for(proc, ready, what: str, timeout_s: float = 600) -> None:
+    """Poll `ready()` while the subprocess `proc` runs (a file not written yet, or half-written JSON,
+    counts as not ready); fail the test with `what` if it never holds."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if ready():
+                return
+        except (FileNotFoundError, json.JSONDecodeError):
+            pass
+        time.sleep(0.05)
+    pytest.fail(f"never reached: {what}")
