@@ -137,6 +137,21 @@ def check_composed(cfg, choices=None) -> None:
     check_resume_allow_changes(cfg)
 
 
+def with_schema_defaults(config: dict) -> dict:
+    """A plain (resolved) config with the schema's defaults for the keys it lacks, e.g. one saved by
+    an earlier bmimic before an option existed; unchanged when it does not fit the schema."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        filled = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(TrainConfig), config), resolve=True)
+    except (OmegaConfBaseException, ValueError, TypeError):
+        return config
+    if "defaults" not in config:  # Hydra's defaults list is not part of a composed config
+        filled.pop("defaults", None)
+    return filled
+
+
 def check_known_keys(cfg) -> None:
     """Refuse keys the schema does not have, including ones added with `+`/`++` (Hydra's force-add
     skips the struct check): `+sampler.gama=0.5` must not train a run that looks like an ablation arm.

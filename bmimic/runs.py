@@ -403,8 +403,12 @@ def _same_value(x: Any, y: Any) -> bool:
 
 def refused_changes(changes: dict[str, tuple[Any, Any]], allowed: list[str] | tuple[str, ...]) -> list[str]:
     """Changed keys neither free nor named (or under a prefix named) in `allowed`."""
-    ok = (*RESUME_FREE_KEYS, *allowed)
-    return [k for k in changes if not any(k == a or k.startswith(a + ".") for a in ok)]
+    return [k for k in changes if not key_allowed(k, (*RESUME_FREE_KEYS, *allowed))]
+
+
+def key_allowed(key: str, allowed: list[str] | tuple[str, ...]) -> bool:
+    """`key` is one of `allowed` or under one of them (`env` allows `env.rewards.x.weight`)."""
+    return any(key == a or key.startswith(a + ".") for a in allowed)
 
 
 class ResumeRefusedError(BmimicError):
@@ -527,12 +531,16 @@ def previous_config(plan: RunPlan) -> dict | None:
     return None
 
 
-def check_resume_changes(plan: RunPlan, new_config: dict, allowed: list[str] | tuple[str, ...]) -> dict:
+def check_resume_changes(plan: RunPlan, new_config: dict, allowed: list[str] | tuple[str, ...],
+                         fill_defaults: Callable[[dict], dict] | None = None) -> dict:
     """{key: (old, new)} of the accepted config changes of a resume; ResumeRefusedError listing the
-    keys that changed without being named in resume_allow_changes."""
+    keys that changed without being named in resume_allow_changes. `fill_defaults` gives the old
+    config the schema's defaults for keys it predates (a newer bmimic's options are no change)."""
     old = previous_config(plan)
     if plan.state is None or old is None:
         return {}
+    if fill_defaults is not None:
+        old = fill_defaults(old)
     changes = config_changes(old, new_config)
     refused = refused_changes(changes, allowed)
     if refused:

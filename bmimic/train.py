@@ -28,7 +28,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from bmimic import BmimicError, launch
-from bmimic.config import check_composed, check_num_envs_fit, resolve_runtime, validate
+from bmimic.config import check_composed, check_num_envs_fit, resolve_runtime, validate, with_schema_defaults
 from bmimic.runs import (
     LOCK_NAME,
     ResumeRefusedError,
@@ -153,7 +153,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     if plan.note:
         log.warning(plan.note)
     resolved = OmegaConf.to_container(cfg, resolve=True)
-    changes = check_resume_changes(plan, resolved, list(cfg.resume_allow_changes or []))
+    allowed = list(cfg.resume_allow_changes or [])
+    changes = check_resume_changes(plan, resolved, allowed, fill_defaults=with_schema_defaults)
     if plan.continues:
         _refuse_finished(plan, cfg.max_iterations)
     if main_rank and not ctx.holds(plan.run_dir):
@@ -169,7 +170,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
                       eval_every_iters=cfg.eval.every_iters, logger=cfg.logger, wandb_project=cfg.wandb_project,
                       progress_bar=cfg.progress_bar and main_rank, is_main_rank=main_rank, run_config=resolved)
     if plan.state is not None:
-        trainer.restore(plan.state, plan.checkpoint)
+        trainer.restore(plan.state, plan.checkpoint, allowed)
     if main_rank:
         _commit(ctx, plan, resolved, device, changes, motion)
     try:

@@ -218,6 +218,12 @@ class Workspace:
                 state["format"] = "bmimic-checkpoint-1"
                 del state["config"], state["meta"]
                 torch.save(state, p)
+            # ... and its resolved config predates the options added with format 2
+            cfg = json.loads((run / "resolved_config.json").read_text())
+            for key in ("resume_allow_changes", "trust_checkpoint"):
+                del cfg[key]
+            del cfg["sim"]["max_abs_qvel"], cfg["sim"]["max_root_distance_m"], cfg["env"]["max_abs_step_reward"]
+            (run / "resolved_config.json").write_text(json.dumps(cfg))
         return run
 
 
@@ -548,8 +554,10 @@ def cases() -> list[Case]:
              match="env.policy_observations"))
     add(Case("resume_allow_changes=[sampler] across samplers", "train",
              _resume("sampler=uniform", "resume_allow_changes=[sampler]"), match="sampler"))
-    add(Case("resume_allow_changes=[num_envs]", "train", _resume("num_envs=4", "resume_allow_changes=[num_envs]"),
-             match="num_envs"))
+    add(Case("resume_allow_changes=[num_envs] with another num_envs", "train", lambda ws: _train(
+        f"resume={ws.copy_run('num_envs')}", "num_envs=4", "resume_allow_changes=[num_envs]", "run_name=fixture",
+        iters=3), "accept", check=lambda ws, r: json.loads((ws.root / "copies" / "num_envs" / "resumes.json").read_text(
+        ))[-1]["changes"]["num_envs"] == [2, 4], slow=True))
     add(Case("resume_allow_changes=[env] other observations", "train",
              _resume("~env.policy_observations.base_lin_vel", "resume_allow_changes=[env]"), match="fit"))
     add(Case("resume of a run being trained", "train", _resume(), match="another process", patch=_held_lock))
@@ -787,7 +795,7 @@ def test_crafted_checkpoint_is_refused_by_every_loader(tmp_path) -> None:
     path = ws.evil_checkpoint()
     with pytest.raises(UnsafeCheckpointError) as err:
         load_checkpoint_file(path)
-    assert "\n" not in str(err.value) and "builtins.open" in str(err.value) or "io.open" in str(err.value)
+    assert "\n" not in str(err.value) and ("builtins.open" in str(err.value) or "io.open" in str(err.value))
     assert not ws.sentinel.exists()
 
 

@@ -28,6 +28,7 @@ from bmimic.runs import (
     CHECKPOINT_FORMAT,
     atomic_torch_save,
     atomic_write_parquet,
+    key_allowed,
     load_checkpoint_file,
     rng_state,
     set_rng_state,
@@ -111,6 +112,10 @@ class Progress:
     env_steps: int = 0
     wall_time_s: float = 0.0
     last_eval: dict = field(default_factory=dict)
+
+
+_SOFT_META = {"num_envs": "num_envs", "motion_frames": "motion", "motion_fps": "motion", "motion_sha256": "motion"}
+"""Checkpoint meta a resume may change when resume_allow_changes names the config key on the right."""
 
 
 class CheckpointMismatchError(BmimicError):
@@ -230,13 +235,18 @@ class Trainer:
         """Read a checkpoint (weights_only unless `trust`) and `restore` it."""
         self.restore(load_checkpoint_file(path, "cpu", trust), path)
 
-    def restore(self, state: dict, path: str | os.PathLike = "checkpoint") -> None:
+    def restore(self, state: dict, path: str | os.PathLike = "checkpoint", allowed: tuple | list = ()) -> None:
         """Load networks, optimiser, counters, sampler and RNG states; reads the run's tables but
-        writes nothing. Raises CheckpointMismatchError (one line) when the checkpoint does not fit."""
+        writes nothing. Raises CheckpointMismatchError (one line) when the checkpoint does not fit.
+
+        `allowed` (resume_allow_changes) may accept another num_envs or motion; observation and
+        action sizes, sampler kind and bins must match (the networks and sampler state depend on them)."""
         saved = state.get("meta")
         if isinstance(saved, dict):
             own = self.meta()
-            differ = [f"{k} {saved[k]} -> {own[k]}" for k in own if k in saved and saved[k] != own[k]]
+            soft = {k: cfg_key for k, cfg_key in _SOFT_META.items() if key_allowed(cfg_key, allowed)}
+            differ = [f"{k} {saved[k]} -> {own[k]}" for k in own
+                      if k in saved and saved[k] != own[k] and k not in soft]
             if differ:
                 raise CheckpointMismatchError(f"{path}: does not fit this run: {'; '.join(differ)}")
         try:
