@@ -1,4 +1,5 @@
-"""Atomic writes of report artefacts: write a unique temp file beside the target, then os.replace.
+"""Atomic writes of report artefacts, through bmimic's one atomic writer (bmimic.runs.atomic_write):
+a temp file beside the target, fsynced, then renamed over it, with the umask's permissions.
 
 A reader (or a second writer) never sees a half-written file; of two concurrent writers the last
 replace wins and both leave a complete file.
@@ -6,34 +7,17 @@ replace wins and both leave a complete file.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
 
+from bmimic.runs import atomic_write as _atomic_write
+
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
     """Call ``write(tmp_path)`` on a fresh temp file in ``path``'s folder, then move it onto ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; artefacts get the usual permissions
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    return _atomic_write(path, lambda tmp: write(Path(tmp)))
 
 
 def write_text(path: str | Path, text: str) -> Path:

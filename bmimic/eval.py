@@ -38,7 +38,6 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
-import torch
 
 from bmimic import BmimicError
 from bmimic.console import quiet_warp
@@ -84,6 +83,7 @@ def _iteration_of_name(path: Path) -> int:
 
 def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
     """The run's composed config under the TrainConfig schema, with dotted `key=value` overrides merged."""
+    import yaml
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -92,7 +92,7 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
     path = run_dir / ".hydra" / "config.yaml"
     try:
         cfg = OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.load(path))
-    except (OmegaConfBaseException, OSError, ValueError) as e:
+    except (OmegaConfBaseException, OSError, ValueError, yaml.YAMLError) as e:
         raise EvalError(f"{path}: cannot be read as a bmimic config: {first_line(e)}") from None
     OmegaConf.set_struct(cfg, True)  # an override of a key that does not exist is an error, as in Hydra
     for item in overrides:
@@ -144,14 +144,21 @@ class LoadedRun:
     """bmimic.sampling.bins.BinLayout of the motion."""
 
 
-def load_run(path: str | Path, overrides: Sequence[str] = ()) -> LoadedRun:
-    """Locate the run, reload and resolve its config, rebuild robot, motion and bins like training."""
-    from bmimic.config import resolve_runtime
+def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = False) -> LoadedRun:
+    """Locate the run, reload and resolve its config, rebuild robot, motion and bins like training.
+
+    A run folder may come from someone else: a config whose terms import modules outside bmimic
+    (`func: package.module:function`) is refused unless `trust` (--trust-checkpoint)."""
+    from bmimic.config import foreign_term_modules, resolve_runtime
     from bmimic.runs import resolve_device
     from bmimic.train import build_task
 
     run_dir, checkpoint = locate_run(path)
     cfg = load_run_config(run_dir, overrides)
+    foreign = foreign_term_modules(cfg.env)
+    if foreign and not trust:
+        raise EvalError(f"{run_dir}: its config imports {', '.join(foreign)} (code outside bmimic) for env terms; "
+                        "pass --trust-checkpoint if you trust this run folder")
     anchor_relative_paths(cfg, run_dir)
     device = resolve_device(cfg.device)
     resolve_runtime(cfg, device)
@@ -159,16 +166,12 @@ def load_run(path: str | Path, overrides: Sequence[str] = ()) -> LoadedRun:
     return LoadedRun(run_dir, checkpoint, cfg, device, mjm, robot, motion, layout)
 
 
-def load_checkpoint(path: Path, device: str) -> dict:
-    """The checkpoint dict; it must hold an rsl-rl actor."""
-    try:
-        # weights_only=False: bmimic checkpoints also hold numpy/python RNG states.
-        state = torch.load(path, map_location=device, weights_only=False)
-    except Exception as e:
-        raise EvalError(f"{path}: not a readable torch checkpoint: {first_line(e)}") from None
-    if not isinstance(state, dict) or "actor_state_dict" not in state:
-        raise EvalError(f"{path}: not an rsl-rl/bmimic checkpoint (no actor_state_dict)")
-    return state
+def load_checkpoint(path: Path, device: str, trust: bool = False) -> dict:
+    """The checkpoint dict, read with torch.load(weights_only=True) (`trust`: --trust-checkpoint, for
+    your own checkpoints of format 1); it must hold an rsl-rl actor."""
+    from bmimic.runs import load_checkpoint_file
+
+    return load_checkpoint_file(path, device, trust)
 
 
 def build_policy(state: dict, env, ppo_cfg, device: str, checkpoint: Path | str = "checkpoint"):
@@ -305,14 +308,14 @@ class EvalResult:
     """Folder the tables were written to (None until written)."""
 
 
-def evaluate(run: LoadedRun, overrides: Sequence[str] = ()) -> EvalResult:
+def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False) -> EvalResult:
     """Run the sampler-independent evaluation of `run.checkpoint` and build the tables."""
     from bmimic.runs import seed_everything
     from bmimic.train import build_evaluator
     from bmimic.training.evaluation import summarize
 
     cfg = run.cfg
-    state = load_checkpoint(run.checkpoint, run.device)
+    state = load_checkpoint(run.checkpoint, run.device, trust)
     seed_everything(cfg.seed)
     evaluator = build_evaluator(cfg, run.device, run.robot, run.motion, run.layout)
     env = evaluator.env
@@ -464,7 +467,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--num-envs", type=int, help="most simultaneous evaluation worlds (eval.max_envs)")
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
     p.add_argument("--out", type=Path, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
+    add_trust_flag(p)
     return p
+
+
+def add_trust_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--trust-checkpoint", action="store_true",
+                   help="unpickle a checkpoint that torch.load(weights_only=True) refuses; only for checkpoints "
+                        "you wrote yourself (bmimic checkpoint format 1): a shared one could run code")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -473,8 +483,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     quiet_warp()
     overrides = [*args.overrides, *flag_overrides(args)]
     try:
-        run = load_run(args.path, overrides)
-        result = evaluate(run, overrides)
+        run = load_run(args.path, overrides, trust=args.trust_checkpoint)
+        result = evaluate(run, overrides, trust=args.trust_checkpoint)
         out_dir = args.out if args.out is not None else run.run_dir / "eval" / result.summary["label"]
         write_tables(result, out_dir.resolve())
     except user_errors() as e:

@@ -27,6 +27,7 @@ import fcntl
 import hashlib
 import logging
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -120,6 +121,8 @@ def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR
     """
     from hydra.core.hydra_config import HydraConfig
 
+    from bmimic.config import check_composed
+
     with _config_loader(config_dir, config_name) as loader:
         master, batch = _expand(loader, config_name, overrides)
         jobs = []
@@ -129,6 +132,7 @@ def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR
                 cfg.hydra.job.num = num
                 cfg.hydra.job.id = f"{cfg.hydra.job.name}_{num}"
             HydraConfig.instance().set_config(cfg)  # as the launcher does: subdir may use ${hydra:...}
+            check_composed(cfg, cfg.hydra.runtime.choices)  # what the job would refuse, refused here
             run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
             status = _read_status(run_dir)
             jobs.append(Job(num, tuple(job_overrides), run_dir, status.get("status", "new"),
@@ -177,9 +181,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
+    from bmimic import BmimicError
+
     try:
         sweep_dir, jobs = list_jobs(args.overrides)
-    except (SweepListError, HydraException, OmegaConfBaseException) as e:
+    except (SweepListError, HydraException, OmegaConfBaseException, BmimicError) as e:
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         if "sweep" in msg and "Could not" in msg:
             msg += f" (studies: {', '.join(available_studies())})"
@@ -307,14 +313,12 @@ def _now() -> str:
 
 
 def append_error_log(run_dir: str | os.PathLike, headline: str, details: str = "") -> Path:
-    """Add a timestamped entry to `<run_dir>/errors.log` (kept across retries; status.json is not)."""
-    from bmimic.runs import atomic_write_text
+    """Add a timestamped entry to `<run_dir>/errors.log` (kept across retries; status.json is not),
+    as one atomic replace serialised against concurrent appenders."""
+    from bmimic.runs import atomic_append_text
 
-    path = Path(run_dir) / ERRORS_LOG
-    old = path.read_text() if path.exists() else ""
     entry = f"=== {_now()} {headline}\n{details.rstrip()}\n" if details.strip() else f"=== {_now()} {headline}\n"
-    atomic_write_text(path, old + entry)
-    return path
+    return atomic_append_text(Path(run_dir) / ERRORS_LOG, entry)
 
 
 def note_previous_attempt(run_dir: str | os.PathLike, status: dict) -> None:
@@ -328,22 +332,95 @@ def note_previous_attempt(run_dir: str | os.PathLike, status: dict) -> None:
                                   f"updated {status.get('updated')}): killed, preempted or timed out; resuming")
 
 
+# --------------------------------------------------------------------------------------------- job outcomes
+OUTCOMES_ENV = "BMIMIC_SWEEP_OUTCOMES"
+"""Folder where the jobs of the running multirun record how they ended (set by the callback for the
+launcher's processes: in-process, joblib workers and submitit jobs inherit the environment)."""
+FAILED_OUTCOMES = ("failed", "refused")
+
+
+def record_job_outcome(job_dir: str | os.PathLike, outcome: str, message: str | None = None) -> None:
+    """Record one job's end for the multirun summary: done, done before, locked, refused or failed."""
+    folder = os.environ.get(OUTCOMES_ENV)
+    if not folder:
+        return
+    from bmimic.runs import atomic_write_json
+
+    job_dir = Path(job_dir).resolve()
+    name = hashlib.sha1(str(job_dir).encode()).hexdigest()[:16]
+    try:
+        atomic_write_json(Path(folder) / f"{name}.json", {"job": str(job_dir), "outcome": outcome,
+                                                          "message": message})
+    except OSError as e:  # the summary is a convenience; the job's own status.json is the record
+        log.warning("could not record the outcome of %s: %s", job_dir, e)
+
+
+def read_job_outcomes(folder: Path) -> list[dict]:
+    import json
+
+    out = []
+    for path in sorted(Path(folder).glob("*.json")):
+        try:
+            item = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(item, dict):
+            out.append(item)
+    return out
+
+
+def outcome_summary(outcomes: Sequence[dict], sweep_dir: Path) -> tuple[str, list[str]]:
+    """(one summary line, one line per failed or refused job) of a multirun's outcomes."""
+    counts: dict[str, int] = {}
+    for o in outcomes:
+        counts[o["outcome"]] = counts.get(o["outcome"], 0) + 1
+    line = f"{len(outcomes)} jobs: " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+    failed = []
+    for o in outcomes:
+        if o["outcome"] in FAILED_OUTCOMES:
+            job = Path(o["job"])
+            rel = job.relative_to(sweep_dir.resolve()) if job.is_relative_to(sweep_dir.resolve()) else job
+            failed.append(f"  {o['outcome']}: {rel}: {o.get('message') or ''}")
+    return line, failed
+
+
 # --------------------------------------------------------------------------------------------- sweep index
 class SweepIndexCallback(Callback):
-    """Writes `<sweep>/index.csv` once every job of a multirun has returned (conf/train.yaml)."""
+    """Writes `<sweep>/index.csv` once every job of a multirun has returned, prints how the jobs
+    ended, and exits non-zero (after every job ran) when any failed or was refused (conf/train.yaml)."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)  # on the shared filesystem, for SLURM jobs too
+        self._outcomes = Path(tempfile.mkdtemp(prefix=".outcomes-", dir=sweep_dir))
+        self._previous_env = os.environ.get(OUTCOMES_ENV)
+        os.environ[OUTCOMES_ENV] = str(self._outcomes)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(str(config.hydra.sweep.dir))
-        if not sweep_dir.is_dir():
-            return
-        try:
-            from analysis.index import write_index
+        failed: list[str] = []
+        folder = getattr(self, "_outcomes", None)
+        if folder is not None:
+            outcomes = read_job_outcomes(folder)
+            shutil.rmtree(folder, ignore_errors=True)
+            if self._previous_env is None:
+                os.environ.pop(OUTCOMES_ENV, None)
+            else:
+                os.environ[OUTCOMES_ENV] = self._previous_env
+            if outcomes:
+                line, failed = outcome_summary(outcomes, sweep_dir)
+                print(line)
+        if sweep_dir.is_dir():
+            try:
+                from analysis.index import write_index
 
-            path = write_index(sweep_dir)
-        except Exception as e:  # the index is rebuildable (python -m analysis.index); never fail the sweep
-            log.warning("could not write the sweep index of %s: %s", sweep_dir, e)
-            return
-        print(f"sweep index: {path}{_status_summary(path)}")
+                path = write_index(sweep_dir)
+                print(f"sweep index: {path}{_status_summary(path)}")
+            except Exception as e:  # the index is rebuildable (python -m analysis.index); never fail the sweep
+                log.warning("could not write the sweep index of %s: %s", sweep_dir, e)
+        if failed:
+            print(f"{len(failed)} job(s) failed or were refused:", *failed, sep="\n", file=sys.stderr)
+            sys.exit(1)
 
 
 def _status_summary(index_csv: Path) -> str:

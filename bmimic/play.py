@@ -43,6 +43,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--msaa", type=int, help="multisample anti-aliasing samples (default 4; 0 on software GL)")
     p.add_argument("--no-ghost", action="store_true", help="do not draw the reference ghost")
     p.add_argument("--no-text", action="store_true", help="do not print time, segment and falls on the frames")
+    from bmimic.eval import add_trust_flag
+
+    add_trust_flag(p)
     return p
 
 
@@ -110,8 +113,8 @@ def play(args: argparse.Namespace) -> Path:
         raise RenderError(f"--seconds ({args.seconds}) and --fps ({args.fps}) must be > 0")
     # eval.max_envs=1: build_evaluator then makes exactly one world.
     overrides = [*args.overrides, "eval.max_envs=1", *([f"device={args.device}"] if args.device else [])]
-    run = load_run(args.path, overrides)
-    state = load_checkpoint(run.checkpoint, run.device)
+    run = load_run(args.path, overrides, trust=args.trust_checkpoint)
+    state = load_checkpoint(run.checkpoint, run.device, args.trust_checkpoint)
     motion = run.motion
     if not 0 <= args.start_s < motion.duration_s:
         raise RenderError(f"--start-s {args.start_s}: must be in [0, {motion.duration_s:g}) s, the motion's length")

@@ -14,6 +14,7 @@ outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/. Returns the final evaluate
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -27,12 +28,26 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from bmimic import BmimicError, launch
-from bmimic.config import resolve_runtime, validate
+from bmimic.config import check_composed, check_num_envs_fit, resolve_runtime, validate, with_schema_defaults
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.runs import (
+    LOCK_NAME,
+    ResumeRefusedError,
+    RunLockedError,
+    RunPlan,
     atomic_write_json,
+    atomic_write_text,
+    check_resume_changes,
+    discard_launch_dir,
+    intact_checkpoints,
+    lock_run,
+    move_file_logs,
+    plan_run,
+    provenance,
     read_status,
+    record_resume,
     resolve_device,
+    resume_request,
     seed_everything,
     write_provenance,
     write_status,
@@ -47,31 +62,6 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return (BmimicError, MotionDataError)
 
 
-def find_resume_checkpoint(resume: str | None, run_dir: Path) -> tuple[Path | None, Path]:
-    """(checkpoint to load, run folder to continue in) for `resume` = null / true / a path."""
-    if resume is None or str(resume).lower() in ("false", "none", "null", ""):
-        return None, run_dir
-    if str(resume).lower() in ("true", "latest", "1", "yes"):
-        own = run_dir / "checkpoints" / "latest.pt"
-        if own.exists():  # a sweep job folder, or a re-run in the same folder
-            return own, run_dir
-        # Single runs get a new timestamped folder each launch: continue the newest sibling instead.
-        siblings = sorted(
-            (p for p in run_dir.parent.iterdir() if p != run_dir and (p / "checkpoints" / "latest.pt").exists()),
-            key=lambda p: p.name,
-        ) if run_dir.parent.exists() else []
-        if siblings:
-            return siblings[-1] / "checkpoints" / "latest.pt", siblings[-1]
-        log.info("resume=true but no checkpoint under %s: starting fresh", run_dir.parent)
-        return None, run_dir
-    path = Path(hydra.utils.to_absolute_path(str(resume)))
-    if path.is_dir():
-        path = path / "checkpoints" / "latest.pt" if (path / "checkpoints").exists() else path / "latest.pt"
-    if not path.exists():
-        raise BmimicError(f"resume: checkpoint {path} does not exist")
-    return path, run_dir
-
-
 def build_task(cfg: DictConfig, device: str):
     """Robot model, robot info, motion and bins of a composed config (validated against the motion)."""
     from bmimic.motion.config import load_motion
@@ -80,7 +70,8 @@ def build_task(cfg: DictConfig, device: str):
 
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir)
+    motion = load_motion(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir,
+                         control_fps=1.0 / (cfg.sim.timestep_s * cfg.sim.decimation))
     validate(cfg, motion.duration_s)
     layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device)
     return mjm, robot, motion, layout
@@ -93,6 +84,7 @@ def build(cfg: DictConfig, device: str, task: tuple | None = None):
     from bmimic.sampling.config import make_sampler
 
     mjm, robot, motion, layout = task if task is not None else build_task(cfg, device)
+    check_num_envs_fit(cfg, mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
     sampler = make_sampler(cfg.sampler, layout.num_bins, device)
     env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, cfg.num_envs, device,
                       sampler=sampler, sampler_cfg=cfg.sampler, mode="train")
@@ -107,8 +99,9 @@ def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout, robust:
 
     total = layout.num_bins * cfg.eval.episodes_per_bin
     n = max(1, min(total, cfg.eval.max_envs))
-    env = TrackingEnv(cfg.env, cfg.sim, load_mjmodel(cfg=cfg.robot), robot, motion, layout, n, device,
-                      mode="eval", robust=robust)
+    mjm = load_mjmodel(cfg=cfg.robot)
+    check_num_envs_fit(cfg, mjm, device, n, 0)
+    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, n, device, mode="eval", robust=robust)
     return Evaluator(env, layout, motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s,
                      max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
 
@@ -149,13 +142,20 @@ def _init_distributed() -> tuple[int, int]:
     return torch.distributed.get_rank(), world
 
 
-def train(cfg: DictConfig, run_dir: Path) -> float:
-    """Train in `run_dir`; returns the final evaluated failure rate."""
+def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunContext | None = None) -> float:
+    """Train in a fresh run folder (`launch_dir`) or continue the run `cfg.resume` names; returns the
+    final evaluated failure rate.
+
+    Nothing is written into any run folder until every check has passed, the checkpoint (if any) is
+    loaded into the built trainer and the config is compared with the one it was trained with: a
+    refused resume leaves the run it names byte-identical.
+    """
     import torch
 
     from bmimic.sampling.config import describe as describe_sampler
     from bmimic.training.runner import Trainer
 
+    ctx = ctx if ctx is not None else RunContext(launch_dir)
     requested = cfg.device
     smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
     quiet_warp(cfg.verbose)
@@ -166,32 +166,39 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
         cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
     resolve_runtime(cfg, device)
+    validate(cfg)
     smoke = not device.startswith("cuda") and smoke_defaults
-    checkpoint, run_dir = find_resume_checkpoint(cfg.resume, run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
-    if main_rank:
-        write_status(run_dir, "running", 0)
-        write_provenance(run_dir, device)
-        atomic_write_json(run_dir / "resolved_config.json", OmegaConf.to_container(cfg, resolve=True))
+    plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint))
+    if plan.note:
+        log.warning(plan.note)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    allowed = list(cfg.resume_allow_changes or [])
+    changes = check_resume_changes(plan, resolved, allowed, fill_defaults=with_schema_defaults)
+    if plan.continues:
+        _refuse_finished(plan, cfg.max_iterations)
+    if main_rank and not ctx.holds(plan.run_dir):
+        ctx.lock(plan.run_dir)
     seed_everything(cfg.seed)
 
     task = build_task(cfg, device)
     if main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
-        log.info(start_summary(cfg, requested, world, smoke, task[2], task[3], run_dir))
+        log.info(start_summary(cfg, requested, world, smoke, task[2], task[3], plan.run_dir))
     mjm, robot, motion, layout, sampler, env = build(cfg, device, task)
-    if main_rank:
-        atomic_write_json(run_dir / "motion_segments.json", [s._asdict() for s in motion.segments])
     for line in describe_sampler(cfg.sampler, layout, sampler):
         log.info("%s", line)
     evaluator = build_evaluator(cfg, device, robot, motion, layout)
+    run_dir = plan.run_dir
     with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
         trainer = Trainer(env, evaluator, sampler, cfg.ppo, run_dir, device, cfg.run_name,
                           eval_every_iters=cfg.eval.every_iters, logger=cfg.logger,
                           wandb_project=cfg.wandb_project, sampler_log_every=cfg.sampler.log_every,
-                          progress_bar=cfg.progress_bar and main_rank, is_main_rank=main_rank)
-    if checkpoint is not None:
-        trainer.load_checkpoint(checkpoint)
+                          progress_bar=cfg.progress_bar and main_rank, is_main_rank=main_rank,
+                          run_config=resolved)
+    if plan.state is not None:
+        trainer.restore(plan.state, plan.checkpoint, allowed)
+    if main_rank:
+        _commit(ctx, plan, resolved, device, changes, motion)
     try:
         trainer.learn(cfg.max_iterations, cfg.ppo.init_at_random_ep_len, cfg.time_limit_s)
         final = trainer.progress.last_eval
@@ -220,13 +227,16 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         "num_bins": layout.num_bins,
         "num_envs": cfg.num_envs,
         "device": device,
+        **trainer.total_resets,
     }
     if not main_rank:
         return float(metrics["final_eval_failure_rate"])
     atomic_write_json(run_dir / "metrics.json", metrics)
     write_status(run_dir, "done", trainer.progress.iteration)
-    log.info("done: %d iterations, %.0f s, eval failure rate %.3f -> %s", metrics["iterations"],
-             metrics["wall_time_s"], metrics["final_eval_failure_rate"], run_dir)
+    broken = sum(trainer.total_resets.values())
+    log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s -> %s", metrics["iterations"],
+             metrics["wall_time_s"], metrics["final_eval_failure_rate"],
+             f"; {broken} broken world-steps were reset" if broken else "", run_dir)
     return float(metrics["final_eval_failure_rate"])
 
 
@@ -253,48 +263,161 @@ def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: boo
     ])
 
 
+class RunContext:
+    """What a launch may write (nothing until `_commit`, then its run folder) and the run locks it
+    holds (released by `release` or when the process ends)."""
+
+    def __init__(self, launch_dir: Path) -> None:
+        self.launch_dir = Path(launch_dir)
+        """The folder Hydra made for this launch."""
+        self.run_dir: Path | None = None
+        """The run folder this launch writes; None until committed."""
+        self.hydra_record: dict[str, str] | None = None
+        """This launch's .hydra files (written at commit into a new run)."""
+        self._locks: dict[Path, object] = {}
+
+    def holds(self, run_dir: Path) -> bool:
+        return Path(run_dir).resolve() in self._locks
+
+    def lock(self, run_dir: Path) -> None:
+        f = lock_run(run_dir)
+        if f is None:
+            raise RunLockedError(f"{run_dir}: is being trained by another process (its {LOCK_NAME} is held); "
+                                 "wait for it or stop it first")
+        self._locks[Path(run_dir).resolve()] = f
+
+    def release(self, run_dir: Path | None = None) -> None:
+        for key in [k for k in self._locks if run_dir is None or k == Path(run_dir).resolve()]:
+            self._locks.pop(key).close()
+
+
+def _refuse_finished(plan: RunPlan, max_iterations: int) -> None:
+    """Continuing a run that already reached max_iterations would only rewrite its files."""
+    iteration = int(plan.state.get("iter", -1)) if plan.state else -1
+    if read_status(plan.run_dir).get("status") == "done" and iteration >= max_iterations:
+        raise ResumeRefusedError(
+            f"resume: {plan.run_dir} is done at iteration {iteration} (max_iterations={max_iterations}); "
+            "raise max_iterations to train it further")
+
+
+def _commit(ctx: RunContext, plan: RunPlan, resolved: dict, device: str, changes: dict, motion) -> None:
+    """The first writes of a launch, once every check has passed."""
+    run_dir = plan.run_dir
+    if run_dir.resolve() != ctx.launch_dir.resolve():
+        move_file_logs(ctx.launch_dir, run_dir)  # a resumed run logs into its own folder
+        ctx.release(ctx.launch_dir)
+        discard_launch_dir(ctx.launch_dir)  # no empty timestamped folder is left behind
+    ctx.run_dir = run_dir
+    entry = {"checkpoint": str(plan.checkpoint), "iteration": int((plan.state or {}).get("iter", 0)),
+             "changes": {k: list(v) for k, v in changes.items()}, "note": plan.note or None}
+    launch.note_previous_attempt(run_dir, read_status(run_dir))  # a sweep job's killed or failed attempt
+    if plan.continues:
+        record_resume(run_dir, {**entry, "provenance": provenance(device)})
+        if changes or not (run_dir / "resolved_config.json").exists():
+            atomic_write_json(run_dir / "resolved_config.json", resolved)
+        if not (run_dir / ".hydra" / "config.yaml").exists():
+            write_hydra_record(run_dir, ctx.hydra_record)
+        if changes:
+            log.info("resume: accepted config changes %s (recorded in resumes.json)",
+                     ", ".join(f"{k}: {json.dumps(a, default=str)} -> {json.dumps(b, default=str)}"
+                               for k, (a, b) in changes.items()))
+    else:
+        write_hydra_record(run_dir, ctx.hydra_record)
+        write_provenance(run_dir, device)
+        atomic_write_json(run_dir / "resolved_config.json", resolved)
+        if plan.state is not None:  # a new run that starts from another run's checkpoint
+            record_resume(run_dir, entry)
+    write_status(run_dir, "running", entry["iteration"])
+    atomic_write_json(run_dir / "motion_segments.json", [s._asdict() for s in motion.segments])
+
+
+def write_hydra_record(run_dir: Path, record: dict[str, str] | None) -> None:
+    """.hydra/{config,hydra,overrides}.yaml as Hydra writes them; conf/train.yaml sets
+    hydra.output_subdir=null so that Hydra itself never rewrites a finished run's record."""
+    for name, text in (record or {}).items():
+        atomic_write_text(run_dir / ".hydra" / name, text)
+
+
+def hydra_record(cfg: DictConfig) -> dict[str, str] | None:
+    """The .hydra files of this launch, from the config as composed (before runtime resolution)."""
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.instance().cfg
+    return {"config.yaml": OmegaConf.to_yaml(cfg), "hydra.yaml": OmegaConf.to_yaml(hc),
+            "overrides.yaml": OmegaConf.to_yaml(hc.hydra.overrides.task)}
+
+
+def check_config(cfg: DictConfig) -> None:
+    """bmimic.config.check_composed with Hydra's group choices (no device, no motion needed)."""
+    check_composed(cfg, HydraConfig.get().runtime.choices if HydraConfig.initialized() else None)
+
+
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float:
     hc = HydraConfig.get()
-    run_dir = Path(hc.runtime.output_dir)
+    launch_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
-    if multirun:
-        previous = read_status(run_dir)
-        if previous.get("status") == "done" and cfg.get("resume") is None:
-            log.info("skipping %s: already done", run_dir)
-            metrics = _read_metrics(run_dir)
-            return float(metrics.get("final_eval_failure_rate", math.nan))
-        launch.note_previous_attempt(run_dir, previous)  # status.json is overwritten; errors.log keeps it
-        cfg.resume = _sweep_job_resume(cfg.resume, run_dir)
-        launch.pin_job_to_gpu()  # joblib workers: one GPU per slot, before anything initialises CUDA
+    ctx = RunContext(launch_dir)
+    ctx.hydra_record = hydra_record(cfg)
+    outcome, message = "failed", None
     try:
-        return train(cfg, run_dir)
+        check_config(cfg)
+        if multirun:
+            previous = read_status(launch_dir)
+            if previous.get("status") == "done" and resume_request(cfg.get("resume")) is None:
+                log.info("skipping %s: already done", launch_dir)
+                outcome = "done before"
+                return float(_read_metrics(launch_dir).get("final_eval_failure_rate", math.nan))
+            try:
+                ctx.lock(launch_dir)
+            except RunLockedError as e:
+                outcome, message = "locked", str(e)
+                print(f"skipping {launch_dir}: being trained by another process", file=sys.stderr)
+                return math.nan
+            if resume_request(cfg.resume) is None:
+                cfg.resume = "true"  # an interrupted job continues from its own last checkpoint
+            launch.pin_job_to_gpu()  # joblib workers: one GPU per slot, before anything initialises CUDA
+        result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx)
+        outcome = "done"
+        return result
     except _user_errors() as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        write_status(run_dir, "failed", error=msg)
-        launch.append_error_log(run_dir, f"attempt failed: {msg}")
-        print(f"error: {msg}", file=sys.stderr)
+        message = str(e).splitlines()[0] if str(e) else type(e).__name__
+        _record_failure(ctx, multirun, message)
+        print(f"error: {message}", file=sys.stderr)
         if multirun:
             return math.nan
         sys.exit(2)
     except Exception as e:
-        write_status(run_dir, "failed", error=f"{type(e).__name__}: {e}")
-        launch.append_error_log(run_dir, f"attempt failed: {type(e).__name__}: {e}", traceback.format_exc())
+        message = f"{type(e).__name__}: {e}"
+        _record_failure(ctx, multirun, message, traceback.format_exc())
         if multirun:  # one broken job must not end the sweep; its error is kept in status.json
             log.error("job failed:\n%s", traceback.format_exc())
             return math.nan
         raise
     finally:
+        ctx.release()
         if multirun:
-            _update_sweep_index(run_dir)
+            launch.record_job_outcome(launch_dir, outcome, message)
+            _update_sweep_index(launch_dir)
 
 
-def _sweep_job_resume(resume: str | None, run_dir: Path) -> str | None:
-    """A sweep job continues from its own last checkpoint only, never from a sibling job's folder."""
-    if resume is None or str(resume).lower() in ("true", "latest", "1", "yes"):
-        own = run_dir / "checkpoints" / "latest.pt"
-        return str(own) if own.exists() else None
-    return resume
+def _record_failure(ctx: RunContext, multirun: bool, message: str, details: str = "") -> None:
+    """Record a failed attempt where it cannot damage anything: in the run once committed; before
+    that only in a sweep job folder without checkpoints that is not done; a single run's unused
+    launch folder is removed."""
+    if ctx.run_dir is not None:
+        write_status(ctx.run_dir, "failed", read_status(ctx.run_dir).get("iteration", 0) or 0, error=message)
+        launch.append_error_log(ctx.run_dir, f"attempt failed: {message}", details)
+    elif multirun:
+        # A sweep job that holds no checkpoint and is not done has nothing to damage: keep its history.
+        previous = read_status(ctx.launch_dir)
+        if previous.get("status") != "done" and not intact_checkpoints(ctx.launch_dir / "checkpoints"):
+            launch.note_previous_attempt(ctx.launch_dir, previous)
+            write_status(ctx.launch_dir, "failed", error=message)
+            launch.append_error_log(ctx.launch_dir, f"attempt failed: {message}", details)
+    elif int(os.environ.get("RANK", "0")) == 0:  # under torchrun, rank 0 owns the folder
+        ctx.release()
+        discard_launch_dir(ctx.launch_dir)
 
 
 def _read_metrics(run_dir: Path) -> dict:

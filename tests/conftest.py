@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -41,3 +43,30 @@ def cli_env() -> dict:
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     return env
+
+
+def wait_for(proc, ready, what: str, timeout_s: float = 600) -> None:
+    """Poll `ready()` while the subprocess `proc` runs (a file not written yet, or half-written JSON,
+    counts as not ready); fail the test with `what` if it never holds."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if ready():
+                return
+        except (FileNotFoundError, json.JSONDecodeError):
+            pass
+        time.sleep(0.05)
+    pytest.fail(f"never reached: {what}")
+
+
+@pytest.fixture(autouse=True)
+def _no_hydra_state_between_tests():
+    """Tests that run a Hydra app in-process leave Hydra's singletons set (HydraConfig keeps the last
+    run's original working directory, which bmimic's relative paths are resolved against); clear
+    them after every test so each test sees a fresh process's state."""
+    yield
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+
+    HydraConfig.instance().cfg = None
+    GlobalHydra.instance().clear()

@@ -408,3 +408,27 @@ def test_concatenate_builds_a_library(small):
     assert list(win.clip_starts) == [0, 10]
     with pytest.raises(MotionDataError, match="share fps"):
         Motion.concatenate([small, dataclasses.replace(small, fps=30.0)])
+
+
+def test_resample_known_answers():
+    """Linear tracks stay linear, orientations follow the slerp, the grid ends before the last frame."""
+    from bmimic.motion.motion import Motion, MotionDataError, Segment
+
+    t = np.arange(5) / 10.0  # 5 frames at 10 fps, 0..0.4 s
+    yaw = t * (np.pi / 2) / 0.4  # 0..90 degrees about z
+    quat = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=-1)[:, None]
+    m = Motion(fps=10, joint_pos=t[:, None], joint_vel=np.ones((5, 1)), body_pos_w=np.stack([t, 2 * t, 0 * t], -1)[:, None],
+               body_quat_w=quat, body_lin_vel_w=np.zeros((5, 1, 3)), body_ang_vel_w=np.zeros((5, 1, 3)),
+               joint_names=["j"], body_names=["b"], segments=[Segment("all", 0.0, 0.5, "easy")])
+    r = m.resample(40)
+    times = np.arange(16) / 40.0  # strictly below the last frame's 0.4 s
+    assert r.fps == 40 and r.num_frames == 16
+    np.testing.assert_allclose(r.joint_pos[:, 0], times, atol=1e-6)
+    np.testing.assert_allclose(r.body_pos_w[:, 0, 1], 2 * times, atol=1e-6)
+    half = r.body_quat_w[8, 0]  # t = 0.2 s: 45 degrees
+    np.testing.assert_allclose(half, [np.cos(np.pi / 8), 0, 0, np.sin(np.pi / 8)], atol=1e-6)
+    assert r.segments == [Segment("all", 0.0, 0.4, "easy")]
+    assert m.resample(10) is m
+    lib = Motion.concatenate([m, m])
+    with pytest.raises(MotionDataError, match="2 clips"):
+        lib.resample(40)

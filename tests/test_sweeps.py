@@ -11,7 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pandas as pd
@@ -36,6 +35,7 @@ from bmimic.launch import (
     slot_order,
     sweep_overrides,
 )
+from tests.conftest import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 SWEEPS = REPO / "sweeps"
@@ -212,18 +212,22 @@ def test_basic_launcher_pins_nothing(tmp_path, monkeypatch, hydra_config_restore
 
 # --------------------------------------------------------------------------------------------- resume, errors, index
 def test_sweep_job_resumes_only_from_its_own_checkpoint(tmp_path):
-    from bmimic.train import _sweep_job_resume
+    import torch
+
+    from bmimic.runs import plan_run
+
+    def checkpoint(path, iteration):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"actor_state_dict": {}, "iter": iteration}, path)
 
     job, sibling = tmp_path / "arm" / "seed=1", tmp_path / "arm" / "seed=0"
-    (sibling / "checkpoints").mkdir(parents=True)
-    (sibling / "checkpoints" / "latest.pt").write_bytes(b"x")
+    checkpoint(sibling / "checkpoints" / "latest.pt", 7)
     job.mkdir(parents=True)
-    assert _sweep_job_resume(None, job) is None
-    assert _sweep_job_resume("true", job) is None
-    (job / "checkpoints").mkdir()
-    (job / "checkpoints" / "latest.pt").write_bytes(b"x")
-    assert _sweep_job_resume(None, job) == str(job / "checkpoints" / "latest.pt")
-    assert _sweep_job_resume("/some/model.pt", job) == "/some/model.pt"
+    plan = plan_run("true", job, sweep_job=True)
+    assert plan.state is None and plan.run_dir == job  # never a sibling job's checkpoint
+    checkpoint(job / "checkpoints" / "latest.pt", 3)
+    plan = plan_run("true", job, sweep_job=True)
+    assert plan.run_dir == job and plan.continues and plan.state["iter"] == 3
 
 
 def test_error_history_survives_retries(tmp_path):
@@ -265,11 +269,18 @@ def sweep_cmd(sweep_dir: Path, *overrides: str) -> list[str]:
             f"hydra.sweep.dir={sweep_dir}"]
 
 
-def run_sweep(sweep_dir: Path, *overrides: str, timeout: float = 900) -> subprocess.CompletedProcess:
+def run_sweep(sweep_dir: Path, *overrides: str, timeout: float = 900, rc: int = 0) -> subprocess.CompletedProcess:
     proc = subprocess.run(sweep_cmd(sweep_dir, *overrides), cwd=REPO, capture_output=True, text=True,
                           timeout=timeout)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.returncode == rc, proc.stderr[-3000:]
     return proc
+
+
+def tree_hash(folder: Path, skip: tuple[str, ...] = ()) -> dict[str, str]:
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name not in skip}
 
 
 def status(job: Path) -> dict:
@@ -314,18 +325,9 @@ def test_killed_sweep_resumes_and_skips_finished_jobs(tmp_path):
     proc = subprocess.Popen(sweep_cmd(sweep, *overrides), cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        deadline = time.monotonic() + 600
-        while time.monotonic() < deadline and proc.poll() is None:
-            try:
-                # status.json's iteration moves once a periodic checkpoint and its tables are written
-                if status(first)["status"] == "done" and status(second)["status"] == "running" \
-                        and status(second)["iteration"] >= 1:
-                    break
-            except (FileNotFoundError, json.JSONDecodeError):
-                pass
-            time.sleep(0.05)
-        else:
-            pytest.fail("the sweep never reached: first job done, second job running with a checkpoint")
+        # status.json's iteration moves once a periodic checkpoint and its tables are written
+        wait_for(proc, lambda: status(first)["status"] == "done" and status(second)["status"] == "running"
+                 and status(second)["iteration"] >= 1, "first job done, second job running with a checkpoint")
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
@@ -350,13 +352,50 @@ def test_failed_job_is_retried_and_its_error_kept(tmp_path):
     overrides = ("sampler=uniform", "seed=0", "max_iterations=1", "sampler.bin_size_seconds=60")  # motion: 10 s
     job = sweep / ",".join(sorted([*SMOKE_ARM.split(","), "sampler.bin_size_seconds=60", "sampler=uniform"]))
     job = job / "seed=0"
-    run_sweep(sweep, *overrides)  # a failed job does not fail the sweep
+    first = run_sweep(sweep, *overrides, rc=1)  # every job runs, then the multirun exits non-zero
     assert status(job)["status"] == "failed" and "bin_size_seconds" in status(job)["error"]
-    run_sweep(sweep, *overrides)
+    assert "1 job(s) failed" in first.stderr and "sampler.bin_size_seconds=60" in first.stderr
+    run_sweep(sweep, *overrides, rc=1)
     log = (job / "errors.log").read_text()
     assert log.count("attempt failed:") == 2 and "sampler.bin_size_seconds" in log
     assert "retrying after a failed attempt" in log
     assert pd.read_csv(sweep / "index.csv")["status"].tolist() == ["failed"]
+
+
+@pytest.mark.slow
+def test_rerun_leaves_done_jobs_byte_identical_and_failures_exit_non_zero(tmp_path):
+    sweep = tmp_path / "rerun"
+    run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1")
+    job = sweep / arm_dir("uniform") / "seed=0"
+    before = tree_hash(job, skip=("train.log",))
+    assert ".hydra/config.yaml" in before and "train_metrics.parquet" in before
+    run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1")
+    assert tree_hash(job, skip=("train.log",)) == before  # skipped: not even its .hydra/ is rewritten
+    refused = run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1", "resume=true", rc=1)
+    assert "done at iteration 1" in refused.stderr and tree_hash(job, skip=("train.log",)) == before
+    bad = run_sweep(sweep, "sampler=uniform", "seed=0,1", "max_iterations=1", "+sampler.gama=0.5", rc=1)
+    assert "2 job(s) failed or were refused" in bad.stderr and "sampler.gama" in bad.stderr
+    assert tree_hash(job, skip=("train.log",)) == before
+
+
+@pytest.mark.slow
+def test_a_job_being_trained_is_skipped_by_a_second_sweep(tmp_path):
+    sweep = tmp_path / "locked"
+    overrides = ("sampler=uniform", "seed=0", "max_iterations=30")
+    job = sweep / arm_dir("uniform") / "seed=0"
+    first = subprocess.Popen(sweep_cmd(sweep, *overrides), cwd=REPO, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(first, lambda: status(job)["status"] == "running", "the first sweep training its job")
+        second = run_sweep(sweep, *overrides)
+        assert first.poll() is None, "the first sweep must still be training for this test to mean anything"
+        assert "being trained by another process" in second.stderr and "1 jobs: 1 locked" in second.stdout
+    finally:
+        _, err = first.communicate(timeout=900)
+    assert first.returncode == 0, err[-3000:]
+    assert status(job)["status"] == "done" and status(job)["iteration"] == 30
+    assert pd.read_parquet(job / "train_metrics.parquet")["iteration"].tolist() == list(range(30))  # trained once
+    assert not (job / "errors.log").exists()  # nobody wrote "killed" or a failure into it
 
 
 @pytest.mark.slow

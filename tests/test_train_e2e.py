@@ -75,7 +75,7 @@ def test_released_bins_and_thinned_sampler_table(tmp_path):
 
 
 def test_checkpoint_holds_sampler_and_rng(trained):
-    ckpt = torch.load(trained / "checkpoints" / "latest.pt", weights_only=False)
+    ckpt = torch.load(trained / "checkpoints" / "latest.pt", weights_only=True)  # format 2: plain data only
     for key in ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "sampler", "rng", "progress"):
         assert key in ckpt
     assert ckpt["iter"] == 2
@@ -94,10 +94,10 @@ def test_onnx_export_with_metadata(trained):
 
 
 def test_resume_continues_iterations_lr_and_sampler(trained, tmp_path):
-    before = torch.load(trained / "checkpoints" / "latest.pt", weights_only=False)
+    before = torch.load(trained / "checkpoints" / "latest.pt", weights_only=True)  # format 2: plain data only
     run_cli([*[a for a in TINY if not a.startswith("max_iterations")], "max_iterations=3", "ppo.save_interval=1",
              f"hydra.run.dir={trained}", "sampler=adaptive", f"resume={trained}"], cwd=tmp_path)
-    after = torch.load(trained / "checkpoints" / "latest.pt", weights_only=False)
+    after = torch.load(trained / "checkpoints" / "latest.pt", weights_only=True)  # format 2: plain data only
     assert after["iter"] == 3 and (trained / "checkpoints" / "model_3.pt").exists()
     train = pd.read_parquet(trained / "train_metrics.parquet")
     assert list(train["iteration"]) == [0, 1, 2]  # no duplicated or missing iterations
@@ -119,7 +119,7 @@ def test_resume_restores_exact_state(trained, tmp_path):
     trainer = Trainer(env, ev, sampler, cfg.ppo, tmp_path, "cpu", "t", eval_every_iters=0, logger="none",
                       progress_bar=False, export_onnx=False)
     ckpt_path = trained / "checkpoints" / "model_2.pt"
-    ckpt = torch.load(ckpt_path, weights_only=False)
+    ckpt = torch.load(ckpt_path, weights_only=True)  # format 2: plain data only
     trainer.load_checkpoint(ckpt_path)
     assert trainer.progress.iteration == 2
     assert trainer.alg.learning_rate == pytest.approx(ckpt["optimizer_state_dict"]["param_groups"][0]["lr"])

@@ -85,6 +85,9 @@ class EnvConfig:
 
     episode_length_s: float = 10.0
     """Episode length; reaching it is a time-out (truncation)."""
+    max_abs_step_reward: float = 1.0e6
+    """A world whose step reward is larger than this in magnitude (or not finite) is reset and counted,
+    its reward zeroed: one broken world must never reach the value loss."""
     observation_noise: bool = True
     """Corrupt the policy group with each term's uniform noise during training."""
     policy_observations: Dict[str, ObsTermConfig] = field(default_factory=dict)

@@ -146,6 +146,14 @@ class TrackingEnv(VecEnv):
         self.noise_enabled = (train or self.robust) and env_cfg.observation_noise
         self.rsi_noise = train
 
+        control_fps = 1.0 / (sim_cfg.timestep_s * sim_cfg.decimation)
+        if abs(motion.fps - control_fps) > 1e-6 * control_fps:
+            # One reference frame per control step: any other rate plays the motion at the wrong speed.
+            raise BmimicError(
+                f"motion: is at {motion.fps:g} fps but sim.timestep_s * sim.decimation = "
+                f"{sim_cfg.timestep_s:g} * {sim_cfg.decimation} s steps the policy at {control_fps:g} Hz; "
+                "load it through bmimic.motion.config.load_motion(control_fps=...) to resample it")
+        self._max_abs_reward = float(env_cfg.max_abs_step_reward)
         randomized = ("geom_friction", "body_ipos") if self.randomize else ()
         self.sim = Simulator(mjm, sim_cfg, num_envs, device, randomized_fields=randomized)
         self.step_dt = self.sim.control_dt
@@ -279,6 +287,7 @@ class TrackingEnv(VecEnv):
         self.stats_reward_sums = torch.zeros(len(self.reward_terms), device=dev)
         self.stats_terminations = torch.zeros(len(self.termination_terms), device=dev)
         self.stats_nonfinite = torch.zeros((), device=dev)
+        self.stats_out_of_bounds = torch.zeros((), device=dev)
         self.stats_overflow = torch.zeros((), device=dev)
         self.stats_steps = torch.zeros((), device=dev)
         self.stats_errors = torch.zeros(3, device=dev)  # anchor pos m, body pos m, joint pos rad
@@ -474,10 +483,11 @@ class TrackingEnv(VecEnv):
         """Terminations, rewards, sampler and resets: everything between physics and kinematics."""
         sim = self.sim
         self.episode_length_buf += 1
-        # Worlds that blew up are reset (not charged to the sampler) and counted.
+        # Worlds that blew up (non-finite, or finite but beyond physical bounds) are reset, truncated
+        # (never charged to the sampler as failures) and counted, all on the device.
         nonfinite = sim.nonfinite_worlds()
-        sim.sanitize(nonfinite)
-        self.stats_nonfinite += nonfinite.sum()
+        out_of_bounds = sim.out_of_bounds_worlds() & ~nonfinite
+        sim.sanitize(nonfinite | out_of_bounds)
         self.stats_overflow += sim.overflowed_worlds().sum()
         sim.clear_overflow()
 
@@ -485,13 +495,17 @@ class TrackingEnv(VecEnv):
         term_flags = torch.stack(
             [fn(self, **p) for fn, p in zip(self.termination_terms.funcs, self.termination_terms.params)], dim=-1
         )
-        truncated = (term_flags & self._timeout_term).any(-1)
-        terminated = (term_flags & ~self._timeout_term).any(-1) & ~nonfinite
-        truncated = truncated | nonfinite
         rewards = torch.stack(
             [fn(self, **p) for fn, p in zip(self.reward_terms.funcs, self.reward_terms.params)], dim=-1
         ) * (self.reward_weights * self.step_dt)
-        rewards = torch.nan_to_num(rewards, nan=0.0, posinf=0.0, neginf=0.0)
+        nonfinite = nonfinite | ~torch.isfinite(rewards).all(-1)
+        out_of_bounds = (out_of_bounds | (rewards.sum(-1).abs() > self._max_abs_reward)) & ~nonfinite
+        self.stats_nonfinite += nonfinite.sum()
+        self.stats_out_of_bounds += out_of_bounds.sum()
+        nonfinite = nonfinite | out_of_bounds  # from here on: every world that is reset as broken
+        rewards = torch.where(nonfinite[:, None], 0.0, rewards)
+        truncated = (term_flags & self._timeout_term).any(-1) | nonfinite
+        terminated = (term_flags & ~self._timeout_term).any(-1) & ~nonfinite
         self.rew_buf = rewards.sum(-1)
         self.episode_reward_terms += rewards
         dones = terminated | truncated
@@ -631,6 +645,7 @@ class TrackingEnv(VecEnv):
             "bin_episodes": bin_episodes,
             "bin_failures": bin_failures,
             "nonfinite_resets": float(self.stats_nonfinite),
+            "out_of_bounds_resets": float(self.stats_out_of_bounds),
             "overflow_worlds": float(self.stats_overflow),
         }
         episodes = float(self.stats_episodes)
@@ -650,7 +665,7 @@ class TrackingEnv(VecEnv):
         out["Metrics/error_joint_pos_rad"] = float(errs[2])
         for buf in (
             self.stats_terminations, self.stats_errors,
-            self.stats_nonfinite, self.stats_overflow, self.stats_steps, self.stats_episodes,
+            self.stats_nonfinite, self.stats_out_of_bounds, self.stats_overflow, self.stats_steps, self.stats_episodes,
             self.stats_failures, self.stats_length_sum, self.stats_reward_sums,
         ):
             buf.zero_()

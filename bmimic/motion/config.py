@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 import os
 from pathlib import Path
 from typing import Optional
@@ -22,9 +23,13 @@ import numpy as np
 from bmimic.motion import builtin
 from bmimic.motion.motion import Motion, MotionDataError
 
+log = logging.getLogger(__name__)
+
 CONVERTER_VERSION = "1"
 """Part of the CSV cache key; bump whenever conversion output changes."""
 CONTROL_FPS = 50.0
+"""The default control rate (sim.timestep_s 0.005 x sim.decimation 4); load_motion takes the actual one."""
+
 LAFAN_ENV = "BMIMIC_LAFAN_DIR"
 """Environment variable that `data.lafan_dir` defaults to (conf/train.yaml)."""
 LAFAN_SOURCE = ("folder g1/ of the LAFAN1 Retargeting Dataset, "
@@ -136,7 +141,10 @@ def _cached(cache_file: Path, mjmodel: mujoco.MjModel, make) -> Motion:
         except MotionDataError:
             pass  # a damaged cache entry is rebuilt below
     motion = make()
-    motion.save(cache_file)
+    try:
+        motion.save(cache_file)
+    except OSError as err:  # a read-only or full cache costs the next start time, not this run
+        log.warning("could not cache the motion at %s: %s", cache_file, err.strerror or err)
     return motion
 
 
@@ -146,8 +154,11 @@ def load_motion(
     cache_dir: str | os.PathLike = "outputs/cache",
     bin_size_s: float = 1.0,
     lafan_dir: str | os.PathLike | None = None,
+    control_fps: float = CONTROL_FPS,
 ) -> Motion:
-    """The configured motion at 50 Hz in model order, windowed to [start_s, end_s].
+    """The configured motion at the control rate `control_fps` (1 / (sim.timestep_s x sim.decimation))
+    in model order, windowed to [start_s, end_s]: one reference frame per control step, so the
+    reference never plays at the wrong speed. Other rates are resampled (CSVs are converted at it).
 
     `lafan_dir` (data.lafan_dir) is the folder that source "lafan" names its clip in.
 
@@ -183,26 +194,29 @@ def load_motion(
             # imported here, not with the package, so `python -m bmimic.motion.convert` runs without a warning
             from bmimic.motion.convert import convert_csv
 
-            h = hashlib.sha256(path.read_bytes())
+            try:
+                h = hashlib.sha256(path.read_bytes())
+            except OSError as err:
+                raise MotionDataError(f"motion.path: {path}: cannot read ({err.strerror or err})") from None
             h.update(
-                f"|fps_in={float(cfg.fps_in)!r}|fps_out={CONTROL_FPS!r}|{CONVERTER_VERSION}|"
+                f"|fps_in={float(cfg.fps_in)!r}|fps_out={float(control_fps)!r}|{CONVERTER_VERSION}|"
                 f"{model_fingerprint(mjmodel)}".encode()
             )
             motion = _cached(
                 cache / f"{h.hexdigest()}.npz",
                 mjmodel,
-                lambda: convert_csv(path, mjmodel, float(cfg.fps_in), CONTROL_FPS),
+                lambda: convert_csv(path, mjmodel, float(cfg.fps_in), float(control_fps)),
             )
         else:
             raise MotionDataError(f"motion.path: {path}: expected a .npz or .csv file")
     else:
         raise MotionDataError(f"motion.source: expected 'builtin', 'lafan' or 'file', got {cfg.source!r}")
 
-    if abs(motion.fps - CONTROL_FPS) > 1e-6:
-        raise MotionDataError(
-            f"motion {cfg.name!r}: is at {motion.fps:g} fps; the environment steps at {CONTROL_FPS:g} Hz "
-            "(convert it with python -m bmimic.motion.convert --fps-out 50)"
-        )
+    if abs(motion.fps - control_fps) > 1e-6 * control_fps:
+        try:
+            motion = motion.resample(control_fps)
+        except MotionDataError as err:
+            raise MotionDataError(f"motion {cfg.name!r}: {err}") from None
     if cfg.start_s is not None or cfg.end_s is not None:
         try:
             motion = motion.window(cfg.start_s, cfg.end_s)

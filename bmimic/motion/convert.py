@@ -1,6 +1,6 @@
 """Convert a LAFAN1-retargeted G1 CSV to the project's motion npz.
 
-    python -m bmimic.motion.convert IN.csv OUT.npz --fps-in 30 --fps-out 50 [--frames A B]
+    python -m bmimic.motion.convert IN.csv OUT.npz --fps-in 30 --fps-out 50 [--frames A B] [--force]
 
 The CSV has no header and one row per frame: root position xyz (m), root quaternion x, y, z, w,
 then the 29 joint angles (rad) in the order of `CSV_JOINT_NAMES`. The output is resampled to
@@ -189,6 +189,26 @@ def convert_csv(
         raise MotionDataError(f"{path}: {err}") from None
 
 
+def check_output_path(src: Path, out: Path, force: bool) -> str | None:
+    """Why OUT cannot be written (one line), or None: never the input itself (also through links),
+    always a .npz, an existing file only with --force, never a folder."""
+    if out.suffix != ".npz":
+        return f"{out}: the output must end in .npz"
+    try:
+        same = out.exists() and src.exists() and out.resolve() == src.resolve()
+    except OSError:
+        same = False
+    if same or (not out.exists() and out.resolve() == src.resolve()):
+        return f"{out}: is the input file itself; choose another output"
+    if out.is_dir():
+        return f"{out}: is a folder; give the output file's name"
+    if out.exists() and not force:
+        return f"{out}: exists; pass --force to replace it"
+    if not out.parent.is_dir():
+        return f"{out}: folder {out.parent} does not exist"
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m bmimic.motion.convert", description=__doc__.split("\n\n")[0]
@@ -201,7 +221,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--frames", type=int, nargs=2, metavar=("A", "B"), help="keep CSV rows A..B (1-indexed, inclusive)"
     )
     parser.add_argument("--mjcf", type=Path, default=None, help="robot MJCF instead of the built-in G1")
+    parser.add_argument("--force", action="store_true", help="replace OUT when it exists")
     args = parser.parse_args(argv)
+    problem = check_output_path(args.input, args.output, args.force)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
 
     # late import: the robot package is only needed past argument parsing
     from bmimic.robot import RobotModelError, load_mjmodel
@@ -219,6 +244,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         motion.save(args.output)
     except (MotionDataError, RobotModelError) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # OUT's folder missing, not writable, a directory, disk full
+        print(f"error: {args.output}: cannot write ({err.strerror or err})", file=sys.stderr)
         return 2
     elapsed = time.perf_counter() - start
     print(

@@ -18,15 +18,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
-import tempfile
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
 import mujoco
 import numpy as np
 
-from bmimic.motion.math import angular_velocity_from_quats, quat_normalize, quat_rotate_inverse
+from bmimic import BmimicError
+from bmimic.motion.math import angular_velocity_from_quats, quat_normalize, quat_rotate_inverse, quat_slerp
 
 NPZ_ARRAY_KEYS = (
     "joint_pos",
@@ -38,7 +39,12 @@ NPZ_ARRAY_KEYS = (
 )
 
 
-class MotionDataError(ValueError):
+MAX_DISTANCE_M = 1000.0
+"""Bodies farther than this from the origin are refused: float32 (the simulator's and the
+reference's precision) moves a body by ~6 cm at 1e6 m and by ~0.1 mm already at 1 km."""
+
+
+class MotionDataError(BmimicError, ValueError):
     """Bad motion data or a motion that does not fit the robot model; the message is one line."""
 
 
@@ -56,16 +62,21 @@ def segments_to_json(segments: Sequence[Segment]) -> str:
 
 
 def segments_from_json(text: str) -> list[Segment]:
-    items = json.loads(text)
+    try:
+        items = json.loads(text)
+    except ValueError as err:
+        raise MotionDataError(f"segments is not valid JSON ({err})") from None
     if not isinstance(items, list):
         raise MotionDataError("segments must be a JSON list of {name, start_s, end_s, difficulty}")
-    try:
-        return [
-            Segment(str(i["name"]), float(i["start_s"]), float(i["end_s"]), str(i["difficulty"]))
-            for i in items
-        ]
-    except (KeyError, TypeError, ValueError) as err:
-        raise MotionDataError(f"segments entry is malformed ({err!r})") from None
+    out = []
+    for k, i in enumerate(items):
+        try:
+            seg = Segment(str(i["name"]), float(i["start_s"]), float(i["end_s"]), str(i["difficulty"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise MotionDataError(f"segments entry {k} is malformed ({err!r}); expected "
+                                  "{name, start_s, end_s, difficulty}") from None
+        out.append(seg)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -175,9 +186,25 @@ class Motion:
                 raise MotionDataError(f"{key} is not finite at frame {frame}")
         if num < 1:
             raise MotionDataError("motion has no frames")
+        dist = np.linalg.norm(self.body_pos_w, axis=-1)
+        if dist.size and dist.max() > MAX_DISTANCE_M:
+            frame, body = np.unravel_index(int(np.argmax(dist)), dist.shape)
+            raise MotionDataError(
+                f"body '{self.body_names[body]}' at frame {frame} is {dist[frame, body]:.4g} m from the origin, "
+                f"beyond {MAX_DISTANCE_M:g} m (float32 positions lose precision there); shift the motion "
+                "towards the origin")
+        if len(set(self.joint_names)) != nj or len(set(self.body_names)) != nb:
+            raise MotionDataError("joint_names / body_names contain duplicates")
         starts = self.clip_starts
         if starts.size == 0 or starts[0] != 0 or np.any(np.diff(starts) <= 0) or starts[-1] >= num:
             raise MotionDataError(f"clip_starts must start at 0 and increase within [0, {num}), got {starts}")
+        duration = num / self.fps
+        for seg in self.segments:
+            if not (math.isfinite(seg.start_s) and math.isfinite(seg.end_s)
+                    and 0.0 <= seg.start_s < seg.end_s <= duration + 1e-6):
+                raise MotionDataError(
+                    f"segment {seg.name!r} spans [{seg.start_s}, {seg.end_s}] s, not a range within the "
+                    f"motion's [0, {duration:.3f}] s")
 
     # -- sizes -------------------------------------------------------------------------------------
     @property
@@ -277,28 +304,66 @@ class Motion:
             **cat,
         )
 
+    def resample(self, fps: float) -> Motion:
+        """The motion at `fps` frames per second (times 0, 1/fps, ... before the last frame's time):
+        positions, velocities and joints interpolated linearly, orientations by slerp. Segments keep
+        their times. Motions of several clips are refused (a frame between clips would blend two)."""
+        fps = float(fps)
+        if not (math.isfinite(fps) and fps > 0):
+            raise MotionDataError(f"cannot resample to {fps} fps")
+        if abs(fps - self.fps) <= 1e-9 * fps:
+            return self
+        if self.num_clips > 1:
+            raise MotionDataError(
+                f"a motion of {self.num_clips} clips at {self.fps:g} fps cannot be resampled to {fps:g} Hz "
+                "as one piece; convert its clips at that rate")
+        from bmimic.motion.convert import output_times
+
+        times = output_times(self.num_frames, self.fps, fps)
+        if len(times) < 2:
+            raise MotionDataError(f"{self.num_frames} frames at {self.fps:g} fps give fewer than 2 at {fps:g} Hz")
+        index = times * self.fps
+        i0 = np.minimum(np.floor(index).astype(np.int64), self.num_frames - 2)
+        blend = (index - i0).astype(np.float32)
+
+        def lerp(a: np.ndarray) -> np.ndarray:
+            w = blend.reshape(-1, *([1] * (a.ndim - 1)))
+            return a[i0] + (a[i0 + 1] - a[i0]) * w
+
+        duration = len(times) / fps
+        segments = [Segment(s.name, s.start_s, min(s.end_s, duration), s.difficulty)
+                    for s in self.segments if s.start_s < duration - 1e-9]
+        return dataclasses.replace(
+            self,
+            fps=fps,
+            joint_pos=lerp(self.joint_pos),
+            joint_vel=lerp(self.joint_vel),
+            body_pos_w=lerp(self.body_pos_w),
+            body_quat_w=quat_slerp(self.body_quat_w[i0], self.body_quat_w[i0 + 1], blend[:, None]),
+            body_lin_vel_w=lerp(self.body_lin_vel_w),
+            body_ang_vel_w=lerp(self.body_ang_vel_w),
+            segments=segments,
+            clip_starts=np.zeros(1, dtype=np.int64),
+        )
+
     # -- I/O ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
-        """Write the npz atomically (temp file in the same folder, then rename)."""
+        """Write the npz atomically (bmimic.runs.atomic_write); `path` must end in .npz."""
+        from bmimic.runs import atomic_write
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.suffix != ".npz":
+            raise MotionDataError(f"{path}: a motion file must end in .npz")
         fps = int(self.fps) if float(self.fps).is_integer() else self.fps
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez(
-                    f,
-                    fps=np.asarray([fps]),
-                    joint_names=np.asarray(self.joint_names, dtype=np.str_),
-                    body_names=np.asarray(self.body_names, dtype=np.str_),
-                    segments=np.asarray(segments_to_json(self.segments)),
-                    clip_starts=self.clip_starts,
-                    **{key: getattr(self, key) for key in NPZ_ARRAY_KEYS},
-                )
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        arrays = dict(
+            fps=np.asarray([fps]),
+            joint_names=np.asarray(self.joint_names, dtype=np.str_),
+            body_names=np.asarray(self.body_names, dtype=np.str_),
+            segments=np.asarray(segments_to_json(self.segments)),
+            clip_starts=self.clip_starts,
+            **{key: getattr(self, key) for key in NPZ_ARRAY_KEYS},
+        )
+        atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
 
     @staticmethod
     def load(
@@ -330,6 +395,22 @@ def _motion_from_npz_content(
     missing = [k for k in ("fps", *NPZ_ARRAY_KEYS) if k not in content]
     if missing:
         raise MotionDataError(f"missing key(s) {missing}; expected a BeyondMimic motion npz")
+    ndims = {"joint_pos": 2, "joint_vel": 2, "body_pos_w": 3, "body_quat_w": 3, "body_lin_vel_w": 3,
+             "body_ang_vel_w": 3}
+    for key in ("fps", "clip_starts", *NPZ_ARRAY_KEYS):
+        if key not in content:
+            continue
+        arr = content[key]
+        kinds = "iu" if key == "clip_starts" else "fiu"
+        if arr.dtype.kind not in kinds:
+            raise MotionDataError(f"{key} has dtype {arr.dtype}; expected {'integers' if kinds == 'iu' else 'numbers'}")
+        if key in ndims and arr.ndim != ndims[key]:
+            raise MotionDataError(f"{key} has {arr.ndim} dimensions (shape {arr.shape}); expected {ndims[key]}")
+    for key in ("joint_names", "body_names", "segments"):
+        if key in content and content[key].dtype.kind not in "US":
+            raise MotionDataError(f"{key} has dtype {content[key].dtype}; expected strings")
+    if "segments" in content and content["segments"].size != 1:
+        raise MotionDataError(f"segments must be one JSON string, got an array of shape {content['segments'].shape}")
     num_joints = content["joint_pos"].shape[-1]
     num_bodies = content["body_pos_w"].shape[1] if content["body_pos_w"].ndim == 3 else -1
     has_names = "joint_names" in content and "body_names" in content
@@ -363,7 +444,7 @@ def _motion_from_npz_content(
     num_frames = content["joint_pos"].shape[0]
     fps_value = float(fps[0])
     if "segments" in content:
-        segments = segments_from_json(str(content["segments"]))
+        segments = segments_from_json(str(content["segments"].reshape(-1)[0]))
     else:
         segments = [Segment(path.stem, 0.0, num_frames / fps_value if fps_value > 0 else 0.0, "unknown")]
     clip_starts = content.get("clip_starts", np.zeros(1, dtype=np.int64))

@@ -27,6 +27,12 @@ class SimConfig:
     overflow is detected every control step and reported."""
     njmax: int = 256
     """Constraint rows per world (hard limit). Contacts x pyramid edges + joint limits; overflow is reported."""
+    max_abs_qvel: float = 1000.0
+    """A world whose generalised velocity exceeds this (m/s or rad/s; the G1's joints stay below
+    ~40 rad/s) has blown up numerically: it is reset and counted, like a non-finite one."""
+    max_root_distance_m: float = 1000.0
+    """A world whose root is farther than this from the origin is reset and counted (float32 loses
+    centimetres of body position beyond ~1 km)."""
     use_cuda_graph: bool = True
     """Replay the control step (decimation physics steps) as one captured CUDA graph on a GPU."""
     compile_env_step: bool = True

@@ -89,6 +89,8 @@ class Simulator:
         self.decimation = cfg.decimation
         self.physics_dt = cfg.timestep_s
         self.control_dt = cfg.timestep_s * cfg.decimation
+        self.max_abs_qvel = float(cfg.max_abs_qvel)
+        self.max_root_distance_m = float(cfg.max_root_distance_m)
         with wp.ScopedDevice(self.wp_device):
             batch = {name: num_worlds for name in randomized_fields}
             self.model = mjw.put_model(mjm, batch_sizes=batch or None)
@@ -188,6 +190,13 @@ class Simulator:
         """Bool[N]: worlds whose state is no longer finite (reset them; never let one kill the run)."""
         return ~(torch.isfinite(self.qpos).all(dim=1) & torch.isfinite(self.qvel).all(dim=1))
 
+    def out_of_bounds_worlds(self) -> torch.Tensor:
+        """Bool[N]: finite worlds beyond physical bounds (|qvel| > sim.max_abs_qvel, or the root farther
+        than sim.max_root_distance_m from the origin): numerically blown up, reset them too."""
+        fast = self.qvel.abs().amax(dim=1) > self.max_abs_qvel
+        far = self.qpos[:, 0:3].norm(dim=1) > self.max_root_distance_m
+        return fast | far
+
     def overflowed_worlds(self) -> torch.Tensor:
         """Bool[N]: worlds whose contact or constraint buffers overflowed during the last step."""
         return (self.overflow & _BUFFER_OVERFLOW) != 0
@@ -200,9 +209,33 @@ class Simulator:
         self.overflow.zero_()
 
     def sanitize(self, worlds: torch.Tensor) -> None:
-        """Put non-finite worlds back at the model's initial pose so they cannot poison the contact pool."""
+        """Put non-finite or blown-up worlds back at the model's initial pose so they cannot poison the
+        contact pool."""
         self.qpos[:] = torch.where(worlds[:, None], self.qpos0, self.qpos)
         self.qvel[:] = torch.where(worlds[:, None], torch.zeros_like(self.qvel), self.qvel)
+
+
+def physics_bytes_per_world(mjm: mujoco.MjModel, cfg: SimConfig) -> int:
+    """Bytes of MuJoCo-Warp state one more world costs (measured: host data for 2 worlds minus 1)."""
+    def total(nworld: int) -> int:
+        with wp.ScopedDevice("cpu"):
+            return _array_bytes(mjw.make_data(mjm, nworld=nworld, nconmax=cfg.nconmax, njmax=cfg.njmax), set())
+
+    return max(total(2) - total(1), 0)
+
+
+def _array_bytes(obj, seen: set) -> int:
+    """Bytes held by the Warp arrays of a (nested) MuJoCo-Warp dataclass."""
+    out = 0
+    for name in getattr(obj, "__dataclass_fields__", {}):
+        value = getattr(obj, name, None)
+        if isinstance(value, wp.array):
+            if id(value) not in seen:
+                seen.add(id(value))
+                out += int(value.capacity)
+        elif hasattr(value, "__dataclass_fields__") and not isinstance(value, type):
+            out += _array_bytes(value, seen)
+    return out
 
 
 def measure_contact_sizes(sim: Simulator) -> dict[str, float]:
@@ -216,4 +249,5 @@ def measure_contact_sizes(sim: Simulator) -> dict[str, float]:
     }
 
 
-__all__ = ["Simulator", "SimHealth", "apply_sim_options", "measure_contact_sizes", "warp_device"]
+__all__ = ["Simulator", "SimHealth", "apply_sim_options", "measure_contact_sizes", "physics_bytes_per_world",
+           "warp_device"]

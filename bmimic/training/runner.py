@@ -11,6 +11,8 @@ the sampler and RNG states, so `resume` reproduces iteration count, learning rat
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
 import os
@@ -22,7 +24,17 @@ import pandas as pd
 import torch
 from rsl_rl.runners import OnPolicyRunner
 
-from bmimic.runs import atomic_torch_save, atomic_write_parquet, rng_state, set_rng_state, write_status
+from bmimic import BmimicError
+from bmimic.runs import (
+    CHECKPOINT_FORMAT,
+    atomic_torch_save,
+    atomic_write_parquet,
+    key_allowed,
+    load_checkpoint_file,
+    rng_state,
+    set_rng_state,
+    write_status,
+)
 from bmimic.sampling import diagnostics
 from bmimic.training.evaluation import summarize
 
@@ -103,13 +115,25 @@ class Progress:
     last_eval: dict = field(default_factory=dict)
 
 
+_SOFT_META = {"num_envs": "num_envs", "motion_frames": "motion", "motion_fps": "motion", "motion_sha256": "motion"}
+"""Checkpoint meta a resume may change when resume_allow_changes names the config key on the right."""
+
+
+class CheckpointMismatchError(BmimicError):
+    """A checkpoint that does not fit the environment, sampler or networks built from this config."""
+
+
 class Trainer:
-    """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables."""
+    """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables.
+
+    Nothing is written into the run folder until `learn` (or `evaluate`, `save_checkpoint`) runs, so
+    a resume refused by `restore` leaves the folder as it was.
+    """
 
     def __init__(self, env, evaluator, sampler, ppo_cfg, run_dir: str | os.PathLike, device: str,
                  run_name: str, eval_every_iters: int, sampler_log_every: int | None = None,
                  logger: str = "tensorboard", wandb_project: str = "bmimic", progress_bar: bool = True,
-                 export_onnx: bool = True, is_main_rank: bool = True) -> None:
+                 export_onnx: bool = True, is_main_rank: bool = True, run_config: dict | None = None) -> None:
         self.env = env
         self.evaluator = evaluator
         self.sampler = sampler
@@ -130,34 +154,66 @@ class Trainer:
         self.train_rows: list[dict] = []
         self.sampler_rows: list[pd.DataFrame] = []
         self.eval_rows: list[pd.DataFrame] = []
-        self.writer = self._make_writer(logger, wandb_project, run_name) if self.is_main else None
+        self.run_config = run_config
+        if logger == "wandb":
+            try:
+                import wandb  # noqa: F401  (fail at start-up, not at the first logged scalar)
+            except ImportError:
+                raise BmimicError("logger=wandb needs the wandb package: pip install wandb") from None
+        self._writer_args = (logger, wandb_project, run_name) if self.is_main else None
+        self.writer = None  # opened by open_writer(), once the run folder may be written
         self.ckpt_dir = self.run_dir / "checkpoints"
+        self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
 
     # ------------------------------------------------------------------ logging back-ends
+    def open_writer(self) -> None:
+        """Open the TensorBoard / W&B writer (idempotent); the first write into the run folder."""
+        if self._writer_args is not None and self.writer is None:
+            self.writer = self._make_writer(*self._writer_args)
+            self._writer_args = None
+
     def _make_writer(self, logger: str, project: str, run_name: str):
         if logger == "none":
             return None
         if logger == "wandb":
-            try:
-                import wandb
-            except ImportError:
-                from bmimic import BmimicError
+            import wandb
 
-                raise BmimicError("logger=wandb needs the wandb package: pip install wandb") from None
             return _WandbWriter(wandb.init(project=project, name=run_name, dir=str(self.run_dir)))
         from torch.utils.tensorboard import SummaryWriter
 
         return SummaryWriter(log_dir=str(self.run_dir / "tensorboard"), flush_secs=30)
 
     # ------------------------------------------------------------------ checkpoints
+    def meta(self) -> dict:
+        """What a checkpoint must match to be loaded into this trainer (plain values)."""
+        obs = self.env.get_observations()
+        motion = self.env.motion
+        digest = hashlib.sha256(motion.joint_pos.tobytes())
+        digest.update(motion.body_pos_w.tobytes())
+        return {
+            "num_envs": int(self.env.num_envs),
+            "num_actions": int(self.env.num_actions),
+            "obs_dims": {k: int(v.shape[-1]) for k, v in obs.items()},
+            "sampler_kind": str(self.sampler.state_dict().get("kind")),
+            "num_bins": int(self.env.layout.num_bins),
+            "motion_frames": int(motion.num_frames),
+            "motion_fps": float(motion.fps),
+            "motion_sha256": digest.hexdigest()[:16],
+        }
+
     def checkpoint_state(self) -> dict:
+        """Tensors and plain values only (CHECKPOINT_FORMAT): loads with torch.load(weights_only=True)."""
         state = self.alg.save()
+        progress = vars(self.progress).copy()
+        progress["last_eval"] = {str(k): float(v) for k, v in self.progress.last_eval.items()}
         state.update(
-            iter=self.progress.iteration,
-            progress=vars(self.progress).copy(),
+            iter=int(self.progress.iteration),
+            progress=progress,
             sampler=self.sampler.state_dict(),
             rng=rng_state(),
-            format="bmimic-checkpoint-1",
+            format=CHECKPOINT_FORMAT,
+            meta=self.meta(),
+            config=json.dumps(self.run_config, sort_keys=True, default=str) if self.run_config else None,
         )
         return state
 
@@ -178,14 +234,42 @@ class Trainer:
                 log.warning("ONNX export failed at iteration %d: %s", it, e)
         return path
 
-    def load_checkpoint(self, path: str | os.PathLike) -> None:
-        state = torch.load(path, map_location=self.device, weights_only=False)
-        self.alg.load(state, None, strict=True)
-        self.progress = Progress(**state["progress"])
-        self.sampler.load_state_dict(state["sampler"])
-        set_rng_state(state["rng"])
+    def load_checkpoint(self, path: str | os.PathLike, trust: bool = False) -> None:
+        """Read a checkpoint (weights_only unless `trust`) and `restore` it."""
+        self.restore(load_checkpoint_file(path, "cpu", trust), path)
+
+    def restore(self, state: dict, path: str | os.PathLike = "checkpoint", allowed: tuple | list = ()) -> None:
+        """Load networks, optimiser, counters, sampler and RNG states; reads the run's tables but
+        writes nothing. Raises CheckpointMismatchError (one line) when the checkpoint does not fit.
+
+        `allowed` (resume_allow_changes) may accept another num_envs or motion; observation and
+        action sizes, sampler kind and bins must match (the networks and sampler state depend on them)."""
+        saved = state.get("meta")
+        if isinstance(saved, dict):
+            own = self.meta()
+            soft = {k: cfg_key for k, cfg_key in _SOFT_META.items() if key_allowed(cfg_key, allowed)}
+            differ = [f"{k} {saved[k]} -> {own[k]}" for k in own
+                      if k in saved and saved[k] != own[k] and k not in soft]
+            if differ:
+                raise CheckpointMismatchError(f"{path}: does not fit this run: {'; '.join(differ)}")
+        try:
+            self.alg.load(state, None, strict=True)
+        except (RuntimeError, KeyError, ValueError, TypeError) as e:
+            lines = [x.strip() for x in str(e).splitlines() if x.strip()]
+            detail = lines[1] if len(lines) > 1 else (lines[0] if lines else type(e).__name__)
+            raise CheckpointMismatchError(f"{path}: its networks do not fit this config: {detail}") from None
+        try:
+            self.sampler.load_state_dict(state["sampler"])
+            self.progress = Progress(**state["progress"])
+            set_rng_state(state["rng"])
+        except BmimicError as e:
+            raise CheckpointMismatchError(f"{path}: {e}") from None
+        except (KeyError, TypeError, ValueError, RuntimeError) as e:
+            raise CheckpointMismatchError(f"{path}: malformed checkpoint ({type(e).__name__}: {e})") from None
         self.runner.current_learning_iteration = self.progress.iteration
         self._truncate_tables(self.progress.iteration)
+        for key in self.total_resets:
+            self.total_resets[key] = int(sum(_count(r.get(key)) for r in self.train_rows))
         log.info("resumed from %s at iteration %d (lr %.2e)", path, self.progress.iteration, self.alg.learning_rate)
 
     # ------------------------------------------------------------------ tables
@@ -197,7 +281,12 @@ class Trainer:
         for name, rows in (("train_metrics", self.train_rows), ("sampler", self.sampler_rows), ("eval", self.eval_rows)):
             path = self._table_path(name)
             if path.exists():
-                df = pd.read_parquet(path)
+                try:
+                    df = pd.read_parquet(path)
+                except Exception as e:  # noqa: BLE001 - any reader error: the table is damaged
+                    raise CheckpointMismatchError(
+                        f"{path}: cannot be read ({type(e).__name__}); move it aside to resume without its "
+                        "rows") from None
                 df = df[df["iteration"] <= iteration] if name == "eval" else df[df["iteration"] < iteration]
                 if name == "train_metrics":
                     self.train_rows.extend(df.to_dict("records"))
@@ -226,6 +315,7 @@ class Trainer:
         self.flush_tables()  # evaluations are the expensive rows: never lose them to an interruption
         summary = summarize(per_bin)
         self.progress.last_eval = summary
+        self.open_writer()
         if self.writer is not None:
             for k, v in summary.items():
                 self.writer.add_scalar(f"Eval/{k}", v, self.progress.iteration)
@@ -239,6 +329,7 @@ class Trainer:
     # ------------------------------------------------------------------ the loop
     def learn(self, num_iterations: int, init_at_random_ep_len: bool, time_limit_s: float | None = None) -> None:
         env, alg = self.env, self.alg
+        self.open_writer()
         if init_at_random_ep_len and self.progress.iteration == 0:
             # In place: the environment's captured CUDA graphs hold this buffer's address.
             env.episode_length_buf.copy_(torch.randint_like(env.episode_length_buf, high=int(env.max_episode_length)))
@@ -288,8 +379,9 @@ class Trainer:
             row = self._log_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
             if bar is not None:
                 bar.update(1)
+                resets = sum(self.total_resets.values())
                 bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
-                                fps=f"{row['fps']:.0f}")
+                                fps=f"{row['fps']:.0f}", **({"broken_worlds": int(resets)} if resets else {}))
             if self.is_main and (self.eval_every_iters and self.progress.iteration % self.eval_every_iters == 0):
                 self.evaluate()
             if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
@@ -323,6 +415,7 @@ class Trainer:
             "learning_rate": float(self.alg.learning_rate),
             "action_std": float(self.alg.action_std().mean()),
             "nonfinite_resets": stats["nonfinite_resets"],
+            "out_of_bounds_resets": stats["out_of_bounds_resets"],
             "overflow_worlds": stats["overflow_worlds"],
         }
         for k, v in losses.items():
@@ -334,6 +427,14 @@ class Trainer:
                 row["termination/" + k.split("/", 1)[1]] = v
             elif k.startswith("Metrics/"):
                 row["metrics/" + k.split("/", 1)[1]] = v
+        broken = stats["nonfinite_resets"] + stats["out_of_bounds_resets"]
+        for key in self.total_resets:
+            self.total_resets[key] += int(stats[key])
+        if broken > 0:
+            log.warning("iteration %d: reset %d broken world-steps (%d non-finite, %d beyond sim.max_abs_qvel / "
+                        "sim.max_root_distance_m / env.max_abs_step_reward); %d so far", it, int(broken),
+                        int(stats["nonfinite_resets"]), int(stats["out_of_bounds_resets"]),
+                        sum(self.total_resets.values()))
         if stats["overflow_worlds"] > 0:
             log.warning("iteration %d: %d world-steps overflowed the contact/constraint buffers; raise "
                         "sim.nconmax / sim.njmax", it, int(stats["overflow_worlds"]))
@@ -360,7 +461,8 @@ class Trainer:
             "sampling_entropy": "Sampler/entropy", "top1_prob": "Sampler/top1_prob", "top1_bin": "Sampler/top1_bin",
             "fps": "Perf/total_fps", "collection_time_s": "Perf/collection_time", "learning_time_s": "Perf/learning_time",
             "learning_rate": "Loss/learning_rate", "action_std": "Policy/mean_std",
-            "nonfinite_resets": "Sim/nonfinite_resets", "overflow_worlds": "Sim/overflow_worlds",
+            "nonfinite_resets": "Sim/nonfinite_resets", "out_of_bounds_resets": "Sim/out_of_bounds_resets",
+            "overflow_worlds": "Sim/overflow_worlds",
         }
         for k, v in row.items():
             if isinstance(v, float) and math.isnan(v):
@@ -386,6 +488,15 @@ class Trainer:
         self.alg.release_graphs()  # before destroy_process_group: graphs may hold NCCL calls
         if self.writer is not None:
             self.writer.close()
+
+
+def _count(value) -> float:
+    """A counter from a table row (absent or NaN in rows written before the column existed: 0)."""
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return 0.0
+    return 0.0 if math.isnan(value) else value
 
 
 class _WandbWriter:
