@@ -27,14 +27,19 @@ the file's metadata alone, never from bmimic's training code:
   armature, joint damping and friction loss are kept (`--joint-dynamics model`: a model difference is
   what the check is for); `--joint-dynamics metadata` sets training's (metadata armature, none else).
 
-The evaluation is `bmimic.eval`'s: `episodes_per_bin` episodes start at the same stratified frames of
-every time bin, from the reference state, with the deterministic policy, for `horizon_s`; an episode
-that terminates is a failure; the reference stops at the end of its clip. Episodes run in parallel,
-one MjData and one single-threaded onnxruntime session per worker process. Tables (bmimic.eval's,
-plus `end_frame`, `end_bin`, `diverged` per episode) go to RUN/sim2sim/<model>/<checkpoint>/, with
-`sim2sim_gap_bins.csv`, and the gap in success rate and MPKPE (anchor-relative) to the MuJoCo-Warp
-evaluation of the same checkpoint (RUN/eval/<checkpoint>/ from `bmimic.eval`, else the training-time
-evaluation in RUN/eval.parquet) is printed overall and per bin.
+The evaluation is `bmimic.eval`'s, with the same accounting (bmimic.training.evaluation):
+`episodes_per_bin` episodes start at the same stratified frames of every time bin, from the reference
+state, with the deterministic policy, for `horizon_s`; the reference stops at the end of its clip. An
+episode that terminates fails at the frame it was judged at (with `max_mpkpe_rel_mm`, one whose mean
+anchor-relative MPKPE exceeds it fails at its worst frame); failures are charged to the bin where they
+happen, per visit, and per-step errors to the frame they were measured at. A physics divergence
+(MuJoCo resets the state) is a termination. Settings not given are those of the MuJoCo-Warp evaluation
+compared against. Episodes run in parallel, one MjData and one single-threaded onnxruntime session per
+worker process. Tables (bmimic.eval's, plus `end_s`, `end_bin`, `diverged` per episode) go to
+RUN/sim2sim/<model>/<checkpoint>/, with `sim2sim_gap_bins.csv`, and the gap in success rate and
+anchor-relative MPKPE to the MuJoCo-Warp evaluation of the same checkpoint (RUN/eval/<checkpoint>/
+from `bmimic.eval`, else the training-time evaluation in RUN/eval.parquet) is printed overall and per
+bin, with a note when the two ran with different episodes per bin, horizon or MPKPE threshold.
 
 The simulation path (this module's top level and everything a worker runs) imports numpy, mujoco,
 onnxruntime and torch-free bmimic helpers only; the command's bookkeeping (bins, start frames,
@@ -53,7 +58,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -76,6 +81,7 @@ REFERENCE_OUTPUTS = ("joint_pos", "joint_vel", "body_pos_w", "body_quat_w", "bod
 ERROR_NAMES = ("mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
                "joint_vel_err_radps", "ee_pos_err_mm")
 """Per-step tracking errors, named and ordered as bmimic.training.evaluation.ERROR_COLUMNS."""
+REL_MPKPE = ERROR_NAMES.index("mpkpe_rel_mm")
 GAP_FILE = "sim2sim_gap_bins.csv"
 
 
@@ -694,70 +700,109 @@ class Rollout:
         return self.frame >= self.segment_end - 1
 
 
-def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int,
-                on_step: Callable[[Rollout, bool], None] | None = None) -> dict:
-    """One evaluation episode (as bmimic.training.evaluation's): errors are averaged over the steps the
-    robot is alive, an episode ends at a termination (failed), at the end of its clip or at the horizon.
-    `end_frame` is the reference frame the last step was checked against."""
+class Episode(NamedTuple):
+    """One evaluation episode: its tidy row and the errors of each step where they were measured."""
+
+    row: dict
+    """bmimic.training.evaluation.EPISODE_COLUMNS, `error_failed`, the mean of each ERROR_NAMES entry over
+    the alive steps, `diverged` and `wall_s`."""
+    frames: np.ndarray
+    """[steps] the reference frame each step was judged at."""
+    errors: np.ndarray
+    """[steps, len(ERROR_NAMES)] the errors of each step."""
+
+
+def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkpe_rel_mm: float | None = None,
+                on_step: Callable[[Rollout, bool], None] | None = None) -> Episode:
+    """One evaluation episode, accounted exactly as bmimic.training.evaluation.Evaluator.run_episodes does.
+
+    Each step is judged at the frame the reference stood at when it began (terminations; the step's
+    errors, measured after the reference advanced, are summed at that frame). The episode ends at a
+    termination (failed, charged at that frame), when the reference reaches its clip's last frame
+    (`end_frame` is then that frame) or at the horizon; `horizon_truncated` when the clip ends before the
+    horizon. With `max_mpkpe_rel_mm`, an episode that did not terminate but whose mean anchor-relative
+    MPKPE exceeds it fails, charged at its worst step's frame (the first, on ties). A step after which
+    MuJoCo had to reset the state (divergence) terminates the episode at that step's frame, and its
+    errors (of a state that no longer exists) are not counted.
+    """
     rollout.reset(start_frame)
+    start = rollout.frame
+    truncated = rollout.segment_end - 1 - start < horizon_steps
     if on_step is not None:
         on_step(rollout, False)
-    sums = np.zeros(len(ERROR_NAMES))
-    steps, failed, diverged, end_frame = 0, False, False, int(start_frame)
+    frames: list[int] = []
+    errors: list[np.ndarray] = []
+    terminated = diverged = False
+    end_frame = start
     t0 = time.perf_counter()
     for _ in range(horizon_steps):
+        frame = end_frame = rollout.frame
         action = rollout.policy_action()
-        end_frame = rollout.frame
         if not rollout.physics(action):
-            failed = diverged = True
+            terminated = diverged = True
             break
-        terminated = rollout.terminated()
+        stop = rollout.terminated()
         clip_end = rollout.advance()
-        sums += rollout.errors()
-        steps += 1
+        frames.append(frame)
+        errors.append(rollout.errors())
         if on_step is not None:
-            on_step(rollout, terminated)
-        if terminated:
-            failed = True
+            on_step(rollout, stop)
+        if stop:
+            terminated = True
             break
         if clip_end:
+            end_frame = rollout.frame  # tracked up to the clip's last frame
             break
-    return {
-        "start_frame": int(start_frame), "end_frame": int(end_frame), "failed": failed, "diverged": diverged,
-        "steps": steps, **dict(zip(ERROR_NAMES, sums / max(steps, 1))), "wall_s": time.perf_counter() - t0,
+    err = np.asarray(errors, dtype=np.float64).reshape(len(frames), len(ERROR_NAMES))
+    means = err.sum(axis=0) / max(len(frames), 1)
+    error_failed = bool(max_mpkpe_rel_mm is not None and not terminated and means[REL_MPKPE] > max_mpkpe_rel_mm)
+    if terminated:
+        failure_frame = end_frame
+    elif error_failed:
+        failure_frame = frames[int(np.argmax(err[:, REL_MPKPE]))]
+    else:
+        failure_frame = -1
+    row = {
+        "start_frame": int(start), "end_frame": int(end_frame), "failed": terminated or error_failed,
+        "failure_frame": int(failure_frame), "terminated": terminated, "error_failed": error_failed,
+        "steps": len(frames), "horizon_truncated": bool(truncated), **dict(zip(ERROR_NAMES, means.tolist())),
+        "diverged": diverged, "wall_s": time.perf_counter() - t0,
     }
+    return Episode(row, np.asarray(frames, dtype=np.int64), err)
 
 
 # ============================================================================================ workers
 _WORKER: dict = {}
 
 
-def _init_worker(policy_path: Path, mjm, spec: PolicySpec, ref: Motion, horizon_steps: int) -> None:
+def _init_worker(policy_path: Path, mjm, spec: PolicySpec, ref: Motion, horizon_steps: int,
+                 max_mpkpe_rel_mm: float | None) -> None:
     _WORKER["rollout"] = Rollout(mjm, spec, ref, policy_session(policy_path))
-    _WORKER["horizon"] = horizon_steps
+    _WORKER["args"] = (horizon_steps, max_mpkpe_rel_mm)
 
 
-def _work(start_frame: int) -> dict:
-    return run_episode(_WORKER["rollout"], int(start_frame), _WORKER["horizon"])
+def _work(start_frame: int) -> Episode:
+    return run_episode(_WORKER["rollout"], int(start_frame), *_WORKER["args"])
 
 
 def run_episodes(policy_path: Path, mjm, spec: PolicySpec, ref: Motion, frames: np.ndarray, horizon_steps: int,
-                 workers: int) -> tuple[list[dict], float]:
-    """(one row per start frame, in order; wall seconds) over `workers` processes (spawned: no fork of
-    the caller's threads), each with its own MjData and onnxruntime session."""
+                 workers: int, max_mpkpe_rel_mm: float | None = None) -> tuple[list[Episode], float]:
+    """(one Episode per start frame, in order; wall seconds) over `workers` processes (spawned: no fork
+    of the caller's threads), each with its own MjData and onnxruntime session."""
     t0 = time.perf_counter()
     workers = max(1, min(workers, len(frames)))
+    init = (policy_path, mjm, spec, ref, horizon_steps, max_mpkpe_rel_mm)
     if workers == 1:
-        _init_worker(policy_path, mjm, spec, ref, horizon_steps)
-        rows = [_work(f) for f in frames]
+        _init_worker(*init)
+        episodes = [_work(f) for f in frames]
     else:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-                                 initargs=(policy_path, mjm, spec, ref, horizon_steps)) as pool:
-            rows = list(pool.map(_work, frames, chunksize=max(1, len(frames) // (8 * workers))))
-    return rows, time.perf_counter() - t0
+                                 initargs=init) as pool:
+            episodes = list(pool.map(_work, frames, chunksize=max(1, len(frames) // (8 * workers))))
+    return episodes, time.perf_counter() - t0
 
 
 # ============================================================================================ input location
@@ -791,6 +836,10 @@ def _first_line(e: BaseException) -> str:
 
 
 # ============================================================================================ MuJoCo-Warp side
+SETTINGS = ("episodes_per_bin", "horizon_s", "max_mpkpe_rel_mm")
+"""Evaluation settings two evaluations must share to be compared bin by bin."""
+
+
 @dataclass
 class WarpEval:
     """The MuJoCo-Warp evaluation of the same checkpoint, for the gap."""
@@ -798,61 +847,100 @@ class WarpEval:
     source: str
     """Where it was read."""
     bins: object
-    """pandas DataFrame: bin, success_rate, mpkpe_rel_mm, episodes."""
+    """pandas DataFrame: bin, visits, failures, success_rate (1 - failures / visits), mpkpe_rel_mm."""
     success_rate: float
-    """Overall success rate."""
+    """Overall success rate (episodes that did not fail / episodes)."""
     mpkpe_rel_mm: float
-    """Overall anchor-relative MPKPE."""
-    episodes_per_bin: int
-    """Episodes started per bin."""
-    horizon_s: float | None
-    """Episode horizon (None if unknown)."""
+    """Overall anchor-relative MPKPE (mean over the evaluation steps)."""
+    settings: dict
+    """The SETTINGS it ran with, as far as known (a missing key: unknown; max_mpkpe_rel_mm None: not set)."""
 
 
 def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEval | None:
     """RUN/eval/<label>/ (bmimic.eval) if present, else the training-time rows of RUN/eval.parquet."""
     import pandas as pd
 
+    from bmimic.training.evaluation import summarize
+
     if run_dir is None:
         return None
+    columns = ["bin", "visits", "failures", "success_rate", "mpkpe_rel_mm"]
     folder = run_dir / "eval" / label
     if (folder / "eval_summary.json").is_file() and (folder / "eval_bins.parquet").is_file():
         s = json.loads((folder / "eval_summary.json").read_text())
         bins = pd.read_parquet(folder / "eval_bins.parquet")
-        return WarpEval(str(folder), bins[["bin", "success_rate", "mpkpe_rel_mm", "episodes"]],
-                        float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"]), int(s["episodes_per_bin"]),
-                        float(s["horizon_s"]))
+        if "visits" in bins:
+            return WarpEval(str(folder), bins[columns], float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"]),
+                            {k: s[k] for k in SETTINGS if k in s})
+        log.warning("%s: tables of the old start-bin accounting, not compared (evaluate again with python -m "
+                    "bmimic.eval)", folder)
     table = run_dir / "eval.parquet"
     if iteration is None or not table.is_file():
         return None
     rows = pd.read_parquet(table)
-    rows = rows[rows["iteration"] == iteration]
+    rows = rows[rows["iteration"] == iteration].reset_index(drop=True)
     if rows.empty:
         return None
-    from bmimic.training.evaluation import summarize
-
-    overall = summarize(rows)
-    bins = rows.assign(success_rate=1.0 - rows["failure_rate"])[["bin", "success_rate", "mpkpe_rel_mm", "episodes"]]
-    horizon = _run_setting(run_dir, "horizon_s")
-    return WarpEval(f"{table} (iteration {iteration})", bins.reset_index(drop=True), overall["eval_success_rate"],
-                    overall["eval_mpkpe_rel_mm"], int(rows["episodes"].max()), horizon)
-
-
-def _run_setting(run_dir: Path | None, key: str):
-    """A resolved eval.<key> of the run (resolved_config.json), or None."""
-    try:
-        return json.loads((run_dir / "resolved_config.json").read_text())["eval"][key]
-    except (TypeError, OSError, KeyError, ValueError):
+    if "visits" not in rows:
+        log.warning("%s: rows of the old start-bin accounting, not compared (run python -m bmimic.eval %s)",
+                    table, run_dir)
         return None
+    overall = summarize(rows)
+    settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
+    config = _run_eval_config(run_dir)
+    settings |= {k: config[k] for k in SETTINGS[1:] if k in config}
+    return WarpEval(f"{table} (iteration {iteration})", rows.assign(success_rate=1.0 - rows["failure_rate"])[columns],
+                    overall["eval_success_rate"], overall["eval_mpkpe_rel_mm"], settings)
+
+
+def _run_eval_config(run_dir: Path | None) -> dict:
+    """The run's resolved `eval` settings (resolved_config.json), or {} when unknown."""
+    try:
+        section = json.loads((run_dir / "resolved_config.json").read_text())["eval"]
+    except (TypeError, OSError, KeyError, ValueError):
+        return {}
+    return section if isinstance(section, dict) else {}
+
+
+def eval_settings(run_dir: Path | None, warp: WarpEval | None, episodes_per_bin: int | None,
+                  horizon_s: float | None, max_mpkpe_rel_mm: float | None) -> dict:
+    """The SETTINGS of this evaluation: given ones win, then the MuJoCo-Warp evaluation's (so the gap
+    compares like with like), then the run's config, then bmimic's defaults on a CPU."""
+    given = {"episodes_per_bin": episodes_per_bin, "horizon_s": horizon_s, "max_mpkpe_rel_mm": max_mpkpe_rel_mm}
+    known = {"episodes_per_bin": 1, "horizon_s": 2.0, "max_mpkpe_rel_mm": None}
+    config = _run_eval_config(run_dir)  # a null max_mpkpe_rel_mm is a setting ("not set"), other nulls are not
+    known |= {k: config[k] for k in SETTINGS if k in config and (config[k] is not None or k == "max_mpkpe_rel_mm")}
+    known |= warp.settings if warp is not None else {}
+    out = {k: given[k] if given[k] is not None else known[k] for k in SETTINGS}
+    if out["episodes_per_bin"] < 1 or not out["horizon_s"] > 0 or not (out["max_mpkpe_rel_mm"] is None
+                                                                      or out["max_mpkpe_rel_mm"] > 0):
+        raise Sim2SimError(f"--episodes-per-bin {out['episodes_per_bin']} / --horizon-s {out['horizon_s']} / "
+                           f"--max-mpkpe-rel-mm {out['max_mpkpe_rel_mm']}: need >= 1, > 0 and > 0")
+    return {"episodes_per_bin": int(out["episodes_per_bin"]), "horizon_s": float(out["horizon_s"]),
+            "max_mpkpe_rel_mm": None if out["max_mpkpe_rel_mm"] is None else float(out["max_mpkpe_rel_mm"])}
+
+
+def setting_differences(ours: dict, warp: WarpEval) -> list[str]:
+    """Each SETTING in which this evaluation differs from the MuJoCo-Warp one, or that is unknown there."""
+    out = []
+    for key in SETTINGS:
+        if key not in warp.settings:
+            out.append(f"{key}: {ours[key]} here, unknown there")
+            continue
+        a, b = ours[key], warp.settings[key]
+        if (a is None) != (b is None) or (a is not None and not math.isclose(float(a), float(b))):
+            out.append(f"{key}: {a} here, {b} there")
+    return out
 
 
 def gap_table(bins, warp: WarpEval):
-    """Per bin: MuJoCo-Warp and sim2sim success rate and anchor-relative MPKPE, and their differences."""
-    ours = bins[["bin", "bin_start_s", "bin_end_s", "segment", "success_rate", "mpkpe_rel_mm"]]
-    theirs = warp.bins.rename(columns={"success_rate": "warp_success_rate", "mpkpe_rel_mm": "warp_mpkpe_rel_mm",
-                                       "episodes": "warp_episodes"})
-    out = ours.rename(columns={"success_rate": "sim2sim_success_rate", "mpkpe_rel_mm": "sim2sim_mpkpe_rel_mm"})
-    out = out.merge(theirs, on="bin", how="left")
+    """Per bin: MuJoCo-Warp and sim2sim visits, failures (where they happened), success rate per visit
+    and anchor-relative MPKPE, and the differences."""
+    ours = bins[["bin", "bin_start_s", "bin_end_s", "segment", "horizon_truncated", "visits", "failures",
+                 "success_rate", "mpkpe_rel_mm"]]
+    names = ["visits", "failures", "success_rate", "mpkpe_rel_mm"]
+    out = ours.rename(columns={c: f"sim2sim_{c}" for c in names})
+    out = out.merge(warp.bins.rename(columns={c: f"warp_{c}" for c in names}), on="bin", how="left")
     out["success_gap"] = out["sim2sim_success_rate"] - out["warp_success_rate"]
     out["mpkpe_rel_gap_mm"] = out["sim2sim_mpkpe_rel_mm"] - out["warp_mpkpe_rel_mm"]
     return out
@@ -863,79 +951,85 @@ def format_gap(result, warp: WarpEval | None, gap) -> str:
     if warp is None:
         return ("gap to MuJoCo-Warp: no evaluation of this checkpoint in the run folder "
                 "(run python -m bmimic.eval RUN to get one)")
-    lines = [f"gap to MuJoCo-Warp ({warp.source}; {warp.episodes_per_bin} episodes/bin, horizon "
-             f"{warp.horizon_s if warp.horizon_s is not None else '?'} s):",
+    lines = [f"gap to MuJoCo-Warp ({warp.source}); success = 1 - failures / visits per bin, "
+             f"failures charged where they happen:",
              f"  success rate   warp {warp.success_rate:.3f}  sim2sim {s['eval_success_rate']:.3f}  "
              f"gap {s['eval_success_rate'] - warp.success_rate:+.3f}",
              f"  rel MPKPE mm   warp {warp.mpkpe_rel_mm:.1f}  sim2sim {s['eval_mpkpe_rel_mm']:.1f}  "
              f"gap {s['eval_mpkpe_rel_mm'] - warp.mpkpe_rel_mm:+.1f}"]
-    if warp.episodes_per_bin != s["episodes_per_bin"] or (warp.horizon_s is not None and
-                                                          not math.isclose(warp.horizon_s, s["horizon_s"])):
-        lines.append("  note: episodes per bin or horizon differ from the MuJoCo-Warp evaluation")
+    if s["gap_setting_differences"]:
+        lines.append("  note: not like with like, the evaluations differ in " + "; ".join(s["gap_setting_differences"]))
     shown = gap
     title = "per bin:"
     if len(gap) > 30:
         shown = gap.reindex(gap["success_gap"].abs().sort_values(ascending=False).index).head(10)
         title = f"the 10 bins of {len(gap)} with the largest success gap:"
-    cols = ["bin", "segment", "warp_success_rate", "sim2sim_success_rate", "success_gap", "warp_mpkpe_rel_mm",
-            "sim2sim_mpkpe_rel_mm", "mpkpe_rel_gap_mm"]
+    cols = ["bin", "segment", "warp_visits", "sim2sim_visits", "warp_success_rate", "sim2sim_success_rate",
+            "success_gap", "warp_mpkpe_rel_mm", "sim2sim_mpkpe_rel_mm", "mpkpe_rel_gap_mm"]
     lines += [title, shown[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}")]
     return "\n".join(lines)
 
 
 # ============================================================================================ evaluation
-def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,
-             horizon_s: float | None = None, workers: int = 1, joint_dynamics: str = "model"):
-    """Run the sim2sim evaluation; returns (bmimic.eval.EvalResult, WarpEval or None, gap table or None)."""
+def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int):
+    """bmimic.training.evaluation.Rollouts of sim2sim episodes: the rows with their start `bin` first,
+    and per motion frame the steps judged at it and their error sums."""
     import pandas as pd
 
+    from bmimic.training.evaluation import ERROR_COLUMNS, Rollouts
+
+    rows = pd.DataFrame([e.row for e in episodes])
+    rows.insert(0, "bin", np.asarray(start_bins, dtype=np.int64))
+    sums = np.zeros((num_frames, 1 + len(ERROR_COLUMNS)))
+    for e in episodes:
+        np.add.at(sums, e.frames, np.column_stack((np.ones(len(e.frames)), e.errors)))
+    return Rollouts(rows, pd.DataFrame(sums, columns=["steps", *ERROR_COLUMNS]))
+
+
+def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,
+             horizon_s: float | None = None, workers: int = 1, joint_dynamics: str = "model",
+             max_mpkpe_rel_mm: float | None = None):
+    """Run the sim2sim evaluation; returns (bmimic.eval.EvalResult, WarpEval or None, gap table or None).
+
+    Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like."""
     from bmimic.eval import EvalResult, bin_table, episode_table, segment_table
     from bmimic.sampling.bins import make_layout
-    from bmimic.training.evaluation import Evaluator, stratified_start_frames, summarize
+    from bmimic.training.evaluation import stratified_start_frames, summarize
 
     spec = read_policy(policy_path)
     label = checkpoint_label(spec)
     warp = warp_eval(run_dir, label, spec.iteration)
-    if episodes_per_bin is None:
-        episodes_per_bin = warp.episodes_per_bin if warp else int(_run_setting(run_dir, "episodes_per_bin") or 1)
-    if horizon_s is None:
-        horizon_s = (warp.horizon_s if warp and warp.horizon_s else None) or _run_setting(run_dir, "horizon_s") or 2.0
-    if episodes_per_bin < 1 or not (horizon_s > 0):
-        raise Sim2SimError(f"--episodes-per-bin {episodes_per_bin} / --horizon-s {horizon_s}: need >= 1 and > 0")
+    settings = eval_settings(run_dir, warp, episodes_per_bin, horizon_s, max_mpkpe_rel_mm)
+    per_bin = settings["episodes_per_bin"]
     ref = read_reference(policy_session(policy_path), spec)
     mjm, model_note = build_model(spec, model, run_dir, joint_dynamics)
     layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s)
-    frames = stratified_start_frames(layout.bin_first_frame.numpy(), layout.bin_num_frames.numpy(), episodes_per_bin)
-    horizon_steps = max(1, int(round(horizon_s / spec.control_dt_s)))
+    frames = stratified_start_frames(layout.bin_first_frame.numpy(), layout.bin_num_frames.numpy(), per_bin)
+    horizon_steps = max(1, int(round(settings["horizon_s"] / spec.control_dt_s)))
     log.info("sim2sim %s on %s: %d bins x %d episodes, horizon %g s, %d workers", policy_path.name, model_note,
-             layout.num_bins, episodes_per_bin, horizon_s, workers)
-    rows, wall = run_episodes(policy_path, mjm, spec, ref, frames, horizon_steps, workers)
+             layout.num_bins, per_bin, settings["horizon_s"], workers)
+    runs, wall = run_episodes(policy_path, mjm, spec, ref, frames, horizon_steps, workers, settings["max_mpkpe_rel_mm"])
+    rollouts = collect(runs, np.repeat(np.arange(layout.num_bins), per_bin), spec.num_frames)
 
-    raw = pd.DataFrame(rows)
-    raw.insert(0, "bin", np.repeat(np.arange(layout.num_bins), episodes_per_bin))
-    segments = spec.segments
-    # bmimic.eval's tables read the bin layout and bin labels from an Evaluator; this one holds only those.
-    context = object.__new__(Evaluator)
-    context.layout, context.segments = layout, segments
-    motion = argparse.Namespace(fps=spec.fps, segments=segments)
-    episodes = episode_table(raw, context, motion, spec.control_dt_s, -1 if spec.iteration is None else spec.iteration)
-    frame_to_bin = layout.frame_to_bin.numpy()
-    episodes["end_frame"] = raw["end_frame"].to_numpy()
+    raw = rollouts.episodes
+    iteration = -1 if spec.iteration is None else spec.iteration
+    episodes = episode_table(raw, layout, ref, spec.control_dt_s, iteration)
     episodes["end_s"] = episodes["end_frame"] / spec.fps
-    episodes["end_bin"] = frame_to_bin[episodes["end_frame"].to_numpy()]  # visits: bins start bin..end_bin
+    episodes["end_bin"] = layout.frame_to_bin.numpy()[episodes["end_frame"].to_numpy()]
     episodes["diverged"] = raw["diverged"].to_numpy()
-    bins = bin_table(episodes, context)
+    bins = bin_table(rollouts, episodes, layout, ref.segments)
     steps = int(raw["steps"].sum())
+    worker_s = float(raw["wall_s"].sum())
     summary = {
         **summarize(bins),
         "episodes": int(len(episodes)),
         "failures": int(episodes["failed"].sum()),
         "diverged": int(episodes["diverged"].sum()),
         "num_bins": int(layout.num_bins),
-        "episodes_per_bin": int(episodes_per_bin),
-        "horizon_s": float(horizon_s),
+        **settings,
+        "horizon_truncated_bins": int(bins["horizon_truncated"].sum()),
         "checkpoint": str(policy_path),
-        "iteration": -1 if spec.iteration is None else spec.iteration,
+        "iteration": iteration,
         "run_dir": str(run_dir) if run_dir else "",
         "label": label,
         "device": f"cpu, native MuJoCo, {workers} worker process(es)",
@@ -948,7 +1042,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
         "physics_steps": steps * spec.decimation,
         "eval_wall_time_s": wall,
         "control_steps_per_s": steps / wall if wall > 0 else math.nan,
-        "control_steps_per_s_per_worker": steps / float(raw["wall_s"].sum()) if raw["wall_s"].sum() > 0 else math.nan,
+        "control_steps_per_s_per_worker": steps / worker_s if worker_s > 0 else math.nan,
     }
     gap = None
     if warp is not None:
@@ -956,8 +1050,9 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
         summary.update(warp_source=warp.source, warp_success_rate=warp.success_rate,
                        warp_mpkpe_rel_mm=warp.mpkpe_rel_mm,
                        gap_success_rate=summary["eval_success_rate"] - warp.success_rate,
-                       gap_mpkpe_rel_mm=summary["eval_mpkpe_rel_mm"] - warp.mpkpe_rel_mm)
-    result = EvalResult(episodes, bins, segment_table(episodes, segments), summary)
+                       gap_mpkpe_rel_mm=summary["eval_mpkpe_rel_mm"] - warp.mpkpe_rel_mm,
+                       gap_setting_differences=setting_differences(settings, warp))
+    result = EvalResult(episodes, bins, segment_table(rollouts, episodes, ref), summary)
     return result, warp, gap
 
 
@@ -1008,6 +1103,8 @@ def parser() -> argparse.ArgumentParser:
                    help="project (the run's G1), menagerie (MuJoCo Menagerie's G1) or an MJCF path")
     p.add_argument("--episodes-per-bin", type=int, help="default: as the run's MuJoCo-Warp evaluation")
     p.add_argument("--horizon-s", type=float, help="seconds an episode must survive (default: as the run's evaluation)")
+    p.add_argument("--max-mpkpe-rel-mm", type=float,
+                   help="also fail episodes whose mean root-relative MPKPE exceeds this (default: as the run's evaluation)")
     p.add_argument("--workers", type=int, default=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                    else os.cpu_count() or 1, help="worker processes (default: the CPU cores available)")
     p.add_argument("--joint-dynamics", choices=("model", "metadata"), default="model",
@@ -1032,7 +1129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise Sim2SimError(f"--workers {args.workers}: need at least 1")
         policy_path, run_dir = locate(args.path)
         result, warp, gap = evaluate(policy_path, run_dir, args.model, args.episodes_per_bin, args.horizon_s,
-                                     args.workers, args.joint_dynamics)
+                                     args.workers, args.joint_dynamics, args.max_mpkpe_rel_mm)
         out = args.out or (run_dir or policy_path.parent) / "sim2sim" / model_label(args.model) / result.summary["label"]
         _write(result, gap, out.resolve())
         video = None
