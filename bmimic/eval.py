@@ -218,18 +218,19 @@ def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
     return names, levels
 
 
-def episode_table(raw: pd.DataFrame, evaluator, motion, step_dt: float, iteration: int) -> pd.DataFrame:
+def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: int) -> pd.DataFrame:
     """One row per episode: where it started and ended, whether and where it failed, how long it lived,
-    and its mean errors (raw: Evaluator.run_episodes(...).episodes)."""
+    and its mean errors (raw: Rollouts.episodes of Evaluator.run_episodes or another evaluator;
+    layout: the BinLayout it was run with)."""
     from bmimic.training.evaluation import ERROR_COLUMNS
 
-    edges = evaluator.layout.edges_s.cpu().numpy()
+    edges = layout.edges_s.cpu().numpy()
     start_s = raw["start_frame"].to_numpy() / motion.fps
     segment, difficulty = segment_at(motion.segments, start_s)
     bins = raw["bin"].to_numpy()
     failed = raw["failed"].to_numpy().astype(bool)
     failure_frame = raw["failure_frame"].to_numpy().astype(int)
-    fail_bin = evaluator.layout.frame_to_bin.cpu().numpy()[np.where(failed, failure_frame, 0)]
+    fail_bin = layout.frame_to_bin.cpu().numpy()[np.where(failed, failure_frame, 0)]
     return pd.DataFrame({
         "iteration": int(iteration),
         "episode": np.arange(len(raw)),
@@ -261,10 +262,12 @@ def _with_rates(table: pd.DataFrame, survival_s: np.ndarray) -> pd.DataFrame:
     return table
 
 
-def bin_table(rollouts, episodes: pd.DataFrame, evaluator) -> pd.DataFrame:
-    """One row per time bin: failures where they happened per visit (training's eval.parquet columns),
-    the start-bin counts, and the mean survival of the episodes started in it."""
-    per_bin = evaluator.bin_table(rollouts)
+def bin_table(rollouts, episodes: pd.DataFrame, layout, segments) -> pd.DataFrame:
+    """One row per time bin of `layout`: failures where they happened per visit (training's eval.parquet
+    columns), the start-bin counts, and the mean survival of the episodes started in it."""
+    from bmimic.training.evaluation import bin_table as labelled_bins
+
+    per_bin = labelled_bins(rollouts, layout, segments)
     per_bin.insert(0, "iteration", int(episodes["iteration"].iloc[0]))
     survival = episodes.groupby("bin")["survival_s"].mean().reindex(per_bin["bin"]).to_numpy(dtype=float)
     return _with_rates(per_bin, survival)
@@ -327,8 +330,8 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
     t0 = time.perf_counter()
     rollouts = evaluator.run_episodes(policy)
     wall = time.perf_counter() - t0
-    episodes = episode_table(rollouts.episodes, evaluator, run.motion, env.step_dt, iteration)
-    bins = bin_table(rollouts, episodes, evaluator)
+    episodes = episode_table(rollouts.episodes, run.layout, run.motion, env.step_dt, iteration)
+    bins = bin_table(rollouts, episodes, run.layout, run.motion.segments)
     segments = segment_table(rollouts, episodes, run.motion)
     progress = state.get("progress") or {}
     summary = {

@@ -16,6 +16,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from tensordict import TensorDict
@@ -235,7 +236,7 @@ def test_sim2sim_needs_no_torch_nor_training_code(task, tmp_path):
         f"p = {str(paths[1])!r}\n"
         "spec = s.read_policy(p); session = s.policy_session(p); ref = s.read_reference(session, spec)\n"
         "m, _ = s.build_model(spec)\n"
-        "row = s.run_episode(s.Rollout(m, spec, ref, session), 10, 5)\n"
+        "row = s.run_episode(s.Rollout(m, spec, ref, session), 10, 5).row\n"
         "assert row['steps'] >= 1, row\n"
         "bad = [k for k in sys.modules if k == 'torch' or k.startswith(('bmimic.envs', 'bmimic.training'))]\n"
         "assert not bad, bad\n"
@@ -316,11 +317,104 @@ def test_rows_are_tidy_and_follow_the_evaluation_semantics(task):
     session = sim2sim.policy_session(paths[1])
     ref = sim2sim.read_reference(session, spec)
     rollout = sim2sim.Rollout(sim2sim.build_model(spec)[0], spec, ref, session)
-    row = sim2sim.run_episode(rollout, 100, 7)
+    episode = sim2sim.run_episode(rollout, 100, 7)
+    row = episode.row
     assert (row["start_frame"], row["end_frame"], row["steps"], row["failed"]) == (100, 106, 7, False)
+    assert (row["failure_frame"], row["horizon_truncated"]) == (-1, False)
+    assert episode.frames.tolist() == list(range(100, 107)) and episode.errors.shape == (7, len(sim2sim.ERROR_NAMES))
+    np.testing.assert_allclose([row[c] for c in sim2sim.ERROR_NAMES], episode.errors.mean(axis=0))
     last = spec.num_frames - 1
-    row = sim2sim.run_episode(rollout, last - 2, 50)  # the reference stops at the clip's last frame
-    assert (row["end_frame"], row["steps"], row["failed"]) == (last - 1, 2, False)
+    row = sim2sim.run_episode(rollout, last - 2, 50).row  # the reference stops at the clip's last frame
+    assert (row["end_frame"], row["steps"], row["failed"], row["horizon_truncated"]) == (last, 2, False, True)
+    # A threshold below any mean error: a tracking failure, charged at the step with the largest error.
+    episode = sim2sim.run_episode(rollout, 100, 7, max_mpkpe_rel_mm=1e-9)
+    worst = episode.frames[np.argmax(episode.errors[:, sim2sim.ERROR_NAMES.index("mpkpe_rel_mm")])]
+    assert episode.row["failed"] and episode.row["error_failed"] and not episode.row["terminated"]
+    assert episode.row["failure_frame"] == worst
+
+
+# ============================================================================================ accounting
+PLANTED_FAILURES = {(37, 55), (87, 112), (112, 112), (237, 250), (487, 498)}
+"""(start frame, frame) at which an episode terminates, in both simulators: the episodes from 37 and 237
+fail in the bin after their start bin, 112 on its first step, 487 on the step that reaches the clip end
+(frame 499), which the episode from 462 reaches without failing."""
+
+
+def planted_errors(frames: np.ndarray) -> np.ndarray:
+    """[N, 7] integer errors of the frame the reference stands at (distinct within any 97 frames)."""
+    rel = 20.0 + (62 * np.asarray(frames, dtype=np.int64)) % 97
+    return rel[:, None] * np.arange(1, len(sim2sim.ERROR_NAMES) + 1)[None, :] / 2.0
+
+
+def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypatch):
+    """The same planted terminations and errors through MuJoCo-Warp's Evaluator and sim2sim's episodes:
+    identical per-episode rows (end, failure frame, steps, truncation, tracking failures), per-frame
+    step counts and error sums, and so identical per-bin tables."""
+    from bmimic.sampling.bins import make_layout
+    from bmimic.training import evaluation
+    from bmimic.training.evaluation import EPISODE_COLUMNS, ERROR_COLUMNS, Evaluator
+
+    env, _, paths = task
+    # 38 steps: the episode from 462 reaches the clip end after 37 (truncated, by one step). Mean errors
+    # of 68.74-70.47 fail (starts 12, 137, 412, 437), the others are <= 68.26.
+    per_bin, horizon_s, max_rel_mm = 2, 0.76, 68.4
+
+    class Planted:  # the eval env with its terminations replaced by the planted ones
+        def __getattr__(self, name):
+            return getattr(env, name)
+
+        def reset_to_frames(self, frames):
+            env.reset_to_frames(frames)
+            self.start = frames.tolist()
+
+        def step(self, actions):
+            judged = env.time_steps.tolist()
+            obs, rew, dones, extras = env.step(actions)
+            stop = torch.tensor([pair in PLANTED_FAILURES for pair in zip(self.start, judged)])
+            return obs, rew, dones, {**extras, "terminated": stop}
+
+    monkeypatch.setattr(evaluation, "_errors",
+                        lambda e: torch.as_tensor(planted_errors(e.time_steps.numpy()), dtype=torch.float32))
+    spec = sim2sim.read_policy(paths[1])
+    ev = Evaluator(Planted(), env.layout, spec.segments, per_bin, horizon_s, max_rel_mm)
+    warp = ev.run_episodes(lambda obs, stochastic_output=False: torch.zeros(env.num_envs, env.num_actions))
+
+    class PlantedRollout(sim2sim.Rollout):  # the same in native MuJoCo (the physics still runs)
+        def policy_action(self):
+            return np.zeros(len(self.spec.joint_names))
+
+        def reset(self, frame):
+            super().reset(frame)
+            self.start = frame
+
+        def terminated(self):
+            return (self.start, self.frame) in PLANTED_FAILURES
+
+        def errors(self):
+            return planted_errors([self.frame])[0]
+
+    layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s)
+    assert layout.frame_to_bin.tolist() == env.layout.frame_to_bin.tolist()
+    ref = sim2sim.read_reference(sim2sim.policy_session(paths[1]), spec)
+    rollout = PlantedRollout(sim2sim.build_model(spec)[0], spec, ref)
+    runs = [sim2sim.run_episode(rollout, f, ev.horizon_steps, max_rel_mm) for f in ev.frames]
+    ours = sim2sim.collect(runs, ev.bins, spec.num_frames)
+
+    exact = ["bin", *EPISODE_COLUMNS, "error_failed"]
+    pd.testing.assert_frame_equal(ours.episodes[exact], warp.episodes[exact], check_dtype=False)
+    np.testing.assert_allclose(ours.episodes[list(ERROR_COLUMNS)], warp.episodes[list(ERROR_COLUMNS)], rtol=1e-6)
+    np.testing.assert_allclose(ours.frame_errors.to_numpy(), warp.frame_errors.to_numpy(), rtol=1e-6)
+    # The planted answer, for the record: where the failures are charged.
+    ep = warp.episodes.set_index("start_frame")
+    assert ep.loc[37, ["failure_frame", "terminated"]].tolist() == [55, True]  # started in bin 0, fails in bin 1
+    assert ep.loc[87, "failure_frame"] == 112 and ep.loc[112, "steps"] == 1
+    assert ep.loc[487, ["end_frame", "failure_frame", "horizon_truncated"]].tolist() == [498, 498, True]
+    assert ep.loc[462, ["end_frame", "failed", "horizon_truncated", "steps"]].tolist() == [499, False, True, 37]
+    assert ep.loc[137, ["failure_frame", "error_failed"]].tolist() == [157, True]  # its worst frame, in bin 3
+    assert not ep.loc[337, "failed"] and ep["error_failed"].sum() == 4
+    table, theirs = (evaluation.bin_table(r, layout, spec.segments) for r in (ours, warp))
+    assert theirs["failures"].tolist() == [1, 1, 2, 1, 0, 1, 0, 0, 2, 1]
+    pd.testing.assert_frame_equal(table, theirs, check_dtype=False, rtol=1e-6)
 
 
 # ============================================================================================ command line
@@ -356,9 +450,14 @@ def test_training_writes_both_onnx_files_and_sim2sim_evaluates_them(trained, tmp
     assert {"start_frame", "end_frame", "end_bin", "failed", "steps", "diverged", "mpkpe_rel_mm"} <= set(episodes)
     assert (episodes["end_frame"] >= episodes["start_frame"]).all() and (episodes["end_bin"] >= episodes["bin"]).all()
     assert summary["control_steps"] == episodes["steps"].sum() and summary["control_steps_per_s"] > 0
-    # The same model and starts as the MuJoCo-Warp evaluation written by training: a small gap.
-    assert summary["warp_source"].endswith("(iteration 2)")
+    # The same model, starts, horizon and threshold as the MuJoCo-Warp evaluation written by training.
+    assert summary["warp_source"].endswith("(iteration 2)") and summary["gap_setting_differences"] == []
     assert abs(summary["gap_mpkpe_rel_mm"]) < 2.0 and abs(summary["gap_success_rate"]) <= 0.2
+    gap = pd.read_csv(folder / sim2sim.GAP_FILE)
+    warp = pd.read_parquet(trained / "eval.parquet").query("iteration == 2")
+    assert gap["warp_visits"].tolist() == warp["visits"].tolist()
+    np.testing.assert_allclose(gap["warp_success_rate"], 1.0 - warp["failures"] / warp["visits"])
+    assert "not like with like" not in out.stdout
     assert "gap to MuJoCo-Warp" in out.stdout and "control steps/s" in out.stdout
 
 
@@ -403,6 +502,22 @@ def test_gap_uses_the_eval_command_tables_when_present(trained, tmp_path):
     warp = json.loads((trained / "eval" / "model_2" / "eval_summary.json").read_text())
     assert summary["gap_success_rate"] == pytest.approx(summary["eval_success_rate"] - warp["eval_success_rate"])
     assert summary["episodes_per_bin"] == warp["episodes_per_bin"] and "per bin:" in out.stdout
+    # Same starts; episodes that succeeded in both simulators ended at the same frame after the same
+    # steps, so where every episode agrees on whether and where it failed, the bins' visits agree exactly.
+    ours = pd.read_parquet(tmp_path / "s2s" / "eval_episodes.parquet")
+    theirs = pd.read_parquet(trained / "eval" / "model_2" / "eval_episodes.parquet")
+    assert ours["start_frame"].tolist() == theirs["start_frame"].tolist()
+    both = ~ours["failed"] & ~theirs["failed"]
+    cols = ["end_frame", "steps", "horizon_truncated"]
+    assert both.any() and ours.loc[both, cols].equals(theirs.loc[both, cols])
+    if ours[["failed", "failure_frame"]].equals(theirs[["failed", "failure_frame"]]):
+        ours_bins = pd.read_parquet(tmp_path / "s2s" / "eval_bins.parquet")
+        theirs_bins = pd.read_parquet(trained / "eval" / "model_2" / "eval_bins.parquet")
+        for c in ("visits", "failures", "start_failures", "horizon_truncated", "tracked_through"):
+            assert ours_bins[c].tolist() == theirs_bins[c].tolist(), c
+    # A different horizon is compared, but said to be unlike.
+    out = run("bmimic.sim2sim", trained, "--workers", 1, "--horizon-s", 0.1, "--out", tmp_path / "h", cwd=tmp_path)
+    assert "not like with like" in out.stdout and "horizon_s: 0.1 here, 0.2 there" in out.stdout
 
 
 @pytest.mark.slow

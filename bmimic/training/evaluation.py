@@ -161,6 +161,32 @@ class Rollouts(NamedTuple):
     """One row per motion frame: `steps` taken at it and the per-step sums of ERROR_COLUMNS."""
 
 
+def segment_of_bin(layout, segments) -> list[str]:
+    """Label of each bin of a BinLayout: the segment covering the bin's midpoint ('' where none does)."""
+    edges = layout.edges_s.cpu().numpy()
+    labels = []
+    for b in range(layout.num_bins):
+        mid = 0.5 * (edges[b] + edges[b + 1])
+        name = ""
+        for seg in segments:
+            if seg.start_s <= mid < seg.end_s or (b == layout.num_bins - 1 and seg.end_s >= mid):
+                name = seg.name
+                break
+        labels.append(name)
+    return labels
+
+
+def bin_table(rollouts: Rollouts, layout, segments) -> pd.DataFrame:
+    """`aggregate` of one evaluation (from any evaluator) with the bins' edges and segment labels."""
+    per_bin = aggregate(rollouts.episodes, layout.frame_to_bin.cpu().numpy(), rollouts.frame_errors)
+    edges = layout.edges_s.cpu().numpy()
+    labels = segment_of_bin(layout, segments)
+    per_bin.insert(1, "bin_start_s", edges[per_bin["bin"]])
+    per_bin.insert(2, "bin_end_s", edges[per_bin["bin"] + 1])
+    per_bin.insert(3, "segment", [labels[b] for b in per_bin["bin"]])
+    return per_bin
+
+
 class Evaluator:
     """Runs evaluation episodes in a dedicated `mode="eval"` environment (robust: with DR, noise, pushes)."""
 
@@ -178,17 +204,7 @@ class Evaluator:
 
     def segment_of_bin(self) -> list[str]:
         """Label of each bin: the segment covering the bin's midpoint ('' without a manifest)."""
-        edges = self.layout.edges_s.cpu().numpy()
-        labels = []
-        for b in range(self.layout.num_bins):
-            mid = 0.5 * (edges[b] + edges[b + 1])
-            name = ""
-            for seg in self.segments:
-                if seg.start_s <= mid < seg.end_s or (b == self.layout.num_bins - 1 and seg.end_s >= mid):
-                    name = seg.name
-                    break
-            labels.append(name)
-        return labels
+        return segment_of_bin(self.layout, self.segments)
 
     @torch.inference_mode()
     def run_episodes(self, policy) -> Rollouts:
@@ -259,13 +275,7 @@ class Evaluator:
 
     def bin_table(self, rollouts: Rollouts) -> pd.DataFrame:
         """`aggregate` of one evaluation with the bins' edges and segment labels."""
-        per_bin = aggregate(rollouts.episodes, self.layout.frame_to_bin.cpu().numpy(), rollouts.frame_errors)
-        edges = self.layout.edges_s.cpu().numpy()
-        labels = self.segment_of_bin()
-        per_bin.insert(1, "bin_start_s", edges[per_bin["bin"]])
-        per_bin.insert(2, "bin_end_s", edges[per_bin["bin"] + 1])
-        per_bin.insert(3, "segment", [labels[b] for b in per_bin["bin"]])
-        return per_bin
+        return bin_table(rollouts, self.layout, self.segments)
 
     def evaluate(self, policy, iteration: int, env_steps: int, wall_time_s: float) -> pd.DataFrame:
         """Per-bin table (eval.parquet rows) for one evaluation."""

@@ -1,0 +1,124 @@
+"""`python -m bmimic.sim2sim`: the command line, and a video of one episode."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from bmimic import BmimicError
+from bmimic.sim2sim.evaluation import evaluate, locate
+from bmimic.sim2sim.gap import GAP_FILE, format_gap
+from bmimic.sim2sim.model import build_model, model_label
+from bmimic.sim2sim.rollout import Rollout, run_episode
+from bmimic.sim2sim.spec import Sim2SimError, first_line, policy_session, read_policy, read_reference
+
+
+def render_video(policy_path: Path, run_dir: Path | None, model: str, joint_dynamics: str, out: Path,
+                 start_s: float, duration_s: float, width: int = 640, height: int = 480) -> Path:
+    """One episode from `start_s`, with the reference as a ghost, at the control rate (MP4 or GIF)."""
+    from bmimic.render import TrackingRenderer, annotate, write_video
+
+    spec = read_policy(policy_path)
+    session = policy_session(policy_path)
+    ref = read_reference(session, spec)
+    mjm, _ = build_model(spec, model, run_dir, joint_dynamics)
+    rollout = Rollout(mjm, spec, ref, session)
+    renderer = TrackingRenderer(mjm, width, height)
+    frames: list[np.ndarray] = []
+
+    def draw(r: Rollout, terminated: bool) -> None:
+        renderer.renderer.update_scene(r.d, camera=renderer.camera, scene_option=renderer.option)
+        renderer._add_ghost(r.reference_qpos(r.frame))  # the renderer's ghost of the reference pose
+        text = [f"sim2sim {model_label(model)}  t={r.frame / spec.fps:5.2f} s"] + (["terminated"] if terminated else [])
+        frames.append(annotate(renderer.renderer.render(), text, alert=terminated))
+
+    start = min(max(0, int(round(start_s * spec.fps))), spec.num_frames - 1)
+    try:
+        run_episode(rollout, start, max(1, int(round(duration_s / spec.control_dt_s))), on_step=draw)
+    finally:
+        renderer.close()
+    return write_video(frames, out, 1.0 / spec.control_dt_s)
+
+
+# ============================================================================================ CLI
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m bmimic.sim2sim",
+        description="Evaluate the exported (BeyondMimic-compatible) ONNX policy in native MuJoCo on the CPU.",
+        epilog="Tables: RUN/sim2sim/<model>/<checkpoint>/{eval_episodes.parquet,eval_bins.parquet,"
+               f"eval_segments.csv,eval_summary.json,{GAP_FILE}}}")
+    p.add_argument("path", help="a run folder (its latest checkpoints/motion_policy_<it>.onnx) or such an ONNX file")
+    p.add_argument("--model", default="project",
+                   help="project (the run's G1), menagerie (MuJoCo Menagerie's G1) or an MJCF path")
+    p.add_argument("--episodes-per-bin", type=int, help="default: as the run's MuJoCo-Warp evaluation")
+    p.add_argument("--horizon-s", type=float, help="seconds an episode must survive (default: as the run's evaluation)")
+    p.add_argument("--max-mpkpe-rel-mm", type=float,
+                   help="also fail episodes whose mean root-relative MPKPE exceeds this (default: as the run's evaluation)")
+    p.add_argument("--workers", type=int, default=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                   else os.cpu_count() or 1, help="worker processes (default: the CPU cores available)")
+    p.add_argument("--joint-dynamics", choices=("model", "metadata"), default="model",
+                   help="keep the model's armature/damping/friction loss (default) or use training's")
+    p.add_argument("--video", type=Path, help="also render one episode to this .mp4 (or .gif)")
+    p.add_argument("--video-start-s", type=float, default=0.0, help="where the video episode starts in the motion")
+    p.add_argument("--video-s", type=float, default=10.0, help="longest video episode in seconds")
+    p.add_argument("--out", type=Path, help="folder for the tables (default RUN/sim2sim/<model>/<checkpoint>)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        if args.video is not None:
+            from bmimic.render import select_gl_backend, video_path
+
+            video_path(args.video)  # a bad suffix is refused before any work
+            select_gl_backend()  # before mujoco is imported
+        if args.workers < 1:
+            raise Sim2SimError(f"--workers {args.workers}: need at least 1")
+        policy_path, run_dir = locate(args.path)
+        result, warp, gap = evaluate(policy_path, run_dir, args.model, args.episodes_per_bin, args.horizon_s,
+                                     args.workers, args.joint_dynamics, args.max_mpkpe_rel_mm)
+        out = args.out or (run_dir or policy_path.parent) / "sim2sim" / model_label(args.model) / result.summary["label"]
+        _write(result, gap, out.resolve())
+        video = None
+        if args.video is not None:
+            video = render_video(policy_path, run_dir, args.model, args.joint_dynamics, args.video,
+                                 args.video_start_s, args.video_s)
+    except _user_errors() as e:
+        print(f"error: {first_line(e)}", file=sys.stderr)
+        return 2
+    from bmimic.eval import format_report
+
+    s = result.summary
+    print(format_report(result))
+    print(f"model: {s['model_description']}")
+    print(f"throughput: {s['control_steps']} control steps ({s['physics_steps']} physics steps) in "
+          f"{s['eval_wall_time_s']:.1f} s on {s['workers']} worker process(es): {s['control_steps_per_s']:.0f} control steps/s "
+          f"({s['control_steps_per_s_per_worker']:.0f} per worker)")
+    print(format_gap(result, warp, gap))
+    if video is not None:
+        print(f"video: {video}")
+    return 0
+
+
+def _write(result, gap, out_dir: Path) -> None:
+    from bmimic.eval import write_tables
+    from bmimic.runs import atomic_write
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if gap is not None:
+        atomic_write(out_dir / GAP_FILE, lambda tmp: gap.to_csv(tmp, index=False))
+    write_tables(result, out_dir)  # the summary last: its presence means a complete set
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from bmimic.motion.motion import MotionDataError
+
+    return (BmimicError, MotionDataError)

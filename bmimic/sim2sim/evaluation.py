@@ -1,0 +1,139 @@
+"""sim2sim's evaluation: stratified starts per bin, episodes in native MuJoCo, and bmimic.eval's tables
+built from them with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluation.aggregate)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from bmimic.sim2sim.gap import eval_settings, gap_table, setting_differences, warp_eval
+from bmimic.sim2sim.model import build_model
+from bmimic.sim2sim.rollout import Episode, run_episodes
+from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, policy_session, read_policy, read_reference
+
+log = logging.getLogger("bmimic.sim2sim")
+
+MOTION_FILE = re.compile(r"motion_policy_(\d+)\.onnx$")
+"""File name of the BeyondMimic-compatible export of a checkpoint."""
+
+
+def locate(path: str | Path) -> tuple[Path, Path | None]:
+    """(BeyondMimic-compatible ONNX, run folder or None) for a run folder or an ONNX file."""
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise Sim2SimError(f"{p}: no such run folder or ONNX file")
+    if p.is_file():
+        run = p.resolve().parent.parent
+        return p.resolve(), run if (run / ".hydra" / "config.yaml").is_file() else None
+    found = [(int(m.group(1)), f) for f in (p / "checkpoints").glob("motion_policy_*.onnx")
+             if (m := MOTION_FILE.search(f.name))]
+    if not found:
+        raise Sim2SimError(f"{p}: no checkpoints/motion_policy_<it>.onnx (the BeyondMimic-compatible export); "
+                           f"write it with: python -m bmimic.export {p}")
+    return max(found)[1].resolve(), p.resolve()
+
+
+def checkpoint_label(spec: PolicySpec) -> str:
+    """model_<it> (the name bmimic.eval gives the same checkpoint), else the file stem."""
+    if spec.iteration is not None:
+        return f"model_{spec.iteration}"
+    m = MOTION_FILE.search(spec.path.name)
+    return f"model_{m.group(1)}" if m else spec.path.stem
+
+
+
+def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int):
+    """bmimic.training.evaluation.Rollouts of sim2sim episodes: the rows with their start `bin` first,
+    and per motion frame the steps judged at it and their error sums."""
+    import pandas as pd
+
+    from bmimic.training.evaluation import ERROR_COLUMNS, Rollouts
+
+    rows = pd.DataFrame([e.row for e in episodes])
+    rows.insert(0, "bin", np.asarray(start_bins, dtype=np.int64))
+    sums = np.zeros((num_frames, 1 + len(ERROR_COLUMNS)))
+    for e in episodes:
+        np.add.at(sums, e.frames, np.column_stack((np.ones(len(e.frames)), e.errors)))
+    return Rollouts(rows, pd.DataFrame(sums, columns=["steps", *ERROR_COLUMNS]))
+
+
+def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,
+             horizon_s: float | None = None, workers: int = 1, joint_dynamics: str = "model",
+             max_mpkpe_rel_mm: float | None = None):
+    """Run the sim2sim evaluation; returns (bmimic.eval.EvalResult, WarpEval or None, gap table or None).
+
+    Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like."""
+    from bmimic.eval import EvalResult, bin_table, episode_table, segment_table
+    from bmimic.sampling.bins import make_layout
+    from bmimic.training.evaluation import stratified_start_frames, summarize
+
+    spec = read_policy(policy_path)
+    label = checkpoint_label(spec)
+    warp = warp_eval(run_dir, label, spec.iteration)
+    settings = eval_settings(run_dir, warp, episodes_per_bin, horizon_s, max_mpkpe_rel_mm)
+    per_bin = settings["episodes_per_bin"]
+    ref = read_reference(policy_session(policy_path), spec)
+    mjm, model_note = build_model(spec, model, run_dir, joint_dynamics)
+    layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s)
+    frames = stratified_start_frames(layout.bin_first_frame.numpy(), layout.bin_num_frames.numpy(), per_bin)
+    horizon_steps = max(1, int(round(settings["horizon_s"] / spec.control_dt_s)))
+    log.info("sim2sim %s on %s: %d bins x %d episodes, horizon %g s, %d workers", policy_path.name, model_note,
+             layout.num_bins, per_bin, settings["horizon_s"], workers)
+    runs, wall = run_episodes(policy_path, mjm, spec, ref, frames, horizon_steps, workers, settings["max_mpkpe_rel_mm"])
+    rollouts = collect(runs, np.repeat(np.arange(layout.num_bins), per_bin), spec.num_frames)
+
+    raw = rollouts.episodes
+    iteration = -1 if spec.iteration is None else spec.iteration
+    episodes = episode_table(raw, layout, ref, spec.control_dt_s, iteration)
+    episodes["end_s"] = episodes["end_frame"] / spec.fps
+    episodes["end_bin"] = layout.frame_to_bin.numpy()[episodes["end_frame"].to_numpy()]
+    episodes["diverged"] = raw["diverged"].to_numpy()
+    bins = bin_table(rollouts, episodes, layout, ref.segments)
+    steps = int(raw["steps"].sum())
+    worker_s = float(raw["wall_s"].sum())
+    summary = {
+        **summarize(bins),
+        "episodes": int(len(episodes)),
+        "failures": int(episodes["failed"].sum()),
+        "diverged": int(episodes["diverged"].sum()),
+        "num_bins": int(layout.num_bins),
+        **settings,
+        "horizon_truncated_bins": int(bins["horizon_truncated"].sum()),
+        "checkpoint": str(policy_path),
+        "iteration": iteration,
+        "run_dir": str(run_dir) if run_dir else "",
+        "label": label,
+        "device": f"cpu, native MuJoCo, {workers} worker process(es)",
+        "simulator": "mujoco (C) " + _version("mujoco") + ", onnxruntime " + _version("onnxruntime"),
+        "model": model,
+        "model_description": model_note,
+        "joint_dynamics": joint_dynamics,
+        "workers": int(workers),
+        "control_steps": steps,
+        "physics_steps": steps * spec.decimation,
+        "eval_wall_time_s": wall,
+        "control_steps_per_s": steps / wall if wall > 0 else math.nan,
+        "control_steps_per_s_per_worker": steps / worker_s if worker_s > 0 else math.nan,
+    }
+    gap = None
+    if warp is not None:
+        gap = gap_table(bins, warp)
+        summary.update(warp_source=warp.source, warp_success_rate=warp.success_rate,
+                       warp_mpkpe_rel_mm=warp.mpkpe_rel_mm,
+                       gap_success_rate=summary["eval_success_rate"] - warp.success_rate,
+                       gap_mpkpe_rel_mm=summary["eval_mpkpe_rel_mm"] - warp.mpkpe_rel_mm,
+                       gap_setting_differences=setting_differences(settings, warp))
+    result = EvalResult(episodes, bins, segment_table(rollouts, episodes, ref), summary)
+    return result, warp, gap
+
+
+def _version(module: str) -> str:
+    try:
+        return str(__import__(module).__version__)
+    except (ImportError, AttributeError):
+        return "?"

@@ -1,0 +1,147 @@
+"""The MuJoCo-Warp evaluation of the same checkpoint and sim2sim's gap to it, compared like with like."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from bmimic.sim2sim.spec import Sim2SimError
+
+log = logging.getLogger("bmimic.sim2sim")
+
+GAP_FILE = "sim2sim_gap_bins.csv"
+SETTINGS = ("episodes_per_bin", "horizon_s", "max_mpkpe_rel_mm")
+"""Evaluation settings two evaluations must share to be compared bin by bin."""
+
+
+@dataclass
+class WarpEval:
+    """The MuJoCo-Warp evaluation of the same checkpoint, for the gap."""
+
+    source: str
+    """Where it was read."""
+    bins: object
+    """pandas DataFrame: bin, visits, failures, success_rate (1 - failures / visits), mpkpe_rel_mm."""
+    success_rate: float
+    """Overall success rate (episodes that did not fail / episodes)."""
+    mpkpe_rel_mm: float
+    """Overall anchor-relative MPKPE (mean over the evaluation steps)."""
+    settings: dict
+    """The SETTINGS it ran with, as far as known (a missing key: unknown; max_mpkpe_rel_mm None: not set)."""
+
+
+def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEval | None:
+    """RUN/eval/<label>/ (bmimic.eval) if present, else the training-time rows of RUN/eval.parquet."""
+    import pandas as pd
+
+    from bmimic.training.evaluation import summarize
+
+    if run_dir is None:
+        return None
+    columns = ["bin", "visits", "failures", "success_rate", "mpkpe_rel_mm"]
+    folder = run_dir / "eval" / label
+    if (folder / "eval_summary.json").is_file() and (folder / "eval_bins.parquet").is_file():
+        s = json.loads((folder / "eval_summary.json").read_text())
+        bins = pd.read_parquet(folder / "eval_bins.parquet")
+        if "visits" in bins:
+            return WarpEval(str(folder), bins[columns], float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"]),
+                            {k: s[k] for k in SETTINGS if k in s})
+        log.warning("%s: tables of the old start-bin accounting, not compared (evaluate again with python -m "
+                    "bmimic.eval)", folder)
+    table = run_dir / "eval.parquet"
+    if iteration is None or not table.is_file():
+        return None
+    rows = pd.read_parquet(table)
+    rows = rows[rows["iteration"] == iteration].reset_index(drop=True)
+    if rows.empty:
+        return None
+    if "visits" not in rows:
+        log.warning("%s: rows of the old start-bin accounting, not compared (run python -m bmimic.eval %s)",
+                    table, run_dir)
+        return None
+    overall = summarize(rows)
+    settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
+    config = _run_eval_config(run_dir)
+    settings |= {k: config[k] for k in SETTINGS[1:] if k in config}
+    return WarpEval(f"{table} (iteration {iteration})", rows.assign(success_rate=1.0 - rows["failure_rate"])[columns],
+                    overall["eval_success_rate"], overall["eval_mpkpe_rel_mm"], settings)
+
+
+def _run_eval_config(run_dir: Path | None) -> dict:
+    """The run's resolved `eval` settings (resolved_config.json), or {} when unknown."""
+    try:
+        section = json.loads((run_dir / "resolved_config.json").read_text())["eval"]
+    except (TypeError, OSError, KeyError, ValueError):
+        return {}
+    return section if isinstance(section, dict) else {}
+
+
+def eval_settings(run_dir: Path | None, warp: WarpEval | None, episodes_per_bin: int | None,
+                  horizon_s: float | None, max_mpkpe_rel_mm: float | None) -> dict:
+    """The SETTINGS of this evaluation: given ones win, then the MuJoCo-Warp evaluation's (so the gap
+    compares like with like), then the run's config, then bmimic's defaults on a CPU."""
+    given = {"episodes_per_bin": episodes_per_bin, "horizon_s": horizon_s, "max_mpkpe_rel_mm": max_mpkpe_rel_mm}
+    known = {"episodes_per_bin": 1, "horizon_s": 2.0, "max_mpkpe_rel_mm": None}
+    config = _run_eval_config(run_dir)  # a null max_mpkpe_rel_mm is a setting ("not set"), other nulls are not
+    known |= {k: config[k] for k in SETTINGS if k in config and (config[k] is not None or k == "max_mpkpe_rel_mm")}
+    known |= warp.settings if warp is not None else {}
+    out = {k: given[k] if given[k] is not None else known[k] for k in SETTINGS}
+    if out["episodes_per_bin"] < 1 or not out["horizon_s"] > 0 or not (out["max_mpkpe_rel_mm"] is None
+                                                                      or out["max_mpkpe_rel_mm"] > 0):
+        raise Sim2SimError(f"--episodes-per-bin {out['episodes_per_bin']} / --horizon-s {out['horizon_s']} / "
+                           f"--max-mpkpe-rel-mm {out['max_mpkpe_rel_mm']}: need >= 1, > 0 and > 0")
+    return {"episodes_per_bin": int(out["episodes_per_bin"]), "horizon_s": float(out["horizon_s"]),
+            "max_mpkpe_rel_mm": None if out["max_mpkpe_rel_mm"] is None else float(out["max_mpkpe_rel_mm"])}
+
+
+def setting_differences(ours: dict, warp: WarpEval) -> list[str]:
+    """Each SETTING in which this evaluation differs from the MuJoCo-Warp one, or that is unknown there."""
+    out = []
+    for key in SETTINGS:
+        if key not in warp.settings:
+            out.append(f"{key}: {ours[key]} here, unknown there")
+            continue
+        a, b = ours[key], warp.settings[key]
+        if (a is None) != (b is None) or (a is not None and not math.isclose(float(a), float(b))):
+            out.append(f"{key}: {a} here, {b} there")
+    return out
+
+
+def gap_table(bins, warp: WarpEval):
+    """Per bin: MuJoCo-Warp and sim2sim visits, failures (where they happened), success rate per visit
+    and anchor-relative MPKPE, and the differences."""
+    ours = bins[["bin", "bin_start_s", "bin_end_s", "segment", "horizon_truncated", "visits", "failures",
+                 "success_rate", "mpkpe_rel_mm"]]
+    names = ["visits", "failures", "success_rate", "mpkpe_rel_mm"]
+    out = ours.rename(columns={c: f"sim2sim_{c}" for c in names})
+    out = out.merge(warp.bins.rename(columns={c: f"warp_{c}" for c in names}), on="bin", how="left")
+    out["success_gap"] = out["sim2sim_success_rate"] - out["warp_success_rate"]
+    out["mpkpe_rel_gap_mm"] = out["sim2sim_mpkpe_rel_mm"] - out["warp_mpkpe_rel_mm"]
+    return out
+
+
+def format_gap(result, warp: WarpEval | None, gap) -> str:
+    s = result.summary
+    if warp is None:
+        return ("gap to MuJoCo-Warp: no evaluation of this checkpoint in the run folder "
+                "(run python -m bmimic.eval RUN to get one)")
+    lines = [f"gap to MuJoCo-Warp ({warp.source}); success = 1 - failures / visits per bin, "
+             f"failures charged where they happen:",
+             f"  success rate   warp {warp.success_rate:.3f}  sim2sim {s['eval_success_rate']:.3f}  "
+             f"gap {s['eval_success_rate'] - warp.success_rate:+.3f}",
+             f"  rel MPKPE mm   warp {warp.mpkpe_rel_mm:.1f}  sim2sim {s['eval_mpkpe_rel_mm']:.1f}  "
+             f"gap {s['eval_mpkpe_rel_mm'] - warp.mpkpe_rel_mm:+.1f}"]
+    if s["gap_setting_differences"]:
+        lines.append("  note: not like with like, the evaluations differ in " + "; ".join(s["gap_setting_differences"]))
+    shown = gap
+    title = "per bin:"
+    if len(gap) > 30:
+        shown = gap.reindex(gap["success_gap"].abs().sort_values(ascending=False).index).head(10)
+        title = f"the 10 bins of {len(gap)} with the largest success gap:"
+    cols = ["bin", "segment", "warp_visits", "sim2sim_visits", "warp_success_rate", "sim2sim_success_rate",
+            "success_gap", "warp_mpkpe_rel_mm", "sim2sim_mpkpe_rel_mm", "mpkpe_rel_gap_mm"]
+    lines += [title, shown[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}")]
+    return "\n".join(lines)

@@ -1,0 +1,347 @@
+"""The numpy control loop: one robot in native MuJoCo driven by the ONNX policy, its observations,
+terminations and tracking errors, one evaluation episode, and episodes spread over worker processes."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, NamedTuple
+
+import numpy as np
+
+from bmimic.sim2sim.spec import PolicySpec, policy_session
+
+if TYPE_CHECKING:
+    from bmimic.motion.motion import Motion
+
+ERROR_NAMES = ("mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
+               "joint_vel_err_radps", "ee_pos_err_mm")
+"""Per-step tracking errors, named and ordered as bmimic.training.evaluation.ERROR_COLUMNS."""
+REL_MPKPE = ERROR_NAMES.index("mpkpe_rel_mm")
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of unit quaternions (w, x, y, z)."""
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    m = np.stack((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)), axis=-1)
+    return m.reshape(m.shape[:-1] + (3, 3))
+
+
+def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in [0, pi] of the rotation between rotation matrices a and b ([..., 3, 3])."""
+    cos = 0.5 * (np.einsum("...ij,...ij->...", a, b) - 1.0)  # (trace(a^T b) - 1) / 2
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+
+# ============================================================================================ rollout
+class Rollout:
+    """One robot in native MuJoCo driven by the policy: reset to a reference frame, step, observe.
+
+    Mirrors the evaluation environment's step: PD targets held for `decimation` physics steps,
+    kinematics of the new state, terminations against the current reference frame, then the frame
+    advances (stopping at the clip's last frame) and the observation is built from the new frame.
+    Rotations are handled as matrices (MuJoCo's xmat, the reference's precomputed once), which gives
+    the same quantities as the training code's quaternion formulas.
+    """
+
+    def __init__(self, mjm, spec: PolicySpec, ref: Motion, session=None) -> None:
+        import mujoco
+
+        self.m, self.d = mjm, mujoco.MjData(mjm)
+        self.spec, self.ref, self.session = spec, ref, session
+        jid = [mjm.joint(n).id for n in spec.joint_names]
+        self.qadr = mjm.jnt_qposadr[jid].astype(np.int64)
+        self.vadr = mjm.jnt_dofadr[jid].astype(np.int64)
+        free = int(np.flatnonzero(mjm.jnt_type == mujoco.mjtJoint.mjJNT_FREE)[0])
+        self.free_q, self.free_v = int(mjm.jnt_qposadr[free]), int(mjm.jnt_dofadr[free])
+        self.body_ids = np.array([mjm.body(n).id for n in spec.body_names], dtype=np.int64)
+        self.anchor = spec.body_names.index(spec.anchor_body)
+        self.root = spec.body_names.index(spec.root_body)
+        self.ee = np.array([spec.body_names.index(n) for n in spec.end_effector_bodies], dtype=np.int64)
+        self.ref_mat = quat_to_matrix(ref.body_quat_w)  # [T, B, 3, 3]
+        ends = np.append(ref.clip_starts[1:], ref.num_frames)
+        self.clip_end = np.repeat(ends, np.diff(np.append(ref.clip_starts, ref.num_frames)))  # frame -> its clip's end
+        self.actions = np.zeros(len(spec.joint_names))
+        self.frame = 0
+        self.segment_end = spec.num_frames
+        self._obs = np.zeros((1, spec.obs_dim), dtype=np.float32)
+        self._time = np.zeros((1, 1), dtype=np.float32)
+        self._bad = mujoco.mjtWarning.mjWARN_BADQACC
+        self._terms = [(getattr(self, "_t_" + f), p) for _, f, p in spec.terminations]
+        self._obs_fns = [getattr(self, "_o_" + t.func) for t in spec.obs_terms]
+        self._version = 0  # bumped by every change of the physics state
+        self._cached: tuple = (None, None)
+
+    # ---------------------------------------------------------------------------------- state
+    def reference_qpos(self, frame: int) -> np.ndarray:
+        """qpos of the reference pose at `frame` (root body pose + joint angles)."""
+        r, f = self.ref, self._clamp(frame)
+        qpos = self.m.qpos0.copy()
+        qpos[self.free_q:self.free_q + 3] = r.body_pos_w[f, self.root]
+        qpos[self.free_q + 3:self.free_q + 7] = r.body_quat_w[f, self.root]
+        qpos[self.qadr] = r.joint_pos[f]
+        return qpos
+
+    def reset(self, frame: int) -> None:
+        """Put the robot exactly at the reference state of `frame` (no noise), actions zero."""
+        r, f = self.ref, self._clamp(frame)
+        qvel = np.zeros(self.m.nv)
+        qvel[self.free_v:self.free_v + 3] = r.body_lin_vel_w[f, self.root]
+        # The free joint's angular velocity is in the body frame.
+        qvel[self.free_v + 3:self.free_v + 6] = self.ref_mat[f, self.root].T @ r.body_ang_vel_w[f, self.root]
+        qvel[self.vadr] = r.joint_vel[f]
+        self.set_state(self.reference_qpos(f), qvel, f, np.zeros(len(self.spec.joint_names)))
+
+    def set_state(self, qpos: np.ndarray, qvel: np.ndarray, frame: int, actions: np.ndarray) -> None:
+        """Any state: qpos/qvel in this model's layout, the reference frame, the last action."""
+        import mujoco
+
+        mujoco.mj_resetData(self.m, self.d)
+        self.d.qpos[:] = qpos
+        self.d.qvel[:] = qvel
+        self.frame = int(frame)
+        self.segment_end = int(self.clip_end[self._clamp(frame)])
+        self.actions = np.asarray(actions, dtype=np.float64).copy()
+        mujoco.mj_forward(self.m, self.d)
+        self._version += 1
+
+    def _clamp(self, frame: int) -> int:
+        return min(max(int(frame), 0), self.spec.num_frames - 1)
+
+    def state(self) -> dict:
+        """Robot and reference quantities at the current physics state and reference frame (cached)."""
+        key = (self._version, self.frame)
+        if self._cached[0] == key:
+            return self._cached[1]
+        d, r, a = self.d, self.ref, self.anchor
+        f = self._clamp(self.frame)
+        pos = d.xpos[self.body_ids]
+        mat = d.xmat[self.body_ids].reshape(-1, 3, 3)
+        ref_pos, ref_mat = r.body_pos_w[f], self.ref_mat[f]
+        # Anchor-centred, yaw-aligned, height-preserving targets (BeyondMimic): the yaw of
+        # R_robot_anchor R_ref_anchor^T rotates the reference about the robot's anchor.
+        m = mat[a] @ ref_mat[a].T
+        yaw = math.atan2(m[1, 0], m[0, 0])
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        origin = np.array([pos[a, 0], pos[a, 1], ref_pos[a, 2]])
+        state = {
+            "joint_pos": d.qpos[self.qadr], "joint_vel": d.qvel[self.vadr],
+            "root_lin_vel_w": d.qvel[self.free_v:self.free_v + 3],
+            "root_ang_vel_b": d.qvel[self.free_v + 3:self.free_v + 6],
+            "pos": pos, "mat": mat,
+            "ref_joint_pos": r.joint_pos[f], "ref_joint_vel": r.joint_vel[f],
+            "ref_pos": ref_pos, "ref_mat": ref_mat,
+            "rel_pos": origin + (ref_pos - ref_pos[a]) @ rz.T,
+            "rel_mat": rz @ ref_mat,
+        }
+        self._cached = (key, state)
+        return state
+
+    # ---------------------------------------------------------------------------------- observations
+    def observation(self) -> np.ndarray:
+        """[1, obs_dim] float32 policy input at the current state and frame."""
+        s = self.state()
+        i = 0
+        for fn, term in zip(self._obs_fns, self.spec.obs_terms):
+            self._obs[0, i:i + term.dim] = fn(s)
+            i += term.dim
+        return self._obs
+
+    def _o_motion_command(self, s):
+        return np.concatenate((s["ref_joint_pos"], s["ref_joint_vel"]))
+
+    def _o_motion_anchor_pos_b(self, s):
+        a = self.anchor
+        return s["mat"][a].T @ (s["ref_pos"][a] - s["pos"][a])
+
+    def _o_motion_anchor_ori_b(self, s):
+        a = self.anchor  # first two columns of R_anchor^T R_ref_anchor, row by row
+        return (s["mat"][a].T @ s["ref_mat"][a])[:, :2].reshape(-1)
+
+    def _o_robot_body_pos_b(self, s):
+        a = self.anchor
+        return ((s["pos"] - s["pos"][a]) @ s["mat"][a]).reshape(-1)
+
+    def _o_robot_body_ori_b(self, s):
+        return np.einsum("ji,bjk->bik", s["mat"][self.anchor], s["mat"])[:, :, :2].reshape(-1)
+
+    def _o_base_lin_vel(self, s):
+        return s["mat"][self.root].T @ s["root_lin_vel_w"]  # the root body's frame is the free joint's
+
+    def _o_base_ang_vel(self, s):
+        return s["root_ang_vel_b"]
+
+    def _o_joint_pos_rel(self, s):
+        return s["joint_pos"] - self.spec.default_joint_pos
+
+    def _o_joint_vel_rel(self, s):
+        return s["joint_vel"]
+
+    def _o_last_action(self, s):
+        return self.actions
+
+    # ---------------------------------------------------------------------------------- terminations
+    def _t_bad_anchor_pos_z_only(self, s, threshold_m: float) -> bool:
+        return abs(s["ref_pos"][self.anchor, 2] - s["pos"][self.anchor, 2]) > threshold_m
+
+    def _t_bad_anchor_ori(self, s, threshold: float) -> bool:
+        # z of gravity (0, 0, -1) in the anchor frame is -R[2, 2]: the difference of cos(tilt).
+        return abs(s["ref_mat"][self.anchor, 2, 2] - s["mat"][self.anchor, 2, 2]) > threshold
+
+    def _t_bad_motion_body_pos_z_only(self, s, threshold_m: float) -> bool:
+        err = np.abs(s["rel_pos"][self.ee, 2] - s["pos"][self.ee, 2])
+        return bool((err > threshold_m).any())
+
+    def terminated(self) -> bool:
+        """Any termination term at the current state and frame."""
+        s = self.state()
+        return any(fn(s, **params) for fn, params in self._terms)
+
+    # ---------------------------------------------------------------------------------- errors
+    def errors(self) -> np.ndarray:
+        """The ERROR_NAMES at the current state and frame (bmimic.training.evaluation's definitions)."""
+        s = self.state()
+        a, ee = self.anchor, self.ee
+        return np.array((
+            1000.0 * np.linalg.norm(s["ref_pos"] - s["pos"], axis=-1).mean(),
+            1000.0 * np.linalg.norm((s["ref_pos"] - s["ref_pos"][a]) - (s["pos"] - s["pos"][a]), axis=-1).mean(),
+            float(rotation_angle(s["ref_mat"][a], s["mat"][a])),
+            float(rotation_angle(s["rel_mat"], s["mat"]).mean()),
+            float(np.abs(s["ref_joint_pos"] - s["joint_pos"]).mean()),
+            float(np.abs(s["ref_joint_vel"] - s["joint_vel"]).mean()),
+            1000.0 * np.linalg.norm(s["rel_pos"][ee] - s["pos"][ee], axis=-1).mean(),
+        ))
+
+    # ---------------------------------------------------------------------------------- stepping
+    def policy_action(self) -> np.ndarray:
+        """The deterministic action for the current observation and reference frame."""
+        self._time[0, 0] = self.frame
+        return self.session.run(["actions"], {"obs": self.observation(), "time_step": self._time})[0][0]
+
+    def physics(self, actions: np.ndarray) -> bool:
+        """Hold the PD targets of `actions` for one control step; False if MuJoCo had to reset (diverged)."""
+        import mujoco
+
+        self.actions = np.asarray(actions, dtype=np.float64).copy()
+        self.d.ctrl[:] = self.spec.default_joint_pos + self.spec.action_scale * self.actions
+        bad = self.d.warning[self._bad].number
+        for _ in range(self.spec.decimation):
+            mujoco.mj_step(self.m, self.d)
+        mujoco.mj_kinematics(self.m, self.d)  # body poses of the new state
+        self._version += 1
+        return self.d.warning[self._bad].number == bad and bool(np.isfinite(self.d.qpos).all())
+
+    def advance(self) -> bool:
+        """Next reference frame (held at the clip's last one); True once that last frame is reached."""
+        self.frame = min(self.frame + 1, self.segment_end - 1)
+        return self.frame >= self.segment_end - 1
+
+
+class Episode(NamedTuple):
+    """One evaluation episode: its tidy row and the errors of each step where they were measured."""
+
+    row: dict
+    """bmimic.training.evaluation.EPISODE_COLUMNS, `error_failed`, the mean of each ERROR_NAMES entry over
+    the alive steps, `diverged` and `wall_s`."""
+    frames: np.ndarray
+    """[steps] the reference frame each step was judged at."""
+    errors: np.ndarray
+    """[steps, len(ERROR_NAMES)] the errors of each step."""
+
+
+def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkpe_rel_mm: float | None = None,
+                on_step: Callable[[Rollout, bool], None] | None = None) -> Episode:
+    """One evaluation episode, accounted exactly as bmimic.training.evaluation.Evaluator.run_episodes does.
+
+    Each step is judged at the frame the reference stood at when it began (terminations; the step's
+    errors, measured after the reference advanced, are summed at that frame). The episode ends at a
+    termination (failed, charged at that frame), when the reference reaches its clip's last frame
+    (`end_frame` is then that frame) or at the horizon; `horizon_truncated` when the clip ends before the
+    horizon. With `max_mpkpe_rel_mm`, an episode that did not terminate but whose mean anchor-relative
+    MPKPE exceeds it fails, charged at its worst step's frame (the first, on ties). A step after which
+    MuJoCo had to reset the state (divergence) terminates the episode at that step's frame, and its
+    errors (of a state that no longer exists) are not counted.
+    """
+    rollout.reset(start_frame)
+    start = rollout.frame
+    truncated = rollout.segment_end - 1 - start < horizon_steps
+    if on_step is not None:
+        on_step(rollout, False)
+    frames: list[int] = []
+    errors: list[np.ndarray] = []
+    terminated = diverged = False
+    end_frame = start
+    t0 = time.perf_counter()
+    for _ in range(horizon_steps):
+        frame = end_frame = rollout.frame
+        action = rollout.policy_action()
+        if not rollout.physics(action):
+            terminated = diverged = True
+            break
+        stop = rollout.terminated()
+        clip_end = rollout.advance()
+        frames.append(frame)
+        errors.append(rollout.errors())
+        if on_step is not None:
+            on_step(rollout, stop)
+        if stop:
+            terminated = True
+            break
+        if clip_end:
+            end_frame = rollout.frame  # tracked up to the clip's last frame
+            break
+    err = np.asarray(errors, dtype=np.float64).reshape(len(frames), len(ERROR_NAMES))
+    means = err.sum(axis=0) / max(len(frames), 1)
+    error_failed = bool(max_mpkpe_rel_mm is not None and not terminated and means[REL_MPKPE] > max_mpkpe_rel_mm)
+    if terminated:
+        failure_frame = end_frame
+    elif error_failed:
+        failure_frame = frames[int(np.argmax(err[:, REL_MPKPE]))]
+    else:
+        failure_frame = -1
+    row = {
+        "start_frame": int(start), "end_frame": int(end_frame), "failed": terminated or error_failed,
+        "failure_frame": int(failure_frame), "terminated": terminated, "error_failed": error_failed,
+        "steps": len(frames), "horizon_truncated": bool(truncated), **dict(zip(ERROR_NAMES, means.tolist())),
+        "diverged": diverged, "wall_s": time.perf_counter() - t0,
+    }
+    return Episode(row, np.asarray(frames, dtype=np.int64), err)
+
+
+# ============================================================================================ workers
+_WORKER: dict = {}
+
+
+def _init_worker(policy_path: Path, mjm, spec: PolicySpec, ref: Motion, horizon_steps: int,
+                 max_mpkpe_rel_mm: float | None) -> None:
+    _WORKER["rollout"] = Rollout(mjm, spec, ref, policy_session(policy_path))
+    _WORKER["args"] = (horizon_steps, max_mpkpe_rel_mm)
+
+
+def _work(start_frame: int) -> Episode:
+    return run_episode(_WORKER["rollout"], int(start_frame), *_WORKER["args"])
+
+
+def run_episodes(policy_path: Path, mjm, spec: PolicySpec, ref: Motion, frames: np.ndarray, horizon_steps: int,
+                 workers: int, max_mpkpe_rel_mm: float | None = None) -> tuple[list[Episode], float]:
+    """(one Episode per start frame, in order; wall seconds) over `workers` processes (spawned: no fork
+    of the caller's threads), each with its own MjData and onnxruntime session."""
+    t0 = time.perf_counter()
+    workers = max(1, min(workers, len(frames)))
+    init = (policy_path, mjm, spec, ref, horizon_steps, max_mpkpe_rel_mm)
+    if workers == 1:
+        _init_worker(*init)
+        episodes = [_work(f) for f in frames]
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+                                 initargs=init) as pool:
+            episodes = list(pool.map(_work, frames, chunksize=max(1, len(frames) // (8 * workers))))
+    return episodes, time.perf_counter() - t0

@@ -1,0 +1,300 @@
+"""Reading a BeyondMimic-compatible ONNX: its metadata as a PolicySpec, its session and its baked-in motion.
+
+Everything sim2sim's control loop needs comes from here (never from bmimic's training code): numpy,
+onnxruntime and torch-free bmimic helpers only.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from bmimic import BmimicError
+
+if TYPE_CHECKING:
+    from bmimic.motion.motion import Motion
+
+REFERENCE_OUTPUTS = ("joint_pos", "joint_vel", "body_pos_w", "body_quat_w", "body_lin_vel_w", "body_ang_vel_w")
+"""Reference outputs of a BeyondMimic-compatible ONNX, after `actions` (the released exporter's order)."""
+
+
+class Sim2SimError(BmimicError):
+    """A policy file, model or run folder that sim2sim cannot use (one-line message)."""
+
+
+def first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+# ============================================================================================ policy file
+@dataclass
+class ObsTerm:
+    """One observation term of the policy input, in order."""
+
+    name: str
+    """Term name (BeyondMimic's observation_names)."""
+    func: str
+    """Observation function (a name of bmimic.envs.mdp.observations, re-implemented here in numpy)."""
+    dim: int
+    """Number of entries the term contributes."""
+
+
+@dataclass
+class PolicySpec:
+    """Everything the metadata of a BeyondMimic-compatible ONNX says about the control loop."""
+
+    path: Path
+    """The ONNX file."""
+    joint_names: list[str]
+    """Actuated joints; every per-joint array and the actions are in this order."""
+    kp: np.ndarray
+    """Position gain per joint, Nm/rad."""
+    kd: np.ndarray
+    """Damping gain per joint, Nm s/rad."""
+    default_joint_pos: np.ndarray
+    """Default pose (the action offset), rad."""
+    action_scale: np.ndarray
+    """rad per unit action."""
+    armature: np.ndarray
+    """Armature training used, kg m^2 (applied with --joint-dynamics metadata)."""
+    effort_limit: np.ndarray
+    """Actuator torque limit, Nm."""
+    body_names: list[str]
+    """Tracked bodies, the order of the reference body arrays."""
+    anchor_body: str
+    """Body anchoring the reference to the robot."""
+    root_body: str
+    """The floating-base body (its reference pose and velocity start an episode)."""
+    end_effector_bodies: list[str]
+    """Bodies checked by the end-effector termination."""
+    obs_terms: list[ObsTerm]
+    """The policy input, term by term."""
+    obs_dim: int
+    """Size of the policy input."""
+    terminations: list[tuple[str, str, dict]]
+    """(name, function, params) of each termination term (time-outs excluded)."""
+    control_dt_s: float
+    """Policy period."""
+    physics_dt_s: float
+    """Physics time step."""
+    decimation: int
+    """Physics steps per control step."""
+    sim_options: dict
+    """integrator, solver, cone (names), iterations, ls_iterations."""
+    fps: float
+    """Reference frames per second (one frame per control step)."""
+    num_frames: int
+    """Reference frames baked into the file."""
+    clip_starts: np.ndarray
+    """First frame of each clip of the motion."""
+    segments: list
+    """Labelled time ranges of the motion (bmimic.motion.Segment)."""
+    bin_layout: str
+    """Kind of the run's bins: "time" (bin_size_s wide) or "released" (BeyondMimic's layout)."""
+    bin_size_s: float
+    """Time-bin width of the run's sampler and evaluation (the mean bin length for the released layout)."""
+    iteration: int | None
+    """Training iteration of the checkpoint, when recorded."""
+
+
+def policy_error(path: Path, what: str) -> Sim2SimError:
+    return Sim2SimError(f"{path}: {what}")
+
+
+def read_metadata(path: Path) -> tuple[dict[str, str], list[str], list[str]]:
+    """(metadata, input names, output names) of an ONNX file."""
+    import onnxruntime as ort
+
+    try:
+        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own exception types for unreadable files
+        raise policy_error(path, f"not a readable ONNX file: {first_line(e)}") from None
+    meta = dict(session.get_modelmeta().custom_metadata_map)
+    return meta, [i.name for i in session.get_inputs()], [o.name for o in session.get_outputs()]
+
+
+def read_policy(path: str | Path) -> PolicySpec:
+    """Parse and check the metadata of a BeyondMimic-compatible ONNX; raises Sim2SimError."""
+    from bmimic.motion.motion import segments_from_json
+
+    path = Path(path)
+    if not path.is_file():
+        raise policy_error(path, "no such file")
+    meta, inputs, outputs = read_metadata(path)
+    if inputs != ["obs", "time_step"] or outputs[1:] != list(REFERENCE_OUTPUTS):
+        raise policy_error(path, f"inputs {inputs}, outputs {outputs}: not a BeyondMimic-compatible policy "
+                                  "(obs, time_step -> actions + reference); use motion_policy_<it>.onnx")
+
+    def get(key: str) -> str:
+        if key not in meta:
+            raise policy_error(path, f"metadata has no {key!r}; write the file again with python -m bmimic.export RUN")
+        return meta[key]
+
+    def names(key: str) -> list[str]:
+        return [x for x in get(key).split(",") if x]
+
+    def numbers(key: str, n: int, positive: bool = False) -> np.ndarray:
+        try:
+            x = np.array([float(v) for v in get(key).split(",")], dtype=np.float64)
+        except ValueError:
+            raise policy_error(path, f"metadata {key!r} is not a comma-separated list of numbers") from None
+        if x.shape != (n,) or not np.isfinite(x).all() or (positive and (x <= 0).any()):
+            need = "positive " if positive else ""
+            raise policy_error(path, f"metadata {key!r} must hold {n} finite {need}numbers, got {get(key)[:80]!r}")
+        return x
+
+    def scalar(key: str, kind=float):
+        try:
+            value = kind(get(key))
+        except ValueError:
+            raise policy_error(path, f"metadata {key!r}={get(key)!r} is not a {kind.__name__}") from None
+        if not (math.isfinite(value) and value > 0):
+            raise policy_error(path, f"metadata {key!r}={get(key)!r} must be > 0")
+        return value
+
+    def json_list(key: str) -> list[dict]:
+        try:
+            items = json.loads(get(key))
+        except json.JSONDecodeError:
+            raise policy_error(path, f"metadata {key!r} is not JSON") from None
+        if not isinstance(items, list) or not all(isinstance(i, dict) for i in items):
+            raise policy_error(path, f"metadata {key!r} must be a JSON list of objects")
+        return items
+
+    def segments() -> list:
+        try:
+            return segments_from_json(get("motion_segments"))
+        except ValueError as e:  # bad JSON or a malformed entry
+            raise policy_error(path, f"metadata 'motion_segments': {first_line(e)}") from None
+
+    joints = names("joint_names")
+    nj = len(joints)
+    body_names = names("body_names")
+    layout = json_list("observation_layout")
+    try:
+        terms = [ObsTerm(str(t["name"]), str(t["func"]), int(t["dim"])) for t in layout]
+        terminations = [(str(t["name"]), str(t["func"]), dict(t.get("params") or {})) for t in json_list("terminations")]
+    except (KeyError, TypeError, ValueError):
+        raise policy_error(path, "metadata observation_layout/terminations entries need name, func (and dim)") from None
+    with_params = [t["name"] for t in layout if t.get("params")]
+    if with_params:
+        raise policy_error(path, f"observation terms {with_params} have parameters; sim2sim's numpy terms take none")
+    if [t.name for t in terms] != names("observation_names"):
+        raise policy_error(path, "metadata observation_layout does not list the observation_names in order")
+    spec = PolicySpec(
+        path=path,
+        joint_names=joints,
+        kp=numbers("joint_stiffness", nj, positive=True),
+        kd=numbers("joint_damping", nj),
+        default_joint_pos=numbers("default_joint_pos", nj),
+        action_scale=numbers("action_scale", nj),
+        armature=numbers("joint_armature", nj),
+        effort_limit=numbers("joint_effort_limit", nj, positive=True),
+        body_names=body_names,
+        anchor_body=get("anchor_body_name"),
+        root_body=get("root_body_name"),
+        end_effector_bodies=names("end_effector_body_names"),
+        obs_terms=terms,
+        obs_dim=scalar("policy_obs_dim", int),
+        terminations=terminations,
+        control_dt_s=scalar("control_dt_s"),
+        physics_dt_s=scalar("physics_dt_s"),
+        decimation=scalar("decimation", int),
+        sim_options={k: get(f"sim_{k}") for k in ("integrator", "solver", "cone")}
+        | {k: scalar(f"sim_{k}", int) for k in ("iterations", "ls_iterations")},
+        fps=scalar("motion_fps"),
+        num_frames=scalar("motion_num_frames", int),
+        clip_starts=numbers("motion_clip_starts", len(names("motion_clip_starts"))).astype(np.int64),
+        segments=segments(),
+        bin_layout=meta.get("bin_layout", "time"),  # files exported before the released layout existed
+        bin_size_s=scalar("bin_size_s"),
+        iteration=int(meta["iteration"]) if meta.get("iteration", "").lstrip("-").isdigit() else None,
+    )
+    _check_spec(spec)
+    return spec
+
+
+def _check_spec(spec: PolicySpec) -> None:
+    """Consistency of the layout, bodies and periods (each failure names the key)."""
+    path, nj, nb = spec.path, len(spec.joint_names), len(spec.body_names)
+    for name in (spec.anchor_body, spec.root_body, *spec.end_effector_bodies):
+        if name not in spec.body_names:
+            raise policy_error(path, f"metadata body {name!r} (anchor/root/end effector) is not in body_names")
+    for term in spec.obs_terms:
+        if term.func not in OBS_DIMS:
+            raise policy_error(path, f"observation term {term.name!r}: function {term.func!r} has no numpy version "
+                                      f"in bmimic.sim2sim (known: {sorted(OBS_DIMS)})")
+        expected = OBS_DIMS[term.func](nj, nb)
+        if term.dim != expected:
+            raise policy_error(path, f"observation term {term.name!r} ({term.func}) has size {term.dim}, "
+                                      f"expected {expected} for {nj} joints and {nb} bodies")
+    if sum(t.dim for t in spec.obs_terms) != spec.obs_dim:
+        raise policy_error(path, f"observation_layout sizes add up to {sum(t.dim for t in spec.obs_terms)}, "
+                                  f"not policy_obs_dim={spec.obs_dim}")
+    for name, func, params in spec.terminations:
+        if func not in TERMINATIONS:
+            raise policy_error(path, f"termination {name!r}: function {func!r} has no numpy version in "
+                                      f"bmimic.sim2sim (known: {sorted(TERMINATIONS)})")
+        if set(params) != {TERMINATIONS[func]} or not all(isinstance(v, (int, float)) for v in params.values()):
+            raise policy_error(path, f"termination {name!r} ({func}): params {params} must be "
+                                      f"{{{TERMINATIONS[func]!r}: number}}")
+    if not math.isclose(spec.physics_dt_s * spec.decimation, spec.control_dt_s, rel_tol=1e-6):
+        raise policy_error(path, f"physics_dt_s x decimation = {spec.physics_dt_s * spec.decimation:g} s, "
+                                  f"but control_dt_s = {spec.control_dt_s:g} s")
+
+
+
+
+# ============================================================================================ observations
+# Size of each observation function for J joints and B tracked bodies.
+OBS_DIMS: dict[str, Callable[[int, int], int]] = {
+    "motion_command": lambda j, b: 2 * j,
+    "motion_anchor_pos_b": lambda j, b: 3,
+    "motion_anchor_ori_b": lambda j, b: 6,
+    "robot_body_pos_b": lambda j, b: 3 * b,
+    "robot_body_ori_b": lambda j, b: 6 * b,
+    "base_lin_vel": lambda j, b: 3,
+    "base_ang_vel": lambda j, b: 3,
+    "joint_pos_rel": lambda j, b: j,
+    "joint_vel_rel": lambda j, b: j,
+    "last_action": lambda j, b: j,
+}
+# Termination functions with a numpy version, and the one threshold parameter each takes.
+TERMINATIONS = {"bad_anchor_pos_z_only": "threshold_m", "bad_anchor_ori": "threshold",
+                "bad_motion_body_pos_z_only": "threshold_m"}
+
+
+def policy_session(path: Path):
+    """A single-threaded onnxruntime session (deterministic; one per worker process)."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    options.inter_op_num_threads = 1
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def read_reference(session, spec: PolicySpec) -> Motion:
+    """The motion baked into the file (tracked bodies only), read by evaluating its reference outputs at
+    every time step 0..T-1, as a deployment controller plays it."""
+    from bmimic.motion.motion import Motion, MotionDataError
+
+    obs = np.zeros((1, spec.obs_dim), dtype=np.float32)
+    out = {name: [] for name in REFERENCE_OUTPUTS}
+    for t in range(spec.num_frames):
+        values = session.run(list(REFERENCE_OUTPUTS), {"obs": obs, "time_step": np.array([[t]], dtype=np.float32)})
+        for name, v in zip(REFERENCE_OUTPUTS, values):
+            out[name].append(v[0])
+    try:
+        return Motion(fps=spec.fps, **{k: np.asarray(v) for k, v in out.items()}, joint_names=spec.joint_names,
+                      body_names=spec.body_names, segments=spec.segments, clip_starts=spec.clip_starts)
+    except MotionDataError as e:
+        raise policy_error(spec.path, f"the baked-in motion does not fit the metadata: {e}") from None
+
+
