@@ -70,7 +70,7 @@ def test_console_is_one_summary_then_the_progress_bar(tmp_path):
         assert noise not in text, noise
     assert text.count("\n  run folder  ") == 1
     for row in ("device      cpu (requested cpu)", "envs        2", "iterations  2 of 8 steps per env",
-                "motion      easy_only: built-in easy_only; 10.0 s at 50 Hz", "bins        10 of 1 s",
+                "motion      easy_only: built-in easy_only; 10.0 s at 50 Hz", "bins        10 time bins of 1 s over 10 s",
                 "sampler     adaptive", f"run folder  {tmp_path / 'quiet'}"):
         assert f"\n  {row}\n" in text, row
     assert text.index("run folder") < text.index("train:") < text.index("done: 2 iterations")  # then the bar
