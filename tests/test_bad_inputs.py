@@ -24,6 +24,7 @@ import io
 import json
 import os
 import random
+import re
 import resource
 import runpy
 import shutil
@@ -364,7 +365,8 @@ def _resumed_to(iters: int) -> Callable[[Workspace, Result], bool]:
 
 def _motion_fps_is(hz: float) -> Callable[[Workspace, Result], bool]:
     def check(ws: Workspace, res: Result) -> bool:
-        return f"frames at {hz:g} Hz" in res.out
+        # the start-up block's motion line: "motion  <name>: <source>; <duration> s at <fps> Hz"
+        return re.search(rf"^\s*motion\s.* s at {hz:g} Hz$", res.out, flags=re.M) is not None
     return check
 
 

@@ -96,7 +96,7 @@ def test_onnx_export_with_metadata(trained):
 def test_resume_continues_iterations_lr_and_sampler(trained, tmp_path):
     before = torch.load(trained / "checkpoints" / "latest.pt", weights_only=True)  # format 2: plain data only
     run_cli([*[a for a in TINY if not a.startswith("max_iterations")], "max_iterations=3", "ppo.save_interval=1",
-             f"hydra.run.dir={trained}", "sampler=adaptive", f"resume={trained}"], cwd=tmp_path)
+             f"hydra.run.dir={trained}", "sampler=adaptive", "eval.robust=true", f"resume={trained}"], cwd=tmp_path)
     after = torch.load(trained / "checkpoints" / "latest.pt", weights_only=True)  # format 2: plain data only
     assert after["iter"] == 3 and (trained / "checkpoints" / "model_3.pt").exists()
     train = pd.read_parquet(trained / "train_metrics.parquet")
