@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 
@@ -18,16 +17,10 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from tests.conftest import TINY, cli_env
+from tests.conftest import TINY, cli_env, free_port
 
 pytestmark = pytest.mark.slow
 WORLD = 2
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> None:
@@ -59,7 +52,7 @@ def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> No
 
 @pytest.mark.parametrize("sampler_name", ["adaptive", "adaptive_hybrid"])  # update_every iteration, step
 def test_ranks_share_one_sampling_distribution(tmp_path, sampler_name):
-    mp.spawn(_rank_steps_env, args=(_free_port(), str(tmp_path), sampler_name), nprocs=WORLD, join=True)
+    mp.spawn(_rank_steps_env, args=(free_port(), str(tmp_path), sampler_name), nprocs=WORLD, join=True)
     r0 = torch.load(tmp_path / "rank0.pt")
     r1 = torch.load(tmp_path / "rank1.pt")
     p0, p1 = r0["probs"]
@@ -81,6 +74,7 @@ def test_torchrun_time_limit_stops_every_rank_at_the_same_iteration(tmp_path):
     assert out.returncode == 0, log[-4000:]
     stops = [line.split("after ")[-1] for line in log.splitlines() if "time limit of 2 s reached" in line]
     assert len(stops) == WORLD and len(set(stops)) == 1, stops  # one line per rank, same iteration
+    assert log.count("eval at iteration") == 1  # rank 0 alone evaluates
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["iterations"] == int(stops[0].split()[0]) < 1000
     # Every rank's samples are counted: env steps = iterations x steps x envs x ranks.
