@@ -196,9 +196,11 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         trainer.learn(cfg.max_iterations, cfg.ppo.init_at_random_ep_len, cfg.time_limit_s)
         final = trainer.progress.last_eval
         # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
-        # their graphs and leave the process group meanwhile.
-        if main_rank and (not trainer.eval_rows
-                          or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration):
+        # their graphs and leave the process group meanwhile, and return NaN.
+        if not main_rank:
+            final = dict.fromkeys(("eval_failure_rate", "eval_success_rate", "eval_mpkpe_mm",
+                                   "eval_bins_mastered_frac"), math.nan)
+        elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
             final = trainer.evaluate()
         robust = robust_evaluation(cfg, device, robot, motion, layout, trainer, run_dir) if (
             cfg.eval.robust and main_rank) else {}
@@ -209,10 +211,6 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         env.close()
         if world > 1:
             torch.distributed.destroy_process_group()
-    if not main_rank:
-        log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
-                 rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate, run_dir)
-        return math.nan
     metrics = {
         "final_eval_failure_rate": final["eval_failure_rate"],
         "final_eval_success_rate": final["eval_success_rate"],
@@ -228,6 +226,10 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         "num_envs": cfg.num_envs,
         "device": device,
     }
+    if not main_rank:
+        log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
+                 rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate, run_dir)
+        return float(metrics["final_eval_failure_rate"])
     atomic_write_json(run_dir / "metrics.json", metrics)
     write_status(run_dir, "done", trainer.progress.iteration)
     log.info("done: %d iterations, %.0f s, eval failure rate %.3f -> %s", metrics["iterations"],

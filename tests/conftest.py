@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import socket
 from pathlib import Path
 
 import pytest
@@ -40,6 +39,8 @@ def cfg():
 
 def free_port() -> int:
     """A TCP port on localhost that nothing listens on now (for a process group's rendezvous)."""
+    import socket
+
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
