@@ -78,7 +78,7 @@ def test_multigpu_json_from_two_ranks_and_one(tmp_path):
     for launcher in (["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"], []):
         proc = subprocess.run([sys.executable, *launcher, *bench], cwd=tmp_path, capture_output=True, text=True,
                               timeout=600, env=cli_env())
-        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     rows = json.loads(path.read_text())
     assert [(r["gpus"], r["num_envs_per_gpu"]) for r in rows] == [(1, 2), (2, 2)]
     assert all(math.isfinite(r["env_steps_per_s"]) and r["env_steps_per_s"] > 0 for r in rows)
