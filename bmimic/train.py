@@ -187,7 +187,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     mjm, robot, motion, layout, sampler, env = build(cfg, device, task)
     for line in describe_sampler(cfg.sampler, layout, sampler):
         log.info("%s", line)
-    evaluator = build_evaluator(cfg, device, robot, motion, layout)
+    evaluator = build_evaluator(cfg, device, robot, motion, layout) if main_rank else None  # rank 0 evaluates
     run_dir = plan.run_dir
     with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
         trainer = Trainer(env, evaluator, sampler, cfg.ppo, run_dir, device, cfg.run_name,
@@ -202,7 +202,12 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     try:
         trainer.learn(cfg.max_iterations, cfg.ppo.init_at_random_ep_len, cfg.time_limit_s)
         final = trainer.progress.last_eval
-        if not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
+        # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
+        # their graphs and leave the process group meanwhile, and return NaN.
+        if not main_rank:
+            final = dict.fromkeys(("eval_failure_rate", "eval_success_rate", "eval_mpkpe_mm",
+                                   "eval_bins_mastered_frac"), math.nan)
+        elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
             final = trainer.evaluate()
         robust = robust_evaluation(cfg, device, robot, motion, layout, trainer, run_dir) if (
             cfg.eval.robust and main_rank) else {}
@@ -230,6 +235,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         **trainer.total_resets,
     }
     if not main_rank:
+        log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
+                 rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate, run_dir)
         return float(metrics["final_eval_failure_rate"])
     atomic_write_json(run_dir / "metrics.json", metrics)
     write_status(run_dir, "done", trainer.progress.iteration)
