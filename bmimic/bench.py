@@ -316,6 +316,9 @@ def multigpu(args: argparse.Namespace, overrides: list[str]) -> int:
             rows.append({"gpus": world, "num_envs_per_gpu": n, "env_steps_per_s": world * r["train_steps_per_s"]})
     finally:
         if world > 1:
+            # Every rank leaves together: a rank tearing down its group while another is still in
+            # its last collective can abort at exit (seen once in ten CPU runs without it).
+            torch.distributed.barrier()
             torch.distributed.destroy_process_group()
     if rank != 0:
         return 0
