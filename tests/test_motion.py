@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from bmimic.motion.config import MotionConfig, load_motion
 from bmimic.motion.convert import CSV_JOINT_NAMES, convert_csv, main, output_times
+from bmimic.motion.kinematics import kinematic_motion
 from bmimic.motion.math import (
     angular_velocity_from_quats,
     axis_angle_to_quat,
@@ -22,7 +23,7 @@ from bmimic.motion.math import (
     quat_to_axis_angle,
     yaw_quat,
 )
-from bmimic.motion.motion import NPZ_ARRAY_KEYS, Motion, MotionDataError, Segment, kinematic_motion
+from bmimic.motion.motion import NPZ_ARRAY_KEYS, Motion, MotionDataError, Segment
 from bmimic.robot import load_mjmodel
 
 MOTIONS = Path(__file__).resolve().parents[2] / "shared" / "motions"
