@@ -397,7 +397,7 @@ def cases() -> list[Case]:
                 "env.rewards.action_rate.weight", "robot.action_scale_factor", "sim.max_abs_qvel"):
         for value in ("nan", "inf"):
             add(Case(f"{key}={value}", "train", _train(f"{key}={value}"), match=key))
-    add(Case("-inf in a list", "train", _train("env.randomization.friction_range=[0.3,-inf]"),
+    add(Case("-inf in a list", "train", _train("env.events.foot_friction.params.friction_range=[0.3,-inf]"),
              match="friction_range"))
     add(Case("nan in term params", "train", _train("env.terminations.anchor_pos.params.threshold_m=nan"),
              match="threshold_m"))
@@ -430,9 +430,12 @@ def cases() -> list[Case]:
         ("sim.nconmax=0", "nconmax"), ("sim.njmax=-1", "njmax"), ("sim.max_abs_qvel=0", "max_abs_qvel"),
         ("sim.max_root_distance_m=-1", "max_root_distance_m"), ("env.max_abs_step_reward=0", "max_abs_step_reward"),
         ("env.episode_length_s=0", "episode_length_s"), ("env.episode_length_s=0.001", "episode_length_s"),
-        ("env.randomization.friction_range=[1.6,0.3]", "friction_range"),
-        ("env.randomization.friction_range=[0.3]", "friction_range"),
-        ("env.randomization.push_interval_s=[3,1]", "push_interval_s"),
+        ("env.events.foot_friction.params.friction_range=[1.6,0.3]", "foot_friction.params.friction_range"),
+        ("env.events.foot_friction.params.friction_range=[0.3]", "friction_range"),
+        ("env.events.push.interval_range_s=[3,1]", "push.interval_range_s"),
+        ("env.events.push.mode=startup", "push.mode"), ("env.events.torso_com.params.offset_m=[0.1]", "offset_m"),
+        ("+env.events.torso_com.params.scale=2", "torso_com.params"),
+        ("env.events.push.func=no_such_event", "push.func"),
         ("env.reset.root_pos_range_m=[0.05]", "root_pos_range_m"),
         ("env.reset.joint_pos_range_rad=-0.1", "joint_pos_range_rad"),
         ("env.rewards.action_rate.func=nope", "action_rate.func"),

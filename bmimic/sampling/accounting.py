@@ -62,7 +62,7 @@ class EpisodeAccounting:
         failure_threshold: float = 0.8,
         update_every: str = "iteration",
         device: Any = "cpu",
-        world_size: int = 1,
+        world_size: int | None = None,
     ) -> None:
         check_attribution(attribution)
         check_failure(failure, failure_threshold)
@@ -74,6 +74,9 @@ class EpisodeAccounting:
         self.failure = failure
         self.failure_threshold = float(failure_threshold)
         self.update_every = update_every
+        if world_size is None:  # under torchrun: every rank's sampler sees every rank's episodes
+            dist = torch.distributed
+            world_size = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
         self.world_size = int(world_size)
         dev = torch.device(device)
         s = layout.num_bins
@@ -84,7 +87,7 @@ class EpisodeAccounting:
 
     @classmethod
     def from_config(cls, cfg: Any, sampler: Any, layout: Layout, num_envs: int, max_episode_length: int,
-                    device: Any = "cpu", world_size: int = 1) -> "EpisodeAccounting":
+                    device: Any = "cpu", world_size: int | None = None) -> "EpisodeAccounting":
         return cls(sampler, layout, num_envs, max_episode_length, attribution=cfg.attribution, failure=cfg.failure,
                    failure_threshold=cfg.failure_threshold, update_every=cfg.update_every, device=device,
                    world_size=world_size)

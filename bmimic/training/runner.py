@@ -187,7 +187,7 @@ class Trainer:
     def meta(self) -> dict:
         """What a checkpoint must match to be loaded into this trainer (plain values)."""
         obs = self.env.get_observations()
-        motion = self.env.motion
+        motion = self.env.reference.motion
         digest = hashlib.sha256(motion.joint_pos.tobytes())
         digest.update(motion.body_pos_w.tobytes())
         return {
