@@ -88,7 +88,7 @@ def build(cfg: DictConfig, device: str, task: tuple | None = None):
     mjm, robot, motion, layout = task if task is not None else build_task(cfg, device)
     check_num_envs_fit(cfg, mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
     sampler = make_sampler(cfg.sampler, layout.num_bins, device)
-    accounting = EpisodeAccounting.from_config(cfg.sampler, sampler, layout, cfg.num_envs,
+    accounting = EpisodeAccounting.from_config(cfg.sampler.accounting, sampler, layout, cfg.num_envs,
                                                episode_length_steps(cfg.env, cfg.sim), device=device)
     env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, ReferenceMotion.for_robot(motion, robot, device), cfg.num_envs,
                       device, accounting=accounting)

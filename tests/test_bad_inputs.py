@@ -413,6 +413,14 @@ def cases() -> list[Case]:
     add(Case("sampler.name=beyondmimic under adaptive", "train", _train("sampler.name=beyondmimic"),
              match="sampler.name"))
     add(Case("sampler.name=foo", "train", _train("sampler.name=foo"), match="sampler.name"))
+    # ---------------------------------------------------------------- each sampler's own keys
+    add(Case("sampler=beyondmimic sampler.alpha=2", "train", _train("sampler=beyondmimic", "sampler.alpha=2"),
+             match="sampler.alpha"))
+    add(Case("sampler=beyondmimic sampler.uniform_ratio=0", "train",
+             _train("sampler=beyondmimic", "sampler.uniform_ratio=0"), match="uniform_ratio"))
+    add(Case("sampler=uniform sampler.gamma=0.5", "train", _train("sampler=uniform", "sampler.gamma=0.5"),
+             match="gamma"))
+    add(Case("+sampler.alpha under adaptive", "train", _train("+sampler.alpha=0.5"), match="alpha"))
     # ---------------------------------------------------------------- ranges and meanings
     for arg, key in (
         ("num_envs=0", "num_envs"), ("num_envs=-3", "num_envs"), ("max_iterations=-1", "max_iterations"),
@@ -446,9 +454,9 @@ def cases() -> list[Case]:
         ("sweep_name=..", "sweep_name"),
         ("sampler.bin_size_seconds=0", "bin_size_seconds"), ("sampler.bin_size_seconds=100", "bin_size_seconds"),
         ("sampler.K=0", "sampler.K"), ("sampler.gamma=0", "sampler.gamma"), ("sampler.lambda_uniform=2", "lambda"),
-        ("sampler.alpha_smooth=0", "alpha_smooth"), ("sampler.attribution=middle", "attribution"),
-        ("sampler.failure=sometimes", "sampler.failure"), ("sampler.failure_threshold=0", "failure_threshold"),
-        ("sampler.alpha=2", "sampler.alpha"), ("sampler.uniform_ratio=0", "uniform_ratio"),
+        ("sampler.alpha_smooth=0", "alpha_smooth"), ("sampler.accounting.attribution=middle", "attribution"),
+        ("sampler.accounting.failure=sometimes", "sampler.accounting.failure"),
+        ("sampler.accounting.failure_threshold=0", "failure_threshold"), ("sampler.alpha=0.01", "sampler.alpha"),
         ("eval.every_iters=-1", "every_iters"), ("eval.horizon_s=0", "horizon_s"),
         ("eval.episodes_per_bin=0", "episodes_per_bin"), ("eval.max_envs=0", "max_envs"),
         ("robot.anchor_body=nose", "anchor_body"), ("robot.mjcf_path=/nonexistent/g1.xml", "g1.xml"),

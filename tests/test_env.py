@@ -141,7 +141,7 @@ def _fresh_iteration(env):
 
 def test_failures_reach_the_sampler(built):
     cfg, robot, motion, layout, sampler, env, _ = built
-    assert cfg.sampler.attribution == "start" and cfg.sampler.update_every == "iteration"  # the design
+    assert cfg.sampler.accounting.attribution == "start" and cfg.sampler.accounting.update_every == "iteration"
     _fresh_iteration(env)
     fps = int(motion.fps)
     _on_reference(env, torch.full((4,), 5 * fps + 5))

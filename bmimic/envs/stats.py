@@ -40,18 +40,21 @@ class IterationStats:
         self.failures += terminated.float().sum()
         self.length_sum += (length.float() * d).sum()
 
-    def pop(self) -> dict[str, float]:
-        """The iteration's values (one host transfer each), then cleared; `steps` is at least 1."""
+    def pop(self) -> tuple[dict[str, float], dict[str, float], float]:
+        """(counts, `Metrics/*` mean errors, steps >= 1) of the iteration (one host transfer each);
+        then cleared."""
         episodes = float(self.episodes)
-        errs = (self.errors / max(float(self.steps), 1.0)).cpu().numpy()
-        out = {
+        steps = max(float(self.steps), 1.0)
+        errs = (self.errors / steps).cpu().numpy()
+        counts = {
             "nonfinite_resets": float(self.nonfinite),
             "out_of_bounds_resets": float(self.out_of_bounds),
             "overflow_worlds": float(self.overflow),
             "episodes": episodes,
             "failures": float(self.failures),
             "mean_episode_length": float(self.length_sum) / episodes if episodes else math.nan,
-            "steps": max(float(self.steps), 1.0),
+        }
+        metrics = {
             "Metrics/error_anchor_pos_m": float(errs[0]),
             "Metrics/error_body_pos_m": float(errs[1]),
             "Metrics/error_joint_pos_rad": float(errs[2]),
@@ -59,7 +62,7 @@ class IterationStats:
         for buf in (self.episodes, self.failures, self.length_sum, self.steps, self.nonfinite, self.out_of_bounds,
                     self.overflow, self.errors):
             buf.zero_()
-        return out
+        return counts, metrics, steps
 
 
 __all__ = ["IterationStats"]

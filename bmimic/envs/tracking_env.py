@@ -229,11 +229,10 @@ class TrackingEnv(VecEnv):
         else:
             bin_episodes = bin_failures = None
         # Per bin, as the sampler was fed them (after end_rollout for update_every=iteration).
-        out = {"bin_episodes": bin_episodes, "bin_failures": bin_failures, **self.stats.pop()}
-        steps = out.pop("steps")
-        out.update(self.rewards.pop_log(out["episodes"]))
-        out.update(self.terminations.pop_log(steps, self.num_envs))
-        return {**out, **{k: out.pop(k) for k in [k for k in out if k.startswith("Metrics/")]}}  # last, as logged
+        counts, metrics, steps = self.stats.pop()
+        return {"bin_episodes": bin_episodes, "bin_failures": bin_failures, **counts,
+                **self.rewards.pop_log(counts["episodes"]), **self.terminations.pop_log(steps, self.num_envs),
+                **metrics}
 
     def close(self) -> None:
         """Release the captured graphs. Under torchrun this must precede destroy_process_group."""

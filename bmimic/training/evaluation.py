@@ -38,8 +38,8 @@ import torch
 
 from analysis.metrics import counts_as_mastered
 from bmimic.envs.quat import quat_error_magnitude
+from bmimic.sampling.base import bin_counts
 from bmimic.sampling.bins import visits_histogram
-from bmimic.sampling.samplers import bin_counts
 
 ERROR_COLUMNS = (
     "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
