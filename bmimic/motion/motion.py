@@ -26,7 +26,7 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
-from bmimic.motion.math import quat_slerp
+from bmimic.motion.math import output_times, quat_slerp
 from bmimic.motion.model import model_body_names, model_joint_names
 from bmimic.motion.npz import NPZ_ARRAY_KEYS, check_physical, motion_fields, read_npz
 from bmimic.motion.segments import MotionDataError, Segment, segments_from_json, segments_to_json
@@ -213,8 +213,6 @@ class Motion:
             raise MotionDataError(
                 f"a motion of {self.clip_starts.size} clips at {self.fps:g} fps cannot be resampled to {fps:g} Hz "
                 "as one piece; convert its clips at that rate")
-        from bmimic.motion.convert import output_times
-
         times = output_times(self.num_frames, self.fps, fps)
         if len(times) < 2:
             raise MotionDataError(f"{self.num_frames} frames at {self.fps:g} fps give fewer than 2 at {fps:g} Hz")
