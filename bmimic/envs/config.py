@@ -93,7 +93,7 @@ class EnvConfig:
     """A world whose step reward is larger than this in magnitude (or not finite) is reset and counted,
     its reward zeroed: one broken world must never reach the value loss."""
     observation_noise: bool = True
-    """Corrupt the policy group with each term's uniform noise during training."""
+    """Corrupt the policy group with each term's uniform noise during training (and robust evaluation)."""
     policy_observations: Dict[str, ObsTermConfig] = field(default_factory=dict)
     """Terms of the `policy` group, concatenated in this order (BeyondMimic: 160 dims)."""
     critic_observations: Dict[str, ObsTermConfig] = field(default_factory=dict)
@@ -106,7 +106,7 @@ class EnvConfig:
     """Reference-state initialisation noise."""
     events_enabled: bool = True
     """Run the event terms in training (and robust evaluation); false: no domain randomisation and
-    no pushes. Evaluation, play and export never run them."""
+    no pushes. The plain evaluation, play and export never run them."""
     events: Dict[str, EventTermConfig] = field(default_factory=dict)
     """Domain randomisation and pushes as event terms (BeyondMimic ranges, notes section 3.6), run
     in this order within each mode."""
