@@ -175,21 +175,23 @@ def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
     """Milliseconds per environment step spent in each part, each timed alone."""
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
+    from bmimic.envs.state import compute_state
+
     acc = env.accounting
     length = env.episode_length_buf
     obs = env.get_observations()
     parts = {
         "physics": env.sim.step,
         "kinematics_after_writes": env.sim.forward_kinematics,
-        "state": env._compute_state,
-        "observations": env._compute_observations,
-        "rewards": lambda: [fn(env, **p) for fn, p in zip(env.reward_terms.funcs, env.reward_terms.params)],
-        "terminations": lambda: [fn(env, **p) for fn, p in zip(env.termination_terms.funcs, env.termination_terms.params)],
+        "state": lambda: compute_state(env.sim, env.reference, env.bodies, env.time_steps),
+        "observations": lambda: env.observations.compute(env),
+        "rewards": lambda: env.rewards.compute(env),
+        "terminations": lambda: env.terminations.compute(env),
         # Counting every env as finished, plus one sampler update (each step for update_every=step,
         # once per iteration for update_every=iteration).
-        "sampler_update": lambda: env.sampler.update_counts(
+        "sampler_update": lambda: acc.sampler.update_counts(
             *acc.count(ones, zeros, env.time_steps, env.segment_start, zeros, zeros, length)),
-        "resets": lambda: env._resample(zeros, zeros),
+        "resets": lambda: env.start_segments(zeros, zeros),
         "policy": lambda: alg.act(obs),
     }
     out = {}

@@ -80,20 +80,25 @@ def build_task(cfg: DictConfig, device: str):
 def build(cfg: DictConfig, device: str, task: tuple | None = None):
     """Robot, motion, bins, sampler, environments: everything a run or a tool needs (`task`: what
     `build_task` returned, when the caller already has it)."""
-    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.envs.tracking_env import TrackingEnv, episode_length_steps
+    from bmimic.motion.reference import ReferenceMotion
+    from bmimic.sampling.accounting import EpisodeAccounting
     from bmimic.sampling.config import make_sampler
 
     mjm, robot, motion, layout = task if task is not None else build_task(cfg, device)
     check_num_envs_fit(cfg, mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
     sampler = make_sampler(cfg.sampler, layout.num_bins, device)
-    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, cfg.num_envs, device,
-                      sampler=sampler, sampler_cfg=cfg.sampler, mode="train")
+    accounting = EpisodeAccounting.from_config(cfg.sampler.accounting, sampler, layout, cfg.num_envs,
+                                               episode_length_steps(cfg.env, cfg.sim), device=device)
+    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, ReferenceMotion.for_robot(motion, robot, device), cfg.num_envs,
+                      device, accounting=accounting)
     return mjm, robot, motion, layout, sampler, env
 
 
 def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout, robust: bool = False):
     """The sampler-independent evaluator (robust: with domain randomisation, observation noise, pushes)."""
     from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.motion.reference import ReferenceMotion
     from bmimic.robot import load_mjmodel
     from bmimic.training.evaluation import Evaluator
 
@@ -101,7 +106,8 @@ def build_evaluator(cfg: DictConfig, device: str, robot, motion, layout, robust:
     n = max(1, min(total, cfg.eval.max_envs))
     mjm = load_mjmodel(cfg=cfg.robot)
     check_num_envs_fit(cfg, mjm, device, n, 0)
-    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, motion, layout, n, device, mode="eval", robust=robust)
+    env = TrackingEnv(cfg.env, cfg.sim, mjm, robot, ReferenceMotion.for_robot(motion, robot, device), n, device,
+                      mode="eval", robust=robust, layout=layout)
     return Evaluator(env, layout, motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s,
                      max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
 

@@ -43,7 +43,7 @@ def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> No
         resolve_runtime(cfg, "cpu")
         seed_everything(cfg.seed)  # different worlds per rank, as train.py does
         *_, sampler, env = build(cfg, "cpu")
-        assert env.world_size == WORLD
+        assert env.accounting.world_size == WORLD
         for _ in range(40):  # random actions: episodes end, and differently on each rank
             env.step(torch.randn(env.num_envs, env.num_actions))
         env.end_rollout()

@@ -43,6 +43,7 @@ def task(tmp_path_factory):
 
     from bmimic.config import resolve_runtime
     from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.motion.reference import ReferenceMotion
     from bmimic.robot import load_mjmodel
     from bmimic.train import build_task
     from bmimic.training.runner import rsl_rl_train_cfg
@@ -50,7 +51,8 @@ def task(tmp_path_factory):
     cfg = compose(["device=cpu", "motion=easy_only"])
     resolve_runtime(cfg, "cpu")
     _, robot, motion, layout = build_task(cfg, "cpu")
-    env = TrackingEnv(cfg.env, cfg.sim, load_mjmodel(cfg=cfg.robot), robot, motion, layout, 2, "cpu", mode="eval")
+    env = TrackingEnv(cfg.env, cfg.sim, load_mjmodel(cfg=cfg.robot), robot, ReferenceMotion.for_robot(motion, robot),
+                      2, "cpu", mode="eval", layout=layout)
     train_cfg = rsl_rl_train_cfg(cfg.ppo, "test")
     actor_class, kwargs = resolve_class(train_cfg["actor"])
     torch.manual_seed(0)
@@ -148,8 +150,9 @@ def test_motion_onnx_holds_the_reference_at_the_clamped_time_step(task):
     session = sim2sim.policy_session(paths[1])
     assert [o.name for o in session.get_outputs()] == ["actions", *MOTION_OUTPUTS]
     assert list(MOTION_OUTPUTS) == list(sim2sim.REFERENCE_OUTPUTS)
-    arrays = (env.m_joint_pos, env.m_joint_vel, env.m_body_pos, env.m_body_quat, env.m_body_lin_vel, env.m_body_ang_vel)
-    last = env.motion_num_frames - 1
+    ref = env.reference
+    arrays = (ref.joint_pos, ref.joint_vel, ref.body_pos, ref.body_quat, ref.body_lin_vel, ref.body_ang_vel)
+    last = ref.num_frames - 1
     for t, expected_frame in ((0, 0), (123, 123), (last, last), (last + 40, last), (-5, 0)):
         out = session.run(None, {"obs": np.zeros((1, 160), np.float32), "time_step": np.array([[t]], np.float32)})
         for value, array in zip(out[1:], arrays):
