@@ -59,6 +59,22 @@ def wait_for(proc, ready, what: str, timeout_s: float = 600) -> None:
     pytest.fail(f"never reached: {what}")
 
 
+@pytest.fixture(scope="session")
+def gl_backend() -> str:
+    """A GL backend that can render offscreen here (checked in a subprocess), else skip."""
+    from bmimic import render
+
+    chosen = os.environ.get("MUJOCO_GL")
+    candidates = [chosen] if chosen else list(render.GL_BACKENDS)
+    reasons = []
+    for backend in candidates:
+        why = render.probe_gl_backend(backend)
+        if why is None:
+            return backend
+        reasons.append(f"{backend}: {why}")
+    pytest.skip("no offscreen OpenGL backend (" + "; ".join(reasons) + ")")
+
+
 @pytest.fixture(autouse=True)
 def _no_hydra_state_between_tests():
     """Tests that run a Hydra app in-process leave Hydra's singletons set (HydraConfig keeps the last

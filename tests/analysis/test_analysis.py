@@ -1,5 +1,5 @@
 """Tests of analysis/: statistics known answers and invariants, metric definitions, the planted sweep
-report (tests/synthetic_runs.py), planted answers for the statistics (false positives, a 2x speedup,
+report (tests/analysis/synthetic_runs.py), planted answers for the statistics (false positives, a 2x speedup,
 every censoring combination), partial sweeps, single runs and the sweep index."""
 
 from __future__ import annotations
@@ -35,11 +35,15 @@ from analysis.stats import (
     seed_interval,
 )
 from analysis.tables import SPEEDUP_COLUMNS, SUMMARY_COLUMNS, ReportOptions, comparisons
-
-try:  # tests/ as a package (rootdir on sys.path) or as a plain folder (pytest puts tests/ on sys.path)
-    from tests.synthetic_runs import FAST, PLANTED, SLOW, UNIFORM, make_speedup_sweep, make_sweep, write_run
-except ImportError:
-    from synthetic_runs import FAST, PLANTED, SLOW, UNIFORM, make_speedup_sweep, make_sweep, write_run
+from tests.analysis.synthetic_runs import (
+    FAST,
+    PLANTED,
+    SLOW,
+    UNIFORM,
+    make_speedup_sweep,
+    make_sweep,
+    write_run,
+)
 
 RESAMPLES = 200
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)

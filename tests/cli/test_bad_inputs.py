@@ -8,8 +8,8 @@ issue counts: a traceback, a silent wrong result (accepted what must be refused,
 wrong result), data lost (a protected run folder changed), code executed (a crafted checkpoint,
 npz or config created its sentinel file).
 
-    pytest tests/test_bad_inputs.py -m "not slow"     # the refusals (~2 s each, in-process)
-    python -m tests.test_bad_inputs                    # the survey: every case, counts per class
+    pytest tests/cli/test_bad_inputs.py -m "not slow"     # the refusals (~2 s each, in-process)
+    python -m tests.cli.test_bad_inputs                # the survey: every case, counts per class
 
 Cases that train are `slow`. All share one tiny trained run (`fixture`), made once.
 """

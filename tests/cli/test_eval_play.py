@@ -25,8 +25,8 @@ from bmimic import play as bm_play
 from bmimic import render
 from bmimic.motion.motion import Segment
 from bmimic.training.evaluation import ERROR_COLUMNS
+from tests.conftest import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 NUM_BINS = 7  # motion.duration_s=7 with 1 s bins
 EVAL_FLAGS = ["--episodes-per-bin", "2", "--horizon-s", "0.2", "--num-envs", "4"]  # 14 episodes in 4 waves
 
@@ -62,20 +62,6 @@ def run_eval(tiny_run) -> dict:
         "segments": pd.read_csv(out / "eval_segments.csv", keep_default_na=False),
         "summary": json.loads((out / "eval_summary.json").read_text()),
     }
-
-
-@pytest.fixture(scope="session")
-def gl_backend() -> str:
-    """A GL backend that can render offscreen here (checked in a subprocess), else skip."""
-    chosen = os.environ.get("MUJOCO_GL")
-    candidates = [chosen] if chosen else list(render.GL_BACKENDS)
-    reasons = []
-    for backend in candidates:
-        why = render.probe_gl_backend(backend)
-        if why is None:
-            return backend
-        reasons.append(f"{backend}: {why}")
-    pytest.skip("no offscreen OpenGL backend (" + "; ".join(reasons) + ")")
 
 
 # --------------------------------------------------------------------------------------------- eval tables

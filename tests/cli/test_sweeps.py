@@ -35,9 +35,8 @@ from bmimic.launch import (
     slot_order,
     sweep_overrides,
 )
-from tests.conftest import wait_for
+from tests.conftest import REPO, wait_for
 
-REPO = Path(__file__).resolve().parents[1]
 SWEEPS = REPO / "sweeps"
 
 # study -> (number of jobs, the keys its jobs vary besides the seed)
@@ -246,7 +245,7 @@ def test_error_history_survives_retries(tmp_path):
 
 
 def test_index_callback_writes_the_index(tmp_path, capsys):
-    from synthetic_runs import make_sweep
+    from tests.analysis.synthetic_runs import make_sweep
 
     sweep = make_sweep(tmp_path)
     SweepIndexCallback().on_multirun_end(OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}}))

@@ -24,8 +24,9 @@ from bmimic.motion.math import (
 )
 from bmimic.motion.motion import NPZ_ARRAY_KEYS, Motion, MotionDataError, Segment, kinematic_motion
 from bmimic.robot import load_mjmodel
+from tests.conftest import SHARED_MOTIONS
 
-MOTIONS = Path(__file__).resolve().parents[2] / "shared" / "motions"
+MOTIONS = SHARED_MOTIONS
 DANCE = MOTIONS / "dance1_subject1.csv"
 NEUTRAL = {"hip_pitch": -0.312, "knee": 0.669, "ankle_pitch": -0.363}
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -23,9 +22,9 @@ from bmimic.robot import (
     load_mjmodel,
     resolve_robot,
 )
+from tests.conftest import REPO
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(__file__).resolve().parents[2] / "shared"
+SHARED = REPO.parent / "shared"
 MENAGERIE_G1 = SHARED / "reference" / "unitree_g1_menagerie" / "g1.xml"
 
 # notes/beyondmimic.md section 3.7: one joint per motor class -> (Kp, Kd, effort, action scale).

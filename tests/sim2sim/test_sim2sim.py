@@ -24,7 +24,6 @@ from tensordict import TensorDict
 from bmimic import sim2sim
 from bmimic.training.export import MOTION_OUTPUTS, export_checkpoint_onnx
 from tests.conftest import TINY, cli_env, compose
-from tests.test_eval_play import gl_backend  # noqa: F401  (a fixture: an offscreen GL backend, else skip)
 
 OBS_TOL = 1e-5
 """Largest allowed difference of an observation entry (the issue's 1e-5)."""
