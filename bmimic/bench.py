@@ -9,8 +9,9 @@ For each env count, in one process on one device:
   (b) collection: environment steps with policy inference, as in a PPO rollout;
   (c) full PPO iterations: collection plus the update;
 plus device memory, the ratios b/a and c/a, and a breakdown of one environment step (physics,
-state, observations, rewards, terminations, sampler, resets, policy) and the PPO update per
-iteration, each timed in isolation with device synchronisation. Prints a table and writes JSON (--json).
+kinematics, observation, reward and termination terms, sampler update, resets, policy) and the PPO
+update per iteration, each timed in isolation with device synchronisation through the parts' public
+interfaces. Prints a table and writes JSON (--json).
 """
 
 from __future__ import annotations
@@ -56,9 +57,8 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     import bmimic.config  # noqa: F401
     from bmimic import CONF_DIR
     from bmimic.config import resolve_runtime
-    from bmimic.runs import seed_everything
-    from bmimic.train import build
-    from bmimic.training.runner import Trainer
+    from bmimic.runtime import seed_everything
+    from bmimic.task import build_trainer, build_training
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("train", overrides=[f"num_envs={num_envs}", f"device={device}", *overrides])
@@ -66,10 +66,11 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     seed_everything(cfg.seed)
     mem0 = _mem_used(device)
     t0 = time.perf_counter()
-    mjm, robot, motion, layout, sampler, env = build(cfg, device)
+    training = build_training(cfg, device)
+    env, layout, motion = training.env, training.task.layout, training.task.motion
     setup_s = time.perf_counter() - t0
     out: dict = {"num_envs": num_envs, "num_bins": layout.num_bins, "motion_s": motion.duration_s,
-                 "setup_s": setup_s, "cuda_graph": env.sim._step_graph is not None,
+                 "setup_s": setup_s, "cuda_graph": bool(env.sim.use_graph),
                  "compile_env_step": bool(cfg.sim.compile_env_step)}
     n = num_envs
     sim_steps = max(iters * 10, 20)
@@ -77,9 +78,8 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     if "sim" in only:
         out["physics_steps_per_s"] = n / _timeit(env.sim.step, sim_steps, device)
 
-    trainer = Trainer(env, None, sampler, cfg.ppo, tempfile.mkdtemp(prefix="bmimic-bench-"), device, "bench",
-                      eval_every_iters=0, logger="none", progress_bar=False, export_onnx=False)
-    alg = trainer.alg
+    # The trainer builds the algorithm as training does; it never writes (no learn, no checkpoint).
+    alg = build_trainer(training, None, tempfile.mkdtemp(prefix="bmimic-bench-")).alg
     obs = env.get_observations()
     state = {"obs": obs}
 
@@ -144,24 +144,30 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 
 
 def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
-    """Milliseconds per environment step spent in each part, each timed alone."""
+    """Milliseconds per environment step spent in each part, each timed alone through its public
+    interface (the term functions of the env's term tables, the sampler, the accounting). `resets`
+    puts every world back on the reference (`reset_to_frames`: reference state, kinematics,
+    observations), the most a step's masked resets can cost."""
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
     acc = env.accounting
     length = env.episode_length_buf
     obs = env.get_observations()
+
+    def terms(table):
+        return lambda: [fn(env, **p) for fn, p in zip(table.funcs, table.params)]
+
     parts = {
         "physics": env.sim.step,
         "kinematics_after_writes": env.sim.forward_kinematics,
-        "state": env._compute_state,
-        "observations": env._compute_observations,
-        "rewards": lambda: [fn(env, **p) for fn, p in zip(env.reward_terms.funcs, env.reward_terms.params)],
-        "terminations": lambda: [fn(env, **p) for fn, p in zip(env.termination_terms.funcs, env.termination_terms.params)],
+        "observations": lambda: (terms(env.policy_terms)(), terms(env.critic_terms)()),
+        "rewards": terms(env.reward_terms),
+        "terminations": terms(env.termination_terms),
         # Counting every env as finished, plus one sampler update (each step for update_every=step,
         # once per iteration for update_every=iteration).
         "sampler_update": lambda: env.sampler.update_counts(
             *acc.count(ones, zeros, env.time_steps, env.segment_start, zeros, zeros, length)),
-        "resets": lambda: env._resample(zeros, zeros),
+        "resets": lambda: env.reset_to_frames(env.time_steps.clone()),
         "policy": lambda: alg.act(obs),
     }
     out = {}
@@ -199,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default="sim,collect,train,breakdown", help="subset of sim,collect,train,breakdown")
     p.add_argument("--json", default=None, help="write the results here")
     args = p.parse_args(argv)
-    from bmimic.runs import resolve_device
+    from bmimic.runtime import resolve_device
 
     device = resolve_device(args.device)
     only = set(args.only.split(","))
@@ -210,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(r), flush=True)
     print(format_table(results["runs"]))
     if args.json:
-        from bmimic.runs import atomic_write_json
+        from bmimic.run_folder import atomic_write_json
 
         atomic_write_json(args.json, results)
     return 0

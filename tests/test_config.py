@@ -8,7 +8,8 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
-from bmimic.config import ConfigError, resolve_runtime, validate
+from bmimic.config import ConfigError, resolve_runtime
+from bmimic.config_checks import validate
 from tests.conftest import CONF, compose
 
 GROUPS = ["robot", "motion", "sampler", "ppo", "sim", "env", "eval"]

@@ -9,16 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from bmimic.runs import (
+from bmimic.run_folder import (
     atomic_write_json,
     atomic_write_text,
-    provenance,
     read_status,
-    resolve_device,
-    seed_everything,
     write_provenance,
     write_status,
 )
+from bmimic.runtime import provenance, resolve_device, seed_everything
 
 
 def test_atomic_write_replaces_whole_file(tmp_path):
@@ -38,7 +36,7 @@ def test_atomic_write_failure_keeps_old_content(tmp_path):
             raise RuntimeError("boom")
 
     with pytest.raises(RuntimeError):
-        from bmimic.runs import atomic_write
+        from bmimic.run_folder import atomic_write
 
         atomic_write(path, lambda tmp: (open(tmp, "w").write("partial"), str(Boom())))
     assert path.read_text() == "old"
@@ -55,7 +53,8 @@ def test_status_roundtrip(tmp_path):
 
 
 def test_provenance_fields(tmp_path):
-    info = write_provenance(tmp_path, "cpu")
+    info = provenance("cpu")
+    write_provenance(tmp_path, info)
     on_disk = json.loads((tmp_path / "provenance.json").read_text())
     assert on_disk["git_commit"] == info["git_commit"]
     for key in ("git_commit", "git_dirty", "python", "versions", "command", "torch_precision", "device"):

@@ -137,7 +137,7 @@ class TrackingEnv(VecEnv):
         dist = torch.distributed
         self.world_size = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
         self.layout = layout
-        # Random draws use torch's default generator (seeded by bmimic.runs.seed_everything), which
+        # Random draws use torch's default generator (seeded by bmimic.runtime.seed_everything), which
         # CUDA-graph replay advances (a private generator would have to be registered with every graph).
         self._half_widths: dict[tuple, torch.Tensor] = {}
         train = mode == "train"

@@ -20,7 +20,7 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
-from bmimic.motion.math import quat_slerp
+from bmimic.motion.math import output_times, quat_slerp
 from bmimic.motion.motion import (
     Motion,
     MotionDataError,
@@ -141,14 +141,6 @@ def check_joint_limits(path: Path, data: np.ndarray, rows: np.ndarray, mjmodel: 
             f"{path}: row {rows[r]}, column {8 + j}: {CSV_JOINT_NAMES[j]} = {value:.4f} rad is outside its "
             f"range [{low:.4f}, {high:.4f}] by more than {JOINT_LIMIT_TOLERANCE_RAD} rad"
         )
-
-
-def output_times(num_in: int, fps_in: float, fps_out: float) -> np.ndarray:
-    """t = 0, 1/fps_out, ... strictly below the input duration (N-1)/fps_in, as BeyondMimic's script."""
-    duration = (num_in - 1) / fps_in
-    # Count k with k / fps_out < duration; the epsilon keeps an exact multiple from sneaking in.
-    num_out = int(np.ceil(duration * fps_out - 1e-9))
-    return np.arange(max(num_out, 0)) / fps_out
 
 
 def resample(data: np.ndarray, fps_in: float, fps_out: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,4 +1,5 @@
-"""Vectorised quaternion helpers in numpy (w, x, y, z order, Hamilton product).
+"""Vectorised quaternion helpers in numpy (w, x, y, z order, Hamilton product), and the output times of
+resampling a motion (`output_times`, shared by the CSV converter and `Motion.resample`).
 
 Every function broadcasts over leading dimensions; the last axis is the quaternion (4) or vector (3).
 """
@@ -121,3 +122,11 @@ def yaw_quat(yaw: np.ndarray) -> np.ndarray:
     yaw = np.asarray(yaw, dtype=float)
     zeros = np.zeros_like(yaw)
     return np.stack([np.cos(0.5 * yaw), zeros, zeros, np.sin(0.5 * yaw)], axis=-1)
+
+
+def output_times(num_in: int, fps_in: float, fps_out: float) -> np.ndarray:
+    """t = 0, 1/fps_out, ... strictly below the input duration (N-1)/fps_in, as BeyondMimic's script."""
+    duration = (num_in - 1) / fps_in
+    # Count k with k / fps_out < duration; the epsilon keeps an exact multiple from sneaking in.
+    num_out = int(np.ceil(duration * fps_out - 1e-9))
+    return np.arange(max(num_out, 0)) / fps_out

@@ -317,7 +317,7 @@ class Motion:
             raise MotionDataError(
                 f"a motion of {self.num_clips} clips at {self.fps:g} fps cannot be resampled to {fps:g} Hz "
                 "as one piece; convert its clips at that rate")
-        from bmimic.motion.convert import output_times
+        from bmimic.motion.math import output_times
 
         times = output_times(self.num_frames, self.fps, fps)
         if len(times) < 2:
@@ -348,8 +348,8 @@ class Motion:
 
     # -- I/O ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
-        """Write the npz atomically (bmimic.runs.atomic_write); `path` must end in .npz."""
-        from bmimic.runs import atomic_write
+        """Write the npz atomically (bmimic.run_folder.atomic_write); `path` must end in .npz."""
+        from bmimic.run_folder import atomic_write
 
         path = Path(path)
         if path.suffix != ".npz":

@@ -191,7 +191,7 @@ def load_variant(name: str) -> SamplerConfig:
     """The named variant ``conf/sampler/<name>.yaml`` as a :class:`SamplerConfig` (without Hydra)."""
     from omegaconf import OmegaConf
 
-    from bmimic.launch import CONF_DIR
+    from bmimic import CONF_DIR
 
     check_choice("name", name, SAMPLER_NAMES)
     node = OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml")

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from bmimic.run_folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
 from bmimic.sim2sim.gap import eval_settings, gap_table, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.rollout import Episode, run_episodes
@@ -18,8 +18,8 @@ from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, policy_session, read_p
 
 log = logging.getLogger("bmimic.sim2sim")
 
-MOTION_FILE = re.compile(r"motion_policy_(\d+)\.onnx$")
-"""File name of the BeyondMimic-compatible export of a checkpoint."""
+MOTION_FILE = MOTION_POLICY
+"""File name of the BeyondMimic-compatible export of a checkpoint (bmimic.run_folder's)."""
 
 
 def locate(path: str | Path) -> tuple[Path, Path | None]:
@@ -29,8 +29,8 @@ def locate(path: str | Path) -> tuple[Path, Path | None]:
         raise Sim2SimError(f"{p}: no such run folder or ONNX file")
     if p.is_file():
         run = p.resolve().parent.parent
-        return p.resolve(), run if (run / ".hydra" / "config.yaml").is_file() else None
-    found = [(int(m.group(1)), f) for f in (p / "checkpoints").glob("motion_policy_*.onnx")
+        return p.resolve(), run if has_hydra_record(run) else None
+    found = [(int(m.group(1)), f) for f in checkpoints_dir(p).glob("motion_policy_*.onnx")
              if (m := MOTION_FILE.search(f.name))]
     if not found:
         raise Sim2SimError(f"{p}: no checkpoints/motion_policy_<it>.onnx (the BeyondMimic-compatible export); "
@@ -68,7 +68,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
     """Run the sim2sim evaluation; returns (bmimic.eval.EvalResult, WarpEval or None, gap table or None).
 
     Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like."""
-    from bmimic.eval import EvalResult, bin_table, episode_table, segment_table
+    from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table
     from bmimic.sampling.bins import make_layout
     from bmimic.training.evaluation import stratified_start_frames, summarize
 

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from analysis import AnalysisError
 from analysis.index import build_index, write_index
 from analysis.load import load_runs, load_table
+from analysis.markdown import plural
 from analysis.metrics import (
     counts_as_mastered,
     first_sustained,
@@ -25,7 +26,7 @@ from analysis.metrics import (
     speedup,
     time_to_threshold,
 )
-from analysis.report import build_report, main, plural
+from analysis.report import build_report, main
 from analysis.stats import (
     censored_pvalue,
     curve_intervals,

@@ -309,7 +309,7 @@ def _resume(*extra: str, iters: int = 3) -> Callable[[Workspace], list[str]]:
 
 @contextlib.contextmanager
 def _held_lock(ws: Workspace):
-    from bmimic.runs import lock_run
+    from bmimic.run_folder import lock_run
 
     f = lock_run(ws.run)
     try:
@@ -779,7 +779,7 @@ def test_enough_cases() -> None:
 
 def test_run_files_honour_the_umask(ws: Workspace) -> None:
     """Run folders, checkpoints and motion caches get 0666 & ~umask (0644 under umask 022)."""
-    from bmimic.runs import current_umask
+    from bmimic.run_folder import current_umask
 
     want = 0o666 & ~current_umask()
     files = [ws.run / "status.json", ws.run / "checkpoints" / "latest.pt", ws.run / "train_metrics.parquet",
@@ -791,7 +791,7 @@ def test_run_files_honour_the_umask(ws: Workspace) -> None:
 # --------------------------------------------------------------------------------------------- beyond the table
 def test_crafted_checkpoint_is_refused_by_every_loader(tmp_path) -> None:
     """The one loader every command uses refuses a pickle that would create a file, in one line."""
-    from bmimic.runs import UnsafeCheckpointError, load_checkpoint_file
+    from bmimic.training.checkpoints import UnsafeCheckpointError, load_checkpoint_file
 
     ws = Workspace(tmp_path)
     path = ws.evil_checkpoint()
@@ -842,7 +842,7 @@ def test_planted_nan_is_reset_counted_and_never_reaches_the_loss(tmp_path, monke
 
 
 def test_atomic_write_keeps_the_extension_and_honours_the_umask(tmp_path) -> None:
-    from bmimic.runs import atomic_write
+    from bmimic.run_folder import atomic_write
 
     seen = []
     old = os.umask(0o022)
@@ -875,7 +875,7 @@ def test_error_log_appends_are_atomic_and_complete(tmp_path) -> None:
 
 
 def _append_many(folder: Path, k: int) -> None:
-    from bmimic.launch import append_error_log
+    from bmimic.run_folder import append_error_log
 
     for i in range(25):
         append_error_log(folder, f"writer {k} entry {i} attempt")

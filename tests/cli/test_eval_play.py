@@ -23,7 +23,10 @@ import torch
 from bmimic import eval as bm_eval
 from bmimic import play as bm_play
 from bmimic import render
+from bmimic.evaluation.saved_run import anchor_relative_paths, checkpoint_label
+from bmimic.evaluation.tables import segment_at
 from bmimic.motion.motion import Segment
+from bmimic.run_folder import EVAL_TABLES
 from bmimic.training.evaluation import ERROR_COLUMNS
 from tests.conftest import REPO
 
@@ -66,7 +69,7 @@ def run_eval(tiny_run) -> dict:
 
 # --------------------------------------------------------------------------------------------- eval tables
 def test_eval_writes_every_table(run_eval):
-    for name in bm_eval.TABLES:
+    for name in EVAL_TABLES:
         assert (run_eval["dir"] / name).stat().st_size > 0
     assert not list(run_eval["dir"].glob(".*.tmp-*")), "atomic writes left temp files"
 
@@ -203,10 +206,10 @@ def test_frame_steps_known_answers():
 
 def test_segment_at_and_checkpoint_label():
     segs = [Segment("a", 0.0, 1.0, "easy"), Segment("b", 1.0, 2.5, "hard")]
-    assert bm_eval.segment_at(segs, [0.0, 0.99, 1.0, 2.4, 2.5]) == (["a", "a", "b", "b", ""],
+    assert segment_at(segs, [0.0, 0.99, 1.0, 2.4, 2.5]) == (["a", "a", "b", "b", ""],
                                                                    ["easy", "easy", "hard", "hard", ""])
-    assert bm_eval.checkpoint_label(Path("x/latest.pt"), {"iter": 42}) == "model_42"
-    assert bm_eval.checkpoint_label(Path("x/model_7.pt"), {"iter": 7}) == "model_7"
+    assert checkpoint_label(Path("x/latest.pt"), {"iter": 42}) == "model_42"
+    assert checkpoint_label(Path("x/model_7.pt"), {"iter": 7}) == "model_7"
 
 
 def test_gif_writer_keeps_every_frame(tmp_path, monkeypatch):
@@ -302,7 +305,7 @@ def test_relative_input_paths_resolve_against_the_training_launch_dir(tmp_path, 
     cfg = OmegaConf.create({"motion": {"path": "clips/a.npz"}, "robot": {"mjcf_path": "missing.xml"},
                             "data": {"lafan_dir": "clips"}})
     monkeypatch.chdir(elsewhere)
-    bm_eval.anchor_relative_paths(cfg, run)
+    anchor_relative_paths(cfg, run)
     assert cfg.motion.path == str(launch / "clips" / "a.npz")
     assert cfg.data.lafan_dir == str(launch / "clips")
     assert cfg.robot.mjcf_path == "missing.xml"  # not found there either: left for load to report

@@ -22,19 +22,14 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict, read_write
 
 import bmimic.config  # noqa: F401  (registers the config schemas, as bmimic.train does)
-from bmimic import launch
-from bmimic.launch import (
-    CONF_DIR,
-    SweepIndexCallback,
-    append_error_log,
-    claim_slot,
-    list_jobs,
-    note_previous_attempt,
-    parse_visible_devices,
-    slot_gpu,
-    slot_order,
-    sweep_overrides,
-)
+from analysis.index import SweepIndexCallback
+from bmimic import CONF_DIR, launch
+from bmimic.run_folder import append_error_log
+from bmimic.sweeping import gpu_slots
+from bmimic.sweeping import jobs as sweep_jobs
+from bmimic.sweeping.gpu_slots import claim_slot, parse_visible_devices, slot_gpu, slot_order
+from bmimic.sweeping.jobs import list_jobs, sweep_overrides
+from bmimic.training.session import note_previous_attempt
 from tests.conftest import REPO, wait_for
 
 SWEEPS = REPO / "sweeps"
@@ -69,7 +64,7 @@ def hydra_config_restored():
 # --------------------------------------------------------------------------------------------- study files
 def test_every_study_is_listed_and_linked():
     assert (CONF_DIR / "sweep").resolve() == SWEEPS.resolve()
-    assert launch.available_studies() == sorted(STUDIES)
+    assert sweep_jobs.available_studies() == sorted(STUDIES)
     for path in SWEEPS.glob("*.yaml"):
         assert path.read_text().splitlines()[0] == "# @package _global_", path.name
 
@@ -118,7 +113,7 @@ def test_dry_run_lists_folders_and_status(tmp_path, hydra_config_restored):
     assert sweep_dir == tmp_path
     assert [j.run_dir for j in jobs] == [done, tmp_path / "motion=default,sampler=adaptive" / "seed=0"]
     assert [(j.status, j.iteration) for j in jobs] == [("done", 10), ("new", None)]
-    text = launch.format_jobs(sweep_dir, jobs)
+    text = sweep_jobs.format_jobs(sweep_dir, jobs)
     assert "2 jobs (1 done, 1 new); a run would train 1 and skip 1 done" in text
 
 
@@ -187,33 +182,33 @@ def _set_job_hydra_config(tmp_path, launcher: str, job_num: int):
 def test_joblib_workers_get_distinct_gpus(tmp_path, monkeypatch, hydra_config_restored):
     monkeypatch.setattr("tempfile.tempdir", str(tmp_path))  # lock files out of the real temp folder
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,5")
-    monkeypatch.setattr(launch, "_claimed", {})
+    monkeypatch.setattr(gpu_slots, "_claimed", {})
     _set_job_hydra_config(tmp_path, "joblib_gpus", job_num=2)  # n_jobs = 2 visible GPUs x 1
-    assert launch.pin_job_to_gpu() == "4" and os.environ["CUDA_VISIBLE_DEVICES"] == "4"
-    assert launch.pin_job_to_gpu() == "4"  # the same worker's next job keeps its GPU
-    worker_one = launch._claimed
+    assert gpu_slots.pin_job_to_gpu() == "4" and os.environ["CUDA_VISIBLE_DEVICES"] == "4"
+    assert gpu_slots.pin_job_to_gpu() == "4"  # the same worker's next job keeps its GPU
+    worker_one = gpu_slots._claimed
 
     # A second worker process (fresh state, same visible GPUs) whose first job would also map to slot 0.
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,5")
-    monkeypatch.setattr(launch, "_claimed", {})
+    monkeypatch.setattr(gpu_slots, "_claimed", {})
     _set_job_hydra_config(tmp_path, "joblib_gpus", job_num=4)
-    assert launch.pin_job_to_gpu() == "5"
+    assert gpu_slots.pin_job_to_gpu() == "5"
     worker_one["lock"].close()
-    launch._claimed["lock"].close()
+    gpu_slots._claimed["lock"].close()
 
 
 def test_basic_launcher_pins_nothing(tmp_path, monkeypatch, hydra_config_restored):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1")
-    monkeypatch.setattr(launch, "_claimed", {})
+    monkeypatch.setattr(gpu_slots, "_claimed", {})
     _set_job_hydra_config(tmp_path, "basic", job_num=1)
-    assert launch.pin_job_to_gpu() is None and os.environ["CUDA_VISIBLE_DEVICES"] == "0,1"
+    assert gpu_slots.pin_job_to_gpu() is None and os.environ["CUDA_VISIBLE_DEVICES"] == "0,1"
 
 
 # --------------------------------------------------------------------------------------------- resume, errors, index
 def test_sweep_job_resumes_only_from_its_own_checkpoint(tmp_path):
     import torch
 
-    from bmimic.runs import plan_run
+    from bmimic.training.resume import plan_run
 
     def checkpoint(path, iteration):
         path.parent.mkdir(parents=True, exist_ok=True)

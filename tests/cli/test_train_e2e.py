@@ -108,16 +108,14 @@ def test_resume_continues_iterations_lr_and_sampler(trained, tmp_path):
 def test_resume_restores_exact_state(trained, tmp_path):
     """Loading a checkpoint into a fresh trainer reproduces lr, iteration and sampler probabilities."""
     from bmimic.config import resolve_runtime
-    from bmimic.train import build, build_evaluator
-    from bmimic.training.runner import Trainer
+    from bmimic.task import build_evaluator, build_trainer, build_training
     from tests.conftest import compose
 
     cfg = compose([a for a in TINY if not a.startswith("progress")] + ["logger=none"])
     resolve_runtime(cfg, "cpu")
-    mjm, robot, motion, layout, sampler, env = build(cfg, "cpu")
-    ev = build_evaluator(cfg, "cpu", robot, motion, layout)
-    trainer = Trainer(env, ev, sampler, cfg.ppo, tmp_path, "cpu", "t", eval_every_iters=0, logger="none",
-                      progress_bar=False, export_onnx=False)
+    training = build_training(cfg, "cpu")
+    sampler, layout = training.sampler, training.task.layout
+    trainer = build_trainer(training, build_evaluator(training.task), tmp_path)
     ckpt_path = trained / "checkpoints" / "model_2.pt"
     ckpt = torch.load(ckpt_path, weights_only=True)  # format 2: plain data only
     trainer.load_checkpoint(ckpt_path)

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from bmimic.config import resolve_runtime
-from bmimic.runs import seed_everything
-from bmimic.train import build, build_evaluator
+from bmimic.runtime import seed_everything
+from bmimic.task import build_evaluator, build_training
 from tests.conftest import compose
 
 # (device, sim.compile_env_step): on a GPU machine the same tests also run the CUDA-graph path,
@@ -23,9 +23,10 @@ def built(request):
     seed_everything(0)  # the tests below must not depend on what ran before them
     cfg = compose(["motion=easy_only", "num_envs=4", f"device={device}", f"sim.compile_env_step={compiled}"])
     resolve_runtime(cfg, device)
-    mjm, robot, motion, layout, sampler, env = build(cfg, device)
-    evaluator = build_evaluator(cfg, device, robot, motion, layout)
-    return cfg, robot, motion, layout, sampler, env, evaluator
+    training = build_training(cfg, device)
+    task = training.task
+    evaluator = build_evaluator(task)
+    return cfg, task.robot, task.motion, task.layout, training.sampler, training.env, evaluator
 
 
 def test_graph_path_on_gpu(built):

@@ -41,15 +41,13 @@ def task(tmp_path_factory):
     from rsl_rl.utils import resolve_class
 
     from bmimic.config import resolve_runtime
-    from bmimic.envs.tracking_env import TrackingEnv
-    from bmimic.robot import load_mjmodel
-    from bmimic.train import build_task
-    from bmimic.training.runner import rsl_rl_train_cfg
+    from bmimic.task import build_evaluator, build_task
+    from bmimic.training.policy import rsl_rl_train_cfg
 
-    cfg = compose(["device=cpu", "motion=easy_only"])
+    cfg = compose(["device=cpu", "motion=easy_only", "eval.max_envs=2"])
     resolve_runtime(cfg, "cpu")
-    _, robot, motion, layout = build_task(cfg, "cpu")
-    env = TrackingEnv(cfg.env, cfg.sim, load_mjmodel(cfg=cfg.robot), robot, motion, layout, 2, "cpu", mode="eval")
+    task = build_task(cfg, "cpu")
+    env = build_evaluator(task).env  # 2 worlds (eval.max_envs)
     train_cfg = rsl_rl_train_cfg(cfg.ppo, "test")
     actor_class, kwargs = resolve_class(train_cfg["actor"])
     torch.manual_seed(0)

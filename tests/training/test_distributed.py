@@ -35,14 +35,15 @@ def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> No
     dist.init_process_group("gloo", rank=rank, world_size=WORLD)
     try:
         from bmimic.config import resolve_runtime
-        from bmimic.runs import seed_everything
-        from bmimic.train import build
+        from bmimic.runtime import seed_everything
+        from bmimic.task import build_training
         from tests.conftest import compose
 
         cfg = compose(["motion=easy_only", "num_envs=4", "device=cpu", f"seed={rank}", f"sampler={sampler_name}"])
         resolve_runtime(cfg, "cpu")
         seed_everything(cfg.seed)  # different worlds per rank, as train.py does
-        *_, sampler, env = build(cfg, "cpu")
+        training = build_training(cfg, "cpu")
+        sampler, env = training.sampler, training.env
         assert env.world_size == WORLD
         for _ in range(40):  # random actions: episodes end, and differently on each rank
             env.step(torch.randn(env.num_envs, env.num_actions))

@@ -108,16 +108,15 @@ class PlantedTermination:
 @pytest.fixture(scope="module")
 def robust_evaluator():
     from bmimic.config import resolve_runtime
-    from bmimic.runs import seed_everything
-    from bmimic.train import build_evaluator, build_task
+    from bmimic.runtime import seed_everything
+    from bmimic.task import build_evaluator, build_task
     from tests.conftest import compose
 
     seed_everything(0)
     cfg = compose(["motion=easy_only", "motion.duration_s=7", "sampler.bin_size_seconds=1.0", "device=cpu",
                    "eval.episodes_per_bin=1", "eval.horizon_s=1.0"])
     resolve_runtime(cfg, "cpu")
-    _, robot, motion, layout = build_task(cfg, "cpu")
-    return build_evaluator(cfg, "cpu", robot, motion, layout, robust=True)
+    return build_evaluator(build_task(cfg, "cpu"), robust=True)
 
 
 def _expected(starts, horizon, clip_end, planted, per_bin=50, num_bins=7):
