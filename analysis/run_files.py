@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import yaml
 
 from analysis import AnalysisError
-from bmimic.run_folder import HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
+from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
 
 REQUIRED_COLUMNS = {
     "train_metrics": ["iteration", "env_steps", "wall_time_s", "mean_episode_length", "mean_reward"],
@@ -32,7 +32,7 @@ IGNORED_OVERRIDE_KEYS = {
 }
 """Override keys that do not define an arm: the ``exclude_keys`` of conf/train.yaml's override_dirname."""
 
-SKIP_DIRS = {"report", "checkpoints"}
+SKIP_DIRS = {"report", CHECKPOINTS_DIR}
 """Folder names never searched for runs (report output, checkpoints)."""
 
 

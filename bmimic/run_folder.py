@@ -66,6 +66,11 @@ def checkpoint_name(iteration: int) -> str:
     return f"model_{int(iteration)}.pt"
 
 
+def checkpoint_label(iteration: int) -> str:
+    """The name of a checkpoint's results (eval/<label>/, sim2sim/<model>/<label>/): `model_<it>`."""
+    return f"model_{int(iteration)}"
+
+
 def policy_onnx_name(iteration: int) -> str:
     """The deterministic actor, obs -> actions."""
     return f"policy_{int(iteration)}.onnx"

@@ -17,6 +17,9 @@ from bmimic.run_folder import (
     has_hydra_record,
     newest_checkpoint,
 )
+from bmimic.run_folder import (
+    checkpoint_label as run_checkpoint_label,
+)
 
 if TYPE_CHECKING:
     from bmimic.task import Task
@@ -122,6 +125,6 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
 def checkpoint_label(checkpoint: Path, state: dict) -> str:
     """Folder name of a checkpoint's results: its stem; latest.pt is named after its iteration."""
     if checkpoint.name == LATEST_CHECKPOINT and "iter" in state:
-        return f"model_{int(state['iter'])}"
+        return run_checkpoint_label(int(state["iter"]))
     return checkpoint.stem
 

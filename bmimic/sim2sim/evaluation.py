@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from bmimic.run_folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
+from bmimic.run_folder import checkpoint_label as run_checkpoint_label
 from bmimic.sim2sim.gap import eval_settings, gap_table, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.rollout import Episode, run_episodes
@@ -41,9 +42,9 @@ def locate(path: str | Path) -> tuple[Path, Path | None]:
 def checkpoint_label(spec: PolicySpec) -> str:
     """model_<it> (the name bmimic.eval gives the same checkpoint), else the file stem."""
     if spec.iteration is not None:
-        return f"model_{spec.iteration}"
+        return run_checkpoint_label(spec.iteration)
     m = MOTION_FILE.search(spec.path.name)
-    return f"model_{m.group(1)}" if m else spec.path.stem
+    return run_checkpoint_label(int(m.group(1))) if m else spec.path.stem
 
 
 

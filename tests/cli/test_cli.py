@@ -38,6 +38,7 @@ def test_field_docs_known_answer():
     assert field_docs(_Documented) == {"speed_mps": "How fast, in metres per second.", "name": "A name."}
 
 
+@pytest.mark.slow
 def test_help_lists_options_and_documented_keys():
     out = _run("-m", "bmimic.train", "--help", "sampler=uniform")
     assert out.returncode == 0, out.stderr[-2000:]
@@ -83,11 +84,13 @@ def test_console_is_one_summary_then_the_progress_bar(tmp_path):
     assert "Actor Model" in loud.stdout and "Warp " in loud.stdout
 
 
+@pytest.mark.slow
 def test_module_entry_points_run_without_a_runpy_warning():
     out = _run("-m", "bmimic.motion.convert", "--help")
     assert out.returncode == 0 and "found in sys.modules" not in out.stderr, out.stderr
 
 
+@pytest.mark.slow
 def test_missing_gl_library_is_one_line_naming_what_to_install(tmp_path):
     if render.probe_gl_backend("osmesa") is None:
         pytest.skip("OSMesa works on this machine; the message is for machines without it")

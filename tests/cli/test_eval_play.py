@@ -28,7 +28,7 @@ from bmimic.evaluation.tables import segment_at
 from bmimic.motion.motion import Segment
 from bmimic.run_folder import EVAL_TABLES
 from bmimic.training.evaluation import ERROR_COLUMNS
-from tests.conftest import REPO
+from tests.conftest import REPO, train_in_process
 
 NUM_BINS = 7  # motion.duration_s=7 with 1 s bins
 EVAL_FLAGS = ["--episodes-per-bin", "2", "--horizon-s", "0.2", "--num-envs", "4"]  # 14 episodes in 4 waves
@@ -41,14 +41,13 @@ def _cli(module: str, *args: str, env: dict | None = None, timeout: float = 300)
 
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory) -> Path:
-    run_dir = tmp_path_factory.mktemp("runs") / "tiny"
-    out = _cli(
-        "bmimic.train", "run_name=test_eval_play", "motion=easy_only", "motion.duration_s=7",
-        "sampler.bin_size_seconds=1.0", "num_envs=2", "max_iterations=1", "ppo.num_steps_per_env=4",
-        "ppo.num_mini_batches=2", "eval.horizon_s=0.2", "logger=none", "progress_bar=false",
-        f"hydra.run.dir={run_dir}",
+    """A 1-iteration run, trained in this process (the command line is not what these tests test)."""
+    run_dir = train_in_process(
+        tmp_path_factory.mktemp("runs") / "tiny", "run_name=test_eval_play", "motion=easy_only",
+        "motion.duration_s=7", "sampler.bin_size_seconds=1.0", "num_envs=2", "max_iterations=1",
+        "ppo.num_steps_per_env=4", "ppo.num_mini_batches=2", "eval.horizon_s=0.2", "logger=none",
+        "progress_bar=false", cwd=REPO,
     )
-    assert out.returncode == 0, out.stderr[-3000:]
     assert (run_dir / "checkpoints" / "latest.pt").exists()
     return run_dir
 
@@ -189,6 +188,7 @@ def test_eval_rejects_a_checkpoint_of_another_architecture(tiny_run, tmp_path, c
     assert "not a readable torch checkpoint" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_eval_cli_exit_code(tmp_path):
     out = _cli("bmimic.eval", str(tmp_path / "nope"))
     assert out.returncode == 2
@@ -253,6 +253,7 @@ def test_gl_selection_reports_every_backend(monkeypatch):
 
 
 # --------------------------------------------------------------------------------------------- play
+@pytest.mark.slow
 def test_play_writes_a_video_with_the_expected_frames(tiny_run, gl_backend, tmp_path):
     from PIL import Image
 
@@ -274,6 +275,7 @@ def test_play_writes_a_video_with_the_expected_frames(tiny_run, gl_backend, tmp_
         assert len(imageio.mimread(written)) == 5
 
 
+@pytest.mark.slow
 def test_play_without_a_gl_backend_is_one_line_and_exit_2(tiny_run):
     out = _cli("bmimic.play", str(tiny_run), env={"MUJOCO_GL": "nonexistent"})
     assert out.returncode == 2

@@ -3,14 +3,11 @@ and one line that says what is missing, where to get it and what to set."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
 
 from bmimic.motion.config import LAFAN_ENV, lafan_clip_path
 from bmimic.motion.motion import MotionDataError
-from tests.conftest import CONF, SHARED_MOTIONS, cli_env, compose
+from tests.conftest import CONF, SHARED_MOTIONS, compose, run_train
 
 # option -> (clip, window start_s, end_s; None = the whole clip)
 OPTIONS = {
@@ -75,13 +72,11 @@ def test_missing_folder_or_clip_is_one_guiding_line(tmp_path):
 
 
 def test_train_without_the_data_says_what_to_do(tmp_path):
-    env = {k: v for k, v in cli_env().items() if k != LAFAN_ENV}
-    out = subprocess.run([sys.executable, "-m", "bmimic.train", "motion=lafan_walk1", "device=cpu",
-                          f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path, capture_output=True, text=True,
-                         timeout=600, env=env)
-    assert out.returncode == 2, out.stderr[-3000:]
-    assert "Traceback" not in out.stderr
-    last = out.stderr.strip().splitlines()[-1]
+    code, out = run_train("motion=lafan_walk1", "device=cpu", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path,
+                          env={LAFAN_ENV: None})
+    assert code == 2, out[-3000:]
+    assert "Traceback" not in out
+    last = out.strip().splitlines()[-1]
     assert last.startswith("error: LAFAN1 clip walk1_subject1.csv: data.lafan_dir is not set")
     _assert_guides(last)
 

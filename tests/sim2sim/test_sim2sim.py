@@ -23,7 +23,7 @@ from tensordict import TensorDict
 
 from bmimic import sim2sim
 from bmimic.training.export import MOTION_OUTPUTS, export_checkpoint_onnx
-from tests.conftest import TINY, cli_env, compose
+from tests.conftest import TINY, cli_env, compose, train_in_process
 
 OBS_TOL = 1e-5
 """Largest allowed difference of an observation entry (the issue's 1e-5)."""
@@ -425,9 +425,9 @@ def run(module: str, *args, cwd, check=True):
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
+    """A tiny run trained in this process (the sim2sim and export command lines are what is tested)."""
     root = tmp_path_factory.mktemp("s2s")
-    run("bmimic.train", *TINY, f"hydra.run.dir={root / 'run'}", cwd=root)
-    return root / "run"
+    return train_in_process(root / "run", *TINY, cwd=root)
 
 
 @pytest.mark.slow
