@@ -20,10 +20,12 @@ def plural(n: int, word: str) -> str:
 
 
 def is_nan(x) -> bool:
+    """None or a float NaN (a missing number in a table)."""
     return x is None or (isinstance(x, float | np.floating) and math.isnan(x))
 
 
 def fmt(x, digits: int = 3) -> str:
+    """A table cell: 3 significant digits, whole numbers without decimals, - for missing, yes/no, infinities."""
     if is_nan(x):
         return "–"
     if isinstance(x, bool | np.bool_):
@@ -38,6 +40,7 @@ def fmt(x, digits: int = 3) -> str:
 
 
 def per_seed_list(per_seed: str) -> str:
+    """A `per_seed` column value (`;`-separated) as a comma-separated list of formatted numbers."""
     return ", ".join(fmt(float(v)) for v in str(per_seed).split(";") if v != "")
 
 
@@ -66,11 +69,13 @@ def md_table(df: pd.DataFrame) -> str:
 
 
 def summary_row(summary: pd.DataFrame, arm: str, metric: str):
+    """The summary.csv row of `arm` and `metric` (None when absent)."""
     r = summary[(summary["arm"] == arm) & (summary["metric"] == metric)]
     return None if not len(r) else r.iloc[0]
 
 
 def cell(summary: pd.DataFrame, arm: str, metric: str) -> str:
+    """The estimate_cell of `arm`'s `metric` in summary.csv (- when absent)."""
     r = summary_row(summary, arm, metric)
     if r is None:
         return "–"
@@ -104,6 +109,7 @@ def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: st
 
 
 def speedup_phrase(r, time_row_base, time_row_arm, word: str) -> str:
+    """One measure's speedup in words: the estimate with its interval, or the bound and why."""
     p = f"p = {fmt(r.p_value, 2)}"
     if r.status == "estimate":
         ci = (f" [{fmt(r.ci_low)}, {fmt(r.ci_high)}]" if not is_nan(r.ci_low)
@@ -122,6 +128,7 @@ def speedup_phrase(r, time_row_base, time_row_arm, word: str) -> str:
 
 def speedup_text(speed: pd.DataFrame, per_bin: pd.DataFrame, time_df: pd.DataFrame, baseline: str,
                   opts: ReportOptions) -> list[str]:
+    """Per arm: the speedups against the baseline and a summary of its per-bin mastery speedups."""
     lines = []
     t = time_df.set_index(["arm", "measure"])
     for arm, g in speed.groupby("arm", sort=True):
@@ -148,6 +155,7 @@ def speedup_text(speed: pd.DataFrame, per_bin: pd.DataFrame, time_df: pd.DataFra
 
 
 def evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
+    """Notes on old-accounting tables and horizon-truncated bins (empty when there are none)."""
     lines = []
     if "visits" not in eval_df.columns or eval_df["visits"].isna().any():
         lines.append("- Some runs' eval.parquet predates per-visit accounting: there `failure_rate` is the failure "
@@ -165,6 +173,7 @@ def evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
 
 
 def budget_section(budget: pd.DataFrame, opts: ReportOptions) -> list[str]:
+    """The report's budget table (completed iterations, env steps, wall time) and its warning."""
     if not len(budget):
         return []
     g = budget.groupby("arm", sort=True)
@@ -183,11 +192,13 @@ def budget_section(budget: pd.DataFrame, opts: ReportOptions) -> list[str]:
 
 
 def span(x: pd.Series) -> str:
+    """min-max of a column as text (one value when they agree)."""
     lo, hi = float(x.min()), float(x.max())
     return fmt(lo) if lo == hi else f"{fmt(lo)}–{fmt(hi)}"
 
 
 def runs_section(runs: pd.DataFrame) -> list[str]:
+    """The runs per arm and status, the running ones included and the ones left out, with why."""
     counts = runs.groupby(["arm", "status"]).size().unstack(fill_value=0).reset_index()
     lines = ["## Runs", "", md_table(counts), ""]
     running = runs[runs["included"] & (runs["status"] == "running")]
@@ -204,6 +215,7 @@ def runs_section(runs: pd.DataFrame) -> list[str]:
 
 
 def time_cell(time_df: pd.DataFrame, arm: str, measure: str) -> str:
+    """An arm's median time to threshold in `measure`, with the seeds that got there and their times."""
     r = time_df[(time_df["arm"] == arm) & (time_df["measure"] == measure)]
     if not len(r):
         return "–"
@@ -215,6 +227,7 @@ def time_cell(time_df: pd.DataFrame, arm: str, measure: str) -> str:
 
 
 def arms_view(summary: pd.DataFrame, time_df: pd.DataFrame, per_run: dict, at: str) -> pd.DataFrame:
+    """The Arms table: per arm its final failure, bins mastered and times to threshold."""
     arms = sorted(set(summary["arm"]))
     view = {"arm": arms, "seeds": [int(summary.loc[summary["arm"] == a, "n_seeds"].max()) for a in arms],
             f"final failure ({at.split(',')[0]})": [cell(summary, a, "final_failure") for a in arms]}
@@ -229,6 +242,7 @@ def arms_view(summary: pd.DataFrame, time_df: pd.DataFrame, per_run: dict, at: s
 
 
 def segment_view(seg: pd.DataFrame) -> pd.DataFrame:
+    """The Segments table: final failure per segment (rows) and arm (columns)."""
     seg = seg.assign(cell=[f"{estimate_cell(p, lo, hi, m, n)} ({nm}/{b})" for p, lo, hi, m, n, nm, b in zip(
         seg["final_failure"], seg["final_failure_low"], seg["final_failure_high"], seg["ci_method"], seg["n_seeds"],
         seg["bins_not_mastered"], seg["num_bins"], strict=True)])
@@ -237,6 +251,7 @@ def segment_view(seg: pd.DataFrame) -> pd.DataFrame:
 
 
 def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
+    """The per-bin mastery table: median mastery iteration per bin (rows) and arm (columns)."""
     cells = mastery_df.assign(cell=[f"{fmt(m)} ({k}/{n})" for m, k, n in zip(
         mastery_df["mastery_iteration"], mastery_df["n_mastered"], mastery_df["n_seeds"], strict=True)])
     view = cells.pivot(index="bin", columns="arm", values="cell").reset_index()
@@ -248,6 +263,7 @@ def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
 
 
 def definitions(opts: ReportOptions) -> list[str]:
+    """The report's Definitions section, with this report's thresholds."""
     return ["## Definitions", "",
             "- Evaluation (every `eval.every_iters`, sampler-independent, deterministic policy): episodes start at "
             "stratified frames of every bin and run for the horizon; a bin's failure rate is the failures that "

@@ -63,6 +63,7 @@ MOTION_POLICY = re.compile(r"motion_policy_(\d+)\.onnx$")
 
 
 def checkpoint_name(iteration: int) -> str:
+    """`model_<it>.pt`, the checkpoint written at iteration `it`."""
     return f"model_{int(iteration)}.pt"
 
 
@@ -82,6 +83,7 @@ def motion_policy_onnx_name(iteration: int) -> str:
 
 
 def checkpoints_dir(run_dir: str | os.PathLike) -> Path:
+    """The run's checkpoints/ folder (checkpoints and their ONNX exports)."""
     return Path(run_dir) / CHECKPOINTS_DIR
 
 
@@ -91,6 +93,7 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path:
 
 
 def checkpoint_path(run_dir: str | os.PathLike, iteration: int) -> Path:
+    """checkpoints/model_<it>.pt of the run."""
     return checkpoints_dir(run_dir) / checkpoint_name(iteration)
 
 
@@ -189,6 +192,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write `data` to `path` atomically."""
     def _w(tmp: str) -> None:
         with open(tmp, "wb") as f:
             f.write(data)
@@ -197,18 +201,22 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` (UTF-8) to `path` atomically."""
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write `obj` as indented, key-sorted JSON to `path` atomically."""
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
 def atomic_write_parquet(path: str | os.PathLike, df) -> Path:
+    """Write a pandas frame (no index) to `path` atomically."""
     return atomic_write(path, lambda tmp: df.to_parquet(tmp, index=False))
 
 
 def atomic_write_csv(path: str | os.PathLike, df) -> Path:
+    """Write a pandas frame as CSV (no index) to `path` atomically."""
     return atomic_write(path, lambda tmp: df.to_csv(tmp, index=False))
 
 
@@ -287,6 +295,7 @@ def read_status(run_dir: str | os.PathLike) -> dict:
 
 
 def write_metrics(run_dir: str | os.PathLike, metrics: dict) -> None:
+    """metrics.json: the run's final numbers (docs/architecture.md lists the keys)."""
     atomic_write_json(Path(run_dir) / METRICS, metrics)
 
 
@@ -308,15 +317,18 @@ def read_provenance(run_dir: str | os.PathLike) -> dict:
 
 
 def write_resolved_config(run_dir: str | os.PathLike, config: dict) -> None:
+    """resolved_config.json: the config after runtime resolution."""
     atomic_write_json(Path(run_dir) / RESOLVED_CONFIG, config)
 
 
 def read_resolved_config(run_dir: str | os.PathLike) -> dict | None:
+    """resolved_config.json (None when absent or unreadable)."""
     cfg = read_json(Path(run_dir) / RESOLVED_CONFIG)
     return cfg if isinstance(cfg, dict) else None
 
 
 def write_motion_segments(run_dir: str | os.PathLike, segments: list[dict]) -> None:
+    """motion_segments.json: the segments of the motion trained on."""
     atomic_write_json(Path(run_dir) / MOTION_SEGMENTS, segments)
 
 
@@ -344,6 +356,7 @@ def write_hydra_record(run_dir: str | os.PathLike, record: dict[str, str] | None
 
 
 def has_hydra_record(run_dir: str | os.PathLike) -> bool:
+    """The run holds .hydra/config.yaml (what eval, play and export reload)."""
     return (Path(run_dir) / HYDRA_DIR / "config.yaml").is_file()
 
 

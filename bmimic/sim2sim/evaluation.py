@@ -1,5 +1,5 @@
-"""sim2sim's evaluation: stratified starts per bin, episodes in native MuJoCo, and bmimic.eval's tables
-built from them with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluation.aggregate)."""
+"""sim2sim's evaluation: stratified starts per bin, episodes in native MuJoCo, and the tables of
+bmimic.evaluation.tables built from them with the MuJoCo-Warp evaluator's accounting (training.evaluation)."""
 
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int
 def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,
              horizon_s: float | None = None, workers: int = 1, joint_dynamics: str = "model",
              max_mpkpe_rel_mm: float | None = None):
-    """Run the sim2sim evaluation; returns (bmimic.eval.EvalResult, WarpEval or None, gap table or None).
+    """Run the sim2sim evaluation; returns (bmimic.evaluation.tables.EvalResult, WarpEval or None, gap table or None).
 
     Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like."""
     from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table

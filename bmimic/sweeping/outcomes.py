@@ -43,6 +43,7 @@ def record_job_outcome(job_dir: str | os.PathLike, outcome: str, message: str | 
 
 
 def read_job_outcomes(folder: Path) -> list[dict]:
+    """The outcomes the jobs recorded in `folder`."""
     out = []
     for path in sorted(Path(folder).glob("*.json")):
         try:
@@ -76,6 +77,7 @@ class SweepOutcomesCallback(Callback):
     analysis.index.SweepIndexCallback's)."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Give the jobs a folder to record their outcomes in (through OUTCOMES_ENV)."""
         sweep_dir = Path(str(config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)  # on the shared filesystem, for SLURM jobs too
         self._outcomes = Path(tempfile.mkdtemp(prefix=".outcomes-", dir=sweep_dir))
@@ -83,6 +85,7 @@ class SweepOutcomesCallback(Callback):
         os.environ[OUTCOMES_ENV] = str(self._outcomes)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Print how the jobs ended; exit 1 when any failed or was refused."""
         sweep_dir = Path(str(config.hydra.sweep.dir))
         folder = getattr(self, "_outcomes", None)
         if folder is None:

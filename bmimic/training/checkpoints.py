@@ -30,6 +30,7 @@ class UnsafeCheckpointError(CheckpointError):
 
 
 def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
+    """torch.save `obj` to `path` atomically."""
     import torch
 
     return atomic_write(path, lambda tmp: torch.save(obj, tmp))

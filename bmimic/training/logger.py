@@ -122,6 +122,7 @@ class RunLogger:
             self._bar = None
 
     def close(self) -> None:
+        """End the loop's output and close the back-end."""
         self.end()
         if self.writer is not None:
             self.writer.close()
@@ -155,4 +156,5 @@ class _WandbWriter:
         self.run.log({tag: value}, step=step)
 
     def close(self) -> None:
+        """Finish the W&B run."""
         self.run.finish()

@@ -145,6 +145,7 @@ class Trainer:
         return state
 
     def save_checkpoint(self) -> Path:
+        """Write model_<it>.pt and latest.pt (tables first) and their ONNX exports."""
         from bmimic.training.export import export_checkpoint_onnx
 
         it = self.progress.iteration
@@ -215,6 +216,7 @@ class Trainer:
                     rows.append(df)
 
     def flush_tables(self) -> None:
+        """Write the run's tables (rank 0 only)."""
         if not self.is_main:
             return
         if self.train_rows:
@@ -226,6 +228,7 @@ class Trainer:
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict:
+        """Evaluate the current policy (eval.parquet row, logged); returns the summary."""
         policy = self.alg.get_policy()
         was_training = policy.training
         policy.eval()
@@ -360,6 +363,7 @@ class Trainer:
         return row
 
     def close(self) -> None:
+        """Write the tables, release the CUDA graphs, close the logger."""
         self.flush_tables()
         self.alg.release_graphs()  # before destroy_process_group: graphs may hold NCCL calls
         self.logger.close()

@@ -51,9 +51,11 @@ class RunContext:
         self._locks: dict[Path, object] = {}
 
     def holds(self, run_dir: Path) -> bool:
+        """This launch holds the lock of `run_dir`."""
         return Path(run_dir).resolve() in self._locks
 
     def lock(self, run_dir: Path) -> None:
+        """Take `run_dir`'s lock; RunLockedError when another process holds it."""
         f = lock_run(run_dir)
         if f is None:
             raise RunLockedError(f"{run_dir}: is being trained by another process (its {LOCK} is held); "
@@ -61,6 +63,7 @@ class RunContext:
         self._locks[Path(run_dir).resolve()] = f
 
     def release(self, run_dir: Path | None = None) -> None:
+        """Release the lock of `run_dir` (all locks when None)."""
         for key in [k for k in self._locks if run_dir is None or k == Path(run_dir).resolve()]:
             self._locks.pop(key).close()
 
