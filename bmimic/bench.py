@@ -9,22 +9,32 @@ For each env count, in one process on one device:
   (b) collection: environment steps with policy inference, as in a PPO rollout;
   (c) full PPO iterations: collection plus the update;
 plus device memory, the ratios b/a and c/a, and a breakdown of one environment step (physics,
-kinematics, observation, reward and termination terms, sampler update, resets, policy) and the PPO
-update per iteration, each timed in isolation with device synchronisation through the parts' public
-interfaces. Prints a table and writes JSON (--json).
+state, observations, rewards, terminations, sampler, resets, policy) and the PPO update per
+iteration, each timed in isolation with device synchronisation. Prints a table and writes JSON (--json).
+
+Several GPUs, one run: under torchrun, `--multigpu-json PATH` times (c) on every rank (num_envs per
+rank, the slowest rank's iteration time) and merges one row per env count into PATH, a list of
+{gpus, num_envs_per_gpu, env_steps_per_s, scaling}; run it once per GPU count:
+
+    for g in 1 2 4; do torchrun --standalone --nproc_per_node $g -m bmimic.bench --envs 4096 --iters 20 \
+        --multigpu-json docs/bench/$(date +%F)_h200_multigpu.json; done
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import tempfile
 import time
 from importlib.metadata import version
+from pathlib import Path
 
 import torch
+
+from bmimic import BmimicError
 
 
 def _sync(device: str) -> None:
@@ -51,7 +61,18 @@ def _mem_used(device: str) -> float | None:
     return (total - free) / 2**30
 
 
-def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides: list[str]) -> dict:
+def _slowest_rank(seconds: float, device: str) -> float:
+    """Under torchrun, the largest of the ranks' times (a run goes at its slowest rank's pace)."""
+    dist = torch.distributed
+    if not (dist.is_available() and dist.is_initialized()):
+        return seconds
+    t = torch.tensor(seconds, dtype=torch.float64, device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return float(t)
+
+
+def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides: list[str],
+              rank: int = 0) -> dict:
     from hydra import compose, initialize_config_dir
 
     import bmimic.config  # noqa: F401
@@ -63,7 +84,7 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("train", overrides=[f"num_envs={num_envs}", f"device={device}", *overrides])
     resolve_runtime(cfg, device)
-    seed_everything(cfg.seed)
+    seed_everything(cfg.seed + rank)  # distinct worlds per rank, as train.py does
     mem0 = _mem_used(device)
     t0 = time.perf_counter()
     training = build_training(cfg, device)
@@ -79,7 +100,10 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
         out["physics_steps_per_s"] = n / _timeit(env.sim.step, sim_steps, device)
 
     # The trainer builds the algorithm as training does; it never writes (no learn, no checkpoint).
-    alg = build_trainer(training, None, tempfile.mkdtemp(prefix="bmimic-bench-")).alg
+    trainer = build_trainer(training, None, tempfile.mkdtemp(prefix="bmimic-bench-"))
+    alg = trainer.alg
+    if trainer.runner.is_distributed:
+        alg.broadcast_parameters()  # one policy on every rank, as Trainer.learn starts
     obs = env.get_observations()
     state = {"obs": obs}
 
@@ -116,6 +140,7 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
             alg.update()
 
         sec = _timeit(iteration, iters, device, warmup=2)  # the second update captures its graphs
+        sec = _slowest_rank(sec, device)
         out["train_steps_per_s"] = n * steps / sec
         out["iteration_s"] = sec
 
@@ -140,34 +165,37 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
         for k in ("collect_steps_per_s", "train_steps_per_s"):
             if k in out:
                 out[k.replace("_steps_per_s", "_over_physics")] = out[k] / out["physics_steps_per_s"]
+    # Graphs that hold NCCL calls must go before the process group does (pytorch/pytorch#115388).
+    alg.release_graphs()
+    env.close()
     return out
 
 
 def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
     """Milliseconds per environment step spent in each part, each timed alone through its public
-    interface (the term functions of the env's term tables, the sampler, the accounting). `resets`
-    puts every world back on the reference (`reset_to_frames`: reference state, kinematics,
-    observations), the most a step's masked resets can cost."""
+    interface (the state, the observation, reward and termination managers, the sampler and its
+    accounting). `resets` starts a new segment in every world (`start_segments`: sampling, reference
+    state, kinematics), the most a step's masked resets can cost."""
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
+    from bmimic.envs.state import compute_state
+
     acc = env.accounting
     length = env.episode_length_buf
     obs = env.get_observations()
 
-    def terms(table):
-        return lambda: [fn(env, **p) for fn, p in zip(table.funcs, table.params)]
-
     parts = {
         "physics": env.sim.step,
         "kinematics_after_writes": env.sim.forward_kinematics,
-        "observations": lambda: (terms(env.policy_terms)(), terms(env.critic_terms)()),
-        "rewards": terms(env.reward_terms),
-        "terminations": terms(env.termination_terms),
+        "state": lambda: compute_state(env.sim, env.reference, env.bodies, env.time_steps),
+        "observations": lambda: env.observations.compute(env),
+        "rewards": lambda: env.rewards.compute(env),
+        "terminations": lambda: env.terminations.compute(env),
         # Counting every env as finished, plus one sampler update (each step for update_every=step,
         # once per iteration for update_every=iteration).
-        "sampler_update": lambda: env.sampler.update_counts(
+        "sampler_update": lambda: acc.sampler.update_counts(
             *acc.count(ones, zeros, env.time_steps, env.segment_start, zeros, zeros, length)),
-        "resets": lambda: env.reset_to_frames(env.time_steps.clone()),
+        "resets": lambda: env.start_segments(zeros, zeros),
         "policy": lambda: alg.act(obs),
     }
     out = {}
@@ -204,7 +232,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="auto")
     p.add_argument("--only", default="sim,collect,train,breakdown", help="subset of sim,collect,train,breakdown")
     p.add_argument("--json", default=None, help="write the results here")
+    p.add_argument("--multigpu-json", default=None, metavar="PATH",
+                   help="under torchrun: time full PPO iterations on every rank and merge the total env steps/s "
+                        "into PATH (one row per GPU count and env count, scaling against the 1-GPU row)")
     args = p.parse_args(argv)
+    if args.multigpu_json:
+        try:
+            return multigpu(args, overrides)
+        except BmimicError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     from bmimic.runtime import resolve_device
 
     device = resolve_device(args.device)
@@ -219,6 +256,83 @@ def main(argv: list[str] | None = None) -> int:
         from bmimic.run_folder import atomic_write_json
 
         atomic_write_json(args.json, results)
+    return 0
+
+
+MULTIGPU_KEYS = ("gpus", "num_envs_per_gpu", "env_steps_per_s", "scaling")
+
+
+def read_multigpu_rows(path: str | os.PathLike) -> list[dict]:
+    """The rows of a `--multigpu-json` file ([] when it does not exist yet); one line naming the
+    file and the problem when it is not such a list."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    try:
+        rows = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise BmimicError(f"{path}: not readable as JSON ({e})") from None
+    if not isinstance(rows, list):
+        raise BmimicError(f"{path}: expected a list of {{{', '.join(MULTIGPU_KEYS)}}} objects")
+    for i, r in enumerate(rows):
+        ok = (isinstance(r, dict) and set(r) == set(MULTIGPU_KEYS)
+              and all(isinstance(r[k], int) and r[k] >= 1 for k in ("gpus", "num_envs_per_gpu"))
+              and isinstance(r["env_steps_per_s"], (int, float)) and r["env_steps_per_s"] > 0)
+        if not ok:
+            raise BmimicError(f"{path}: row {i} is not an object with keys {', '.join(MULTIGPU_KEYS)} "
+                              "(gpus and num_envs_per_gpu positive integers, env_steps_per_s positive)")
+    return rows
+
+
+def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[dict]:
+    """Merge one measurement's rows into `path` (atomically) and return the file's rows: a row with
+    the same gpus and num_envs_per_gpu is replaced, and every row's scaling is its env steps/s over
+    the 1-GPU row's with the same num_envs_per_gpu (null until that row exists)."""
+    from bmimic.run_folder import atomic_write_json
+
+    rows = {(r["gpus"], r["num_envs_per_gpu"]): r for r in read_multigpu_rows(path)}
+    for r in new_rows:
+        rows[(int(r["gpus"]), int(r["num_envs_per_gpu"]))] = r
+    one_gpu = {n: r["env_steps_per_s"] for (g, n), r in rows.items() if g == 1}
+    out = []
+    for g, n in sorted(rows, key=lambda k: (k[1], k[0])):
+        eps = float(rows[(g, n)]["env_steps_per_s"])
+        out.append({"gpus": g, "num_envs_per_gpu": n, "env_steps_per_s": eps,
+                    "scaling": eps / one_gpu[n] if n in one_gpu else None})
+    atomic_write_json(path, out)
+    return out
+
+
+def multigpu(args: argparse.Namespace, overrides: list[str]) -> int:
+    """`--multigpu-json`: full PPO iterations on every rank of this torchrun, rank 0 merges the rows."""
+    from bmimic.runtime import init_distributed, resolve_device
+
+    path = Path(args.multigpu_json)
+    read_multigpu_rows(path)  # a malformed file stops the run here, before any measurement
+    rank, world = init_distributed()
+    device = resolve_device(args.device)
+    if world > 1 and torch.distributed.get_backend() == "nccl":
+        device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+    rows = []
+    try:
+        for n in [int(x) for x in args.envs.split(",")]:
+            r = bench_one(n, device, args.iters, {"train"}, overrides, rank=rank)
+            # Every rank steps its own n envs; the iteration time is the slowest rank's.
+            rows.append({"gpus": world, "num_envs_per_gpu": n, "env_steps_per_s": world * r["train_steps_per_s"]})
+    finally:
+        if world > 1:
+            # Every rank leaves together: a rank tearing down its group while another is still in
+            # its last collective can abort at exit (seen once in ten CPU runs without it).
+            torch.distributed.barrier()
+            torch.distributed.destroy_process_group()
+    if rank != 0:
+        return 0
+    table = merge_multigpu_rows(path, rows)
+    print("gpus | envs per GPU | env steps/s | scaling")
+    for r in table:
+        scaling = "-" if r["scaling"] is None else f"{r['scaling']:.2f}x"
+        print(f"{r['gpus']} | {r['num_envs_per_gpu']} | {r['env_steps_per_s']:,.0f} | {scaling}")
+    print(f"-> {path}")
     return 0
 
 

@@ -1,7 +1,8 @@
 """The top-level config schema, its registration in Hydra's ConfigStore, and runtime resolution.
 
 Each config group is a YAML file in conf/<group>/ backed by a dataclass schema registered here as
-`<group>/<group>_schema`; the YAML lists it first in its defaults, so a typo or a wrong type fails at
+`<group>/<group>_schema` (the sampler group's: one per sampler kind, `sampler/<kind>_schema`, registered
+with the sampler class, bmimic.sampling.registry); the YAML lists it first in its defaults, so a typo or a wrong type fails at
 composition with Hydra's own message. Meaning (ranges, divisibility, motion length) is checked once
 after composition by `bmimic.config_checks.validate`, which raises `ConfigError` with one line
 naming the key.
@@ -19,7 +20,7 @@ from bmimic import BmimicError
 from bmimic.envs.config import EnvConfig
 from bmimic.motion.config import DataConfig, MotionConfig
 from bmimic.robot.config import RobotConfig
-from bmimic.sampling.config import SamplerConfig
+from bmimic.sampling.config import as_dict
 from bmimic.sim.config import SimConfig
 from bmimic.training.config import EvalConfig, PPOConfig
 
@@ -40,8 +41,9 @@ class TrainConfig:
     """The robot model and its actuators (group `robot`)."""
     motion: MotionConfig = MISSING
     """The reference motion (group `motion`)."""
-    sampler: SamplerConfig = MISSING
-    """How episode start frames are chosen (group `sampler`)."""
+    sampler: Any = MISSING
+    """How episode start frames are chosen (group `sampler`; each variant's schema is its sampler's,
+    bmimic.sampling.registry)."""
     ppo: PPOConfig = MISSING
     """PPO hyperparameters (group `ppo`)."""
     sim: SimConfig = MISSING
@@ -97,7 +99,6 @@ def register_configs() -> None:
     cs.store(name="train_schema", node=TrainConfig)
     cs.store(group="robot", name="robot_schema", node=RobotConfig)
     cs.store(group="motion", name="motion_schema", node=MotionConfig)
-    cs.store(group="sampler", name="sampler_schema", node=SamplerConfig)
     cs.store(group="ppo", name="ppo_schema", node=PPOConfig)
     cs.store(group="sim", name="sim_schema", node=SimConfig)
     cs.store(group="env", name="env_schema", node=EnvConfig)
@@ -149,4 +150,9 @@ def with_schema_defaults(config: dict) -> dict:
         return config
     if "defaults" not in config:  # Hydra's defaults list is not part of a composed config
         filled.pop("defaults", None)
+    if isinstance(filled.get("sampler"), dict):  # its variant's schema (an earlier bmimic's layout too)
+        try:
+            filled["sampler"] = as_dict(filled["sampler"])
+        except BmimicError:
+            pass
     return filled

@@ -9,11 +9,12 @@ from __future__ import annotations
 import math
 
 from bmimic.config import ConfigError, TrainConfig
+from bmimic.envs.config import EnvConfigError, check_env
+from bmimic.sampling.config import sampler_config
 
 
 def _fail(key: str, problem: str) -> None:
     raise ConfigError(f"{key}: {problem}")
-
 
 
 def check_composed(cfg, choices=None) -> None:
@@ -26,7 +27,6 @@ def check_composed(cfg, choices=None) -> None:
     check_resume_allow_changes(cfg)
 
 
-
 def check_known_keys(cfg) -> None:
     """Refuse keys the schema does not have, including ones added with `+`/`++` (Hydra's force-add
     skips the struct check): `+sampler.gama=0.5` must not train a run that looks like an ablation arm.
@@ -36,6 +36,8 @@ def check_known_keys(cfg) -> None:
 
     plain = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
     plain.pop("hydra", None)
+    if isinstance(plain.get("sampler"), dict):
+        sampler_config(plain["sampler"])  # the sampler's keys are its variant's schema's
     try:
         OmegaConf.merge(OmegaConf.structured(TrainConfig), plain)
     except OmegaConfBaseException as e:
@@ -83,7 +85,6 @@ def check_resume_allow_changes(cfg) -> None:
     for name in cfg.resume_allow_changes or []:
         if not any(k == name or k.startswith(f"{name}.") for k in keys):
             _fail("resume_allow_changes", f"{name!r} is not a config key")
-
 
 
 def validate(cfg, motion_duration_s: float | None = None) -> None:
@@ -157,7 +158,6 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
     step_dt = cfg.sim.timestep_s * cfg.sim.decimation
     if cfg.env.episode_length_s < step_dt:
         _fail("env.episode_length_s", f"is shorter than one control step ({step_dt} s)")
-    _validate_ranges(cfg.env)
     if cfg.eval.every_iters < 0:
         _fail("eval.every_iters", f"must be >= 0, got {cfg.eval.every_iters}")
     if cfg.eval.horizon_s <= 0:
@@ -172,7 +172,10 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         _fail("time_limit_s", f"must be > 0 or null, got {cfg.time_limit_s}")
     if cfg.logger not in ("tensorboard", "wandb", "none"):
         _fail("logger", f"must be tensorboard, wandb or none, got {cfg.logger!r}")
-    _validate_terms(cfg.env)
+    try:
+        check_env(cfg.env)
+    except EnvConfigError as e:
+        raise ConfigError(str(e)) from None
     if motion_duration_s is not None:
         if not math.isfinite(motion_duration_s) or motion_duration_s <= 0:
             _fail("motion", f"has no duration ({motion_duration_s} s)")
@@ -183,56 +186,3 @@ _ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "sof
                 "identity")
 """rsl-rl-lib 5.5's activation names (rsl_rl.utils.resolve_nn_activation)."""
 
-
-def _validate_ranges(env_cfg) -> None:
-    """Lengths and signs of the reset noise and randomisation ranges (a short list would index out of
-    range deep in the step; a negative half-width is a typo)."""
-    r, rand = env_cfg.reset, env_cfg.randomization
-    for key in ("root_pos_range_m", "root_rot_range_rad", "root_lin_vel_range_mps", "root_ang_vel_range_radps"):
-        _check_half_widths(f"env.reset.{key}", getattr(r, key), 3)
-    _check_half_widths("env.reset.joint_pos_range_rad", [r.joint_pos_range_rad], 1)
-    for key in ("torso_com_offset_m", "push_lin_vel_mps", "push_ang_vel_radps"):
-        _check_half_widths(f"env.randomization.{key}", getattr(rand, key), 3)
-    _check_half_widths("env.randomization.default_joint_offset_rad", [rand.default_joint_offset_rad], 1)
-    for key, low_ok in (("friction_range", lambda lo: lo > 0), ("push_interval_s", lambda lo: lo > 0)):
-        value = list(getattr(rand, key))
-        if len(value) != 2 or not low_ok(value[0]) or value[0] > value[1]:
-            _fail(f"env.randomization.{key}", f"must be [low, high] with 0 < low <= high, got {value}")
-
-
-def _check_half_widths(key: str, value, length: int) -> None:
-    value = list(value)
-    if len(value) != length or any(v < 0 for v in value):
-        what = f"{length} half-widths" if length > 1 else "a half-width"
-        _fail(key, f"must be {what} >= 0, got {value if length > 1 else value[0]}")
-
-
-def foreign_term_modules(env_cfg) -> list[str]:
-    """Modules outside bmimic that the env terms name (`func: package.module:function`): importing
-    them runs their code, so a run folder from elsewhere must be trusted before they are loaded."""
-    found = set()
-    for group in ("policy_observations", "critic_observations", "rewards", "terminations"):
-        for term in (env_cfg[group] or {}).values():
-            module = str(term.func).split(":", 1)[0] if ":" in str(term.func) else ""
-            if module and module != "bmimic" and not module.startswith("bmimic."):
-                found.add(module)
-    return sorted(found)
-
-
-def _validate_terms(env_cfg) -> None:
-    from bmimic.envs.mdp import resolve_term
-
-    groups = {
-        "env.policy_observations": ("observations", env_cfg.policy_observations),
-        "env.critic_observations": ("observations", env_cfg.critic_observations),
-        "env.rewards": ("rewards", env_cfg.rewards),
-        "env.terminations": ("terminations", env_cfg.terminations),
-    }
-    for prefix, (kind, terms) in groups.items():
-        for name, term in terms.items():
-            try:
-                resolve_term(kind, term.func)
-            except LookupError as e:
-                _fail(f"{prefix}.{name}.func", str(e))
-    if not env_cfg.policy_observations:
-        _fail("env.policy_observations", "is empty; the policy needs at least one observation term")

@@ -58,10 +58,7 @@ def frame_steps(seconds: float, fps: float, step_dt: float) -> list[int]:
 
 def reference_qpos(env, world: int = 0) -> np.ndarray:
     """qpos of the reference at `world`'s current frame (free joint then hinges, as the model's qpos)."""
-    import torch
-
-    f = env.time_steps[world]
-    return torch.cat((env.m_root_pos[f], env.m_root_quat[f], env.m_joint_pos[f])).double().cpu().numpy()
+    return env.reference.qpos(env.time_steps[world]).double().cpu().numpy()
 
 
 def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequence[int], ghost: bool = True,
@@ -76,7 +73,7 @@ def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequ
     from bmimic.render import annotate
 
     first = torch.tensor([start_frame], device=env.device)
-    motion = env.motion
+    motion = env.reference.motion
     images, falls = [], []
     step = 0
     with torch.inference_mode():  # the whole rollout: env tensors rebound inside stay inference tensors

@@ -36,6 +36,12 @@ class Task:
     layout: Any
     """The bin layout of `cfg.sampler.bins` over the motion."""
 
+    def reference(self):
+        """The motion as the environment's device tensors (bmimic.motion.ReferenceMotion)."""
+        from bmimic.motion.reference import ReferenceMotion
+
+        return ReferenceMotion.for_robot(self.motion, self.robot, self.device)
+
 
 @dataclass
 class Training:
@@ -64,15 +70,20 @@ def build_task(cfg, device: str) -> Task:
 
 
 def build_training(cfg, device: str, task: Task | None = None) -> Training:
-    """The sampler and the training environment (`task`: build_task's result, when the caller has it)."""
+    """The sampler, its episode accounting and the training environment (`task`: build_task's result,
+    when the caller has it)."""
+    from bmimic.envs.config import episode_length_steps
     from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.sampling.accounting import EpisodeAccounting
     from bmimic.sampling.config import make_sampler
 
     task = task if task is not None else build_task(cfg, device)
     check_num_envs_fit(cfg, task.mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
     sampler = make_sampler(cfg.sampler, task.layout.num_bins, device)
-    env = TrackingEnv(cfg.env, cfg.sim, task.mjm, task.robot, task.motion, task.layout, cfg.num_envs, device,
-                      sampler=sampler, sampler_cfg=cfg.sampler, mode="train")
+    accounting = EpisodeAccounting.from_config(cfg.sampler.accounting, sampler, task.layout, cfg.num_envs,
+                                               episode_length_steps(cfg.env, cfg.sim), device=device)
+    env = TrackingEnv(cfg.env, cfg.sim, task.mjm, task.robot, task.reference(), cfg.num_envs, device,
+                      accounting=accounting)
     return Training(task, sampler, env)
 
 
@@ -88,7 +99,8 @@ def build_evaluator(task: Task, robust: bool = False):
     n = max(1, min(total, cfg.eval.max_envs))
     mjm = load_mjmodel(cfg=cfg.robot)
     check_num_envs_fit(cfg, mjm, device, n, 0)
-    env = TrackingEnv(cfg.env, cfg.sim, mjm, task.robot, task.motion, layout, n, device, mode="eval", robust=robust)
+    env = TrackingEnv(cfg.env, cfg.sim, mjm, task.robot, task.reference(), n, device, mode="eval", robust=robust,
+                      layout=layout)
     return Evaluator(env, layout, task.motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s,
                      max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
 

@@ -87,7 +87,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     env, layout = training.env, task.layout
     for line in describe_sampler(cfg.sampler, layout, training.sampler):
         log.info("%s", line)
-    evaluator = build_evaluator(task)
+    evaluator = build_evaluator(task) if main_rank else None  # rank 0 evaluates
     run_dir = plan.run_dir
     with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
         trainer = build_trainer(training, evaluator, run_dir, is_main_rank=main_rank, run_config=resolved)
@@ -98,7 +98,12 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     try:
         trainer.learn()
         final = trainer.progress.last_eval
-        if not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
+        # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
+        # their graphs and leave the process group meanwhile, and return NaN.
+        if not main_rank:
+            final = dict.fromkeys(("eval_failure_rate", "eval_success_rate", "eval_mpkpe_mm",
+                                   "eval_bins_mastered_frac"), math.nan)
+        elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
             final = trainer.evaluate()
         robust = trainer.evaluate_robust(build_evaluator(task, robust=True)) if (
             cfg.eval.robust and main_rank) else {}
@@ -126,6 +131,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         **trainer.total_resets,
     }
     if not main_rank:
+        log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
+                 rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate, run_dir)
         return float(metrics["final_eval_failure_rate"])
     write_metrics(run_dir, metrics)
     write_status(run_dir, "done", trainer.progress.iteration)

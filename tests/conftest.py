@@ -76,6 +76,13 @@ def train_in_process(run_dir: Path, *overrides: str, cwd: Path | None = None) ->
     if code != 0:
         pytest.fail(f"bmimic.train {' '.join(overrides)} exited {code}:\n{out[-3000:]}")
     return run_dir
+def free_port() -> int:
+    """A TCP port on localhost that nothing listens on now (for a process group's rendezvous)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def cli_env() -> dict:

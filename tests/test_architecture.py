@@ -36,14 +36,6 @@ CONSTRUCTED_ONLY_BY_THE_ROOT = ("TrackingEnv", "Evaluator", "Trainer")
 """(Samplers are built by the sampling package's factory, which task.py calls for runs; the sampling
 benchmark, which runs samplers without an environment, calls it too.)"""
 
-PENDING_SPLIT = {
-    "bmimic.envs.tracking_env", "bmimic.motion.motion", "bmimic.motion.builtin", "bmimic.robot.g1",
-    "bmimic.sampling.samplers",
-}
-"""Modules over the limit that the simulation-side branch of issue 19 (redesign-core) splits; the
-line test fails for any other module, and for a listed one once it fits (so the list cannot go stale)."""
-
-
 @dataclass
 class Module:
     name: str
@@ -211,5 +203,4 @@ def test_run_folder_and_analysis_are_torch_free(module):
 
 def test_no_module_over_400_lines():
     over = {name: m.lines for name, m in MODULES.items() if m.lines > MAX_LINES}
-    assert sorted(set(over) - PENDING_SPLIT) == [], over
-    assert sorted(PENDING_SPLIT - set(over)) == [], "split already: remove from PENDING_SPLIT"
+    assert over == {}

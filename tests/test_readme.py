@@ -74,6 +74,17 @@ def test_readme_train_examples_compose(line):
     assert cfg.sampler.name in ("uniform", "adaptive", "beyondmimic")
 
 
+# torchrun (one node or several) and the SLURM script: the overrides after the program.
+MULTI_GPU_EXAMPLES = [re.split(r" -m bmimic\.train | sweeps/slurm_multinode\.sh ", line, maxsplit=1)[1]
+                      for line in code_lines() if line.startswith(("torchrun ", "sbatch "))]
+
+
+def test_readme_multi_gpu_examples_compose():
+    assert len(MULTI_GPU_EXAMPLES) >= 3 and (REPO / "sweeps" / "slurm_multinode.sh").exists()
+    for overrides in MULTI_GPU_EXAMPLES:
+        compose([a for a in shlex.split(overrides) if not a.startswith("hydra")])
+
+
 @pytest.mark.slow
 def test_readme_main_command_runs_on_cpu(tmp_path):
     """The README's first command, exactly, as a smoke-scale run (it says so when it starts)."""

@@ -106,7 +106,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     A run folder may come from someone else: a config whose terms import modules outside bmimic
     (`func: package.module:function`) is refused unless `trust` (--trust-checkpoint)."""
     from bmimic.config import resolve_runtime
-    from bmimic.config_checks import foreign_term_modules
+    from bmimic.envs.config import foreign_term_modules
     from bmimic.runtime import resolve_device
     from bmimic.task import build_task
 

@@ -6,7 +6,7 @@ The CSV has no header and one row per frame: root position xyz (m), root quatern
 then the 29 joint angles (rad) in the order of `CSV_JOINT_NAMES`. The output is resampled to
 `fps_out` (times 0, 1/fps_out, ... < (N-1)/fps_in; positions and joints interpolated linearly, the
 root orientation by slerp), velocities come from finite differences and body states from forward
-kinematics of the project's G1 model (`bmimic.motion.motion.kinematic_motion`).
+kinematics of the project's G1 model (`bmimic.motion.kinematics.kinematic_motion`).
 """
 
 from __future__ import annotations
@@ -20,14 +20,11 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
+from bmimic.motion.kinematics import kinematic_motion
 from bmimic.motion.math import output_times, quat_slerp
-from bmimic.motion.motion import (
-    Motion,
-    MotionDataError,
-    Segment,
-    find_joint_limit_violation,
-    kinematic_motion,
-)
+from bmimic.motion.model import find_joint_limit_violation
+from bmimic.motion.motion import Motion
+from bmimic.motion.segments import MotionDataError, Segment
 
 CSV_JOINT_NAMES = (
     "left_hip_pitch_joint",

@@ -15,7 +15,8 @@ import mujoco
 import numpy as np
 
 from bmimic.motion.math import quat_conjugate, quat_mul, quat_to_axis_angle
-from bmimic.motion.motion import MotionDataError, free_joint_qposadr, joint_addresses
+from bmimic.motion.model import free_joint_qposadr, joint_addresses
+from bmimic.motion.segments import MotionDataError
 
 # Rows of the task error vector, in order.
 TASK_SLICES = {

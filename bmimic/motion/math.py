@@ -1,5 +1,5 @@
-"""Vectorised quaternion helpers in numpy (w, x, y, z order, Hamilton product), and the output times of
-resampling a motion (`output_times`, shared by the CSV converter and `Motion.resample`).
+"""Vectorised quaternion helpers in numpy (w, x, y, z order, Hamilton product), and the time grid
+of a resampled motion (`output_times`).
 
 Every function broadcasts over leading dimensions; the last axis is the quaternion (4) or vector (3).
 """

@@ -1,12 +1,16 @@
-"""Adaptive motion sampling: bins of a motion, the samplers that pick start bins, and the
-bookkeeping that turns finished episodes into per-bin counts.
+"""Adaptive motion sampling: bins of a motion, the samplers that pick start bins (a registry of
+classes, each with its config schema), and the episode accounting that turns finished episodes into
+per-bin counts.
 
-See :mod:`bmimic.sampling.samplers` for the formulas, :mod:`bmimic.sampling.bins` for the bin
-layouts, :mod:`bmimic.sampling.accounting` for episode attribution and update timing,
-:mod:`bmimic.sampling.config` for the options and the named variants.
+See :mod:`bmimic.sampling.samplers` for the formulas, :mod:`bmimic.sampling.registry` for how a
+sampler is registered, :mod:`bmimic.sampling.bins` for the bin layouts,
+:mod:`bmimic.sampling.accounting` for episode attribution and update timing,
+:mod:`bmimic.sampling.config` for the options and the named variants. Importing the package
+registers the built-in samplers.
 """
 
-from bmimic.sampling.accounting import EpisodeAccounting
+from bmimic.sampling.accounting import AccountingConfig, EpisodeAccounting
+from bmimic.sampling.base import BinSampler, bin_counts
 from bmimic.sampling.bins import (
     BinLayout,
     ReleasedBinLayout,
@@ -18,29 +22,44 @@ from bmimic.sampling.bins import (
     num_bins,
     visits_histogram,
 )
+from bmimic.sampling.checks import SamplerConfigError
 from bmimic.sampling.config import (
-    SAMPLER_NAMES,
     SamplerConfig,
-    SamplerConfigError,
     layout_for,
     load_variant,
     make_sampler,
+    sampler_config,
     validate_sampler_config,
+    variant_names,
 )
 from bmimic.sampling.diagnostics import bin_table, sampling_entropy, summary
-from bmimic.sampling.samplers import AdaptiveSampler, BeyondMimicSampler, UniformSampler
+from bmimic.sampling.registry import SAMPLERS, register_sampler
+from bmimic.sampling.samplers import (
+    AdaptiveConfig,
+    AdaptiveSampler,
+    BeyondMimicConfig,
+    BeyondMimicSampler,
+    UniformConfig,
+    UniformSampler,
+)
 
 __all__ = [
-    "SAMPLER_NAMES",
+    "SAMPLERS",
+    "AccountingConfig",
+    "AdaptiveConfig",
     "AdaptiveSampler",
+    "BeyondMimicConfig",
     "BeyondMimicSampler",
     "BinLayout",
+    "BinSampler",
     "EpisodeAccounting",
     "ReleasedBinLayout",
     "SamplerConfig",
     "SamplerConfigError",
+    "UniformConfig",
     "UniformSampler",
     "attribute",
+    "bin_counts",
     "bin_edges_s",
     "bin_table",
     "bins_of_time",
@@ -50,8 +69,11 @@ __all__ = [
     "make_layout",
     "make_sampler",
     "num_bins",
+    "register_sampler",
+    "sampler_config",
     "sampling_entropy",
     "summary",
     "validate_sampler_config",
+    "variant_names",
     "visits_histogram",
 ]

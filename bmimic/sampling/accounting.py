@@ -37,15 +37,45 @@ clears) the counts the sampler was fed during the iteration, summed, for the dia
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
+from bmimic.sampling.base import bin_counts
 from bmimic.sampling.bins import Layout, attribute, check_attribution, check_failure, failed_mask
-from bmimic.sampling.samplers import bin_counts, check_choice
+from bmimic.sampling.checks import check_choice
 
 UPDATE_EVERY = ("iteration", "step")
+
+
+@dataclass
+class AccountingConfig:
+    """`sampler.accounting`: which bin a finished episode counts for, what counts as a failure and
+    when the sampler sees the counts. Every sampler variant has it (the uniform one too: its per-bin
+    counts are the diagnostics); the defaults are the design's."""
+
+    attribution: str = "start"
+    """Which bin a finished episode counts for: "start" = the bin it started in (kept through
+    clip-end resamples); "failure" = every bin its reference segment passed through counts a visit
+    and a failure counts in the bin where it ended (rate = failures per visit)."""
+    failure: str = "short"
+    """What counts as a failed episode: "short" = ended by a termination before failure_threshold x
+    the max episode length; "terminated" = any termination (time-outs never fail)."""
+    failure_threshold: float = 0.8
+    """For failure="short": fraction of the max episode length below which a termination is a
+    failure, in (0, 1]."""
+    update_every: str = "iteration"
+    """"iteration": one sampler update per PPO iteration, after the rollout, from every episode that
+    finished during it; "step": one update per control step (the released code)."""
+
+
+def check_accounting(cfg: Any) -> None:
+    """Range checks of `sampler.accounting` (an AccountingConfig or its node)."""
+    check_attribution(cfg.attribution)
+    check_failure(cfg.failure, cfg.failure_threshold)
+    check_choice("accounting.update_every", cfg.update_every, UPDATE_EVERY)
 
 
 class EpisodeAccounting:
@@ -62,11 +92,9 @@ class EpisodeAccounting:
         failure_threshold: float = 0.8,
         update_every: str = "iteration",
         device: Any = "cpu",
-        world_size: int = 1,
+        world_size: int | None = None,
     ) -> None:
-        check_attribution(attribution)
-        check_failure(failure, failure_threshold)
-        check_choice("update_every", update_every, UPDATE_EVERY)
+        check_accounting(AccountingConfig(attribution, failure, failure_threshold, update_every))
         self.sampler = sampler
         self.layout = layout
         self.max_episode_length = int(max_episode_length)
@@ -74,6 +102,9 @@ class EpisodeAccounting:
         self.failure = failure
         self.failure_threshold = float(failure_threshold)
         self.update_every = update_every
+        if world_size is None:  # under torchrun: every rank's sampler sees every rank's episodes
+            dist = torch.distributed
+            world_size = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
         self.world_size = int(world_size)
         dev = torch.device(device)
         s = layout.num_bins
@@ -83,8 +114,9 @@ class EpisodeAccounting:
         self._iteration = torch.zeros(2, s, dtype=torch.float64, device=dev)
 
     @classmethod
-    def from_config(cls, cfg: Any, sampler: Any, layout: Layout, num_envs: int, max_episode_length: int,
-                    device: Any = "cpu", world_size: int = 1) -> "EpisodeAccounting":
+    def from_config(cls, cfg: AccountingConfig, sampler: Any, layout: Layout, num_envs: int, max_episode_length: int,
+                    device: Any = "cpu", world_size: int | None = None) -> "EpisodeAccounting":
+        """The accounting `cfg` (`sampler.accounting`) describes, for `num_envs` envs."""
         return cls(sampler, layout, num_envs, max_episode_length, attribution=cfg.attribution, failure=cfg.failure,
                    failure_threshold=cfg.failure_threshold, update_every=cfg.update_every, device=device,
                    world_size=world_size)
@@ -163,4 +195,4 @@ class EpisodeAccounting:
         self._iteration.zero_()
 
 
-__all__ = ["UPDATE_EVERY", "EpisodeAccounting"]
+__all__ = ["UPDATE_EVERY", "AccountingConfig", "EpisodeAccounting", "check_accounting"]

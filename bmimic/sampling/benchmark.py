@@ -32,7 +32,7 @@ from typing import Any, Callable
 import torch
 
 from bmimic.sampling.accounting import EpisodeAccounting
-from bmimic.sampling.config import SAMPLER_NAMES, layout_for, load_variant, make_sampler
+from bmimic.sampling.config import layout_for, load_variant, make_sampler, variant_names
 
 FPS = 50.0
 MAX_EPISODE_LENGTH = 500  # 10 s at 50 Hz, BeyondMimic's
@@ -82,10 +82,10 @@ def bench_sampler(
     dev = torch.device(device)
     cfg = load_variant(sampler)
     if update_every is not None:
-        cfg.update_every = update_every
+        cfg.accounting.update_every = update_every
     layout = layout_for(cfg, _frames_for(cfg.bins, num_bins), FPS, device=dev)
     s = make_sampler(cfg, layout.num_bins, dev)
-    acc = EpisodeAccounting.from_config(cfg, s, layout, num_envs, MAX_EPISODE_LENGTH, device=dev)
+    acc = EpisodeAccounting.from_config(cfg.accounting, s, layout, num_envs, MAX_EPISODE_LENGTH, device=dev)
     gen = torch.Generator(device=dev).manual_seed(seed)
     n = layout.num_frames
     dones = torch.rand(num_envs, generator=gen, device=dev) < 1.0 / FPS
@@ -117,7 +117,7 @@ def bench_sampler(
 
     result: dict[str, Any] = {
         "sampler": sampler,
-        "update_every": cfg.update_every,
+        "update_every": cfg.accounting.update_every,
         "device": str(dev),
         "num_envs": num_envs,
         "num_bins": layout.num_bins,
@@ -144,9 +144,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--num-bins", type=int, default=10000)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--iters", type=int, default=1000)
-    parser.add_argument("--sampler", default="adaptive", choices=list(SAMPLER_NAMES))
+    parser.add_argument("--sampler", default="adaptive", choices=list(variant_names()))
     parser.add_argument("--update-every", default=None, choices=["step", "iteration"],
-                        help="override the variant's sampler.update_every")
+                        help="override the variant's sampler.accounting.update_every")
     parser.add_argument("--steps-per-iteration", type=int, default=24)
     args = parser.parse_args(argv)
     r = bench_sampler(args.num_envs, args.num_bins, args.device, args.iters, args.sampler,

@@ -60,14 +60,8 @@ from typing import Any
 
 import torch
 
-from bmimic.sampling.samplers import (
-    SamplerConfigError,
-    bin_counts,
-    check_choice,
-    check_fraction,
-    fail,
-    is_number,
-)
+from bmimic.sampling.base import bin_counts
+from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, fail, is_number
 
 ATTRIBUTIONS = ("failure", "start")
 FAILURES = ("terminated", "short")
@@ -83,12 +77,12 @@ def check_bin_size(bin_size_seconds: Any, motion_duration_s: float | None = None
 
 
 def check_attribution(attribution: Any) -> None:
-    check_choice("attribution", attribution, ATTRIBUTIONS)
+    check_choice("accounting.attribution", attribution, ATTRIBUTIONS)
 
 
 def check_failure(failure: Any, failure_threshold: Any) -> None:
-    check_choice("failure", failure, FAILURES)
-    check_fraction("failure_threshold", failure_threshold)
+    check_choice("accounting.failure", failure, FAILURES)
+    check_fraction("accounting.failure_threshold", failure_threshold)
 
 _SNAP_RTOL = 1e-9
 

@@ -1,158 +1,131 @@
-"""Sampler options (the Hydra group ``sampler``), their validation, and the factories.
+"""The `sampler` config group: the keys every sampler variant has, the variants, their validation
+and the factories.
 
-Each YAML under ``conf/sampler/`` is a named variant; its ``name`` equals its file name and decides
-the sampler class (:data:`SAMPLER_CLASSES`). Every variant sets every field of
-:class:`SamplerConfig`, so any design choice can be overridden on any variant, one at a time
-(``sampler=adaptive sampler.attribution=failure``). Fields a variant does not use are still
-validated, so a sweep never silently carries a nonsensical value.
+Each YAML under ``conf/sampler/`` is a named variant (``name`` = its file name) of a registered
+sampler class: it lists that class's schema first in its defaults (``<kind>_schema``,
+:mod:`bmimic.sampling.registry`) and sets only the keys that schema has:
+
+- the keys of every variant (:class:`SamplerConfig`): ``name``, ``kind`` (the class; the schema's
+  default), ``enabled``, the bin layout ``bins`` and ``bin_size_seconds``, ``accounting`` (the
+  episode accounting, :class:`bmimic.sampling.accounting.AccountingConfig`: ``attribution``,
+  ``failure``, ``failure_threshold``, ``update_every``) and ``log_every`` (the trainer's);
+- the sampler's own parameters (its schema, beside its class in :mod:`bmimic.sampling.samplers`).
 
 =================  ==================  ========================================================
-variant (name)     class               what it is
+variant (name)     class (kind)        what it is
 =================  ==================  ========================================================
-adaptive           AdaptiveSampler     the design (the schema defaults below)
-adaptive_hybrid    AdaptiveSampler     the earlier ``adaptive``: the design's formulas with the
+adaptive           adaptive            the design (the schema defaults)
+adaptive_hybrid    adaptive            the earlier ``adaptive``: the design's formulas with the
                                        released code's bookkeeping (results in docs/results)
-beyondmimic        BeyondMimicSampler  the released code, its bins included
-uniform            UniformSampler      uniform start bins (the baseline)
+beyondmimic        beyondmimic         the released code, its bins and accounting included
+uniform            uniform             uniform start bins (the baseline)
 =================  ==================  ========================================================
-
-Which fields each part reads:
-
-- the sampler class: ``gamma, K, empty_bins`` and ``lambda_uniform, alpha_smooth`` (adaptive) or
-  ``alpha, uniform_ratio`` (beyondmimic); the uniform sampler reads none;
-- the bin layout (:func:`bmimic.sampling.bins.make_layout`): ``bins`` and, for time bins,
-  ``bin_size_seconds``;
-- the episode accounting (:class:`bmimic.sampling.accounting.EpisodeAccounting`): ``attribution,
-  failure, failure_threshold, update_every`` (for every sampler, uniform included, since the
-  per-bin counts are also the diagnostics);
-- the trainer: ``log_every``.
 
 ``enabled: false`` draws start bins uniformly whatever the variant (the design's switch back to
 uniform sampling); the run then equals ``sampler=uniform`` except for the recorded name.
+
+Run folders of earlier bmimic versions hold every key of every sampler at the top of ``sampler``
+(``sampler.attribution``, ``sampler.alpha`` under ``adaptive``...); :func:`sampler_config` reads them
+into today's layout, so they can still be evaluated and resumed.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Optional
 
-from bmimic.sampling.accounting import UPDATE_EVERY
-from bmimic.sampling.bins import (
-    LAYOUTS,
-    Layout,
-    check_attribution,
-    check_bin_size,
-    check_failure,
-    make_layout,
-)
-from bmimic.sampling.samplers import (
-    AdaptiveSampler,
-    BeyondMimicSampler,
-    SamplerConfigError,
-    UniformSampler,
-    check_choice,
-    fail,
-)
-
-SAMPLER_CLASSES = {
-    "adaptive": AdaptiveSampler,
-    "adaptive_hybrid": AdaptiveSampler,
-    "beyondmimic": BeyondMimicSampler,
-    "uniform": UniformSampler,
-}
-"""Variant name (= YAML file name) -> sampler class."""
-SAMPLER_NAMES = tuple(SAMPLER_CLASSES)
+from bmimic.sampling.accounting import AccountingConfig, check_accounting
+from bmimic.sampling.bins import LAYOUTS, Layout, check_bin_size, make_layout
+from bmimic.sampling.checks import SamplerConfigError, check_choice, fail
+from bmimic.sampling.registry import SAMPLERS, sampler_entry
 
 
 @dataclass
 class SamplerConfig:
-    """The schema of ``conf/sampler/*.yaml``; its defaults are the design (``sampler=adaptive``)."""
+    """The keys every variant of ``conf/sampler/`` has; each sampler's schema subclasses it."""
 
-    name: str = "adaptive"
-    """The variant: adaptive (the design), adaptive_hybrid, beyondmimic (released code) or uniform;
-    equals the YAML's file name and decides the sampler class."""
-
+    name: str = ""
+    """The variant: equals the YAML's file name (adaptive, adaptive_hybrid, beyondmimic, uniform)."""
+    kind: str = ""
+    """The registered sampler class the variant configures (its schema's default; not set in a YAML)."""
     enabled: bool = True
     """false: draw start bins uniformly (the design's switch back to uniform sampling)."""
-
     bins: str = "time"
     """Bin layout: "time" = bins of bin_size_seconds; "released" = the released code's
     B = T // 50 + 1 bins over T frames at 50 Hz (bin_size_seconds does not apply)."""
-
     bin_size_seconds: Optional[float] = 1.0
     """Time bins: length of one bin of the reference motion in seconds (the last may be shorter);
     null with bins=released."""
-
-    gamma: float = 0.9
-    """Decay of the look-ahead kernel gamma^u, u = 0..K-1, in (0, 1]."""
-
-    lambda_uniform: float = 0.1
-    """Adaptive sampler: share of probability mass spread uniformly, in [0, 1]; P_s >= lambda_uniform/S."""
-
-    K: int = 5
-    """Length of the look-ahead kernel in bins (1 = no smoothing across bins)."""
-
-    alpha_smooth: float = 0.1
-    """Adaptive sampler: EMA weight of a new failure-rate observation, in (0, 1]."""
-
-    empty_bins: str = "decay"
-    """"decay": every update moves every bin (a bin without finished episodes decays towards 0, the
-    design's formula); "hold": bins without finished episodes keep their value."""
-
-    alpha: float = 0.001
-    """BeyondMimic sampler: EMA weight of each update's failure histogram, in (0, 1]."""
-
-    uniform_ratio: float = 0.1
-    """BeyondMimic sampler: uniform_ratio/S is added to the EMA counts before smoothing (> 0)."""
-
-    attribution: str = "start"
-    """Which bin a finished episode counts for: "start" = the bin it started in (kept through
-    clip-end resamples); "failure" = every bin its reference segment passed through counts a visit
-    and a failure counts in the bin where it ended (rate = failures per visit)."""
-
-    failure: str = "short"
-    """What counts as a failed episode: "short" = ended by a termination before failure_threshold x
-    the max episode length; "terminated" = any termination (time-outs never fail)."""
-
-    failure_threshold: float = 0.8
-    """For failure="short": fraction of the max episode length below which a termination is a
-    failure, in (0, 1]."""
-
-    update_every: str = "iteration"
-    """"iteration": one sampler update per PPO iteration, after the rollout, from every episode that
-    finished during it; "step": one update per control step (the released code)."""
-
+    accounting: AccountingConfig = field(default_factory=AccountingConfig)
+    """The episode accounting: attribution, failure rule and update timing (sampler.accounting.*)."""
     log_every: Optional[int] = None
     """sampler.parquet gets one row per bin every this many iterations and at the last one; null:
     1, or thinned to stay under about a million rows when there are more than 1,000 bins."""
 
 
+_LEGACY_KINDS = {"adaptive": "adaptive", "adaptive_hybrid": "adaptive", "beyondmimic": "beyondmimic",
+                 "uniform": "uniform"}
+"""The variants of bmimic before the registry, whose run folders have no `kind`."""
+
+
+def _upgrade(plain: dict) -> dict:
+    """A sampler node of an earlier bmimic (every key flat, no `kind`) in today's layout."""
+    if "kind" in plain or "accounting" in plain or plain.get("name") not in _LEGACY_KINDS:
+        return plain
+    kind = _LEGACY_KINDS[plain["name"]]
+    keep = {f.name for f in fields(sampler_entry(kind).config)}
+    accounting = {k: plain[k] for k in (f.name for f in fields(AccountingConfig)) if k in plain}
+    return {**{k: v for k, v in plain.items() if k in keep}, "kind": kind, "accounting": accounting}
+
+
+def sampler_config(cfg: Any) -> SamplerConfig:
+    """`cfg` (a SamplerConfig, the composed node, or a plain dict such as a run folder's, also one of
+    an earlier bmimic) as an instance of its kind's schema. SamplerConfigError names a key the
+    schema does not have."""
+    if isinstance(cfg, SamplerConfig):
+        return cfg
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(cfg, DictConfig) and isinstance(OmegaConf.get_type(cfg), type) and \
+            issubclass(OmegaConf.get_type(cfg), SamplerConfig):
+        return OmegaConf.to_object(cfg)
+    plain = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    plain = _upgrade(plain)
+    kind = plain.get("kind")
+    try:
+        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(sampler_entry(kind).config), plain))
+    except OmegaConfBaseException as e:
+        key = getattr(e, "full_key", "") or "?"
+        raise SamplerConfigError(f"sampler.{key}: does not fit the {kind} sampler's schema "
+                                 f"({str(e).splitlines()[0]})") from None
+
+
 def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) -> None:
-    """Check every field of a sampler config (a :class:`SamplerConfig` or the composed Hydra node).
+    """Check every key of a sampler config (a :class:`SamplerConfig`, the composed node or a dict).
 
     Raises :class:`SamplerConfigError` with a one-line message naming the first bad key.
     """
-    check_choice("name", cfg.name, SAMPLER_NAMES)
+    cfg = sampler_config(cfg)
+    if not (isinstance(cfg.name, str) and cfg.name):
+        fail("name", "the variant's name (its file name in conf/sampler/)", cfg.name)
     if not isinstance(cfg.enabled, bool):
         fail("enabled", "true or false", cfg.enabled)
     check_choice("bins", cfg.bins, LAYOUTS)
     if cfg.bins == "time" or cfg.bin_size_seconds is not None:
         check_bin_size(cfg.bin_size_seconds, motion_duration_s if cfg.bins == "time" else None)
-    for cls in dict.fromkeys(SAMPLER_CLASSES.values()):
-        cls.check_config(cfg)
-    check_attribution(cfg.attribution)
-    check_failure(cfg.failure, cfg.failure_threshold)
-    check_choice("update_every", cfg.update_every, UPDATE_EVERY)
+    sampler_entry(cfg.kind).cls.check_config(cfg)
+    check_accounting(cfg.accounting)
     if cfg.log_every is not None and not (isinstance(cfg.log_every, int) and not isinstance(cfg.log_every, bool)
                                           and cfg.log_every >= 1):
         fail("log_every", "an integer >= 1 or null", cfg.log_every)
 
 
 def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu"):
-    """Build the sampler of variant ``cfg.name`` over ``num_bins`` bins on ``device`` (uniform
-    when ``cfg.enabled`` is false)."""
-    check_choice("name", cfg.name, SAMPLER_NAMES)
-    cls = SAMPLER_CLASSES[cfg.name] if getattr(cfg, "enabled", True) is not False else UniformSampler
+    """Build the sampler ``cfg`` configures over ``num_bins`` bins on ``device`` (uniform when
+    ``cfg.enabled`` is false)."""
+    cfg = sampler_config(cfg)
+    cls = sampler_entry(cfg.kind).cls if cfg.enabled is not False else sampler_entry("uniform").cls
     return cls.from_config(cfg, num_bins, device)
 
 
@@ -169,17 +142,18 @@ def min_motion_bin_s(cfg: Any) -> float:
 
 def describe(cfg: Any, layout: Layout, sampler: Any) -> list[str]:
     """The lines the run's log gets: the variant and every sampler value in force."""
+    cfg = sampler_config(cfg)
+    acc = cfg.accounting
     lines = []
-    name = cfg.name
     if cfg.enabled is False:
-        lines.append(f"sampler {name}: sampler.enabled=false, so start bins are drawn uniformly "
+        lines.append(f"sampler {cfg.name}: sampler.enabled=false, so start bins are drawn uniformly "
                      "(as sampler=uniform; the values below only shape the per-bin diagnostics)")
     hp = " ".join(f"{k}={v}" for k, v in sampler.hparams().items())
     lines.append(
-        f"sampler {name} ({type(sampler).__name__}): {layout.describe()}; {hp + '; ' if hp else ''}"
-        f"attribution={cfg.attribution} failure={cfg.failure}"
-        f"{f' failure_threshold={cfg.failure_threshold:g}' if cfg.failure == 'short' else ''} "
-        f"update_every={cfg.update_every} log_every={'null' if cfg.log_every is None else cfg.log_every}"
+        f"sampler {cfg.name} ({type(sampler).__name__}): {layout.describe()}; {hp + '; ' if hp else ''}"
+        f"attribution={acc.attribution} failure={acc.failure}"
+        f"{f' failure_threshold={acc.failure_threshold:g}' if acc.failure == 'short' else ''} "
+        f"update_every={acc.update_every} log_every={'null' if cfg.log_every is None else cfg.log_every}"
     )
     if cfg.bins == "released" and cfg.bin_size_seconds is not None:
         lines.append(f"sampler.bin_size_seconds={cfg.bin_size_seconds:g} does not apply to the released bins "
@@ -187,33 +161,45 @@ def describe(cfg: Any, layout: Layout, sampler: Any) -> list[str]:
     return lines
 
 
+def variant_names() -> tuple[str, ...]:
+    """The variants: the YAML files of conf/sampler/, sorted."""
+    from bmimic import CONF_DIR
+
+    return tuple(sorted(p.stem for p in (CONF_DIR / "sampler").glob("*.yaml")))
+
+
 def load_variant(name: str) -> SamplerConfig:
-    """The named variant ``conf/sampler/<name>.yaml`` as a :class:`SamplerConfig` (without Hydra)."""
+    """The named variant ``conf/sampler/<name>.yaml`` as its schema's instance (without Hydra)."""
     from omegaconf import OmegaConf
 
     from bmimic import CONF_DIR
 
-    check_choice("name", name, SAMPLER_NAMES)
-    node = OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml")
-    node.pop("defaults", None)
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SamplerConfig), node))
+    check_choice("name", name, variant_names())
+    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml"))
+    schemas = [d for d in node.pop("defaults", []) if isinstance(d, str) and d.endswith("_schema")]
+    kinds = [k for k in SAMPLERS if f"{k}_schema" in schemas]
+    if len(kinds) != 1:
+        raise SamplerConfigError(f"conf/sampler/{name}.yaml: its defaults must name one sampler schema "
+                                 f"(<kind>_schema, kinds: {', '.join(sorted(SAMPLERS))})")
+    return sampler_config({**node, "kind": kinds[0]})
 
 
-def default_values() -> dict[str, Any]:
-    """The schema's defaults, field by field."""
-    return {f.name: f.default for f in fields(SamplerConfig)}
+def as_dict(cfg: Any) -> dict[str, Any]:
+    """The keys and values of `cfg` in today's layout (accounting nested), every schema default
+    filled in: e.g. to compare a run folder's sampler with a new one on resume."""
+    return asdict(sampler_config(cfg))
 
 
 __all__ = [
-    "SAMPLER_CLASSES",
-    "SAMPLER_NAMES",
     "SamplerConfig",
     "SamplerConfigError",
-    "default_values",
+    "as_dict",
     "describe",
     "layout_for",
     "load_variant",
     "make_sampler",
     "min_motion_bin_s",
+    "sampler_config",
     "validate_sampler_config",
+    "variant_names",
 ]

@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bmimic.sampling.samplers import SamplerConfigError
+from bmimic.sampling.checks import SamplerConfigError
 
 MAX_SAMPLER_ROWS = 1_000_000
 """sampler.log_every=null thins sampler.parquet of runs with more than 1,000 bins to about this many rows."""

@@ -1,6 +1,6 @@
 """Batched MuJoCo-Warp simulation layer."""
 
 from bmimic.sim.config import SimConfig
-from bmimic.sim.simulator import Simulator, apply_sim_options, measure_contact_sizes
+from bmimic.sim.simulator import Simulator, apply_sim_options
 
-__all__ = ["SimConfig", "Simulator", "apply_sim_options", "measure_contact_sizes"]
+__all__ = ["SimConfig", "Simulator", "apply_sim_options"]

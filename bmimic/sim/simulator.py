@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import gc
 import logging
-from dataclasses import dataclass
 
 import mujoco
 import mujoco_warp as mjw
@@ -60,15 +59,6 @@ def warp_device(device: str) -> str:
     return "cpu" if device == "cpu" else f"cuda:{torch.device(device).index or 0}"
 
 
-@dataclass
-class SimHealth:
-    """Counters of worlds that needed help, for the logs."""
-
-    nonfinite_resets: int = 0
-    contact_overflows: int = 0
-    constraint_overflows: int = 0
-
-
 class Simulator:
     """`num_worlds` copies of one MuJoCo model stepped in lockstep on `device`."""
 
@@ -101,7 +91,6 @@ class Simulator:
         self.qpos0 = torch.as_tensor(mjm.qpos0, dtype=torch.float32, device=self.device)
         self.qpos[:] = self.qpos0
         self.forward()
-        self.health = SimHealth()
         self._step_graph = None
         self._kin_graph = None
         self.use_graph = cfg.use_cuda_graph and self.wp_device.is_cuda and wp.is_mempool_enabled(self.wp_device)
@@ -120,14 +109,10 @@ class Simulator:
         self.xquat = t(d.xquat)  # [N, nbody, 4] wxyz
         self.cvel = t(d.cvel)  # [N, nbody, 6] (ang, lin) about subtree_com of the body's root
         self.subtree_com = t(d.subtree_com)  # [N, nbody, 3]
-        self.qfrc_applied = t(d.qfrc_applied)
-        self.xfrc_applied = t(d.xfrc_applied)
         self.overflow = t(d.overflow)  # [N] bit flags per world
-        self.nefc = t(d.nefc)  # [N]
         self.nacon = t(d.nacon)  # [1]
         self.contact_geom = t(d.contact.geom)  # [naconmax, 2]
         self.contact_worldid = t(d.contact.worldid)  # [naconmax]
-        self.contact_dist = t(d.contact.dist)  # [naconmax]
         self.geom_friction = t(m.geom_friction)  # [1 or N, ngeom, 3]
         self.body_ipos = t(m.body_ipos)  # [1 or N, nbody, 3]
 
@@ -201,12 +186,18 @@ class Simulator:
         """Bool[N]: worlds whose contact or constraint buffers overflowed during the last step."""
         return (self.overflow & _BUFFER_OVERFLOW) != 0
 
-    def unconverged_worlds(self) -> torch.Tensor:
-        """Bool[N]: worlds whose solver hit its iteration or line-search limit (not an error)."""
-        return (self.overflow & _SOLVER_LIMIT) != 0
-
     def clear_overflow(self) -> None:
         self.overflow.zero_()
+
+    def reset_broken_worlds(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(nonfinite, out_of_bounds, overflowed) Bool[N] masks of this step: the first two (disjoint)
+        are put back at the initial pose (`sanitize`); the overflow flags are read and cleared."""
+        nonfinite = self.nonfinite_worlds()
+        out_of_bounds = self.out_of_bounds_worlds() & ~nonfinite
+        self.sanitize(nonfinite | out_of_bounds)
+        overflowed = self.overflowed_worlds()
+        self.clear_overflow()
+        return nonfinite, out_of_bounds, overflowed
 
     def sanitize(self, worlds: torch.Tensor) -> None:
         """Put non-finite or blown-up worlds back at the model's initial pose so they cannot poison the
@@ -238,16 +229,4 @@ def _array_bytes(obj, seen: set) -> int:
     return out
 
 
-def measure_contact_sizes(sim: Simulator) -> dict[str, float]:
-    """Active contacts and constraint rows right now, to size nconmax/njmax from measurement."""
-    nacon = int(sim.nacon.item())
-    return {
-        "contacts_per_world": nacon / sim.num_worlds,
-        "max_constraint_rows": int(sim.nefc.max().item()),
-        "naconmax": int(sim.data.naconmax),
-        "njmax": int(sim.data.njmax),
-    }
-
-
-__all__ = ["Simulator", "SimHealth", "apply_sim_options", "measure_contact_sizes", "physics_bytes_per_world",
-           "warp_device"]
+__all__ = ["Simulator", "apply_sim_options", "physics_bytes_per_world", "warp_device"]

@@ -64,7 +64,7 @@ def _file_spec(path: Path):
     """An MJCF as an MjSpec; mesh geoms whose files are missing are removed (and said so)."""
     import mujoco
 
-    from bmimic.robot.g1 import missing_mesh_files, parse_mjcf
+    from bmimic.robot.spec import missing_mesh_files, parse_mjcf
 
     spec = parse_mjcf(path, "--model")
     note = str(path)
@@ -90,7 +90,7 @@ def build_model(spec: PolicySpec, model: str = "project", run_dir: Path | None =
     import mujoco
 
     from bmimic.robot import RobotModelError
-    from bmimic.robot.g1 import (
+    from bmimic.robot.spec import (
         add_pd_actuator,
         add_tracking_camera,
         add_world,

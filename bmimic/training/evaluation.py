@@ -38,8 +38,8 @@ import torch
 
 from bmimic.envs.quat import quat_error_magnitude
 from bmimic.evaluation.mastery import counts_as_mastered
+from bmimic.sampling.base import bin_counts
 from bmimic.sampling.bins import visits_histogram
-from bmimic.sampling.samplers import bin_counts
 
 ERROR_COLUMNS = (
     "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
@@ -289,8 +289,8 @@ class Evaluator:
 def _errors(env) -> torch.Tensor:
     """[N, len(ERROR_COLUMNS)] per-step tracking errors of the current state."""
     s = env.state
-    a = env.anchor_index
-    ee = env.end_effector_index
+    a = env.bodies.anchor
+    ee = env.bodies.end_effectors
     body_err = (s.ref_body_pos - s.robot_body_pos).norm(dim=-1)
     ref_rel = s.ref_body_pos - s.ref_anchor_pos[:, None]
     rob_rel = s.robot_body_pos - s.robot_anchor_pos[:, None]

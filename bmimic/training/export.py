@@ -61,10 +61,10 @@ def policy_metadata(env, iteration: int | None = None, run_path: str = "") -> di
     names = list(robot.body_names)  # MuJoCo body ids start at 1 (0 is the world)
     body_names = [names[int(i) - 1] for i in robot.tracked_body_ids]
     obs = env.get_observations()
-    dims = [int(fn(env, **params).shape[-1]) for fn, params in zip(env.policy_terms.funcs, env.policy_terms.params)]
-    terminations = [t for t, c in zip(_term_entries(env.termination_terms), env.termination_terms.cfgs)
-                    if not c.time_out]
-    motion, layout = env.motion, env.layout
+    policy_terms, termination_terms = env.observations.groups["policy"], env.terminations.terms
+    dims = env.observations.dims(env, "policy")
+    terminations = [t for t, c in zip(_term_entries(termination_terms), termination_terms.cfgs) if not c.time_out]
+    motion, layout = env.reference.motion, env.layout
     return {
         # BeyondMimic's keys (whole_body_tracking utils/exporter.py attach_onnx_metadata).
         "run_path": run_path,
@@ -73,15 +73,15 @@ def policy_metadata(env, iteration: int | None = None, run_path: str = "") -> di
         "joint_damping": csv(robot.kd),
         "default_joint_pos": csv(robot.default_joint_pos),
         "command_names": "motion",
-        "observation_names": ",".join(env.policy_terms.names),
-        "observation_history_lengths": ",".join("1" for _ in env.policy_terms.names),
+        "observation_names": ",".join(policy_terms.names),
+        "observation_history_lengths": ",".join("1" for _ in policy_terms.names),
         "action_scale": csv(robot.action_scale),
         "anchor_body_name": names[int(robot.anchor_body_id) - 1],
         "body_names": ",".join(body_names),
         # bmimic's keys.
         "bmimic_metadata_version": METADATA_VERSION,
         "iteration": "" if iteration is None else str(int(iteration)),
-        "observation_layout": json.dumps(_term_entries(env.policy_terms, dims)),
+        "observation_layout": json.dumps(_term_entries(policy_terms, dims)),
         "policy_obs_dim": str(int(obs["policy"].shape[-1])),
         "terminations": json.dumps(terminations),
         "root_body_name": names[0],
@@ -114,11 +114,11 @@ def _motion_policy_module(policy, env):
         def __init__(self) -> None:
             super().__init__()
             self.actor = policy.as_onnx(verbose=False)
-            arrays = (env.m_joint_pos, env.m_joint_vel, env.m_body_pos, env.m_body_quat, env.m_body_lin_vel,
-                      env.m_body_ang_vel)
+            ref = env.reference
+            arrays = (ref.joint_pos, ref.joint_vel, ref.body_pos, ref.body_quat, ref.body_lin_vel, ref.body_ang_vel)
             for name, value in zip(MOTION_OUTPUTS, arrays):
                 self.register_buffer(name, value.detach().to("cpu", torch.float32).clone())
-            self.last_frame = int(env.m_joint_pos.shape[0]) - 1
+            self.last_frame = ref.num_frames - 1
 
         def forward(self, obs: torch.Tensor, time_step: torch.Tensor):
             t = torch.clamp(time_step.long().squeeze(-1), 0, self.last_frame)

@@ -12,11 +12,15 @@ iteration and cannot queue work ahead; its `act` launches ~40 small kernels per 
   not see);
 - with `cuda_graphs` (GPU only): the action sampling captured once, and each mini-batch step
   (forward, KL rule, loss, backward, clipping, Adam) captured once per mini-batch slot, then
-  replayed every epoch. The first update runs eagerly as warm-up. Under torchrun only the action
-  sampling is captured; the update runs eagerly (its gradient all-reduce in a graph is untested).
+  replayed every epoch. The first update runs eagerly as warm-up.
+- under torchrun, the mini-batch step's collectives (the KL all-reduce, rank 0's learning-rate
+  broadcast, the gradient all-reduce through one fixed flat buffer) are device operations in
+  place, so they are captured with the rest of the step. NCCL needs its communicator before a
+  capture records a collective: the warm-up update (and the parameter broadcast before it)
+  creates it. On CPU ranks (gloo) nothing is captured and the same code runs eagerly.
 
 The mathematics, the order of random draws and the mini-batch order are rsl-rl's
-(`tests/test_ppo.py` compares the two updates). Not supported: recurrent models, RND, symmetry.
+(`tests/training/test_ppo.py` compares the two updates). Not supported: recurrent models, RND, symmetry.
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ class GraphPPO(PPO):
         self._act_graph = None
         self._act_calls = 0
         self._stream = None
+        self._grad_flat: torch.Tensor | None = None  # the gradient all-reduce's buffer (torchrun)
 
     # ------------------------------------------------------------------ learning rate on the device
     @property
@@ -71,7 +76,9 @@ class GraphPPO(PPO):
 
     def _adapt_learning_rate(self, old_params, new_params) -> None:
         """rsl-rl's adaptive rule (divide by 1.5 above 2x the KL target, multiply below half),
-        as tensor ops. Under torchrun the KL is averaged first, so every rank computes the same lr."""
+        as tensor ops. Under torchrun the KL is averaged over the ranks first and rank 0's rate is
+        broadcast, as rsl-rl does; both collectives work in place on device tensors, so a CUDA
+        graph can hold them."""
         with torch.no_grad():
             kl = self.actor.get_kl_divergence(old_params, new_params).mean()
             if self.is_multi_gpu:
@@ -214,9 +221,9 @@ class GraphPPO(PPO):
             "dist": tuple(p.flatten(0, 1) for p in st.distribution_params),
         }
         self._loss_sums.zero_()
-        # Under torchrun the update stays eager (still without host reads): capturing its NCCL
-        # gradient all-reduce has not been verified on a multi-GPU machine.
-        capture = self.cuda_graphs and not self.is_multi_gpu
+        # Under torchrun the captured steps hold their collectives; every rank captures in the same
+        # update (the second), so the ranks' graphs replay matching collectives in the same order.
+        capture = self.cuda_graphs
         if capture and self._update_graphs is None and self._updates_done >= 1:
             self._capture_update(mini_batch_size, flat)
         if self._update_graphs is not None:
@@ -255,6 +262,26 @@ class GraphPPO(PPO):
                 self._mini_batch_step(i, mini_batch_size, flat)
             graphs.append(g)
         self._update_graphs = graphs
+
+    def reduce_parameters(self) -> None:
+        """rsl-rl's gradient average over the ranks (sum, then divide by the world size), through
+        one flat buffer allocated at the first (eager) call: gather the gradients into it,
+        all-reduce it in place, scale it, copy it back. No allocation and no host read, so the
+        captured mini-batch step holds it; elementwise the same arithmetic as rsl-rl's buckets."""
+        grads = [p.grad for p in chain(self.actor.parameters(), self.critic.parameters()) if p.grad is not None]
+        numel = sum(g.numel() for g in grads)
+        if self._grad_flat is None or self._grad_flat.numel() != numel:
+            if len({g.dtype for g in grads}) != 1:
+                raise ValueError("GraphPPO's gradient all-reduce needs one dtype for every gradient")
+            self._grad_flat = torch.empty(numel, dtype=grads[0].dtype, device=grads[0].device)
+        flat = self._grad_flat
+        torch.cat([g.reshape(-1) for g in grads], out=flat)
+        torch.distributed.all_reduce(flat, op=torch.distributed.ReduceOp.SUM)
+        flat.div_(self.gpu_world_size)
+        offset = 0
+        for g in grads:
+            g.copy_(flat[offset : offset + g.numel()].view_as(g))
+            offset += g.numel()
 
     # ------------------------------------------------------------------ state
     def load(self, loaded_dict: dict, load_cfg: dict | None, strict: bool) -> bool:

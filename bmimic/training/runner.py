@@ -4,7 +4,7 @@ evaluation and checkpoints; TensorBoard / W&B / console output goes through one 
 rsl-rl's `OnPolicyRunner` builds the algorithm (models, storage, optimiser, multi-GPU set-up); the
 loop itself is written here so that each iteration can (a) read the environment's statistics with a
 single host transfer instead of rsl-rl's per-step `.cpu()` bookkeeping, (b) update the sampler once
-after the rollout (`env.end_rollout()`, for `sampler.update_every=iteration`) and log its per-bin
+after the rollout (`env.end_rollout()`, for `sampler.accounting.update_every=iteration`) and log its per-bin
 state, (c) run the sampler-independent evaluation and (d) write atomic checkpoints that also hold
 the sampler and RNG states, so `resume` reproduces iteration count, learning rate and sampler state.
 """
@@ -114,7 +114,7 @@ class Trainer:
     def meta(self) -> dict:
         """What a checkpoint must match to be loaded into this trainer (plain values)."""
         obs = self.env.get_observations()
-        motion = self.env.motion
+        motion = self.env.reference.motion
         digest = hashlib.sha256(motion.joint_pos.tobytes())
         digest.update(motion.body_pos_w.tobytes())
         return {
@@ -286,7 +286,7 @@ class Trainer:
                     obs, rewards, dones = obs.to(self.device), rewards.to(self.device), dones.to(self.device)
                     alg.process_env_step(obs, rewards, dones, extras)
                 # The design's runner hook: one sampler update with every episode of the rollout
-                # (sampler.update_every=iteration; a no-op when the env updates it every step).
+                # (sampler.accounting.update_every=iteration; a no-op when the env updates it every step).
                 env.end_rollout()
                 t1 = time.perf_counter()
                 alg.compute_returns(obs)

@@ -397,7 +397,7 @@ def cases() -> list[Case]:
                 "env.rewards.action_rate.weight", "robot.action_scale_factor", "sim.max_abs_qvel"):
         for value in ("nan", "inf"):
             add(Case(f"{key}={value}", "train", _train(f"{key}={value}"), match=key))
-    add(Case("-inf in a list", "train", _train("env.randomization.friction_range=[0.3,-inf]"),
+    add(Case("-inf in a list", "train", _train("env.events.foot_friction.params.friction_range=[0.3,-inf]"),
              match="friction_range"))
     add(Case("nan in term params", "train", _train("env.terminations.anchor_pos.params.threshold_m=nan"),
              match="threshold_m"))
@@ -413,6 +413,14 @@ def cases() -> list[Case]:
     add(Case("sampler.name=beyondmimic under adaptive", "train", _train("sampler.name=beyondmimic"),
              match="sampler.name"))
     add(Case("sampler.name=foo", "train", _train("sampler.name=foo"), match="sampler.name"))
+    # ---------------------------------------------------------------- each sampler's own keys
+    add(Case("sampler=beyondmimic sampler.alpha=2", "train", _train("sampler=beyondmimic", "sampler.alpha=2"),
+             match="sampler.alpha"))
+    add(Case("sampler=beyondmimic sampler.uniform_ratio=0", "train",
+             _train("sampler=beyondmimic", "sampler.uniform_ratio=0"), match="uniform_ratio"))
+    add(Case("sampler=uniform sampler.gamma=0.5", "train", _train("sampler=uniform", "sampler.gamma=0.5"),
+             match="gamma"))
+    add(Case("+sampler.alpha under adaptive", "train", _train("+sampler.alpha=0.5"), match="alpha"))
     # ---------------------------------------------------------------- ranges and meanings
     for arg, key in (
         ("num_envs=0", "num_envs"), ("num_envs=-3", "num_envs"), ("max_iterations=-1", "max_iterations"),
@@ -430,9 +438,12 @@ def cases() -> list[Case]:
         ("sim.nconmax=0", "nconmax"), ("sim.njmax=-1", "njmax"), ("sim.max_abs_qvel=0", "max_abs_qvel"),
         ("sim.max_root_distance_m=-1", "max_root_distance_m"), ("env.max_abs_step_reward=0", "max_abs_step_reward"),
         ("env.episode_length_s=0", "episode_length_s"), ("env.episode_length_s=0.001", "episode_length_s"),
-        ("env.randomization.friction_range=[1.6,0.3]", "friction_range"),
-        ("env.randomization.friction_range=[0.3]", "friction_range"),
-        ("env.randomization.push_interval_s=[3,1]", "push_interval_s"),
+        ("env.events.foot_friction.params.friction_range=[1.6,0.3]", "foot_friction.params.friction_range"),
+        ("env.events.foot_friction.params.friction_range=[0.3]", "friction_range"),
+        ("env.events.push.interval_range_s=[3,1]", "push.interval_range_s"),
+        ("env.events.push.mode=startup", "push.mode"), ("env.events.torso_com.params.offset_m=[0.1]", "offset_m"),
+        ("+env.events.torso_com.params.scale=2", "torso_com.params"),
+        ("env.events.push.func=no_such_event", "push.func"),
         ("env.reset.root_pos_range_m=[0.05]", "root_pos_range_m"),
         ("env.reset.joint_pos_range_rad=-0.1", "joint_pos_range_rad"),
         ("env.rewards.action_rate.func=nope", "action_rate.func"),
@@ -443,9 +454,9 @@ def cases() -> list[Case]:
         ("sweep_name=..", "sweep_name"),
         ("sampler.bin_size_seconds=0", "bin_size_seconds"), ("sampler.bin_size_seconds=100", "bin_size_seconds"),
         ("sampler.K=0", "sampler.K"), ("sampler.gamma=0", "sampler.gamma"), ("sampler.lambda_uniform=2", "lambda"),
-        ("sampler.alpha_smooth=0", "alpha_smooth"), ("sampler.attribution=middle", "attribution"),
-        ("sampler.failure=sometimes", "sampler.failure"), ("sampler.failure_threshold=0", "failure_threshold"),
-        ("sampler.alpha=2", "sampler.alpha"), ("sampler.uniform_ratio=0", "uniform_ratio"),
+        ("sampler.alpha_smooth=0", "alpha_smooth"), ("sampler.accounting.attribution=middle", "attribution"),
+        ("sampler.accounting.failure=sometimes", "sampler.accounting.failure"),
+        ("sampler.accounting.failure_threshold=0", "failure_threshold"), ("sampler.alpha=0.01", "sampler.alpha"),
         ("eval.every_iters=-1", "every_iters"), ("eval.horizon_s=0", "horizon_s"),
         ("eval.episodes_per_bin=0", "episodes_per_bin"), ("eval.max_envs=0", "max_envs"),
         ("robot.anchor_body=nose", "anchor_body"), ("robot.mjcf_path=/nonexistent/g1.xml", "g1.xml"),

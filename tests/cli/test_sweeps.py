@@ -41,7 +41,7 @@ STUDIES = {
     "lambda": (5 * 5, {"sampler.lambda_uniform"}),
     "kernel": (4 * 5, {"sampler.K"}),
     "bin_size": (4 * 5, {"sampler.bin_size_seconds"}),
-    "variants": (8 * 5, {"sampler", "sampler.attribution", "sampler.failure"}),
+    "variants": (8 * 5, {"sampler", "sampler.accounting.attribution", "sampler.accounting.failure"}),
     "design_choices": (5 * 5, {"design_choice"}),
     "dance1_full": (2 * 5, {"sampler"}),
     "mdp_action_rate": (2 * 5, {"env"}),

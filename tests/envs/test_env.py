@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from bmimic.config import resolve_runtime
+from bmimic.envs.resets import write_reference_state
 from bmimic.runtime import seed_everything
 from bmimic.task import build_evaluator, build_training
 from tests.conftest import compose
@@ -52,8 +53,10 @@ def test_undesired_contact_count_reads_only_active_slots(built):
     env = built[5]
     sim = env.sim
     saved = [x.clone() for x in (sim.nacon, sim.contact_geom, sim.contact_worldid)]
-    undesired_geom = int(torch.nonzero(env._undesired_body[env._geom_body])[0])
-    other_geom = int(torch.nonzero(~env._undesired_body[env._geom_body])[0])
+    from bmimic.envs.mdp.rewards import undesired_contacts
+
+    undesired = env.bodies.undesired[env.bodies.geom_body]
+    undesired_geom, other_geom = int(torch.nonzero(undesired)[0]), int(torch.nonzero(~undesired)[0])
     try:
         sim.nacon.fill_(3)
         sim.contact_geom[:, 0] = other_geom
@@ -61,7 +64,7 @@ def test_undesired_contact_count_reads_only_active_slots(built):
         sim.contact_worldid.fill_(0)
         sim.contact_worldid[:2] = 2
         sim.contact_geom[2, 1] = other_geom  # slot 2 (world 0): no undesired body
-        counts = env.undesired_contact_count()
+        counts = undesired_contacts(env)
         assert counts.tolist() == [0.0, 0.0, 2.0, 0.0]
     finally:
         for dst, src in zip((sim.nacon, sim.contact_geom, sim.contact_worldid), saved):
@@ -84,7 +87,7 @@ def test_reset_poses_are_consistent(built):
     """After a state write the body poses read in the same step match the new state (mjlab #1068)."""
     *_, evaluator = built
     env = evaluator.env
-    frames = torch.arange(env.num_envs, device=env.device) * 37 % env.motion_num_frames
+    frames = torch.arange(env.num_envs, device=env.device) * 37 % env.reference.num_frames
     env.reset_to_frames(frames)
     s = env.state
     assert torch.allclose(s.robot_body_pos, s.ref_body_pos, atol=2e-4)
@@ -103,7 +106,7 @@ def test_clip_end_teleports_consistently(built):
     # Every env on the reference at the last frame of its clip, mid-episode (so none terminates now).
     last = env.segment_end - 1
     env.time_steps[:] = last
-    env._write_reference_state(torch.ones_like(env.reached_clip_end), last, noise=False)
+    write_reference_state(env.sim, env.reference, torch.ones_like(env.reached_clip_end), last)
     env.sim.forward_kinematics()
     env.episode_length_buf[:] = 10
     env.step(torch.zeros(4, 29, device=env.device))
@@ -121,7 +124,7 @@ def _on_reference(env, frames, mask=None):
     frames = frames.to(env.device)
     env.time_steps.copy_(torch.where(mask, frames, env.time_steps))
     env.segment_start.copy_(torch.where(mask, frames, env.segment_start))
-    env._write_reference_state(mask, env.time_steps, noise=False)
+    write_reference_state(env.sim, env.reference, mask, env.time_steps)
     env.episode_length_buf.masked_fill_(mask, 10)
     env.sim.forward_kinematics()
 
@@ -139,7 +142,7 @@ def _fresh_iteration(env):
 
 def test_failures_reach_the_sampler(built):
     cfg, robot, motion, layout, sampler, env, _ = built
-    assert cfg.sampler.attribution == "start" and cfg.sampler.update_every == "iteration"  # the design
+    assert cfg.sampler.accounting.attribution == "start" and cfg.sampler.accounting.update_every == "iteration"
     _fresh_iteration(env)
     fps = int(motion.fps)
     _on_reference(env, torch.full((4,), 5 * fps + 5))
@@ -184,7 +187,7 @@ def test_start_bins_survive_clip_end_resamples_and_partial_resets(built):
     acc = env.accounting
     _fresh_iteration(env)
     zeros = torch.zeros(4, 29, device=env.device)
-    last = int(env.frame_clip_end[0]) - 1
+    last = int(env.reference.frame_clip_end[0]) - 1
     fps = int(motion.fps)
     # Envs 0 and 1 on their clip's last frame (the reference resamples next step, the episode goes
     # on); envs 2 and 3 mid-clip. Each env's episode planted as started in a bin it is not in now.
@@ -230,7 +233,7 @@ def test_nonfinite_world_is_reset_not_fatal(built):
 def test_uniform_and_eval_envs(built):
     *_, evaluator = built
     env = evaluator.env
-    assert not env.randomize and not env.noise_enabled
+    assert not env.events.model_fields and not env.events.has_interval and not env.observations.noisy["policy"]
     per_bin = evaluator.evaluate(lambda obs, stochastic_output=False: torch.zeros(env.num_envs, 29, device=env.device), 0, 0, 0.0)
     assert len(per_bin) == evaluator.layout.num_bins
     assert per_bin["failure_rate"].between(0, 1).all()
@@ -247,7 +250,7 @@ def test_step_traces_as_single_graphs(built):
     env = built[5]
     if env.device.type != "cpu":
         pytest.skip("tracing is device-independent; checked once on the CPU")
-    assert not isinstance(env.cfg, DictConfig) and not isinstance(env.sampler_cfg, DictConfig)
+    assert not isinstance(env.cfg, DictConfig)
     for part in (env._pre_physics, env._post_physics, env._observe):
         explained = dynamo.explain(part)()
         reasons = [b.reason.splitlines()[0] for b in explained.break_reasons]

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from bmimic.motion.config import MotionConfig, load_motion
 from bmimic.motion.convert import CSV_JOINT_NAMES, convert_csv, main, output_times
+from bmimic.motion.kinematics import kinematic_motion
 from bmimic.motion.math import (
     angular_velocity_from_quats,
     axis_angle_to_quat,
@@ -22,7 +23,7 @@ from bmimic.motion.math import (
     quat_to_axis_angle,
     yaw_quat,
 )
-from bmimic.motion.motion import NPZ_ARRAY_KEYS, Motion, MotionDataError, Segment, kinematic_motion
+from bmimic.motion.motion import NPZ_ARRAY_KEYS, Motion, MotionDataError, Segment
 from bmimic.robot import load_mjmodel
 from tests.conftest import SHARED_MOTIONS
 
@@ -409,6 +410,32 @@ def test_concatenate_builds_a_library(small):
     assert list(win.clip_starts) == [0, 10]
     with pytest.raises(MotionDataError, match="share fps"):
         Motion.concatenate([small, dataclasses.replace(small, fps=30.0)])
+
+
+def test_reference_motion_holds_the_tracked_bodies_and_clip_boundaries(small):
+    """The device view of a two-clip library: tracked bodies in the requested order, the root's state,
+    and every frame mapped to the end of its own clip."""
+    import torch
+
+    from bmimic.motion.reference import ReferenceMotion
+
+    lib = Motion.concatenate([small, small.window(0.0, 0.5)])  # clips [0, 40) and [40, 65)
+    tracked = [lib.body_names[5], lib.body_names[2]]
+    ref = ReferenceMotion(lib, tracked, lib.body_names[0])
+    assert ref.num_frames == 65 and ref.fps == lib.fps and ref.body_names == tracked
+    assert ref.clip_starts.tolist() == [0, 40] and ref.clip_ends.tolist() == [40, 65]
+    assert ref.frame_clip_end.tolist() == [40] * 40 + [65] * 25
+    np.testing.assert_array_equal(ref.body_pos[:, 0].numpy(), lib.body_pos_w[:, 5])
+    np.testing.assert_array_equal(ref.body_quat[:, 1].numpy(), lib.body_quat_w[:, 2])
+    np.testing.assert_array_equal(ref.root_lin_vel.numpy(), lib.body_lin_vel_w[:, 0])
+    frames = torch.tensor([3, 41])
+    qpos = ref.qpos(frames).numpy()
+    assert qpos.shape == (2, 7 + len(lib.joint_names))
+    np.testing.assert_array_equal(qpos[:, :3], lib.body_pos_w[[3, 41], 0])
+    np.testing.assert_array_equal(qpos[:, 3:7], lib.body_quat_w[[3, 41], 0])
+    np.testing.assert_array_equal(qpos[:, 7:], lib.joint_pos[[3, 41]])
+    with pytest.raises(MotionDataError, match="no bodies named"):
+        ReferenceMotion(lib, ["no_such_body"], lib.body_names[0])
 
 
 def test_resample_known_answers():

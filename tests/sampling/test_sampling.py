@@ -17,14 +17,17 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from bmimic.sampling import (
-    SAMPLER_NAMES,
+    SAMPLERS,
+    AccountingConfig,
+    AdaptiveConfig,
     AdaptiveSampler,
+    BeyondMimicConfig,
     BeyondMimicSampler,
     BinLayout,
     EpisodeAccounting,
     ReleasedBinLayout,
-    SamplerConfig,
     SamplerConfigError,
+    UniformConfig,
     UniformSampler,
     attribute,
     bin_edges_s,
@@ -38,9 +41,10 @@ from bmimic.sampling import (
     num_bins,
     summary,
     validate_sampler_config,
+    variant_names,
     visits_histogram,
 )
-from bmimic.sampling.config import SAMPLER_CLASSES, default_values, describe
+from bmimic.sampling.config import describe, sampler_config
 from bmimic.sampling.diagnostics import BIN_TABLE_COLUMNS, MAX_SAMPLER_ROWS, log_every
 
 T = True
@@ -510,7 +514,7 @@ def test_attribute_both_modes_match_loops():
         got = attribute(start, end, failed, lay, mode, counted=counted)
         want = attribute(start[counted], end[counted], failed[counted], lay, mode)
         assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
-    with pytest.raises(SamplerConfigError, match="sampler.attribution must be one of failure, start"):
+    with pytest.raises(SamplerConfigError, match="sampler.accounting.attribution must be one of failure, start"):
         attribute(start, end, failed, lay, "end")
 
 
@@ -523,7 +527,7 @@ def test_failed_mask():
     assert failed_mask(terminated, length, 100, "short", 0.8).tolist() == [T, F, F, F]
     per_env_max = torch.tensor([10, 200, 100, 80])
     assert failed_mask(terminated, length, per_env_max, "short", 1.0).tolist() == [F, F, T, F]
-    with pytest.raises(SamplerConfigError, match="sampler.failure must be one of"):
+    with pytest.raises(SamplerConfigError, match="sampler.accounting.failure must be one of"):
         failed_mask(terminated, length, 100, "fell")
 
 
@@ -666,36 +670,43 @@ def test_accounting_step_path_traces_as_one_graph(attribution, update_every):
 
 
 def test_default_config_is_valid_and_factory_builds_each_sampler():
-    validate_sampler_config(SamplerConfig(), 30.0)
-    ad = make_sampler(
-        SamplerConfig(name="adaptive", gamma=0.5, K=4, lambda_uniform=0.3, alpha_smooth=0.2), 12
-    )
+    validate_sampler_config(AdaptiveConfig(), 30.0)
+    ad = make_sampler(AdaptiveConfig(gamma=0.5, K=4, lambda_uniform=0.3, alpha_smooth=0.2), 12)
     assert isinstance(ad, AdaptiveSampler)
     assert ad.hparams() == {"gamma": 0.5, "lambda_uniform": 0.3, "K": 4, "alpha_smooth": 0.2, "empty_bins": "decay"}
-    bm = make_sampler(SamplerConfig(name="beyondmimic", K=1, alpha=0.01, uniform_ratio=0.2), 12)
+    bm = make_sampler(BeyondMimicConfig(K=1, alpha=0.01, uniform_ratio=0.2), 12)
     assert isinstance(bm, BeyondMimicSampler) and bm.hparams()["alpha"] == 0.01
-    assert isinstance(make_sampler(SamplerConfig(name="uniform"), 12), UniformSampler)
+    assert isinstance(make_sampler(UniformConfig(), 12), UniformSampler)
+    # A plain dict (a run folder's) names its class by `kind`.
+    assert isinstance(make_sampler({"name": "x", "kind": "beyondmimic", "K": 2}, 12), BeyondMimicSampler)
 
 
-DESIGN = {"enabled": True, "bin_size_seconds": 1.0, "gamma": 0.9, "lambda_uniform": 0.1, "K": 5, "alpha_smooth": 0.1,
-          "failure_threshold": 0.8, "attribution": "start", "failure": "short", "update_every": "iteration",
-          "empty_bins": "decay"}
+DESIGN = {"gamma": 0.9, "lambda_uniform": 0.1, "K": 5, "alpha_smooth": 0.1, "empty_bins": "decay"}
+DESIGN_ACCOUNTING = {"attribution": "start", "failure": "short", "failure_threshold": 0.8, "update_every": "iteration"}
 
 
 def test_adaptive_defaults_are_the_design_from_one_source():
-    schema = default_values()
-    assert {k: schema[k] for k in DESIGN} == DESIGN
+    schema = dataclasses.asdict(AdaptiveConfig())
+    assert {k: schema[k] for k in DESIGN} == DESIGN and schema["accounting"] == DESIGN_ACCOUNTING
+    assert schema["bins"] == "time" and schema["bin_size_seconds"] == 1.0 and schema["enabled"] is True
     assert dataclasses.asdict(load_variant("adaptive")) == schema  # YAML == schema
     sampler = inspect.signature(AdaptiveSampler).parameters
-    for key in ("gamma", "lambda_uniform", "K", "alpha_smooth", "empty_bins"):
+    for key in DESIGN:
         assert sampler[key].default == schema[key], key
     accounting = inspect.signature(EpisodeAccounting).parameters
-    for key in ("attribution", "failure", "failure_threshold", "update_every"):
-        assert accounting[key].default == schema[key], key
+    for key in DESIGN_ACCOUNTING:
+        assert accounting[key].default == schema["accounting"][key], key
 
 
-@pytest.mark.parametrize("name", SAMPLER_NAMES)
-def test_each_variant_is_named_after_its_file_and_sets_every_key(name):
+def test_the_variants_are_the_yaml_files_of_registered_samplers():
+    assert variant_names() == ("adaptive", "adaptive_hybrid", "beyondmimic", "uniform")
+    assert {k: (e.cls, e.config) for k, e in SAMPLERS.items() if k in ("adaptive", "beyondmimic", "uniform")} == {
+        "adaptive": (AdaptiveSampler, AdaptiveConfig), "beyondmimic": (BeyondMimicSampler, BeyondMimicConfig),
+        "uniform": (UniformSampler, UniformConfig)}
+
+
+@pytest.mark.parametrize("name", variant_names())
+def test_each_variant_is_named_after_its_file_and_sets_only_its_schemas_keys(name):
     from omegaconf import OmegaConf
 
     from tests.conftest import CONF
@@ -703,27 +714,52 @@ def test_each_variant_is_named_after_its_file_and_sets_every_key(name):
     cfg = load_variant(name)
     assert cfg.name == name
     validate_sampler_config(cfg, 30.0)
-    assert set(OmegaConf.load(CONF / "sampler" / f"{name}.yaml")) - {"defaults"} == set(default_values())
+    node = OmegaConf.load(CONF / "sampler" / f"{name}.yaml")
+    schema = {f.name for f in dataclasses.fields(SAMPLERS[cfg.kind].config)}
+    assert node.defaults[0] == f"{cfg.kind}_schema"
+    assert set(node) - {"defaults"} == schema - {"kind"}  # its own keys, each once, none of another sampler's
+    assert set(node.accounting) == set(DESIGN_ACCOUNTING)
     layout = layout_for(cfg, 1500, 50.0)
-    assert type(make_sampler(cfg, layout.num_bins)) is SAMPLER_CLASSES[name]
+    assert type(make_sampler(cfg, layout.num_bins)) is SAMPLERS[cfg.kind].cls
     assert (CONF / "sampler" / f"{name}.yaml").read_text().startswith("# ")  # a header says what it is
 
 
 def test_named_variants_are_what_their_names_say():
     hybrid = load_variant("adaptive_hybrid")  # the earlier `adaptive`
-    assert dataclasses.asdict(hybrid) == {**default_values(), "name": "adaptive_hybrid", "gamma": 0.8, "K": 3,
-                                          "attribution": "failure", "failure": "terminated",
-                                          "update_every": "step", "empty_bins": "hold"}
-    bm = load_variant("beyondmimic")  # the released code, its bins included
-    assert dataclasses.asdict(bm) == {**default_values(), "name": "beyondmimic", "bins": "released",
-                                      "bin_size_seconds": None, "gamma": 0.8, "K": 1, "attribution": "failure",
-                                      "failure": "terminated", "update_every": "step", "empty_bins": "decay"}
-    assert (bm.alpha, bm.uniform_ratio) == (0.001, 0.1)
+    assert dataclasses.asdict(hybrid) == {**dataclasses.asdict(AdaptiveConfig()), "name": "adaptive_hybrid",
+                                          "gamma": 0.8, "K": 3, "empty_bins": "hold",
+                                          "accounting": {"attribution": "failure", "failure": "terminated",
+                                                         "failure_threshold": 0.8, "update_every": "step"}}
+    bm = load_variant("beyondmimic")  # the released code, its bins and accounting included
+    assert dataclasses.asdict(bm) == {**dataclasses.asdict(BeyondMimicConfig()),
+                                      "accounting": {"attribution": "failure", "failure": "terminated",
+                                                     "failure_threshold": 0.8, "update_every": "step"}}
+    assert (bm.bins, bm.bin_size_seconds, bm.alpha, bm.uniform_ratio) == ("released", None, 0.001, 0.1)
     released = inspect.signature(BeyondMimicSampler).parameters
     for key in ("gamma", "K", "alpha", "uniform_ratio", "empty_bins"):
         assert released[key].default == getattr(bm, key), key
-    # sampler=uniform is sampler=adaptive with uniform draws: the same keys, except the name.
-    assert dataclasses.replace(load_variant("uniform"), name="adaptive") == load_variant("adaptive")
+    # sampler=uniform has the bins and accounting of sampler=adaptive and no parameters of its own.
+    uniform, design = load_variant("uniform"), load_variant("adaptive")
+    assert (uniform.bins, uniform.bin_size_seconds, uniform.accounting) == (design.bins, design.bin_size_seconds,
+                                                                           design.accounting)
+
+
+def test_run_folders_of_earlier_bmimic_are_read_in_todays_layout():
+    """Before the registry every variant held every key flat; such a config still validates, builds
+    the same sampler and fills the same defaults (so a resume across the upgrade sees no change)."""
+    flat = {"name": "beyondmimic", "enabled": True, "bins": "released", "bin_size_seconds": None, "gamma": 0.8,
+            "lambda_uniform": 0.1, "K": 1, "alpha_smooth": 0.1, "empty_bins": "decay", "alpha": 0.001,
+            "uniform_ratio": 0.1, "attribution": "failure", "failure": "terminated", "failure_threshold": 0.8,
+            "update_every": "step", "log_every": None}
+    validate_sampler_config(flat, 30.0)
+    assert sampler_config(flat) == load_variant("beyondmimic")
+    from omegaconf import OmegaConf
+
+    from bmimic.config import with_schema_defaults
+    from tests.conftest import compose
+
+    new = OmegaConf.to_container(compose(["sampler=beyondmimic"]), resolve=True)
+    assert with_schema_defaults({**new, "sampler": flat})["sampler"] == new["sampler"]
 
 
 def test_disabled_sampler_draws_uniformly_and_says_so():
@@ -741,7 +777,7 @@ def test_disabled_sampler_draws_uniformly_and_says_so():
         load_variant("adaptive"), layout.num_bins)))
 
 
-@pytest.mark.parametrize("name", SAMPLER_NAMES)
+@pytest.mark.parametrize("name", variant_names())
 def test_log_names_the_variant_and_every_value_in_force(name):
     cfg = load_variant(name)
     layout = layout_for(cfg, 1500, 50.0)
@@ -752,8 +788,8 @@ def test_log_names_the_variant_and_every_value_in_force(name):
     for key, value in sampler.hparams().items():
         assert f"{key}={value}" in text
     for key in ("attribution", "failure", "update_every"):
-        assert f"{key}={getattr(cfg, key)}" in text
-    assert ("failure_threshold=0.8" in text) == (cfg.failure == "short")
+        assert f"{key}={getattr(cfg.accounting, key)}" in text
+    assert ("failure_threshold=0.8" in text) == (cfg.accounting.failure == "short")
 
 
 def test_bin_size_on_released_bins_is_ignored_with_one_log_line():
@@ -769,63 +805,87 @@ def test_bin_size_on_released_bins_is_ignored_with_one_log_line():
 
 
 @pytest.mark.parametrize("arm,key,value", [
-    ("attribution_failure", "attribution", "failure"),
-    ("failure_terminated", "failure", "terminated"),
-    ("update_every_step", "update_every", "step"),
+    ("attribution_failure", "accounting.attribution", "failure"),
+    ("failure_terminated", "accounting.failure", "terminated"),
+    ("update_every_step", "accounting.update_every", "step"),
     ("empty_bins_hold", "empty_bins", "hold"),
 ])
 def test_design_choice_arms_change_one_key_of_the_design(arm, key, value):
     from omegaconf import OmegaConf
 
+    from bmimic.training.resume import flatten_config
     from tests.conftest import compose
 
     design = OmegaConf.to_object(compose(["+sweep=design_choices"]).sampler)
     assert design == load_variant("adaptive")
     cfg = OmegaConf.to_object(compose(["+sweep=design_choices", f"design_choice={arm}"]).sampler)
-    changed = {k for k, v in dataclasses.asdict(cfg).items() if v != getattr(design, k)}
-    assert changed == {key} and getattr(cfg, key) == value
+    before, after = flatten_config(dataclasses.asdict(design)), flatten_config(dataclasses.asdict(cfg))
+    changed = {k for k, v in after.items() if v != before[k]}
+    assert changed == {key} and after[key] == value
+
+
+@pytest.mark.parametrize(
+    "cls,key,value,message",
+    [
+        (AdaptiveConfig, "name", "", "sampler.name must be the variant's name (its file name in conf/sampler/), got ''"),
+        (AdaptiveConfig, "enabled", "yes", "sampler.enabled must be true or false, got 'yes'"),
+        (AdaptiveConfig, "bins", "frames", "sampler.bins must be one of time, released, got 'frames'"),
+        (AdaptiveConfig, "bin_size_seconds", None, "sampler.bin_size_seconds must be a finite number > 0, got None"),
+        (AdaptiveConfig, "empty_bins", "keep", "sampler.empty_bins must be one of decay, hold, got 'keep'"),
+        (AdaptiveConfig, "log_every", 0, "sampler.log_every must be an integer >= 1 or null, got 0"),
+        (AdaptiveConfig, "lambda_uniform", 1.5, "sampler.lambda_uniform must be in [0, 1], got 1.5"),
+        (AdaptiveConfig, "lambda_uniform", -0.1, "sampler.lambda_uniform must be in [0, 1], got -0.1"),
+        (AdaptiveConfig, "gamma", 0.0, "sampler.gamma must be in (0, 1], got 0.0"),
+        (AdaptiveConfig, "gamma", 1.2, "sampler.gamma must be in (0, 1], got 1.2"),
+        (AdaptiveConfig, "gamma", math.nan, "sampler.gamma must be in (0, 1], got nan"),
+        (AdaptiveConfig, "K", 0, "sampler.K must be an integer >= 1, got 0"),
+        (AdaptiveConfig, "K", 2.5, "sampler.K must be an integer >= 1, got 2.5"),
+        (AdaptiveConfig, "alpha_smooth", 0.0, "sampler.alpha_smooth must be in (0, 1], got 0.0"),
+        (AdaptiveConfig, "alpha_smooth", 1.01, "sampler.alpha_smooth must be in (0, 1], got 1.01"),
+        (BeyondMimicConfig, "alpha", 0.0, "sampler.alpha must be in (0, 1], got 0.0"),
+        (BeyondMimicConfig, "alpha", 2.0, "sampler.alpha must be in (0, 1], got 2.0"),
+        (BeyondMimicConfig, "uniform_ratio", 0.0, "sampler.uniform_ratio must be a finite number > 0, got 0.0"),
+        (BeyondMimicConfig, "K", 0, "sampler.K must be an integer >= 1, got 0"),
+        (UniformConfig, "bin_size_seconds", 0.0, "sampler.bin_size_seconds must be a finite number > 0, got 0.0"),
+        (AdaptiveConfig, "bin_size_seconds", -1.0, "sampler.bin_size_seconds must be a finite number > 0, got -1.0"),
+        (
+            AdaptiveConfig,
+            "bin_size_seconds",
+            31.0,
+            "sampler.bin_size_seconds must be <= the motion duration (30 s), got 31.0",
+        ),
+    ],
+)
+def test_validation_errors(cls, key, value, message):
+    cfg = cls(**{key: value})
+    with pytest.raises(SamplerConfigError) as err:
+        validate_sampler_config(cfg, 30.0)
+    assert str(err.value) == message
 
 
 @pytest.mark.parametrize(
     "key,value,message",
     [
-        ("name", "greedy", "sampler.name must be one of adaptive, adaptive_hybrid, beyondmimic, uniform, got 'greedy'"),
-        ("enabled", "yes", "sampler.enabled must be true or false, got 'yes'"),
-        ("bins", "frames", "sampler.bins must be one of time, released, got 'frames'"),
-        ("bin_size_seconds", None, "sampler.bin_size_seconds must be a finite number > 0, got None"),
-        ("empty_bins", "keep", "sampler.empty_bins must be one of decay, hold, got 'keep'"),
-        ("update_every", "episode", "sampler.update_every must be one of iteration, step, got 'episode'"),
-        ("log_every", 0, "sampler.log_every must be an integer >= 1 or null, got 0"),
-        ("lambda_uniform", 1.5, "sampler.lambda_uniform must be in [0, 1], got 1.5"),
-        ("lambda_uniform", -0.1, "sampler.lambda_uniform must be in [0, 1], got -0.1"),
-        ("gamma", 0.0, "sampler.gamma must be in (0, 1], got 0.0"),
-        ("gamma", 1.2, "sampler.gamma must be in (0, 1], got 1.2"),
-        ("gamma", math.nan, "sampler.gamma must be in (0, 1], got nan"),
-        ("K", 0, "sampler.K must be an integer >= 1, got 0"),
-        ("K", 2.5, "sampler.K must be an integer >= 1, got 2.5"),
-        ("alpha_smooth", 0.0, "sampler.alpha_smooth must be in (0, 1], got 0.0"),
-        ("alpha_smooth", 1.01, "sampler.alpha_smooth must be in (0, 1], got 1.01"),
-        ("alpha", 0.0, "sampler.alpha must be in (0, 1], got 0.0"),
-        ("alpha", 2.0, "sampler.alpha must be in (0, 1], got 2.0"),
-        ("uniform_ratio", 0.0, "sampler.uniform_ratio must be a finite number > 0, got 0.0"),
-        ("bin_size_seconds", 0.0, "sampler.bin_size_seconds must be a finite number > 0, got 0.0"),
-        ("bin_size_seconds", -1.0, "sampler.bin_size_seconds must be a finite number > 0, got -1.0"),
-        (
-            "bin_size_seconds",
-            31.0,
-            "sampler.bin_size_seconds must be <= the motion duration (30 s), got 31.0",
-        ),
-        ("attribution", "end", "sampler.attribution must be one of failure, start, got 'end'"),
-        ("failure", "fell", "sampler.failure must be one of terminated, short, got 'fell'"),
-        ("failure_threshold", 0.0, "sampler.failure_threshold must be in (0, 1], got 0.0"),
-        ("failure_threshold", 1.5, "sampler.failure_threshold must be in (0, 1], got 1.5"),
+        ("update_every", "episode", "sampler.accounting.update_every must be one of iteration, step, got 'episode'"),
+        ("attribution", "end", "sampler.accounting.attribution must be one of failure, start, got 'end'"),
+        ("failure", "fell", "sampler.accounting.failure must be one of terminated, short, got 'fell'"),
+        ("failure_threshold", 0.0, "sampler.accounting.failure_threshold must be in (0, 1], got 0.0"),
+        ("failure_threshold", 1.5, "sampler.accounting.failure_threshold must be in (0, 1], got 1.5"),
     ],
 )
-def test_validation_errors(key, value, message):
-    cfg = SamplerConfig(**{key: value})
-    with pytest.raises(SamplerConfigError) as err:
-        validate_sampler_config(cfg, 30.0)
-    assert str(err.value) == message
+def test_accounting_validation_errors(key, value, message):
+    for cls in (AdaptiveConfig, UniformConfig):
+        cfg = cls(accounting=AccountingConfig(**{key: value}))
+        with pytest.raises(SamplerConfigError) as err:
+            validate_sampler_config(cfg, 30.0)
+        assert str(err.value) == message
+
+
+def test_keys_of_another_sampler_are_refused():
+    with pytest.raises(SamplerConfigError, match="sampler.alpha"):
+        sampler_config({"name": "adaptive", "kind": "adaptive", "alpha": 0.01})
+    with pytest.raises(SamplerConfigError, match="sampler.kind must be one of .*adaptive.*, got .greedy."):
+        sampler_config({"name": "x", "kind": "greedy"})
 
 
 def test_constructors_validate_hyperparameters():

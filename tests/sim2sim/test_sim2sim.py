@@ -145,8 +145,9 @@ def test_motion_onnx_holds_the_reference_at_the_clamped_time_step(task):
     session = sim2sim.policy_session(paths[1])
     assert [o.name for o in session.get_outputs()] == ["actions", *MOTION_OUTPUTS]
     assert list(MOTION_OUTPUTS) == list(sim2sim.REFERENCE_OUTPUTS)
-    arrays = (env.m_joint_pos, env.m_joint_vel, env.m_body_pos, env.m_body_quat, env.m_body_lin_vel, env.m_body_ang_vel)
-    last = env.motion_num_frames - 1
+    ref = env.reference
+    arrays = (ref.joint_pos, ref.joint_vel, ref.body_pos, ref.body_quat, ref.body_lin_vel, ref.body_ang_vel)
+    last = ref.num_frames - 1
     for t, expected_frame in ((0, 0), (123, 123), (last, last), (last + 40, last), (-5, 0)):
         out = session.run(None, {"obs": np.zeros((1, 160), np.float32), "time_step": np.array([[t]], np.float32)})
         for value, array in zip(out[1:], arrays):

@@ -142,7 +142,8 @@ def _expected(starts, horizon, clip_end, planted, per_bin=50, num_bins=7):
 def test_real_eval_env_charges_the_bin_where_the_planted_termination_happens(robust_evaluator):
     ev = robust_evaluator
     env = ev.env
-    assert env.robust and env.randomize and env.noise_enabled  # DR, noise and pushes on, as in training
+    # DR, noise and pushes on, as in training
+    assert env.robust and env.events.model_fields and env.events.has_interval and env.observations.noisy["policy"]
     assert ev.layout.num_bins == 7 and ev.horizon_steps == 50
     planted = 60  # bin 1; the episode started in bin 0 (frame 25) runs into it
     ev.env = PlantedTermination(env, planted)
@@ -172,7 +173,8 @@ def test_real_eval_env_charges_the_bin_where_the_planted_termination_happens(rob
 def test_robust_env_pushes_the_robot(robust_evaluator):
     env = robust_evaluator.env
     env.reset_to_frames(torch.full((env.num_envs,), 5))
-    env.push_timer_s.fill_(0.0)  # every world is due a push on the next step
-    before = env.push_timer_s.clone()
+    (push_timer_s,) = env.events.time_left_s
+    push_timer_s.fill_(0.0)  # every world is due a push on the next step
+    before = push_timer_s.clone()
     env.step(torch.zeros(env.num_envs, env.num_actions))
-    assert (env.push_timer_s > before).all()  # pushed, and the next push drawn
+    assert (push_timer_s > before).all()  # pushed, and the next push drawn

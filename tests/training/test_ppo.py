@@ -1,38 +1,45 @@
-"""GraphPPO computes rsl-rl's PPO update: same parameters, normalisers, losses and learning rate."""
+"""GraphPPO computes rsl-rl's PPO update: same parameters, normalisers, losses and learning rate;
+and under torchrun (here 2 CPU ranks, gloo) the same update as one rank given the union of their data."""
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
 from rsl_rl.algorithms import PPO
 from rsl_rl.models import MLPModel
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from bmimic.training.ppo import GraphPPO
+from tests.conftest import free_port
 
 N, T, A = 16, 6, 3  # envs, steps per rollout, actions
 
 
-def _obs(gen: torch.Generator, device: str) -> TensorDict:
-    return TensorDict({"policy": torch.randn(N, 7, generator=gen).to(device),
-                       "critic": torch.randn(N, 9, generator=gen).to(device)}, batch_size=[N], device=device)
+def _obs(gen: torch.Generator, device: str, n: int = N) -> TensorDict:
+    return TensorDict({"policy": torch.randn(n, 7, generator=gen).to(device),
+                       "critic": torch.randn(n, 9, generator=gen).to(device)}, batch_size=[n], device=device)
 
 
-def _make(cls, device: str, **kw):
-    obs = _obs(torch.Generator().manual_seed(0), device)
+def _make(cls, device: str, num_envs: int = N, **kw):
+    """Models seeded alike (whatever num_envs), rsl-rl storage for num_envs x T transitions."""
+    obs = _obs(torch.Generator().manual_seed(0), device, num_envs)
     groups = {"actor": ["policy"], "critic": ["critic"]}
     torch.manual_seed(0)
     actor = MLPModel(obs, groups, "actor", A, hidden_dims=[32, 16], obs_normalization=True,
                      distribution_cfg={"class_name": "GaussianDistribution", "init_std": 1.0, "std_type": "scalar"})
     critic = MLPModel(obs, groups, "critic", 1, hidden_dims=[32, 16], obs_normalization=True)
-    storage = RolloutStorage("rl", N, T, obs, [A], device)
+    storage = RolloutStorage("rl", num_envs, T, obs, [A], device)
     return cls(actor, critic, storage, device=device, num_mini_batches=2, num_learning_epochs=3, **kw)
 
 
-def _train(alg, iterations: int, device: str) -> list[dict]:
+def _train(alg, iterations: int, device: str, data_seed: int = 1) -> list[dict]:
     """A synthetic rollout (fixed data stream, the algorithm's own actions) and an update, repeated."""
-    data = torch.Generator().manual_seed(1)
+    data = torch.Generator().manual_seed(data_seed)
     torch.manual_seed(2)
     if device == "cuda":
         torch.cuda.manual_seed(2)
@@ -119,3 +126,187 @@ def test_cuda_graph_update_matches_eager():
     pa, pb = _params(eager), _params(graphed)
     for k in pa:
         torch.testing.assert_close(pb[k], pa[k], rtol=1e-3, atol=1e-4, msg=k)
+
+
+# ----------------------------------------------------------------------------- several ranks, one update
+# Rank r's mini-batch k is half of the single rank's mini-batch k. PPO's loss is a mean over the
+# mini-batch, so the ranks' averaged gradients are exactly the single rank's gradient, and their
+# averaged KL the single rank's KL; clipping, Adam and the normalisers (which rsl-rl all-reduces)
+# then agree too. What differs is only the order of floating-point sums.
+WORLD, E_RANK, UPDATES, M = 2, 8, 2, 2  # ranks, envs per rank, updates, mini-batches (as _make)
+B = E_RANK * T  # transitions per rank and update; the single rank has WORLD * B
+SEED_ONE, SEED_RANK = 1000, 2000
+SCHEDULES = {"adaptive": dict(schedule="adaptive", desired_kl=0.01, learning_rate=1e-3, entropy_coef=0.005),
+             "fixed": dict(schedule="fixed", learning_rate=1e-3, entropy_coef=0.005)}
+KEYS = ("policy", "critic", "actions", "values", "returns", "advantages", "log_prob", "mean", "std")
+
+
+def _perm(n: int, seed: int) -> torch.Tensor:
+    """The permutation an update draws first, after torch.manual_seed(seed)."""
+    return torch.randperm(n, generator=torch.Generator().manual_seed(seed))
+
+
+def _split_batches() -> dict:
+    """UPDATES batches for one rank (WORLD * B rows each) and each rank's share, placed so that
+    under its own permutation rank r's mini-batch k holds half r of the single rank's mini-batch k."""
+    gen = torch.Generator().manual_seed(5)
+    frozen = _make(GraphPPO, "cpu").actor  # the initial policy, the same in every process
+    h = B // M
+    one, ranks = [], [[] for _ in range(WORLD)]
+    for u in range(UPDATES):
+        p_one = _perm(WORLD * B, SEED_ONE + u)
+        owner = torch.empty(WORLD * B, dtype=torch.long)
+        owner[p_one.view(M, WORLD, h)] = torch.arange(WORLD).view(1, WORLD, 1)
+        obs = _obs(gen, "cpu", WORLD * B)
+        with torch.no_grad():
+            frozen.distribution.update(frozen(obs))
+            mean, std = (x.clone() for x in frozen.output_distribution_params)
+        # Rank 1's rows were acted on by a policy one std away, rank 0's by the current one: alone,
+        # rank 0's KL is near zero (the adaptive rate would grow), the union's is far above
+        # desired_kl (it shrinks), so rsl-rl's KL all-reduce decides the learning rate.
+        mean = mean + (owner == 1).unsqueeze(-1) * std
+        actions = mean + std * torch.randn(mean.shape, generator=gen)
+        log_prob = torch.distributions.Normal(mean, std).log_prob(actions).sum(-1, keepdim=True)
+        values = torch.randn(WORLD * B, 1, generator=gen)
+        rows = {"policy": obs["policy"], "critic": obs["critic"], "actions": actions, "values": values,
+                "returns": values + torch.randn(WORLD * B, 1, generator=gen),
+                "advantages": torch.randn(WORLD * B, 1, generator=gen), "log_prob": log_prob, "mean": mean, "std": std}
+        one.append(rows)
+        for r in range(WORLD):
+            where = torch.empty(B, dtype=torch.long)
+            where[_perm(B, SEED_RANK + 10 * u + r)] = p_one.view(M, WORLD, h)[:, r].reshape(-1)
+            ranks[r].append({k: v[where] for k, v in rows.items()})
+    return {"one": one, "ranks": ranks}
+
+
+def _fill(alg, rows: dict) -> None:
+    """Write a batch into the rollout storage, as a rollout and compute_returns would have left it."""
+    st = alg.storage
+    flat = {"policy": st.observations["policy"], "critic": st.observations["critic"], "actions": st.actions,
+            "values": st.values, "returns": st.returns, "advantages": st.advantages, "log_prob": st.actions_log_prob}
+    for k, dst in flat.items():
+        dst.flatten(0, 1).copy_(rows[k])
+    shape = st.actions.shape
+    st.distribution_params = (rows["mean"].reshape(shape).clone(), rows["std"].reshape(shape).clone())
+    if isinstance(alg, GraphPPO):  # what its compute_returns keeps (which would normalise per rank)
+        alg._adv = st.advantages.flatten(0, 1).clone()
+
+
+def _updates(alg, batches: list[dict], seeds: list[int]) -> dict:
+    alg.train_mode()
+    losses = []
+    for rows, seed in zip(batches, seeds):
+        _fill(alg, rows)
+        torch.manual_seed(seed)
+        losses.append(alg.update())
+        if isinstance(alg, GraphPPO):  # the permutation _split_batches planned for
+            assert torch.equal(alg._perm, _perm(len(alg._perm), seed))
+    return {"params": _params(alg), "lr": float(alg.learning_rate), "losses": losses}
+
+
+def _rank_updates(rank: int, port: int, folder: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    dist.init_process_group("gloo", rank=rank, world_size=WORLD)
+    try:
+        batches = torch.load(os.path.join(folder, "batches.pt"), weights_only=True)["ranks"][rank]
+        seeds = [SEED_RANK + 10 * u + rank for u in range(UPDATES)]
+        multi = {"global_rank": rank, "local_rank": rank, "world_size": WORLD}
+        out = {}
+        for name, kw in SCHEDULES.items():
+            for variant, cls in (("graph", GraphPPO), ("rsl_rl", PPO), ("no_grad_all_reduce", GraphPPO)):
+                alg = _make(cls, "cpu", num_envs=E_RANK, multi_gpu_cfg=multi, **kw)
+                if variant == "no_grad_all_reduce":  # the negative control: each rank steps alone
+                    alg.reduce_parameters = lambda: None
+                out[f"{name}/{variant}"] = _updates(alg, batches, seeds)
+        torch.save(out, os.path.join(folder, f"rank{rank}.pt"))
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.fixture(scope="module")
+def ranks_and_one(tmp_path_factory):
+    """Each rank's results (2 gloo ranks) and the single rank's on the union of their data."""
+    folder = tmp_path_factory.mktemp("ranks")
+    batches = _split_batches()
+    torch.save(batches, folder / "batches.pt")
+    mp.spawn(_rank_updates, args=(free_port(), str(folder)), nprocs=WORLD, join=True)
+    ranks = [torch.load(folder / f"rank{r}.pt", weights_only=True) for r in range(WORLD)]
+    one = {name: _updates(_make(GraphPPO, "cpu", num_envs=WORLD * E_RANK, **kw), batches["one"],
+                          [SEED_ONE + u for u in range(UPDATES)]) for name, kw in SCHEDULES.items()}
+    return ranks, one
+
+
+def _assert_params_close(got: dict, want: dict) -> None:
+    assert got.keys() == want.keys()
+    for k in want:
+        torch.testing.assert_close(got[k], want[k], rtol=1e-4, atol=1e-5, msg=k)
+
+
+@pytest.mark.parametrize("schedule", list(SCHEDULES))
+def test_two_ranks_update_as_one_rank_with_the_union_of_their_data(ranks_and_one, schedule):
+    ranks, one = ranks_and_one
+    r0, r1 = (r[f"{schedule}/graph"] for r in ranks)
+    ref = one[schedule]
+    # The ranks hold one policy, bit for bit (normalisers included), and one learning rate.
+    assert r0["lr"] == r1["lr"]
+    for k in r0["params"]:
+        assert torch.equal(r0["params"][k], r1["params"][k]), k
+    # ... the single rank's on the union, to test_update_matches_rsl_rl's tolerance.
+    _assert_params_close(r0["params"], ref["params"])
+    assert r0["lr"] == pytest.approx(ref["lr"], rel=1e-5)
+    if schedule == "adaptive":
+        assert ref["lr"] < 1e-3 / 1.5**5  # the union's KL shrank the rate (rank 0's own would grow it)
+    # Each rank reports its own mini-batches' losses; their mean is the union's.
+    for u in range(UPDATES):
+        for k in ("value", "surrogate", "entropy"):
+            mean = sum(r[f"{schedule}/graph"]["losses"][u][k] for r in ranks) / WORLD
+            assert mean == pytest.approx(ref["losses"][u][k], rel=1e-4, abs=1e-6), (u, k)
+    # ... and rsl-rl's own multi-GPU PPO on the same ranks.
+    for r in ranks:
+        _assert_params_close(r[f"{schedule}/graph"]["params"], r[f"{schedule}/rsl_rl"]["params"])
+        assert r[f"{schedule}/graph"]["lr"] == pytest.approx(r[f"{schedule}/rsl_rl"]["lr"], rel=1e-5)
+    # Without the gradient all-reduce the same comparison fails.
+    alone = ranks[0][f"{schedule}/no_grad_all_reduce"]["params"]
+    assert not all(torch.allclose(alone[k], ref["params"][k], rtol=1e-4, atol=1e-5) for k in ref["params"])
+
+
+def _rank_graphs(rank: int, port: int, folder: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    torch.cuda.set_device(rank)
+    dist.init_process_group("nccl", rank=rank, world_size=WORLD)
+    try:
+        multi = {"global_rank": rank, "local_rank": rank, "world_size": WORLD}
+        out = {}
+        for name, graphs in (("eager", False), ("graphed", True)):
+            alg = _make(GraphPPO, "cuda", cuda_graphs=graphs, multi_gpu_cfg=multi, schedule="adaptive",
+                        desired_kl=0.01, learning_rate=1e-3)
+            alg.broadcast_parameters()  # as Trainer.learn starts; it also creates the NCCL communicator
+            losses = _train(alg, 4, "cuda", data_seed=1 + rank)  # each rank its own data
+            out[name] = {"params": _params(alg), "lr": float(alg.learning_rate), "losses": losses,
+                         "captured": alg._update_graphs is not None}
+            alg.release_graphs()  # before destroy_process_group (pytorch/pytorch#115388)
+        torch.save(out, os.path.join(folder, f"rank{rank}.pt"))
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < WORLD,
+                    reason="the NCCL collectives captured in the update need 2 GPUs")
+def test_cuda_graph_update_under_torchrun_matches_eager(tmp_path):
+    """2 GPUs (NCCL): the captured update, its collectives inside the graphs, against the eager one."""
+    mp.spawn(_rank_graphs, args=(free_port(), str(tmp_path)), nprocs=WORLD, join=True)
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(WORLD)]
+    for name in ("eager", "graphed"):  # one policy on both ranks, though their data differ
+        a, b = (r[name] for r in ranks)
+        assert a["lr"] == b["lr"]
+        for k in a["params"]:
+            assert torch.equal(a["params"][k], b["params"][k]), (name, k)
+    for r in ranks:
+        eager, graphed = r["eager"], r["graphed"]
+        assert graphed["captured"] and not eager["captured"]
+        for le, lg in zip(eager["losses"], graphed["losses"]):
+            for k in le:
+                assert lg[k] == pytest.approx(le[k], rel=1e-3, abs=1e-5), k
+        assert graphed["lr"] == pytest.approx(eager["lr"], rel=1e-5)
+        for k in eager["params"]:
+            torch.testing.assert_close(graphed["params"][k], eager["params"][k], rtol=1e-3, atol=1e-4, msg=k)

@@ -1,7 +1,8 @@
-"""The tracking MDP as plain term functions `f(env, **params) -> Tensor[num_envs, ...]`.
+"""The tracking MDP as plain term functions: `f(env, **params) -> Tensor[num_envs, ...]` for
+observations, rewards and terminations, `f(env, envs, **params)` for events.
 
 Terms read the per-step state the environment computed once (`env.state`, see
-`bmimic.envs.tracking_env.TrackingState`), so no term repeats another's work. A config names a term
+`bmimic.envs.state.TrackingState`), so no term repeats another's work. A config names a term
 by its function name in one of these modules, or by `package.module:function` for user code.
 """
 
@@ -10,9 +11,9 @@ from __future__ import annotations
 import importlib
 from typing import Callable
 
-from bmimic.envs.mdp import observations, rewards, terminations
+from bmimic.envs.mdp import events, observations, rewards, terminations
 
-_MODULES = {"observations": observations, "rewards": rewards, "terminations": terminations}
+_MODULES = {"observations": observations, "rewards": rewards, "terminations": terminations, "events": events}
 
 
 def resolve_term(kind: str, name: str) -> Callable:

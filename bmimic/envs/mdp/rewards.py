@@ -65,8 +65,18 @@ def joint_pos_limits(env) -> torch.Tensor:
 
 
 def undesired_contacts(env) -> torch.Tensor:
-    """Contacts touching a robot body other than the end effectors (feet and hands), per world."""
-    return env.undesired_contact_count()
+    """Contacts touching a robot body other than the end effectors (feet and hands), per world, read
+    from the active slots of the simulator's contact pool."""
+    sim, n = env.sim, env.num_envs
+    undesired, geom_body = env.bodies.undesired, env.bodies.geom_body
+    slots = torch.arange(sim.contact_worldid.shape[0], device=env.device)
+    active = slots < sim.nacon
+    bodies = geom_body[sim.contact_geom.long().clamp_min(0)]
+    hit = active & (undesired[bodies[:, 0]] | undesired[bodies[:, 1]])
+    # Unused slots (most of the pool) add zero to worlds spread by slot number: sent all to one
+    # world (their stale id), their atomic adds serialise (measured: 0.3 ms a step at 4096 envs).
+    world = torch.where(active, sim.contact_worldid.long().clamp(0, n - 1), slots % n)
+    return torch.zeros(n, device=env.device).index_add_(0, world, hit.float())
 
 
 def is_alive(env) -> torch.Tensor:

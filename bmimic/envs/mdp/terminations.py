@@ -31,6 +31,6 @@ def bad_anchor_ori(env, threshold: float) -> torch.Tensor:
 def bad_motion_body_pos_z_only(env, threshold_m: float) -> torch.Tensor:
     """Any end effector (feet, hands) off its relative target height by more than the threshold."""
     s = env.state
-    idx = env.end_effector_index
+    idx = env.bodies.end_effectors
     err = (s.ref_body_pos_relative[:, idx, 2] - s.robot_body_pos[:, idx, 2]).abs()
     return (err > threshold_m).any(dim=-1)

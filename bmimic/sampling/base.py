@@ -1,0 +1,178 @@
+"""`BinSampler`: what every sampler shares (cached probabilities and their CDF, inverse-CDF draws,
+`update`/`update_counts`, the state dict), and `bin_counts`, the fixed-shape histogram the samplers
+and the episode accounting count with. A sampler subclasses BinSampler and implements `_update`
+(see :mod:`bmimic.sampling.samplers` for the built-in ones and how to add one)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from bmimic.sampling.checks import SamplerConfigError
+
+DTYPE = torch.float64
+"""Probabilities and state: float64, so 10^6 updates at alpha=0.001 accumulate no visible rounding."""
+METHODS = ("inverse_cdf", "multinomial")
+
+
+def bin_counts(bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Histogram of ``bins`` over ``num_bins`` bins (optionally weighted), as a fixed-size tensor.
+
+    Unlike ``torch.bincount`` it never reads the data to size its output, so it does not
+    synchronise a CUDA device with the host. Integer weights are summed in float32 and
+    returned in their own dtype (long without weights): exact below 2**24 per bin, and compiled into a
+    plain atomic add, where an int64 ``index_add_`` becomes a sort-based scatter.
+    """
+    if weights is None:
+        weights = torch.ones_like(bins, dtype=torch.long)
+    if weights.dtype.is_floating_point:
+        return torch.zeros(num_bins, dtype=weights.dtype, device=bins.device).index_add_(0, bins, weights)
+    out = torch.zeros(num_bins, dtype=torch.float32, device=bins.device).index_add_(0, bins, weights.float())
+    return out.to(weights.dtype)
+
+
+class BinSampler:
+    """Shared plumbing: cached probabilities and CDF, sampling, update(), state dict. `kind` is the
+    name it is registered under (`bmimic.sampling.registry.register_sampler` sets it)."""
+
+    kind = ""
+
+    @classmethod
+    def check_config(cls, cfg: Any) -> None:
+        """Range checks of the keys of this sampler's own schema (its `register_sampler` config)."""
+
+    @classmethod
+    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "BinSampler":
+        """The sampler that ``cfg`` describes, over ``num_bins`` bins."""
+        return cls(num_bins, device=device)
+
+    def __init__(self, num_bins: int, device: Any = "cpu", method: str = "inverse_cdf"):
+        if not (isinstance(num_bins, int) and not isinstance(num_bins, bool) and num_bins >= 1):
+            raise SamplerConfigError(f"sampler num_bins must be an integer >= 1, got {num_bins!r}")
+        if method not in METHODS:
+            raise SamplerConfigError(f"sampler method must be one of {', '.join(METHODS)}, got {method!r}")
+        self.num_bins = num_bins
+        self.device = torch.device(device)
+        self.method = method
+        self._probs = torch.full((num_bins,), 1.0 / num_bins, dtype=DTYPE, device=self.device)
+        self._cdf = torch.empty_like(self._probs)
+        self._refresh_cdf()
+
+    # -- probabilities and sampling -----------------------------------------------------------
+
+    # The cached tensors are written in place (out=), so they keep their storage (friendly to CUDA
+    # graphs), and with few kernels: the update runs every control step and is launch-bound.
+    def _refresh_cdf(self) -> None:
+        cdf = torch.cumsum(self._probs, 0)
+        # Rescale so the last entry is exactly 1 and every uniform in [0, 1) lands in a bin.
+        torch.div(cdf, cdf[-1], out=self._cdf)
+
+    def probabilities(self) -> torch.Tensor:
+        """P over the bins (float64, sums to 1); a copy of the cached value."""
+        return self._probs.clone()
+
+    def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Draw ``n`` bins i.i.d. from P (with replacement) as a LongTensor[n] on the sampler's device."""
+        if self.method == "multinomial":
+            if n == 0:
+                return torch.empty(0, dtype=torch.long, device=self.device)
+            return torch.multinomial(self._probs, n, replacement=True, generator=generator)
+        u = torch.rand(n, generator=generator, dtype=DTYPE, device=self.device)
+        # right=True: bin i holds u in [cdf[i-1], cdf[i]), so zero-probability bins are never drawn.
+        return torch.searchsorted(self._cdf, u, right=True).clamp_(max=self.num_bins - 1)
+
+    # -- updates ------------------------------------------------------------------------------
+
+    def update(self, bins: torch.Tensor, failed: torch.Tensor, visits: torch.Tensor | None = None) -> None:
+        """Update from one batch of finished episodes.
+
+        Args:
+            bins: LongTensor[n], the bin each episode is charged to, values in [0, S).
+            failed: BoolTensor[n], whether each episode failed.
+            visits: optional Tensor[S] of per-bin visit counts; when given it replaces the count
+                of episodes per bin (rate = failures per visit).
+
+        This checks its input and so synchronises with the device; the environment's per-step
+        path should accumulate counts and call :meth:`update_counts` instead.
+        """
+        bins = torch.as_tensor(bins, device=self.device)
+        failed = torch.as_tensor(failed, device=self.device)
+        if bins.ndim != 1 or failed.shape != bins.shape:
+            raise SamplerConfigError(
+                f"sampler update: bins and failed must be 1-D of equal length, got shapes "
+                f"{tuple(bins.shape)} and {tuple(failed.shape)}"
+            )
+        if bins.dtype.is_floating_point or bins.dtype == torch.bool:
+            raise SamplerConfigError(f"sampler update: bins must be an integer tensor, got {bins.dtype}")
+        bins = bins.long()
+        if bins.numel() and (int(bins.min()) < 0 or int(bins.max()) >= self.num_bins):
+            raise SamplerConfigError(
+                f"sampler update: bins must lie in [0, {self.num_bins}), got range "
+                f"[{int(bins.min())}, {int(bins.max())}]"
+            )
+        failures = bin_counts(bins, self.num_bins, failed.to(torch.long))
+        episodes = bin_counts(bins, self.num_bins) if visits is None else visits
+        self.update_counts(episodes, failures)
+
+    def update_counts(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        """Update from per-bin counts of one batch: ``episodes[s]`` = n_s, ``failures[s]`` = f_s.
+
+        Fixed shapes and no host synchronisation, so it can run every control step.
+        """
+        episodes = self._as_counts(episodes, "episodes")
+        failures = self._as_counts(failures, "failures")
+        self._update(episodes, failures)
+
+    def _as_counts(self, x: torch.Tensor, name: str) -> torch.Tensor:
+        x = torch.as_tensor(x, device=self.device)
+        if x.shape != (self.num_bins,):
+            raise SamplerConfigError(
+                f"sampler update_counts: {name} must have shape ({self.num_bins},), got {tuple(x.shape)}"
+            )
+        return x.to(DTYPE)
+
+    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        raise NotImplementedError
+
+    def smoothed_failure(self) -> torch.Tensor:
+        """The sampler's smoothed failure signal per bin (float64 [S]), for diagnostics."""
+        raise NotImplementedError
+
+    # -- state --------------------------------------------------------------------------------
+
+    def hparams(self) -> dict[str, Any]:
+        return {}
+
+    def _state_tensors(self) -> dict[str, torch.Tensor]:
+        return {}
+
+    def _recompute(self) -> None:
+        pass
+
+    def state_dict(self) -> dict[str, Any]:
+        """Kind, number of bins, hyperparameters (for the record) and state tensors (copies)."""
+        state = {k: v.detach().clone() for k, v in self._state_tensors().items()}
+        return {"kind": self.kind, "num_bins": self.num_bins, "hparams": self.hparams(), "state": state}
+
+    def load_state_dict(self, d: dict[str, Any]) -> None:
+        """Restore the state saved by :meth:`state_dict`; hyperparameters stay those of this sampler."""
+        if d.get("kind") != self.kind or d.get("num_bins") != self.num_bins:
+            raise SamplerConfigError(
+                f"sampler state is for a {d.get('kind')!r} sampler with {d.get('num_bins')} bins, "
+                f"this is a {self.kind!r} sampler with {self.num_bins} bins"
+            )
+        own = self._state_tensors()
+        saved = d.get("state", {})
+        if set(saved) != set(own):
+            raise SamplerConfigError(f"sampler state has keys {sorted(saved)}, expected {sorted(own)}")
+        for key, tensor in own.items():
+            tensor.copy_(torch.as_tensor(saved[key]).to(device=self.device, dtype=tensor.dtype))
+        self._recompute()
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v}" for k, v in self.hparams().items())
+        return f"{type(self).__name__}(num_bins={self.num_bins}{', ' if args else ''}{args})"
+
+
+__all__ = ["DTYPE", "METHODS", "BinSampler", "bin_counts"]
