@@ -1,7 +1,8 @@
 """``index.csv`` at a sweep's root: one row per job folder, rebuilt from the run folders alone.
 
-Training calls ``write_index(sweep_dir)`` at the end of every job; ``python -m analysis.index
-SWEEP`` rebuilds it by hand. Two jobs finishing together are safe: each rebuild holds an advisory
+``SweepIndexCallback`` (a Hydra callback listed in conf/train.yaml, so bmimic never imports the
+analysis) rebuilds it at the end of every job of a multirun and once all have returned;
+``python -m analysis.index SWEEP`` rebuilds it by hand. Two jobs finishing together are safe: each rebuild holds an advisory
 lock while it reads the folders and writes a unique temp file that os.replace moves into place, so
 the file is always complete and the last rebuild saw every status written before it started.
 """
@@ -10,14 +11,23 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
 
 from analysis import AnalysisError
 from analysis.files import write_csv
-from analysis.load import find_run_dirs, load_runs, read_json
+from analysis.load import load_runs
+from analysis.run_files import find_run_dirs
+from bmimic.run_folder import read_metrics, read_provenance
+
+log = logging.getLogger("analysis.index")
 
 INDEX_NAME = "index.csv"
 LOCK_NAME = ".index.lock"
@@ -35,14 +45,6 @@ INDEX_COLUMNS = [
 """Columns of index.csv; ``job`` is the run folder relative to the sweep (e.g. ``sampler=uniform/seed=0``)."""
 
 
-def _json_or_empty(path: Path) -> dict:
-    try:
-        data = read_json(path)
-    except AnalysisError:
-        return {}  # a broken file is reported by the run's status; the index still lists the job
-    return data if isinstance(data, dict) else {}
-
-
 def build_index(sweep_dir: str | Path) -> pd.DataFrame:
     """One row per job folder under ``sweep_dir`` with INDEX_COLUMNS (empty frame when there is none).
 
@@ -57,8 +59,8 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
     rows = []
     for run in runs.itertuples(index=False):
         run_dir = Path(run.run_dir)
-        metrics = _json_or_empty(run_dir / "metrics.json")
-        provenance = _json_or_empty(run_dir / "provenance.json")
+        metrics = read_metrics(run_dir)  # {} when absent or broken: the run's status says why
+        provenance = read_provenance(run_dir)
         git = provenance.get("git") if isinstance(provenance.get("git"), dict) else {}
         rows.append({
             "job": run_dir.relative_to(sweep_dir).as_posix() if run_dir != sweep_dir else ".",
@@ -96,6 +98,37 @@ def write_index(sweep_dir: str | Path) -> Path:
         raise AnalysisError(f"{sweep_dir}: sweep folder does not exist")
     with _lock(sweep_dir):
         return write_csv(sweep_dir / INDEX_NAME, build_index(sweep_dir))
+
+
+class SweepIndexCallback(Callback):
+    """Rebuilds ``<sweep>/index.csv`` when a job of a multirun ends (in the job's process) and once
+    every job has returned; the index is rebuildable, so a failure here never fails a job or a sweep."""
+
+    def on_job_end(self, config: DictConfig, job_return: Any = None, **kwargs: Any) -> None:
+        if OmegaConf.select(config, "hydra.mode") != RunMode.MULTIRUN:
+            return
+        try:
+            write_index(Path(str(config.hydra.sweep.dir)))
+        except Exception as e:  # noqa: BLE001 - the index is rebuildable; never fail a job over it
+            log.warning("could not update the sweep index: %s", e)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        if not sweep_dir.is_dir():
+            return
+        try:
+            path = write_index(sweep_dir)
+            print(f"sweep index: {path}{_status_summary(path)}")
+        except Exception as e:  # noqa: BLE001 - rebuildable with python -m analysis.index; never fail the sweep
+            log.warning("could not write the sweep index of %s: %s", sweep_dir, e)
+
+
+def _status_summary(index_csv: Path) -> str:
+    statuses = pd.read_csv(index_csv)["status"].fillna("").astype(str).tolist()
+    counts: dict[str, int] = {}
+    for s in statuses:
+        counts[s] = counts.get(s, 0) + 1
+    return f" ({len(statuses)} jobs: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) + ")"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,174 +13,30 @@ or lacks a table is kept in the runs frame with ``included=False`` and a ``probl
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 
 import pandas as pd
-import pyarrow.parquet as pq
-import yaml
 
 from analysis import AnalysisError
-
-TABLES = {
-    "train_metrics": "train_metrics.parquet",
-    "eval": "eval.parquet",
-    "sampler": "sampler.parquet",
-    "eval_robust": "eval_robust.parquet",
-}
-"""Table name -> file name in the run folder."""
-
-REQUIRED_COLUMNS = {
-    "train_metrics": ["iteration", "env_steps", "wall_time_s", "mean_episode_length", "mean_reward"],
-    "eval": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
-    "sampler": ["iteration", "bin", "probability"],
-    "eval_robust": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
-}
-"""The columns the analysis reads from each table; other columns are carried along untouched."""
-
-NEEDED_TABLES = ("train_metrics", "eval")
-"""Tables a run must have to be included; ``sampler`` and ``eval_robust`` (written with
-``eval.robust=true``) are optional (what uses them skips runs without them)."""
-
-IGNORED_OVERRIDE_KEYS = {
-    "seed", "sweep_name", "run_name", "task_name", "device", "resume", "sweep", "logger",
-    "progress_bar", "max_iterations", "num_envs", "time_limit_s", "eval.every_iters", "ppo.save_interval",
-    "wandb_project", "verbose", "data.lafan_dir",
-}
-"""Override keys that do not define an arm: the ``exclude_keys`` of conf/train.yaml's override_dirname."""
+from analysis.run_files import (
+    NEEDED_TABLES,
+    REQUIRED_COLUMNS,
+    config_value,
+    find_run_dirs,
+    parse_value,
+    read_config,
+    read_json,
+    read_overrides,
+    seed_from_name,
+    table_problem,
+)
+from bmimic.run_folder import MOTION_SEGMENTS, STATUS, TABLES, table_path
 
 RUN_COLUMNS = [
     "run_dir", "sweep_dir", "arm", "seed", "status", "error", "iteration", "sampler",
     "overrides", "included", "problem",
 ]
 """The fixed columns of the runs frame; ``param.<key>`` columns follow (see load_runs)."""
-
-SKIP_DIRS = {"report", "checkpoints"}
-"""Folder names never searched for runs (report output, checkpoints)."""
-
-
-def is_run_dir(path: Path) -> bool:
-    """Whether ``path`` is a run folder (has ``status.json`` or ``.hydra/config.yaml``)."""
-    return (path / "status.json").is_file() or (path / ".hydra" / "config.yaml").is_file()
-
-
-def find_run_dirs(root: str | Path) -> list[Path]:
-    """All run folders at or below ``root``, sorted; run folders are not searched further."""
-    root = Path(root)
-    if not root.exists():
-        raise AnalysisError(f"{root}: no such file or folder")
-    if is_run_dir(root):
-        return [root]
-    found = []
-    for dirpath, dirnames, _ in os.walk(root):
-        here = Path(dirpath)
-        if here != root and is_run_dir(here):
-            found.append(here)
-            dirnames[:] = []
-            continue
-        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d not in SKIP_DIRS)
-    return sorted(found)
-
-
-def read_json(path: Path) -> dict | list | None:
-    """The parsed JSON at ``path``, or None when the file is absent; AnalysisError when unreadable."""
-    if not path.is_file():
-        return None
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        raise AnalysisError(f"{path}: not valid JSON ({e})") from e
-
-
-def read_config(run_dir: Path) -> dict:
-    """The composed config from ``.hydra/config.yaml`` as a plain dict ({} when absent)."""
-    path = run_dir / ".hydra" / "config.yaml"
-    if not path.is_file():
-        return {}
-    try:
-        cfg = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as e:
-        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
-    if not isinstance(cfg, dict):
-        raise AnalysisError(f"{path}: expected a mapping at the top level, got {type(cfg).__name__}")
-    return cfg
-
-
-def read_overrides(run_dir: Path) -> dict[str, str]:
-    """``.hydra/overrides.yaml`` as {key: raw value}, without seed/bookkeeping keys and deletions.
-
-    Hydra's ``+``/``++`` prefixes are dropped; ``~key`` deletions carry no value and are skipped.
-    """
-    path = run_dir / ".hydra" / "overrides.yaml"
-    if not path.is_file():
-        return {}
-    try:
-        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
-    except (OSError, yaml.YAMLError) as e:
-        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
-    if not isinstance(items, list):
-        raise AnalysisError(f"{path}: expected a list of 'key=value' strings")
-    out = {}
-    for item in items:
-        text = str(item)
-        if text.startswith("~") or "=" not in text:
-            continue
-        key, value = text.split("=", 1)
-        key = key.lstrip("+")
-        if key in IGNORED_OVERRIDE_KEYS or key.startswith("hydra."):
-            continue
-        out[key] = value
-    return out
-
-
-def config_value(cfg: dict, dotted: str):
-    """``cfg['a']['b']`` for ``'a.b'``, or None when any part is missing."""
-    node = cfg
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
-
-
-def parse_value(raw: str):
-    """A command-line override value as int, float or bool where it reads as one, else the string."""
-    for cast in (int, float):
-        try:
-            return cast(raw)
-        except ValueError:
-            pass
-    if raw.lower() in ("true", "false"):
-        return raw.lower() == "true"
-    return raw
-
-
-def seed_from_name(run_dir: Path) -> int | None:
-    """The seed in a ``seed=<int>`` folder name, else None."""
-    name = run_dir.name
-    if name.startswith("seed="):
-        try:
-            return int(name.split("=", 1)[1])
-        except ValueError:
-            return None
-    return None
-
-
-def _table_problem(run_dir: Path, name: str) -> str | None:
-    """Why ``name`` cannot be used from ``run_dir`` (absent, unreadable, missing columns), or None."""
-    path = run_dir / TABLES[name]
-    if not path.is_file():
-        return f"no {path.name}"
-    try:
-        columns = set(pq.read_schema(path).names)
-    except Exception as e:  # pyarrow raises several types for truncated or foreign files
-        return f"{path.name} unreadable ({type(e).__name__})"
-    missing = [c for c in REQUIRED_COLUMNS[name] if c not in columns]
-    if missing:
-        return f"{path.name} lacks columns {missing}"
-    return None
-
 
 def _read_run(run_dir: Path, root: Path) -> dict:
     """One row of the runs frame (without the arm of single runs, filled in later)."""
@@ -193,7 +49,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
         cfg, overrides = {}, {}
         problems.append(str(e))
     try:
-        status = read_json(run_dir / "status.json")
+        status = read_json(run_dir / STATUS)
     except AnalysisError as e:
         status = None
         problems.append(str(e))
@@ -230,7 +86,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
         problems.append(f"failed: {row['error']}" if row["error"] else "failed")
     elif row["status"] not in ("done", "running") and row["status"] != "unknown":
         problems.append(f"status {row['status']!r}")
-    problems += [p for p in (_table_problem(run_dir, t) for t in NEEDED_TABLES) if p]
+    problems += [p for p in (table_problem(run_dir, t) for t in NEEDED_TABLES) if p]
     row["problem"] = "; ".join(problems) if problems else None
     row["included"] = not problems
     return row
@@ -366,7 +222,7 @@ def load_runs(paths) -> pd.DataFrame:
 def load_table(runs: pd.DataFrame, name: str) -> pd.DataFrame:
     """One table of every included run, stacked: ``run_dir, arm, seed`` then the table's columns.
 
-    ``name`` is a key of TABLES (schemas in docs/architecture.md). Runs without the file are skipped
+    ``name`` is a key of bmimic.run_folder.TABLES (schemas in docs/architecture.md). Runs without the file are skipped
     (only possible for the optional tables); a file
     that is unreadable or lacks a needed column raises AnalysisError naming it. With no rows, an
     empty frame with the needed columns is returned.
@@ -375,7 +231,7 @@ def load_table(runs: pd.DataFrame, name: str) -> pd.DataFrame:
         raise AnalysisError(f"unknown table {name!r}; expected one of {sorted(TABLES)}")
     frames = []
     for run in runs[runs["included"]].itertuples(index=False):
-        path = Path(run.run_dir) / TABLES[name]
+        path = table_path(run.run_dir, name)
         if not path.is_file():
             if name in NEEDED_TABLES:
                 raise AnalysisError(f"{path}: missing")
@@ -401,7 +257,7 @@ def load_segments(runs: pd.DataFrame) -> pd.DataFrame:
     """The motion segments ``name, start_s, end_s, difficulty`` from the first included run's
     ``motion_segments.json`` (runs of one report share a motion); empty when no run has the file."""
     for run_dir in runs.loc[runs["included"], "run_dir"]:
-        path = Path(run_dir) / "motion_segments.json"
+        path = Path(run_dir) / MOTION_SEGMENTS
         data = read_json(path)
         if data is None:
             continue

@@ -40,26 +40,13 @@ from analysis.stats import (
     km_median,
     restricted_km_median,
 )
+from bmimic.evaluation.mastery import counts_as_mastered  # the rule training's summary uses too
 
 MEASURES = ("iteration", "env_steps", "wall_time_s")
 """How time is measured: training iterations, environment steps, seconds of training."""
 
 SPEEDUP_STATUSES = ("estimate", "lower_bound", "upper_bound", "not_estimable")
 """Values of the speedup ``status`` column."""
-
-
-def counts_as_mastered(per_bin: pd.DataFrame, threshold: float) -> pd.Series:
-    """Whether each row (one bin of one evaluation) counts as mastered (module docstring).
-
-    Reads ``failure_rate`` and, where present, ``horizon_truncated`` and ``tracked_through`` (tables
-    from before those columns existed are taken as not truncated).
-    """
-    below = per_bin["failure_rate"].astype(float) < threshold
-    if "horizon_truncated" not in per_bin:
-        return below
-    truncated = per_bin["horizon_truncated"].fillna(False).astype(bool)
-    through = per_bin["tracked_through"].fillna(0) if "tracked_through" in per_bin else 0
-    return below & (~truncated | (through >= 1))
 
 
 def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.DataFrame:

@@ -78,9 +78,8 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     import bmimic.config  # noqa: F401
     from bmimic import CONF_DIR
     from bmimic.config import resolve_runtime
-    from bmimic.runs import seed_everything
-    from bmimic.train import build
-    from bmimic.training.runner import Trainer
+    from bmimic.runtime import seed_everything
+    from bmimic.task import build_trainer, build_training
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("train", overrides=[f"num_envs={num_envs}", f"device={device}", *overrides])
@@ -88,10 +87,11 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     seed_everything(cfg.seed + rank)  # distinct worlds per rank, as train.py does
     mem0 = _mem_used(device)
     t0 = time.perf_counter()
-    mjm, robot, motion, layout, sampler, env = build(cfg, device)
+    training = build_training(cfg, device)
+    env, layout, motion = training.env, training.task.layout, training.task.motion
     setup_s = time.perf_counter() - t0
     out: dict = {"num_envs": num_envs, "num_bins": layout.num_bins, "motion_s": motion.duration_s,
-                 "setup_s": setup_s, "cuda_graph": env.sim._step_graph is not None,
+                 "setup_s": setup_s, "cuda_graph": bool(env.sim.use_graph),
                  "compile_env_step": bool(cfg.sim.compile_env_step)}
     n = num_envs
     sim_steps = max(iters * 10, 20)
@@ -99,8 +99,8 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     if "sim" in only:
         out["physics_steps_per_s"] = n / _timeit(env.sim.step, sim_steps, device)
 
-    trainer = Trainer(env, None, sampler, cfg.ppo, tempfile.mkdtemp(prefix="bmimic-bench-"), device, "bench",
-                      eval_every_iters=0, logger="none", progress_bar=False, export_onnx=False)
+    # The trainer builds the algorithm as training does; it never writes (no learn, no checkpoint).
+    trainer = build_trainer(training, None, tempfile.mkdtemp(prefix="bmimic-bench-"))
     alg = trainer.alg
     if trainer.runner.is_distributed:
         alg.broadcast_parameters()  # one policy on every rank, as Trainer.learn starts
@@ -172,7 +172,10 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 
 
 def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
-    """Milliseconds per environment step spent in each part, each timed alone."""
+    """Milliseconds per environment step spent in each part, each timed alone through its public
+    interface (the state, the observation, reward and termination managers, the sampler and its
+    accounting). `resets` starts a new segment in every world (`start_segments`: sampling, reference
+    state, kinematics), the most a step's masked resets can cost."""
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
     from bmimic.envs.state import compute_state
@@ -180,6 +183,7 @@ def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
     acc = env.accounting
     length = env.episode_length_buf
     obs = env.get_observations()
+
     parts = {
         "physics": env.sim.step,
         "kinematics_after_writes": env.sim.forward_kinematics,
@@ -238,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
         except BmimicError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-    from bmimic.runs import resolve_device
+    from bmimic.runtime import resolve_device
 
     device = resolve_device(args.device)
     only = set(args.only.split(","))
@@ -249,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(r), flush=True)
     print(format_table(results["runs"]))
     if args.json:
-        from bmimic.runs import atomic_write_json
+        from bmimic.run_folder import atomic_write_json
 
         atomic_write_json(args.json, results)
     return 0
@@ -284,7 +288,7 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
     """Merge one measurement's rows into `path` (atomically) and return the file's rows: a row with
     the same gpus and num_envs_per_gpu is replaced, and every row's scaling is its env steps/s over
     the 1-GPU row's with the same num_envs_per_gpu (null until that row exists)."""
-    from bmimic.runs import atomic_write_json
+    from bmimic.run_folder import atomic_write_json
 
     rows = {(r["gpus"], r["num_envs_per_gpu"]): r for r in read_multigpu_rows(path)}
     for r in new_rows:
@@ -301,12 +305,11 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
 
 def multigpu(args: argparse.Namespace, overrides: list[str]) -> int:
     """`--multigpu-json`: full PPO iterations on every rank of this torchrun, rank 0 merges the rows."""
-    from bmimic.runs import resolve_device
-    from bmimic.train import _init_distributed
+    from bmimic.runtime import init_distributed, resolve_device
 
     path = Path(args.multigpu_json)
     read_multigpu_rows(path)  # a malformed file stops the run here, before any measurement
-    rank, world = _init_distributed()
+    rank, world = init_distributed()
     device = resolve_device(args.device)
     if world > 1 and torch.distributed.get_backend() == "nccl":
         device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"

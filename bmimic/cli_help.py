@@ -62,22 +62,21 @@ def _wrapped(text: str, indent: int, width: int) -> str:
     return textwrap.fill(text, width=width, initial_indent=" " * indent, subsequent_indent=" " * indent)
 
 
-def train_help(root: Any, loader: Any = None) -> str:
-    """The help text for the composed config `root` (with its `hydra` node); `loader` is Hydra's
-    config loader (default: the running Hydra's)."""
+def train_help(root: Any, schema: type, loader: Any = None) -> str:
+    """The help text for the composed config `root` (with its `hydra` node) of the dataclass `schema`
+    (bmimic.config.TrainConfig, which calls this); `loader` is Hydra's config loader (default: the
+    running Hydra's)."""
     from hydra.core.global_hydra import GlobalHydra
-
-    from bmimic.config import TrainConfig
 
     if loader is None:
         loader = GlobalHydra.instance().config_loader()
     width = max(60, min(110, shutil.get_terminal_size((100, 24)).columns))
-    docs = field_docs(TrainConfig)
+    docs = field_docs(schema)
     try:
         choices = dict(root.hydra.runtime.choices)
     except Exception:  # composed without the hydra node
         choices = {}
-    fields = {f.name: f for f in dataclasses.fields(TrainConfig) if f.name != "defaults"}
+    fields = {f.name: f for f in dataclasses.fields(schema) if f.name != "defaults"}
     groups = [g for g in fields if g in loader.list_groups("")]
     lines = [
         "python -m bmimic.train [group=option ...] [key=value ...]: train a motion-tracking policy.",
@@ -104,7 +103,7 @@ def train_help(root: Any, loader: Any = None) -> str:
         if name in groups:
             continue
         if _is_node(root, name):  # a plain node such as `data`: its keys, with its schema's docs
-            entries = [(f"{name}.{sub}", doc) for sub, doc in _node_docs(name, root[name]).items()]
+            entries = [(f"{name}.{sub}", doc) for sub, doc in _node_docs(schema, name, root[name]).items()]
         else:
             entries = [(name, docs.get(name, ""))]
         for key, doc in entries:
@@ -125,11 +124,9 @@ def _is_node(root: Any, name: str) -> bool:
     return isinstance(root.get(name), DictConfig)
 
 
-def _node_docs(name: str, node: Any) -> dict[str, str]:
+def _node_docs(schema: type, name: str, node: Any) -> dict[str, str]:
     """{key: doc} of the top-level node `name`, docs from its schema dataclass (e.g. DataConfig)."""
-    from bmimic.config import TrainConfig
-
-    (f,) = [f for f in dataclasses.fields(TrainConfig) if f.name == name]
+    (f,) = [f for f in dataclasses.fields(schema) if f.name == name]
     default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
     docs = field_docs(type(default)) if dataclasses.is_dataclass(default) else {}
     return {key: docs.get(key, "") for key in node}

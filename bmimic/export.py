@@ -19,37 +19,40 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from bmimic.cli_common import add_trust_flag, first_line, user_errors
+from bmimic.run_folder import checkpoints_dir
+
 log = logging.getLogger("bmimic.export")
 
 
 def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False) -> list[Path]:
     """Export the run's latest checkpoint (or the given one); returns the written files. `trust`
     (--trust-checkpoint) unpickles a format-1 checkpoint of your own, as bmimic.eval does."""
-    from bmimic.eval import build_policy, load_checkpoint, load_run
-    from bmimic.train import build_evaluator
+    from bmimic.evaluation.saved_run import load_run
+    from bmimic.task import build_evaluator
+    from bmimic.training.checkpoints import load_checkpoint_file
     from bmimic.training.export import export_checkpoint_onnx
+    from bmimic.training.policy import build_policy
 
     run = load_run(path, ["device=cpu", "eval.max_envs=1"], trust=trust)
-    state = load_checkpoint(run.checkpoint, run.device, trust=trust)
-    env = build_evaluator(run.cfg, run.device, run.robot, run.motion, run.layout).env
-    policy = build_policy(state, env, run.cfg.ppo, run.device, run.checkpoint)
+    task = run.task
+    state = load_checkpoint_file(run.checkpoint, task.device, trust=trust)
+    env = build_evaluator(task).env
+    policy = build_policy(state, env, task.cfg.ppo, task.device, run.checkpoint)
     iteration = int(state.get("iter", -1))
-    return export_checkpoint_onnx(policy, env, out_dir or run.run_dir / "checkpoints", iteration)
+    return export_checkpoint_onnx(policy, env, out_dir or checkpoints_dir(run.run_dir), iteration)
 
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bmimic.export", description=__doc__.splitlines()[0].split(": ", 1)[1])
     p.add_argument("path", help="a run folder (its latest checkpoint) or a checkpoint file in one")
     p.add_argument("--out", type=Path, help="folder for the files (default RUN_DIR/checkpoints)")
-    from bmimic.eval import add_trust_flag
-
     add_trust_flag(p)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     from bmimic.console import quiet_warp
-    from bmimic.eval import first_line, user_errors
 
     args = parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")

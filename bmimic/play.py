@@ -25,6 +25,9 @@ from typing import Sequence
 
 import numpy as np
 
+from bmimic.cli_common import add_trust_flag, first_line, user_errors
+from bmimic.run_folder import VIDEOS_DIR
+
 log = logging.getLogger("bmimic.play")
 
 
@@ -43,8 +46,6 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--msaa", type=int, help="multisample anti-aliasing samples (default 4; 0 on software GL)")
     p.add_argument("--no-ghost", action="store_true", help="do not draw the reference ghost")
     p.add_argument("--no-text", action="store_true", help="do not print time, segment and falls on the frames")
-    from bmimic.eval import add_trust_flag
-
     add_trust_flag(p)
     return p
 
@@ -68,7 +69,7 @@ def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequ
     """
     import torch
 
-    from bmimic.eval import segment_at
+    from bmimic.evaluation.tables import segment_at
     from bmimic.render import annotate
 
     first = torch.tensor([start_frame], device=env.device)
@@ -102,25 +103,28 @@ def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequ
 
 def play(args: argparse.Namespace) -> Path:
     """Build the run's single-world eval environment and policy, render, write the video."""
-    from bmimic.eval import build_policy, checkpoint_label, load_checkpoint, load_run
+    from bmimic.evaluation.saved_run import checkpoint_label, load_run
     from bmimic.render import RenderError, TrackingRenderer, video_path, write_video
-    from bmimic.train import build_evaluator
+    from bmimic.task import build_evaluator
+    from bmimic.training.checkpoints import load_checkpoint_file
+    from bmimic.training.policy import build_policy
 
     if args.seconds <= 0 or args.fps <= 0:
         raise RenderError(f"--seconds ({args.seconds}) and --fps ({args.fps}) must be > 0")
     # eval.max_envs=1: build_evaluator then makes exactly one world.
     overrides = [*args.overrides, "eval.max_envs=1", *([f"device={args.device}"] if args.device else [])]
     run = load_run(args.path, overrides, trust=args.trust_checkpoint)
-    state = load_checkpoint(run.checkpoint, run.device, args.trust_checkpoint)
-    motion = run.motion
+    task = run.task
+    state = load_checkpoint_file(run.checkpoint, task.device, args.trust_checkpoint)
+    motion = task.motion
     if not 0 <= args.start_s < motion.duration_s:
         raise RenderError(f"--start-s {args.start_s}: must be in [0, {motion.duration_s:g}) s, the motion's length")
     label = checkpoint_label(run.checkpoint, state)
-    out = args.out if args.out is not None else run.run_dir / "videos" / f"{label}_t{args.start_s:g}s.mp4"
+    out = args.out if args.out is not None else run.run_dir / VIDEOS_DIR / f"{label}_t{args.start_s:g}s.mp4"
     out = video_path(Path(out))  # fail on a bad suffix before the rollout, not after
 
-    env = build_evaluator(run.cfg, run.device, run.robot, motion, run.layout).env
-    policy = build_policy(state, env, run.cfg.ppo, run.device, run.checkpoint)
+    env = build_evaluator(task).env
+    policy = build_policy(state, env, task.cfg.ppo, task.device, run.checkpoint)
     renderer = TrackingRenderer(env.sim.mjm, args.width, args.height, msaa=args.msaa)
     try:
         steps = frame_steps(args.seconds, args.fps, env.step_dt)
@@ -150,7 +154,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     from bmimic.console import quiet_warp
-    from bmimic.eval import first_line, user_errors
 
     quiet_warp()
     try:

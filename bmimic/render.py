@@ -163,10 +163,11 @@ class TrackingRenderer:
         mjw.get_data_into(self.data, self.mjm, sim_data, world_id=world)
         self.renderer.update_scene(self.data, camera=self.camera, scene_option=self.option)
         if ref_qpos is not None:
-            self._add_ghost(np.asarray(ref_qpos, dtype=np.float64))
+            self.add_ghost(np.asarray(ref_qpos, dtype=np.float64))
         return self.renderer.render()
 
-    def _add_ghost(self, qpos: np.ndarray) -> None:
+    def add_ghost(self, qpos: np.ndarray) -> None:
+        """Add the pose `qpos` to the scene being rendered as a translucent ghost (the reference)."""
         import mujoco
 
         self.ghost.qpos[:] = qpos
@@ -227,7 +228,7 @@ def video_path(path: Path) -> Path:
 
 def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float) -> Path:
     """Write frames ([H, W, 3] uint8) atomically as MP4 or GIF (by suffix, see `video_path`)."""
-    from bmimic.runs import atomic_write
+    from bmimic.run_folder import atomic_write
 
     path = video_path(Path(path))
     if not frames:

@@ -20,7 +20,9 @@
 set -euo pipefail
 
 gpus_per_node=${GPUS_PER_NODE:-${SLURM_GPUS_ON_NODE:-8}}
-head_node=$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1)
+# sed reads every line: `head -n 1` would exit early and, under pipefail, a SIGPIPE to scontrol
+# would end the script (exit 141).
+head_node=$(scontrol show hostnames "$SLURM_JOB_NODELIST" | sed -n 1p)
 port=${RDZV_PORT:-$((29500 + SLURM_JOB_ID % 1000))}
 
 # One task per node; --kill-on-bad-exit ends the other nodes when one fails, instead of leaving

@@ -39,6 +39,43 @@ def cfg():
     return compose()
 
 
+def run_train(*args: str, cwd: Path | None = None, env: dict | None = None) -> tuple[int, str]:
+    """`python -m bmimic.train ARGS` in this process (the real Hydra app, without a new interpreter's
+    start-up): its exit status and everything it printed. `env` sets (value None: removes) variables
+    for the run; the working directory, sys.argv and the environment are restored after it."""
+    import contextlib
+    import io
+    import runpy
+    import sys
+
+    saved = sys.argv, os.getcwd(), {k: os.environ.get(k) for k in (env or {})}
+    out = io.StringIO()
+    try:
+        for key, value in (env or {}).items():
+            os.environ.pop(key, None) if value is None else os.environ.__setitem__(key, value)
+        if cwd is not None:
+            os.chdir(cwd)
+        sys.argv = ["bmimic.train", *args]
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+            try:
+                runpy.run_module("bmimic.train", run_name="__main__")
+                code = 0
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        sys.argv = saved[0]
+        os.chdir(saved[1])
+        for key, value in saved[2].items():
+            os.environ.pop(key, None) if value is None else os.environ.__setitem__(key, value)
+    return code, out.getvalue()
+
+
+def train_in_process(run_dir: Path, *overrides: str, cwd: Path | None = None) -> Path:
+    """A tiny training run in `run_dir` (hydra.run.dir), in this process; fails the test when it fails."""
+    code, out = run_train(*overrides, f"hydra.run.dir={run_dir}", cwd=cwd)
+    if code != 0:
+        pytest.fail(f"bmimic.train {' '.join(overrides)} exited {code}:\n{out[-3000:]}")
+    return run_dir
 def free_port() -> int:
     """A TCP port on localhost that nothing listens on now (for a process group's rendezvous)."""
     import socket
@@ -66,6 +103,22 @@ def wait_for(proc, ready, what: str, timeout_s: float = 600) -> None:
             pass
         time.sleep(0.05)
     pytest.fail(f"never reached: {what}")
+
+
+@pytest.fixture(scope="session")
+def gl_backend() -> str:
+    """A GL backend that can render offscreen here (checked in a subprocess), else skip."""
+    from bmimic import render
+
+    chosen = os.environ.get("MUJOCO_GL")
+    candidates = [chosen] if chosen else list(render.GL_BACKENDS)
+    reasons = []
+    for backend in candidates:
+        why = render.probe_gl_backend(backend)
+        if why is None:
+            return backend
+        reasons.append(f"{backend}: {why}")
+    pytest.skip("no offscreen OpenGL backend (" + "; ".join(reasons) + ")")
 
 
 @pytest.fixture(autouse=True)

@@ -11,7 +11,7 @@ class UniformNoise:
     """`noise(shape, half_width)`; list half-widths (one per last-axis entry) are cached on the device
     so that no draw on the step path copies from the host.
 
-    Draws use torch's default generator (seeded by bmimic.runs.seed_everything), which CUDA-graph
+    Draws use torch's default generator (seeded by bmimic.runtime.seed_everything), which CUDA-graph
     replay advances (a private generator would have to be registered with every graph)."""
 
     def __init__(self, device: Any) -> None:

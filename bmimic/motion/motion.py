@@ -242,8 +242,8 @@ class Motion:
 
     # -- I/O ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
-        """Write the npz atomically (bmimic.runs.atomic_write); `path` must end in .npz."""
-        from bmimic.runs import atomic_write
+        """Write the npz atomically (bmimic.run_folder.atomic_write); `path` must end in .npz."""
+        from bmimic.run_folder import atomic_write
 
         path = Path(path)
         if path.suffix != ".npz":

@@ -46,7 +46,7 @@ Modules: `spec` reads the file's metadata and baked-in motion, `model` builds th
 processes), `evaluation` runs the episodes and builds the tables, `gap` compares them with the
 MuJoCo-Warp evaluation, `cli` is the command line. The simulation path (this package's imports and
 everything a worker runs) uses numpy, mujoco, onnxruntime and torch-free bmimic helpers only; the
-command's bookkeeping (bins, start frames, tables) reuses bmimic.eval's, so the two evaluations are
+command's bookkeeping (bins, start frames, tables) reuses bmimic.evaluation's, so the two evaluations are
 comparable row by row.
 """
 

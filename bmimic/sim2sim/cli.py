@@ -11,7 +11,8 @@ from typing import Sequence
 
 import numpy as np
 
-from bmimic import BmimicError
+from bmimic.cli_common import user_errors
+from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR, atomic_write_csv
 from bmimic.sim2sim.evaluation import evaluate, locate
 from bmimic.sim2sim.gap import GAP_FILE, format_gap
 from bmimic.sim2sim.model import build_model, model_label
@@ -34,7 +35,7 @@ def render_video(policy_path: Path, run_dir: Path | None, model: str, joint_dyna
 
     def draw(r: Rollout, terminated: bool) -> None:
         renderer.renderer.update_scene(r.d, camera=renderer.camera, scene_option=renderer.option)
-        renderer._add_ghost(r.reference_qpos(r.frame))  # the renderer's ghost of the reference pose
+        renderer.add_ghost(r.reference_qpos(r.frame))  # the renderer's ghost of the reference pose
         text = [f"sim2sim {model_label(model)}  t={r.frame / spec.fps:5.2f} s"] + (["terminated"] if terminated else [])
         frames.append(annotate(renderer.renderer.render(), text, alert=terminated))
 
@@ -51,8 +52,7 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m bmimic.sim2sim",
         description="Evaluate the exported (BeyondMimic-compatible) ONNX policy in native MuJoCo on the CPU.",
-        epilog="Tables: RUN/sim2sim/<model>/<checkpoint>/{eval_episodes.parquet,eval_bins.parquet,"
-               f"eval_segments.csv,eval_summary.json,{GAP_FILE}}}")
+        epilog=f"Tables: RUN/{SIM2SIM_DIR}/<model>/<checkpoint>/{{{','.join((*EVAL_TABLES, GAP_FILE))}}}")
     p.add_argument("path", help="a run folder (its latest checkpoints/motion_policy_<it>.onnx) or such an ONNX file")
     p.add_argument("--model", default="project",
                    help="project (the run's G1), menagerie (MuJoCo Menagerie's G1) or an MJCF path")
@@ -85,16 +85,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         policy_path, run_dir = locate(args.path)
         result, warp, gap = evaluate(policy_path, run_dir, args.model, args.episodes_per_bin, args.horizon_s,
                                      args.workers, args.joint_dynamics, args.max_mpkpe_rel_mm)
-        out = args.out or (run_dir or policy_path.parent) / "sim2sim" / model_label(args.model) / result.summary["label"]
+        out = args.out or (run_dir or policy_path.parent) / SIM2SIM_DIR / model_label(args.model) / result.summary["label"]
         _write(result, gap, out.resolve())
         video = None
         if args.video is not None:
             video = render_video(policy_path, run_dir, args.model, args.joint_dynamics, args.video,
                                  args.video_start_s, args.video_s)
-    except _user_errors() as e:
+    except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)
         return 2
-    from bmimic.eval import format_report
+    from bmimic.evaluation.report import format_report
 
     s = result.summary
     print(format_report(result))
@@ -109,16 +109,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _write(result, gap, out_dir: Path) -> None:
-    from bmimic.eval import write_tables
-    from bmimic.runs import atomic_write
+    from bmimic.evaluation.tables import write_tables
 
     out_dir.mkdir(parents=True, exist_ok=True)
     if gap is not None:
-        atomic_write(out_dir / GAP_FILE, lambda tmp: gap.to_csv(tmp, index=False))
+        atomic_write_csv(out_dir / GAP_FILE, gap)
     write_tables(result, out_dir)  # the summary last: its presence means a complete set
-
-
-def _user_errors() -> tuple[type[BaseException], ...]:
-    from bmimic.motion.motion import MotionDataError
-
-    return (BmimicError, MotionDataError)

@@ -1,16 +1,17 @@
-"""sim2sim's evaluation: stratified starts per bin, episodes in native MuJoCo, and bmimic.eval's tables
-built from them with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluation.aggregate)."""
+"""sim2sim's evaluation: stratified starts per bin, episodes in native MuJoCo, and the tables of
+bmimic.evaluation.tables built from them with the MuJoCo-Warp evaluator's accounting (training.evaluation)."""
 
 from __future__ import annotations
 
 import logging
 import math
-import re
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from bmimic.run_folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
+from bmimic.run_folder import checkpoint_label as run_checkpoint_label
 from bmimic.sim2sim.gap import eval_settings, gap_table, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.rollout import Episode, run_episodes
@@ -18,8 +19,8 @@ from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, policy_session, read_p
 
 log = logging.getLogger("bmimic.sim2sim")
 
-MOTION_FILE = re.compile(r"motion_policy_(\d+)\.onnx$")
-"""File name of the BeyondMimic-compatible export of a checkpoint."""
+MOTION_FILE = MOTION_POLICY
+"""File name of the BeyondMimic-compatible export of a checkpoint (bmimic.run_folder's)."""
 
 
 def locate(path: str | Path) -> tuple[Path, Path | None]:
@@ -29,8 +30,8 @@ def locate(path: str | Path) -> tuple[Path, Path | None]:
         raise Sim2SimError(f"{p}: no such run folder or ONNX file")
     if p.is_file():
         run = p.resolve().parent.parent
-        return p.resolve(), run if (run / ".hydra" / "config.yaml").is_file() else None
-    found = [(int(m.group(1)), f) for f in (p / "checkpoints").glob("motion_policy_*.onnx")
+        return p.resolve(), run if has_hydra_record(run) else None
+    found = [(int(m.group(1)), f) for f in checkpoints_dir(p).glob("motion_policy_*.onnx")
              if (m := MOTION_FILE.search(f.name))]
     if not found:
         raise Sim2SimError(f"{p}: no checkpoints/motion_policy_<it>.onnx (the BeyondMimic-compatible export); "
@@ -41,9 +42,9 @@ def locate(path: str | Path) -> tuple[Path, Path | None]:
 def checkpoint_label(spec: PolicySpec) -> str:
     """model_<it> (the name bmimic.eval gives the same checkpoint), else the file stem."""
     if spec.iteration is not None:
-        return f"model_{spec.iteration}"
+        return run_checkpoint_label(spec.iteration)
     m = MOTION_FILE.search(spec.path.name)
-    return f"model_{m.group(1)}" if m else spec.path.stem
+    return run_checkpoint_label(int(m.group(1))) if m else spec.path.stem
 
 
 
@@ -65,10 +66,10 @@ def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int
 def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,
              horizon_s: float | None = None, workers: int = 1, joint_dynamics: str = "model",
              max_mpkpe_rel_mm: float | None = None):
-    """Run the sim2sim evaluation; returns (bmimic.eval.EvalResult, WarpEval or None, gap table or None).
+    """Run the sim2sim evaluation; returns (bmimic.evaluation.tables.EvalResult, WarpEval or None, gap table or None).
 
     Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like."""
-    from bmimic.eval import EvalResult, bin_table, episode_table, segment_table
+    from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table
     from bmimic.sampling.bins import make_layout
     from bmimic.training.evaluation import stratified_start_frames, summarize
 

@@ -8,6 +8,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, read_resolved_config, table_path
 from bmimic.sim2sim.spec import Sim2SimError
 
 log = logging.getLogger("bmimic.sim2sim")
@@ -42,16 +43,17 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     if run_dir is None:
         return None
     columns = ["bin", "visits", "failures", "success_rate", "mpkpe_rel_mm"]
-    folder = run_dir / "eval" / label
-    if (folder / "eval_summary.json").is_file() and (folder / "eval_bins.parquet").is_file():
-        s = json.loads((folder / "eval_summary.json").read_text())
-        bins = pd.read_parquet(folder / "eval_bins.parquet")
+    folder = run_dir / EVAL_DIR / label
+    summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
+    if summary_file.is_file() and bins_file.is_file():
+        s = json.loads(summary_file.read_text())
+        bins = pd.read_parquet(bins_file)
         if "visits" in bins:
             return WarpEval(str(folder), bins[columns], float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"]),
                             {k: s[k] for k in SETTINGS if k in s})
         log.warning("%s: tables of the old start-bin accounting, not compared (evaluate again with python -m "
                     "bmimic.eval)", folder)
-    table = run_dir / "eval.parquet"
+    table = table_path(run_dir, "eval")
     if iteration is None or not table.is_file():
         return None
     rows = pd.read_parquet(table)
@@ -72,10 +74,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
 
 def _run_eval_config(run_dir: Path | None) -> dict:
     """The run's resolved `eval` settings (resolved_config.json), or {} when unknown."""
-    try:
-        section = json.loads((run_dir / "resolved_config.json").read_text())["eval"]
-    except (TypeError, OSError, KeyError, ValueError):
-        return {}
+    section = (read_resolved_config(run_dir) or {}).get("eval") if run_dir is not None else None
     return section if isinstance(section, dict) else {}
 
 

@@ -7,6 +7,7 @@ import os
 import re
 from pathlib import Path
 
+from bmimic.run_folder import HYDRA_DIR
 from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, first_line, policy_error
 
 MODELS = ("project", "menagerie")
@@ -43,17 +44,16 @@ def _project_spec(run_dir: Path | None):
     from omegaconf import OmegaConf
 
     try:
-        robot = OmegaConf.merge(OmegaConf.structured(RobotConfig),
-                                OmegaConf.load(run_dir / ".hydra" / "config.yaml").robot)
+        robot = OmegaConf.merge(OmegaConf.structured(RobotConfig), OmegaConf.load(run_dir / HYDRA_DIR / "config.yaml").robot)
         cfg: RobotConfig = OmegaConf.to_object(robot)
     except Exception as e:  # omegaconf raises many types; all mean the same to the user
-        raise Sim2SimError(f"{run_dir / '.hydra' / 'config.yaml'}: robot config unreadable: {first_line(e)}") from None
+        raise Sim2SimError(f"{run_dir / HYDRA_DIR / 'config.yaml'}: robot config unreadable: {first_line(e)}") from None
     if not cfg.mjcf_path:
         return build_g1_spec(cfg), "built-in G1 (the run's robot config)"
     mjcf = Path(cfg.mjcf_path).expanduser()
     if not mjcf.is_absolute() and not mjcf.exists():
         try:  # relative to where training was started (as bmimic.eval resolves it)
-            launch = Path(OmegaConf.load(run_dir / ".hydra" / "hydra.yaml").hydra.runtime.cwd)
+            launch = Path(OmegaConf.load(run_dir / HYDRA_DIR / "hydra.yaml").hydra.runtime.cwd)
             mjcf = launch / mjcf if (launch / mjcf).exists() else mjcf
         except Exception:  # no hydra.yaml: leave the path as written
             pass

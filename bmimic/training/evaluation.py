@@ -15,7 +15,7 @@ Failures are charged where they happen. A 2 s horizon spans two or three 1 s bin
   `horizon_s` (the clip's last bins): its failure rate comes from shorter exposure;
 - `tracked_through`: episodes that entered the bin from an earlier bin and were still alive at its
   last frame, i.e. tracked all of the bin's frames after a run-up. A horizon-truncated bin counts as
-  mastered only when this is at least 1 (analysis.metrics.counts_as_mastered), so the clip's last
+  mastered only when this is at least 1 (bmimic.evaluation.mastery.counts_as_mastered), so the clip's last
   bins are not "mastered" by an untrained policy whose episodes simply run out of clip.
 
 An episode fails when it terminates (any termination but a time-out), or, with `max_mpkpe_rel_mm`
@@ -36,8 +36,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from analysis.metrics import counts_as_mastered
 from bmimic.envs.quat import quat_error_magnitude
+from bmimic.evaluation.mastery import counts_as_mastered
 from bmimic.sampling.base import bin_counts
 from bmimic.sampling.bins import visits_histogram
 

@@ -31,14 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bmimic.runs import atomic_write
+from bmimic.run_folder import atomic_write, motion_policy_onnx_name, policy_onnx_name
 
 METADATA_VERSION = "2"
 """Version of the metadata key set (1: today's keys only; 2: BeyondMimic keys + sim2sim keys)."""
-PLAIN_NAME = "policy_{it}.onnx"
-"""File name of the plain `obs -> actions` export of iteration `it` (in the checkpoint folder)."""
-MOTION_NAME = "motion_policy_{it}.onnx"
-"""File name of the BeyondMimic-compatible export (motion baked in) of iteration `it`."""
 MOTION_OUTPUTS = ("joint_pos", "joint_vel", "body_pos_w", "body_quat_w", "body_lin_vel_w", "body_ang_vel_w")
 """Reference outputs of the BeyondMimic-compatible file, after `actions`, in the released order."""
 
@@ -179,6 +175,6 @@ def export_checkpoint_onnx(policy, env, checkpoint_dir: str | os.PathLike, itera
     checkpoint_dir = Path(checkpoint_dir)
     run_path = checkpoint_dir.resolve().parent.name
     return [
-        export_onnx(policy, env, checkpoint_dir / PLAIN_NAME.format(it=iteration), iteration, run_path),
-        export_motion_onnx(policy, env, checkpoint_dir / MOTION_NAME.format(it=iteration), iteration, run_path),
+        export_onnx(policy, env, checkpoint_dir / policy_onnx_name(iteration), iteration, run_path),
+        export_motion_onnx(policy, env, checkpoint_dir / motion_policy_onnx_name(iteration), iteration, run_path),
     ]

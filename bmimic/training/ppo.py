@@ -20,7 +20,7 @@ iteration and cannot queue work ahead; its `act` launches ~40 small kernels per 
   creates it. On CPU ranks (gloo) nothing is captured and the same code runs eagerly.
 
 The mathematics, the order of random draws and the mini-batch order are rsl-rl's
-(`tests/test_ppo.py` compares the two updates). Not supported: recurrent models, RND, symmetry.
+(`tests/training/test_ppo.py` compares the two updates). Not supported: recurrent models, RND, symmetry.
 """
 
 from __future__ import annotations

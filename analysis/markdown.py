@@ -1,0 +1,291 @@
+"""The report's text: number formatting, markdown tables and the sentences of report.md."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+from analysis import tables
+from analysis.stats import MIN_SEEDS_BOOTSTRAP, MIN_SEEDS_IQM
+from analysis.tables import ReportOptions
+
+MEASURE_WORDS = {"iteration": "iterations", "env_steps": "env steps", "wall_time_s": "wall time (s)"}
+
+
+def plural(n: int, word: str) -> str:
+    """``"1 bin"``, ``"2 bins"``."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def is_nan(x) -> bool:
+    """None or a float NaN (a missing number in a table)."""
+    return x is None or (isinstance(x, float | np.floating) and math.isnan(x))
+
+
+def fmt(x, digits: int = 3) -> str:
+    """A table cell: 3 significant digits, whole numbers without decimals, - for missing, yes/no, infinities."""
+    if is_nan(x):
+        return "–"
+    if isinstance(x, bool | np.bool_):
+        return "yes" if x else "no"
+    if isinstance(x, float | np.floating):
+        if math.isinf(x):
+            return "∞" if x > 0 else "-∞"
+        if float(x).is_integer() and abs(x) < 1e7:
+            return str(int(x))
+        return f"{x:.{digits}g}"
+    return str(x)
+
+
+def per_seed_list(per_seed: str) -> str:
+    """A `per_seed` column value (`;`-separated) as a comma-separated list of formatted numbers."""
+    return ", ".join(fmt(float(v)) for v in str(per_seed).split(";") if v != "")
+
+
+def estimate_cell(point, low, high, method: str, n: int, per_seed: str = "") -> str:
+    """``0.1 [0.08, 0.12]`` with a bootstrap interval, else ``0.1 (range of 3 seeds: 0.08-0.12)``;
+    the point is the IQM from 4 seeds, else the mean (said when it is the mean); per-seed values follow."""
+    if is_nan(point):
+        return "–"
+    if n <= 1:
+        return f"{fmt(point)} (1 seed)"
+    label = "IQM" if n >= MIN_SEEDS_IQM else "mean"
+    seeds = f"; seeds {per_seed_list(per_seed)}" if per_seed else ""
+    if method and method.startswith("bootstrap"):
+        return f"{fmt(point)} [{fmt(low)}, {fmt(high)}] ({label}{seeds})"
+    return f"{fmt(point)} ({label}; range of {n} seeds: {fmt(low)}–{fmt(high)}{seeds})"
+
+
+def md_table(df: pd.DataFrame) -> str:
+    """A GitHub markdown table of ``df`` (cells formatted with 3 significant digits)."""
+    if not len(df):
+        return "_(none)_\n"
+    head = "| " + " | ".join(str(c) for c in df.columns) + " |"
+    rule = "|" + "|".join("---" for _ in df.columns) + "|"
+    body = ["| " + " | ".join(fmt(v).replace("|", "\\|") for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join([head, rule, *body]) + "\n"
+
+
+def summary_row(summary: pd.DataFrame, arm: str, metric: str):
+    """The summary.csv row of `arm` and `metric` (None when absent)."""
+    r = summary[(summary["arm"] == arm) & (summary["metric"] == metric)]
+    return None if not len(r) else r.iloc[0]
+
+
+def cell(summary: pd.DataFrame, arm: str, metric: str) -> str:
+    """The estimate_cell of `arm`'s `metric` in summary.csv (- when absent)."""
+    r = summary_row(summary, arm, metric)
+    if r is None:
+        return "–"
+    p = r["iqm"] if r["n_seeds"] >= MIN_SEEDS_IQM else r["mean"]
+    return estimate_cell(p, r["ci_low"], r["ci_high"], str(r["ci_method"]), int(r["n_seeds"]), str(r["per_seed"]))
+
+
+def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: str, at: str,
+                 opts: ReportOptions) -> list[str]:
+    """Which arm has the lowest ``metric``, and for every other arm the difference and its p-value.
+    Arms whose points are exactly equal to the lowest tie: no winner is named."""
+    rows = summary[summary["metric"] == metric]
+    if not len(rows):
+        return [f"- {what}: no arm has a value yet."]
+    if len(rows) == 1:
+        arm = rows.iloc[0]["arm"]
+        return [f"- {what} ({at}): `{arm}` {cell(summary, arm, metric)}."]
+    best = comp["best"].iloc[0] if len(comp) else rows.iloc[0]["arm"]
+    tied = [best, *comp.loc[comp["difference"] == 0, "arm"]]
+    if len(tied) > 1:
+        lines = [f"- {what} ({at}): {', '.join(f'`{a}`' for a in sorted(tied))} tie at "
+                 f"{fmt(comp['best_point'].iloc[0])}: no winner."]
+    else:
+        lines = [f"- Lowest {what.lower()} ({at}): **`{best}`** {cell(summary, best, metric)}."]
+    for r in comp[comp["difference"] != 0].itertuples(index=False):
+        verdict = (f"a difference at the {opts.alpha:g} level" if r.claim
+                   else f"no difference shown at the {opts.alpha:g} level")
+        lines.append(f"  - `{r.arm}` {cell(summary, r.arm, metric)}: higher by {fmt(r.difference)}, "
+                     f"p = {fmt(r.p_value, 2)} (two-sided permutation test over seeds): {verdict}.")
+    return lines
+
+
+def speedup_phrase(r, time_row_base, time_row_arm, word: str) -> str:
+    """One measure's speedup in words: the estimate with its interval, or the bound and why."""
+    p = f"p = {fmt(r.p_value, 2)}"
+    if r.status == "estimate":
+        ci = (f" [{fmt(r.ci_low)}, {fmt(r.ci_high)}]" if not is_nan(r.ci_low)
+              else f" (no interval below {MIN_SEEDS_BOOTSTRAP} seeds per arm)")
+        return f"{word} ×{fmt(r.ratio)}{ci}, {p}"
+    if r.status == "lower_bound":
+        return (f"{word} ≥ ×{fmt(r.ratio)} (a lower bound: the baseline's median was not reached within "
+                f"{fmt(time_row_base['follow_up'])}; {p})")
+    if r.status == "upper_bound":
+        return (f"{word} ≤ ×{fmt(r.ratio)} (an upper bound: the arm's median was not reached within "
+                f"{fmt(time_row_arm['follow_up'])}; {p})")
+    return (f"{word}: not estimable (neither median reached: {int(time_row_arm['n_reached'])}/"
+            f"{int(time_row_arm['n_seeds'])} arm seeds, {int(time_row_base['n_reached'])}/"
+            f"{int(time_row_base['n_seeds'])} baseline seeds got there)")
+
+
+def speedup_text(speed: pd.DataFrame, per_bin: pd.DataFrame, time_df: pd.DataFrame, baseline: str,
+                  opts: ReportOptions) -> list[str]:
+    """Per arm: the speedups against the baseline and a summary of its per-bin mastery speedups."""
+    lines = []
+    t = time_df.set_index(["arm", "measure"])
+    for arm, g in speed.groupby("arm", sort=True):
+        parts = [speedup_phrase(r, t.loc[(baseline, r.measure)], t.loc[(arm, r.measure)], MEASURE_WORDS[r.measure])
+                 for r in g.itertuples(index=False)]
+        lines.append(f"- `{arm}` vs `{baseline}`, time to overall success ≥ {opts.success_threshold:g} "
+                     f"(baseline median / arm median): " + "; ".join(parts) + ".")
+        b = per_bin[per_bin["arm"] == arm]
+        if len(b):
+            est = b[b["status"] == "estimate"]
+            counts = b["status"].value_counts()
+            text = (f"  Per-bin mastery speedups: {plural(len(est), 'bin')} estimable"
+                    + (f" (median ratio ×{fmt(float(np.median(est['ratio'])))})" if len(est) else ""))
+            for status, word in (("lower_bound", "lower bound"), ("upper_bound", "upper bound"),
+                                 ("not_estimable", "not estimable")):
+                if counts.get(status, 0):
+                    text += f", {plural(int(counts[status]), word)}"
+            sig = b[b["p_value"] < opts.alpha]
+            faster, slower = int((sig["ratio"] > 1).sum()), int((sig["ratio"] < 1).sum())
+            text += (f"; p < {opts.alpha:g} in {plural(len(sig), 'bin')} of {len(b)} "
+                     f"({faster} faster, {slower} slower; uncorrected for {plural(len(b), 'test')}).")
+            lines.append(text)
+    return lines
+
+
+def evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
+    """Notes on old-accounting tables and horizon-truncated bins (empty when there are none)."""
+    lines = []
+    if "visits" not in eval_df.columns or eval_df["visits"].isna().any():
+        lines.append("- Some runs' eval.parquet predates per-visit accounting: there `failure_rate` is the failure "
+                     "rate of the episodes that *started* in a bin (a failure was charged to the start bin), and "
+                     "bins whose episodes run out of clip before the horizon are not flagged.")
+    truncated = bins.loc[bins["horizon_truncated"], "bin"].tolist()
+    if truncated:
+        one = len(truncated) == 1
+        its, they = ("its", "it is") if one else ("their", "they are")
+        lines.append(f"- Horizon-truncated {'bin' if one else 'bins'} {', '.join(map(str, truncated))}: {its} "
+                     f"episodes reach the end of the clip before the evaluation horizon, so {they} hatched in the "
+                     f"figures and count{'s' if one else ''} as mastered only when an episode tracked all of "
+                     f"{its} frames after entering from an earlier bin.")
+    return lines + ([""] if lines else [])
+
+
+def budget_section(budget: pd.DataFrame, opts: ReportOptions) -> list[str]:
+    """The report's budget table (completed iterations, env steps, wall time) and its warning."""
+    if not len(budget):
+        return []
+    g = budget.groupby("arm", sort=True)
+    view = pd.DataFrame({
+        "arm": list(g.groups),
+        "iterations": [span(x) for _, x in g["iterations"]],
+        "env steps": [span(x) for _, x in g["env_steps"]],
+        "wall time (s)": [span(x) for _, x in g["wall_time_s"]],
+    })
+    lines = ["## Budget", "", "Completed per run (min–max over seeds). Arms are compared at equal iterations and "
+             "env steps; wall time is reported, not compared.", "", md_table(view)]
+    warning = tables.budget_warning(budget, opts)
+    if warning:
+        lines += [warning, ""]
+    return lines
+
+
+def span(x: pd.Series) -> str:
+    """min-max of a column as text (one value when they agree)."""
+    lo, hi = float(x.min()), float(x.max())
+    return fmt(lo) if lo == hi else f"{fmt(lo)}–{fmt(hi)}"
+
+
+def runs_section(runs: pd.DataFrame) -> list[str]:
+    """The runs per arm and status, the running ones included and the ones left out, with why."""
+    counts = runs.groupby(["arm", "status"]).size().unstack(fill_value=0).reset_index()
+    lines = ["## Runs", "", md_table(counts), ""]
+    running = runs[runs["included"] & (runs["status"] == "running")]
+    if len(running):
+        lines += ["Still running, included with their partial tables (marked `running`):", ""]
+        lines += [f"- `{r.arm}` seed {r.seed}: up to iteration {r.iteration} (`{r.run_dir}`)" for r in running.itertuples()]
+        lines.append("")
+    excluded = runs[~runs["included"]]
+    if len(excluded):
+        lines += ["Not included (failed, missing or without usable tables):", ""]
+        lines += [f"- `{r.arm}` seed {r.seed}: {r.status} — {r.problem} (`{r.run_dir}`)" for r in excluded.itertuples()]
+        lines.append("")
+    return lines
+
+
+def time_cell(time_df: pd.DataFrame, arm: str, measure: str) -> str:
+    """An arm's median time to threshold in `measure`, with the seeds that got there and their times."""
+    r = time_df[(time_df["arm"] == arm) & (time_df["measure"] == measure)]
+    if not len(r):
+        return "–"
+    r = r.iloc[0]
+    head = fmt(r["median"]) if not is_nan(r["median"]) else f"not reached (> {fmt(r['follow_up'])})"
+    seeds = ", ".join(fmt(float(v)) if not v.startswith(">") else f">{fmt(float(v[1:]))}"
+                      for v in str(r["per_seed"]).split(";"))
+    return f"{head} ({int(r['n_reached'])}/{int(r['n_seeds'])} seeds; {seeds})"
+
+
+def arms_view(summary: pd.DataFrame, time_df: pd.DataFrame, per_run: dict, at: str) -> pd.DataFrame:
+    """The Arms table: per arm its final failure, bins mastered and times to threshold."""
+    arms = sorted(set(summary["arm"]))
+    view = {"arm": arms, "seeds": [int(summary.loc[summary["arm"] == a, "n_seeds"].max()) for a in arms],
+            f"final failure ({at.split(',')[0]})": [cell(summary, a, "final_failure") for a in arms]}
+    if "final_failure_equal_env_steps" in per_run:
+        view["final failure (equal env steps)"] = [cell(summary, a, "final_failure_equal_env_steps") for a in arms]
+    if "final_failure_robust" in per_run:
+        view["final failure, robust eval"] = [cell(summary, a, "final_failure_robust") for a in arms]
+    view["bins mastered"] = [cell(summary, a, "bins_mastered") for a in arms]
+    for m in ("iteration", "env_steps", "wall_time_s"):
+        view[f"{MEASURE_WORDS[m]} to threshold (median)"] = [time_cell(time_df, a, m) for a in arms]
+    return pd.DataFrame(view)
+
+
+def segment_view(seg: pd.DataFrame) -> pd.DataFrame:
+    """The Segments table: final failure per segment (rows) and arm (columns)."""
+    seg = seg.assign(cell=[f"{estimate_cell(p, lo, hi, m, n)} ({nm}/{b})" for p, lo, hi, m, n, nm, b in zip(
+        seg["final_failure"], seg["final_failure_low"], seg["final_failure_high"], seg["ci_method"], seg["n_seeds"],
+        seg["bins_not_mastered"], seg["num_bins"], strict=True)])
+    view = seg.pivot_table(index=["segment", "difficulty"], columns="arm", values="cell", aggfunc="first", sort=False)
+    return view.reset_index()
+
+
+def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
+    """The per-bin mastery table: median mastery iteration per bin (rows) and arm (columns)."""
+    cells = mastery_df.assign(cell=[f"{fmt(m)} ({k}/{n})" for m, k, n in zip(
+        mastery_df["mastery_iteration"], mastery_df["n_mastered"], mastery_df["n_seeds"], strict=True)])
+    view = cells.pivot(index="bin", columns="arm", values="cell").reset_index()
+    meta = mastery_df.drop_duplicates("bin")[["bin", "segment", "horizon_truncated"]]
+    meta = meta.assign(bin=[f"{b}†" if t else str(b) for b, t in zip(meta["bin"], meta["horizon_truncated"],
+                                                                      strict=True)], _key=meta["bin"])
+    view = meta.merge(view.rename(columns={"bin": "_key"}), on="_key").drop(columns=["_key", "horizon_truncated"])
+    return view
+
+
+def definitions(opts: ReportOptions) -> list[str]:
+    """The report's Definitions section, with this report's thresholds."""
+    return ["## Definitions", "",
+            "- Evaluation (every `eval.every_iters`, sampler-independent, deterministic policy): episodes start at "
+            "stratified frames of every bin and run for the horizon; a bin's failure rate is the failures that "
+            "happened at its frames over the episodes that visited it. Overall failure of an evaluation = the "
+            "unweighted mean of the per-bin failure rates; success = 1 − failure.",
+            f"- A bin counts as mastered at an evaluation where its failure rate is < {opts.mastery_threshold:g} "
+            "(a horizon-truncated bin also needs an episode that tracked all its frames after entering from an "
+            "earlier bin). Its mastery iteration in one seed = the first evaluation from which it counts as "
+            f"mastered for {plural(opts.mastery_persist, 'consecutive evaluation')} or for the rest of the run; "
+            "a seed that never got there is censored at its last evaluation.",
+            f"- Time to threshold = the first evaluation from which overall success ≥ {opts.success_threshold:g} "
+            "with the same persistence, per seed, in iterations, env steps and wall time (censored likewise).",
+            "- Per arm, such times are summarised by the Kaplan-Meier median over seeds: only when more than half "
+            "of the seeds got there (censored seeds count as not yet), else `not reached`.",
+            "- Speedup = baseline median / arm median (> 1: the arm is faster). `estimate` when both medians are "
+            "defined (bootstrap interval over seeds, each arm resampled on its own, when every arm has "
+            f"≥ {MIN_SEEDS_BOOTSTRAP} seeds); `lower_bound` when only the baseline's median was not reached (its "
+            "last follow-up over the arm's median); `upper_bound` the reverse; `not_estimable` when neither was.",
+            f"- Point estimates: IQM (mean of the middle half of the seeds) from {MIN_SEEDS_IQM} seeds, else the "
+            f"mean. Intervals: BCa bootstrap (percentile where BCa is undefined) only when every arm has "
+            f"≥ {MIN_SEEDS_BOOTSTRAP} seeds; with fewer, the range of the seeds, labelled so. Per-seed values are "
+            "listed beside every estimate.",
+            f"- Differences: two-sided permutation test over seeds (exact for small n); claimed at p < {opts.alpha:g}. "
+            "Times to an event are compared with Gehan's generalised Wilcoxon scores (censoring-aware). Exact ties "
+            "name no winner.", ""]

@@ -1,0 +1,151 @@
+"""One run folder's files, read through bmimic.run_folder (the owner of the layout, torch-free):
+finding run folders, their JSON and Hydra records, and whether a table can be used.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import yaml
+
+from analysis import AnalysisError
+from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
+
+REQUIRED_COLUMNS = {
+    "train_metrics": ["iteration", "env_steps", "wall_time_s", "mean_episode_length", "mean_reward"],
+    "eval": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
+    "sampler": ["iteration", "bin", "probability"],
+    "eval_robust": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
+}
+"""The columns the analysis reads from each table; other columns are carried along untouched."""
+
+NEEDED_TABLES = ("train_metrics", "eval")
+"""Tables a run must have to be included; ``sampler`` and ``eval_robust`` (written with
+``eval.robust=true``) are optional (what uses them skips runs without them)."""
+
+IGNORED_OVERRIDE_KEYS = {
+    "seed", "sweep_name", "run_name", "task_name", "device", "resume", "sweep", "logger",
+    "progress_bar", "max_iterations", "num_envs", "time_limit_s", "eval.every_iters", "ppo.save_interval",
+    "wandb_project", "verbose", "data.lafan_dir",
+}
+"""Override keys that do not define an arm: the ``exclude_keys`` of conf/train.yaml's override_dirname."""
+
+SKIP_DIRS = {"report", CHECKPOINTS_DIR}
+"""Folder names never searched for runs (report output, checkpoints)."""
+
+
+def find_run_dirs(root: str | Path) -> list[Path]:
+    """All run folders at or below ``root``, sorted; run folders are not searched further."""
+    root = Path(root)
+    if not root.exists():
+        raise AnalysisError(f"{root}: no such file or folder")
+    if is_run_folder(root):
+        return [root]
+    found = []
+    for dirpath, dirnames, _ in os.walk(root):
+        here = Path(dirpath)
+        if here != root and is_run_folder(here):
+            found.append(here)
+            dirnames[:] = []
+            continue
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d not in SKIP_DIRS)
+    return sorted(found)
+
+
+def read_json(path: Path) -> dict | list | None:
+    """The parsed JSON at ``path``, or None when the file is absent; AnalysisError when unreadable."""
+    try:
+        return load_json(path)
+    except RunFolderError as e:
+        raise AnalysisError(str(e)) from e
+
+
+def read_config(run_dir: Path) -> dict:
+    """The composed config from ``.hydra/config.yaml`` as a plain dict ({} when absent)."""
+    path = run_dir / HYDRA_DIR / "config.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        cfg = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as e:
+        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
+    if not isinstance(cfg, dict):
+        raise AnalysisError(f"{path}: expected a mapping at the top level, got {type(cfg).__name__}")
+    return cfg
+
+
+def read_overrides(run_dir: Path) -> dict[str, str]:
+    """``.hydra/overrides.yaml`` as {key: raw value}, without seed/bookkeeping keys and deletions.
+
+    Hydra's ``+``/``++`` prefixes are dropped; ``~key`` deletions carry no value and are skipped.
+    """
+    path = run_dir / HYDRA_DIR / "overrides.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
+    except (OSError, yaml.YAMLError) as e:
+        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
+    if not isinstance(items, list):
+        raise AnalysisError(f"{path}: expected a list of 'key=value' strings")
+    out = {}
+    for item in items:
+        text = str(item)
+        if text.startswith("~") or "=" not in text:
+            continue
+        key, value = text.split("=", 1)
+        key = key.lstrip("+")
+        if key in IGNORED_OVERRIDE_KEYS or key.startswith("hydra."):
+            continue
+        out[key] = value
+    return out
+
+
+def config_value(cfg: dict, dotted: str):
+    """``cfg['a']['b']`` for ``'a.b'``, or None when any part is missing."""
+    node = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def parse_value(raw: str):
+    """A command-line override value as int, float or bool where it reads as one, else the string."""
+    for cast in (int, float):
+        try:
+            return cast(raw)
+        except ValueError:
+            pass
+    if raw.lower() in ("true", "false"):
+        return raw.lower() == "true"
+    return raw
+
+
+def seed_from_name(run_dir: Path) -> int | None:
+    """The seed in a ``seed=<int>`` folder name, else None."""
+    name = run_dir.name
+    if name.startswith("seed="):
+        try:
+            return int(name.split("=", 1)[1])
+        except ValueError:
+            return None
+    return None
+
+
+def table_problem(run_dir: Path, name: str) -> str | None:
+    """Why ``name`` cannot be used from ``run_dir`` (absent, unreadable, missing columns), or None."""
+    path = table_path(run_dir, name)
+    if not path.is_file():
+        return f"no {path.name}"
+    try:
+        columns = set(pq.read_schema(path).names)
+    except Exception as e:  # pyarrow raises several types for truncated or foreign files
+        return f"{path.name} unreadable ({type(e).__name__})"
+    missing = [c for c in REQUIRED_COLUMNS[name] if c not in columns]
+    if missing:
+        return f"{path.name} lacks columns {missing}"
+    return None

@@ -1,0 +1,188 @@
+"""The checks a composed config gets: before anything runs (`check_composed`: unknown keys, NaN,
+the sampler group, resume_allow_changes) and once resolved for this machine and its motion
+(`validate`: ranges, divisibility, term functions, the sampler against the motion's length). Each
+failure raises `ConfigError` with one line naming the key.
+"""
+
+from __future__ import annotations
+
+import math
+
+from bmimic.config import ConfigError, TrainConfig
+from bmimic.envs.config import EnvConfigError, check_env
+from bmimic.sampling.config import sampler_config
+
+
+def _fail(key: str, problem: str) -> None:
+    raise ConfigError(f"{key}: {problem}")
+
+
+def check_composed(cfg, choices=None) -> None:
+    """The checks a composed config gets before anything runs (train and the sweep dry run): unknown
+    keys (also `+` ones), NaN or infinity anywhere, the sampler group against sampler.name,
+    resume_allow_changes names. `choices`: Hydra's runtime.choices (group -> option)."""
+    check_known_keys(cfg)
+    check_finite(cfg)
+    check_sampler_choice(cfg, choices)
+    check_resume_allow_changes(cfg)
+
+
+def check_known_keys(cfg) -> None:
+    """Refuse keys the schema does not have, including ones added with `+`/`++` (Hydra's force-add
+    skips the struct check): `+sampler.gama=0.5` must not train a run that looks like an ablation arm.
+    Free-form dicts of the schema (env term tables, term params) still take new entries."""
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    plain = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
+    plain.pop("hydra", None)
+    if isinstance(plain.get("sampler"), dict):
+        sampler_config(plain["sampler"])  # the sampler's keys are its variant's schema's
+    try:
+        OmegaConf.merge(OmegaConf.structured(TrainConfig), plain)
+    except OmegaConfBaseException as e:
+        key = getattr(e, "full_key", None) or ""
+        msg = getattr(e, "msg", None) or str(e).strip().splitlines()[0]
+        if "not in" in msg or "Key '" in msg:
+            _fail(key or "config", f"unknown key ({msg.splitlines()[0]}); check the spelling, "
+                                   "`--cfg job` prints every key")
+        _fail(key or "config", msg.splitlines()[0])
+
+
+def check_finite(cfg, prefix: str = "") -> None:
+    """Refuse NaN and infinity anywhere in the config (every float key, lists and term params too)."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if isinstance(cfg, DictConfig) and "hydra" in cfg:
+        cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    tree = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, (DictConfig, ListConfig)) else cfg
+    items = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, list) else ()
+    for key, value in items:
+        name = f"{prefix}{key}" if isinstance(key, str) else f"{prefix[:-1]}[{key}]"
+        if isinstance(value, float) and not math.isfinite(value):
+            _fail(name, f"must be a finite number, got {value}")
+        if isinstance(value, (dict, list)):
+            check_finite(value, f"{name}.")
+
+
+def check_sampler_choice(cfg, choices) -> None:
+    """`sampler.name` must be the sampler group's option (each conf/sampler/<name>.yaml sets
+    name: <name>), so `sampler=uniform sampler.name=adaptive` cannot train another sampler than the
+    run's folder and records say."""
+    chosen = choices.get("sampler") if choices is not None else None
+    if chosen is not None and str(cfg.sampler.name) != str(chosen):
+        _fail("sampler.name", f"is {cfg.sampler.name!r} but the sampler group chose {chosen!r}; choose the "
+                              f"sampler with sampler=<name>, not by overriding sampler.name")
+
+
+def check_resume_allow_changes(cfg) -> None:
+    """Every name in resume_allow_changes must be a config key or key prefix (a typo allows nothing)."""
+    from omegaconf import OmegaConf
+
+    from bmimic.training.resume import flatten_config
+
+    keys = flatten_config({k: v for k, v in OmegaConf.to_container(cfg, resolve=False).items() if k != "hydra"})
+    for name in cfg.resume_allow_changes or []:
+        if not any(k == name or k.startswith(f"{name}.") for k in keys):
+            _fail("resume_allow_changes", f"{name!r} is not a config key")
+
+
+def validate(cfg, motion_duration_s: float | None = None) -> None:
+    """Check the meaning of a composed, runtime-resolved config; raise ConfigError naming the key."""
+    from bmimic.sampling.config import validate_sampler_config
+
+    check_known_keys(cfg)
+    check_finite(cfg)
+    if cfg.num_envs is None or cfg.num_envs < 1:
+        _fail("num_envs", f"must be >= 1, got {cfg.num_envs}")
+    if cfg.max_iterations is None or cfg.max_iterations < 0:
+        _fail("max_iterations", f"must be >= 0, got {cfg.max_iterations}")
+    ppo = cfg.ppo
+    if ppo.num_steps_per_env < 1:
+        _fail("ppo.num_steps_per_env", f"must be >= 1, got {ppo.num_steps_per_env}")
+    if ppo.num_mini_batches < 1:
+        _fail("ppo.num_mini_batches", f"must be >= 1, got {ppo.num_mini_batches}")
+    batch = cfg.num_envs * ppo.num_steps_per_env
+    if batch % ppo.num_mini_batches:
+        _fail(
+            "ppo.num_mini_batches",
+            f"num_envs * ppo.num_steps_per_env = {cfg.num_envs} * {ppo.num_steps_per_env} = {batch} "
+            f"is not divisible by ppo.num_mini_batches = {ppo.num_mini_batches}",
+        )
+    if not 0 < ppo.gamma <= 1:
+        _fail("ppo.gamma", f"must be in (0, 1], got {ppo.gamma}")
+    if not 0 <= ppo.lam <= 1:
+        _fail("ppo.lam", f"must be in [0, 1], got {ppo.lam}")
+    if ppo.learning_rate <= 0:
+        _fail("ppo.learning_rate", f"must be > 0, got {ppo.learning_rate}")
+    if ppo.schedule not in ("adaptive", "fixed"):
+        _fail("ppo.schedule", f"must be adaptive or fixed, got {ppo.schedule!r}")
+    if ppo.float32_matmul_precision not in ("highest", "high", "medium"):
+        _fail("ppo.float32_matmul_precision", f"must be highest, high or medium, got {ppo.float32_matmul_precision!r}")
+    if ppo.save_interval < 1:
+        _fail("ppo.save_interval", f"must be >= 1, got {ppo.save_interval}")
+    if ppo.num_learning_epochs < 1:
+        _fail("ppo.num_learning_epochs", f"must be >= 1, got {ppo.num_learning_epochs}")
+    for key in ("clip_param", "max_grad_norm", "init_noise_std", "desired_kl"):
+        if getattr(ppo, key) <= 0:
+            _fail(f"ppo.{key}", f"must be > 0, got {getattr(ppo, key)}")
+    for key in ("entropy_coef", "value_loss_coef"):
+        if getattr(ppo, key) < 0:
+            _fail(f"ppo.{key}", f"must be >= 0, got {getattr(ppo, key)}")
+    for key in ("actor_hidden_dims", "critic_hidden_dims"):
+        dims = list(getattr(ppo, key))
+        if any(d < 1 for d in dims):
+            _fail(f"ppo.{key}", f"layer sizes must be >= 1, got {dims}")
+    if ppo.activation not in _ACTIVATIONS:
+        _fail("ppo.activation", f"must be one of {', '.join(_ACTIVATIONS)}, got {ppo.activation!r}")
+    if ppo.noise_std_type not in ("scalar", "log"):
+        _fail("ppo.noise_std_type", f"must be scalar or log, got {ppo.noise_std_type!r}")
+    for key in ("run_name", "sweep_name"):
+        name = str(cfg[key])
+        if not name or "/" in name or "\\" in name or name in (".", "..") or name != name.strip():
+            _fail(key, f"must be a plain folder name (no '/', not empty, '.' or '..'), got {name!r}")
+    if cfg.sim.timestep_s <= 0:
+        _fail("sim.timestep_s", f"must be > 0, got {cfg.sim.timestep_s}")
+    if cfg.sim.decimation < 1:
+        _fail("sim.decimation", f"must be >= 1, got {cfg.sim.decimation}")
+    for key in ("nconmax", "njmax", "iterations", "ls_iterations"):
+        if getattr(cfg.sim, key) < 1:
+            _fail(f"sim.{key}", f"must be >= 1, got {getattr(cfg.sim, key)}")
+    for key in ("max_abs_qvel", "max_root_distance_m"):
+        if getattr(cfg.sim, key) <= 0:
+            _fail(f"sim.{key}", f"must be > 0, got {getattr(cfg.sim, key)}")
+    if cfg.env.max_abs_step_reward <= 0:
+        _fail("env.max_abs_step_reward", f"must be > 0, got {cfg.env.max_abs_step_reward}")
+    if cfg.env.episode_length_s <= 0:
+        _fail("env.episode_length_s", f"must be > 0, got {cfg.env.episode_length_s}")
+    step_dt = cfg.sim.timestep_s * cfg.sim.decimation
+    if cfg.env.episode_length_s < step_dt:
+        _fail("env.episode_length_s", f"is shorter than one control step ({step_dt} s)")
+    if cfg.eval.every_iters < 0:
+        _fail("eval.every_iters", f"must be >= 0, got {cfg.eval.every_iters}")
+    if cfg.eval.horizon_s <= 0:
+        _fail("eval.horizon_s", f"must be > 0, got {cfg.eval.horizon_s}")
+    if cfg.eval.episodes_per_bin is not None and cfg.eval.episodes_per_bin < 1:
+        _fail("eval.episodes_per_bin", f"must be >= 1, got {cfg.eval.episodes_per_bin}")
+    if cfg.eval.max_mpkpe_rel_mm is not None and not cfg.eval.max_mpkpe_rel_mm > 0:
+        _fail("eval.max_mpkpe_rel_mm", f"must be > 0 or null, got {cfg.eval.max_mpkpe_rel_mm}")
+    if cfg.eval.max_envs < 1:
+        _fail("eval.max_envs", f"must be >= 1, got {cfg.eval.max_envs}")
+    if cfg.time_limit_s is not None and cfg.time_limit_s <= 0:
+        _fail("time_limit_s", f"must be > 0 or null, got {cfg.time_limit_s}")
+    if cfg.logger not in ("tensorboard", "wandb", "none"):
+        _fail("logger", f"must be tensorboard, wandb or none, got {cfg.logger!r}")
+    try:
+        check_env(cfg.env)
+    except EnvConfigError as e:
+        raise ConfigError(str(e)) from None
+    if motion_duration_s is not None:
+        if not math.isfinite(motion_duration_s) or motion_duration_s <= 0:
+            _fail("motion", f"has no duration ({motion_duration_s} s)")
+        validate_sampler_config(cfg.sampler, motion_duration_s)
+
+
+_ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish",
+                "identity")
+"""rsl-rl-lib 5.5's activation names (rsl_rl.utils.resolve_nn_activation)."""
+

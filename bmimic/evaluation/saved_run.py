@@ -1,0 +1,130 @@
+"""A saved run reopened: its folder and checkpoint located, its config resolved for this machine, its
+task rebuilt (robot, motion, bins) as training built it. Used by eval, play and export.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+from bmimic import BmimicError
+from bmimic.cli_common import first_line
+from bmimic.run_folder import (
+    CHECKPOINTS_DIR,
+    HYDRA_DIR,
+    LATEST_CHECKPOINT,
+    has_hydra_record,
+    newest_checkpoint,
+)
+from bmimic.run_folder import (
+    checkpoint_label as run_checkpoint_label,
+)
+
+if TYPE_CHECKING:
+    from bmimic.task import Task
+
+
+class RunLoadError(BmimicError):
+    """A run folder, checkpoint or override that cannot be used (one-line message)."""
+
+
+def locate_run(path: str | Path) -> tuple[Path, Path]:
+    """(run folder, checkpoint) for a run folder (its latest.pt) or a checkpoint file inside one."""
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise RunLoadError(f"{p}: no such run folder or checkpoint")
+    run_dir = p if p.is_dir() else p.resolve().parent.parent
+    if not has_hydra_record(run_dir):
+        where = "" if p.is_dir() else f" (the folder two levels above checkpoint {p.name})"
+        raise RunLoadError(f"{run_dir}: not a run folder{where}: no {HYDRA_DIR}/config.yaml")
+    if not p.is_dir():
+        return run_dir.resolve(), p.resolve()
+    checkpoint = newest_checkpoint(p)
+    if checkpoint is None:
+        raise RunLoadError(f"{p}: no checkpoint ({CHECKPOINTS_DIR}/{LATEST_CHECKPOINT} or model_<it>.pt) in this "
+                           "run folder")
+    return run_dir.resolve(), checkpoint.resolve()
+
+
+def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
+    """The run's composed config under the TrainConfig schema, with dotted `key=value` overrides merged."""
+    import yaml
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from bmimic.config import TrainConfig
+
+    path = run_dir / HYDRA_DIR / "config.yaml"
+    try:
+        cfg = OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.load(path))
+    except (OmegaConfBaseException, OSError, ValueError, yaml.YAMLError) as e:
+        raise RunLoadError(f"{path}: cannot be read as a bmimic config: {first_line(e)}") from None
+    OmegaConf.set_struct(cfg, True)  # an override of a key that does not exist is an error, as in Hydra
+    for item in overrides:
+        key, sep, _ = item.partition("=")
+        if not sep or not key or key.startswith(("+", "~")):
+            raise RunLoadError(f"override {item!r}: expected a dotted key=value (e.g. eval.horizon_s=3)")
+        try:
+            cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
+        except OmegaConfBaseException as e:
+            raise RunLoadError(f"override {item!r}: {first_line(e)}") from None
+    return cfg
+
+
+def anchor_relative_paths(cfg, run_dir: Path) -> None:
+    """Relative input paths (motion.path, robot.mjcf_path, data.lafan_dir) were relative to the directory
+    training was started in; resolve them against it (from .hydra/hydra.yaml) when they do not exist from here."""
+    from omegaconf import OmegaConf
+
+    try:
+        launch_dir = Path(OmegaConf.load(run_dir / HYDRA_DIR / "hydra.yaml").hydra.runtime.cwd)
+    except Exception:  # no hydra.yaml (a hand-made run folder): paths stay relative to here
+        return
+    for group, key in (("motion", "path"), ("robot", "mjcf_path"), ("data", "lafan_dir")):
+        value = (cfg.get(group) or {}).get(key)
+        if value and not Path(value).expanduser().is_absolute() and not Path(value).exists():
+            if (launch_dir / value).exists():
+                cfg[group][key] = str(launch_dir / value)
+
+
+@dataclass
+class LoadedRun:
+    """A run's config resolved for this machine, with its task rebuilt from it."""
+
+    run_dir: Path
+    """The run folder."""
+    checkpoint: Path
+    """The checkpoint file to use."""
+    task: Task
+    """The run's config (composed, runtime-resolved, overrides applied), device, robot, motion and bins."""
+
+
+def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = False) -> LoadedRun:
+    """Locate the run, reload and resolve its config, rebuild robot, motion and bins like training.
+
+    A run folder may come from someone else: a config whose terms import modules outside bmimic
+    (`func: package.module:function`) is refused unless `trust` (--trust-checkpoint)."""
+    from bmimic.config import resolve_runtime
+    from bmimic.envs.config import foreign_term_modules
+    from bmimic.runtime import resolve_device
+    from bmimic.task import build_task
+
+    run_dir, checkpoint = locate_run(path)
+    cfg = load_run_config(run_dir, overrides)
+    foreign = foreign_term_modules(cfg.env)
+    if foreign and not trust:
+        raise RunLoadError(f"{run_dir}: its config imports {', '.join(foreign)} (code outside bmimic) for env "
+                           "terms; pass --trust-checkpoint if you trust this run folder")
+    anchor_relative_paths(cfg, run_dir)
+    device = resolve_device(cfg.device)
+    resolve_runtime(cfg, device)
+    return LoadedRun(run_dir, checkpoint, build_task(cfg, device))
+
+
+def checkpoint_label(checkpoint: Path, state: dict) -> str:
+    """Folder name of a checkpoint's results: its stem; latest.pt is named after its iteration."""
+    if checkpoint.name == LATEST_CHECKPOINT and "iter" in state:
+        return run_checkpoint_label(int(state["iter"]))
+    return checkpoint.stem
+

@@ -1,0 +1,132 @@
+"""The tables of one evaluation of a saved policy: one row per episode, per time bin and per motion
+segment, with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluation.aggregate), and
+their atomic writing. sim2sim builds the same tables from native-MuJoCo episodes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bmimic.run_folder import EVAL_TABLES, atomic_write_csv, atomic_write_json, atomic_write_parquet
+
+
+def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
+    """(segment name, difficulty) covering each time ('' where no segment does)."""
+    names, levels = [], []
+    for t in np.asarray(t_s, dtype=float):
+        hit = next((s for s in segments if s.start_s <= t < s.end_s), None)
+        names.append(hit.name if hit else "")
+        levels.append(hit.difficulty if hit else "")
+    return names, levels
+
+
+def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: int) -> pd.DataFrame:
+    """One row per episode: where it started and ended, whether and where it failed, how long it lived,
+    and its mean errors (raw: Rollouts.episodes of Evaluator.run_episodes or another evaluator;
+    layout: the BinLayout it was run with)."""
+    from bmimic.training.evaluation import ERROR_COLUMNS
+
+    edges = layout.edges_s.cpu().numpy()
+    start_s = raw["start_frame"].to_numpy() / motion.fps
+    segment, difficulty = segment_at(motion.segments, start_s)
+    bins = raw["bin"].to_numpy()
+    failed = raw["failed"].to_numpy().astype(bool)
+    failure_frame = raw["failure_frame"].to_numpy().astype(int)
+    fail_bin = layout.frame_to_bin.cpu().numpy()[np.where(failed, failure_frame, 0)]
+    return pd.DataFrame({
+        "iteration": int(iteration),
+        "episode": np.arange(len(raw)),
+        "bin": bins.astype(int),
+        "bin_start_s": edges[bins],
+        "bin_end_s": edges[bins + 1],
+        "segment": segment,
+        "difficulty": difficulty,
+        "start_frame": raw["start_frame"].to_numpy().astype(int),
+        "start_s": start_s,
+        "end_frame": raw["end_frame"].to_numpy().astype(int),
+        "failed": failed,
+        "success": ~failed,
+        "terminated": raw["terminated"].to_numpy().astype(bool),
+        "error_failed": raw["error_failed"].to_numpy().astype(bool),
+        "failure_frame": failure_frame,
+        "failure_bin": np.where(failed, fail_bin, -1),
+        "horizon_truncated": raw["horizon_truncated"].to_numpy().astype(bool),
+        "steps": raw["steps"].to_numpy().astype(int),
+        "survival_s": raw["steps"].to_numpy() * step_dt,
+        **{c: raw[c].to_numpy(dtype=float) for c in ERROR_COLUMNS},
+    })
+
+
+def _with_rates(table: pd.DataFrame, survival_s: np.ndarray) -> pd.DataFrame:
+    """success_rate (1 - failure_rate) and `mean_survival_s` (of the episodes started in each row's group)."""
+    table.insert(table.columns.get_loc("failure_rate") + 1, "success_rate", 1.0 - table["failure_rate"])
+    table.insert(table.columns.get_loc("start_failures") + 1, "mean_survival_s", survival_s)
+    return table
+
+
+def bin_table(rollouts, episodes: pd.DataFrame, layout, segments) -> pd.DataFrame:
+    """One row per time bin of `layout`: failures where they happened per visit (training's eval.parquet
+    columns), the start-bin counts, and the mean survival of the episodes started in it."""
+    from bmimic.training.evaluation import bin_table as labelled_bins
+
+    per_bin = labelled_bins(rollouts, layout, segments)
+    per_bin.insert(0, "iteration", int(episodes["iteration"].iloc[0]))
+    survival = episodes.groupby("bin")["survival_s"].mean().reindex(per_bin["bin"]).to_numpy(dtype=float)
+    return _with_rates(per_bin, survival)
+
+
+def segment_table(rollouts, episodes: pd.DataFrame, motion) -> pd.DataFrame:
+    """One row per stretch of the motion covered by one segment ('' = no segment), in time order, with
+    the same per-visit accounting as the bins: visits, failures where they happened, start counts."""
+    from bmimic.training.evaluation import aggregate
+
+    names, levels = segment_at(motion.segments, np.arange(motion.num_frames) / motion.fps)
+    names = np.asarray(names, dtype=object)
+    stretch = np.r_[0, np.cumsum(names[1:] != names[:-1])]  # contiguous frames of one label
+    per_seg = aggregate(rollouts.episodes, stretch, rollouts.frame_errors)
+    ids = per_seg.pop("bin").to_numpy()
+    first = np.searchsorted(stretch, ids)
+    last = np.searchsorted(stretch, ids, side="right") - 1
+    per_seg.insert(0, "segment", names[first])
+    per_seg.insert(1, "difficulty", np.asarray(levels, dtype=object)[first])
+    per_seg.insert(2, "start_s", first / motion.fps)
+    per_seg.insert(3, "end_s", (last + 1) / motion.fps)
+    started = stretch[episodes["start_frame"].to_numpy()]
+    survival = episodes.groupby(started)["survival_s"].mean().reindex(ids).to_numpy(dtype=float)
+    return _with_rates(per_seg, survival)
+
+
+@dataclass
+class EvalResult:
+    """What `evaluate` produced, and where it was written."""
+
+    episodes: pd.DataFrame
+    """One row per episode."""
+    bins: pd.DataFrame
+    """One row per time bin."""
+    segments: pd.DataFrame
+    """One row per motion segment."""
+    summary: dict
+    """Overall numbers and provenance (eval_summary.json)."""
+    out_dir: Path | None = None
+    """Folder the tables were written to (None until written)."""
+
+
+
+def write_tables(result: EvalResult, out_dir: Path) -> Path:
+    """Write the four tables (run_folder.EVAL_TABLES) atomically; the summary last, so its presence
+    means a complete set."""
+    episodes, bins, segments, summary = EVAL_TABLES
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_parquet(out_dir / episodes, result.episodes)
+    atomic_write_parquet(out_dir / bins, result.bins)
+    atomic_write_csv(out_dir / segments, result.segments)
+    atomic_write_json(out_dir / summary, result.summary)
+    result.out_dir = out_dir
+    return out_dir
+
+

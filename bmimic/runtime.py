@@ -1,0 +1,186 @@
+"""The process a run lives in: its device, random streams, process group and provenance.
+
+`resolve_device` turns `device=auto|cpu|cuda|cuda:N` into a torch device, `seed_everything` seeds
+python, numpy, torch and warp from one integer, `rng_state`/`set_rng_state` carry every stream in a
+checkpoint, `init_distributed` joins torchrun's process group, and `provenance` records what
+produced a run (bmimic.run_folder writes it to provenance.json).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import random
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bmimic import BmimicError
+from bmimic.run_folder import now
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+# --------------------------------------------------------------------------------------------- device
+_DEVICE = re.compile(r"^(auto|cpu|cuda|cuda:(0|[1-9][0-9]*))$")
+
+
+def resolve_device(device: str) -> str:
+    """`auto` -> `cuda:0` when a GPU is visible, else `cpu`; `cpu`, `cuda`, `cuda:N` are checked."""
+    import torch
+
+    if not isinstance(device, str) or not _DEVICE.match(device):
+        raise BmimicError(f"device: {device!r} is not one of auto, cpu, cuda, cuda:N")
+    if device == "auto":
+        return "cuda:0" if torch.cuda.is_available() else "cpu"
+    if device == "cpu":
+        return device
+    if not torch.cuda.is_available():
+        raise BmimicError(f"device={device} was requested but no CUDA GPU is visible; use device=cpu or auto")
+    index = int(device.split(":")[1]) if ":" in device else 0
+    count = torch.cuda.device_count()
+    if index >= count:
+        raise BmimicError(f"device={device}: only {count} GPU(s) are visible (cuda:0..cuda:{count - 1})")
+    return f"cuda:{index}"
+
+
+def init_distributed() -> tuple[int, int]:
+    """(rank, world size); under torchrun, join the process group (NCCL on GPUs, gloo on a CPU-only
+    machine) before any env is built."""
+    import torch
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    if not torch.distributed.is_initialized():
+        if torch.cuda.is_available():
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+            torch.distributed.init_process_group("nccl")
+        else:  # CPU ranks (gloo): the same code path, for smoke tests without a GPU
+            torch.distributed.init_process_group("gloo")
+    return torch.distributed.get_rank(), world
+
+
+# --------------------------------------------------------------------------------------------- seeding
+def seed_everything(seed: int):
+    """Seed python, numpy, torch and warp from one integer; return the generator the sampler uses."""
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+    if torch.cuda.is_available():
+        torch.cuda.manual_seed_all(seed)
+    try:
+        import warp as wp
+
+        wp.rand_init(seed) if hasattr(wp, "rand_init") else None
+    except ImportError:  # pragma: no cover - warp is a hard dependency, but seeding must not need it
+        pass
+    gen = torch.Generator()
+    gen.manual_seed(seed + 1)  # a distinct stream for the motion sampler
+    return gen
+
+
+def rng_state() -> dict:
+    """All global RNG states, for checkpoints, as tensors and plain values only (so a checkpoint
+    loads with `weights_only=True`)."""
+    import torch
+
+    version, mt, gauss = random.getstate()
+    name, keys, pos, has_gauss, cached = np.random.get_state(legacy=True)
+    state = {
+        "python": {"version": int(version), "state": torch.tensor(mt, dtype=torch.int64), "gauss": gauss},
+        "numpy": {"bit_generator": str(name), "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)),
+                  "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
+        "torch": torch.get_rng_state(),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    """Restore `rng_state()`; also reads the pickled tuples of format-1 checkpoints."""
+    import torch
+
+    py, npy = state["python"], state["numpy"]
+    if isinstance(py, dict):
+        py = (py["version"], tuple(int(x) for x in py["state"].tolist()), py["gauss"])
+    random.setstate(py)
+    if isinstance(npy, dict):
+        npy = (npy["bit_generator"], np.asarray(npy["keys"].tolist(), dtype=np.uint32), npy["pos"],
+               npy["has_gauss"], npy["cached_gaussian"])
+    np.random.set_state(npy)
+    torch.set_rng_state(state["torch"].cpu())
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
+
+
+# --------------------------------------------------------------------------------------------- provenance
+def _git(*args: str) -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10, check=True
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _version(module: str) -> str | None:
+    try:
+        from importlib.metadata import version
+
+        return version(module)
+    except Exception:
+        return None
+
+
+def provenance(device: str) -> dict:
+    """What produced a run: code version, library versions, hardware, precision flags, command line."""
+    import torch
+
+    info: dict[str, Any] = {
+        "created": now(),
+        "git_commit": _git("rev-parse", "HEAD"),
+        "git_dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "hostname": platform.node(),
+        "versions": {
+            name: _version(name)
+            for name in ("torch", "warp-lang", "mujoco", "mujoco-warp", "rsl-rl-lib", "hydra-core", "bmimic")
+        },
+        "device": device,
+        "torch_precision": {
+            "matmul_allow_tf32": torch.backends.cuda.matmul.allow_tf32,
+            "cudnn_allow_tf32": torch.backends.cudnn.allow_tf32,
+            "float32_matmul_precision": torch.get_float32_matmul_precision(),
+        },
+    }
+    if device.startswith("cuda") and torch.cuda.is_available():
+        idx = torch.device(device).index or 0
+        info["gpu"] = {
+            "name": torch.cuda.get_device_name(idx),
+            "count": torch.cuda.device_count(),
+            "cuda_runtime": torch.version.cuda,
+            "driver": _nvidia_driver(),
+        }
+    return info
+
+
+def _nvidia_driver() -> str | None:
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+            capture_output=True, text=True, timeout=10, check=True,
+        )
+        return out.stdout.strip().splitlines()[0]
+    except (OSError, subprocess.SubprocessError, IndexError):
+        return None

@@ -1,0 +1,171 @@
+"""The one composition root: from a composed config, everything a run or a tool is made of.
+
+`build_task` builds the robot model and its resolved info, the motion at the control rate and the
+bin layout over it (the config is validated against the motion); `build_training` adds the sampler
+and the training environment; `build_evaluator` the sampler-independent evaluator (with
+`robust=True`: domain randomisation, observation noise and pushes on); `build_trainer` the PPO
+trainer with its logger. train, eval, play, bench, export and sim2sim build through here and import
+no other entry point: this is the only module that calls the constructors of TrackingEnv, the
+samplers, Evaluator and Trainer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bmimic.config import ConfigError
+from bmimic.config_checks import validate
+
+
+@dataclass
+class Task:
+    """What a runtime-resolved config describes, built: the robot, its motion and the bins over it."""
+
+    cfg: Any
+    """The composed, runtime-resolved config (DictConfig)."""
+    device: str
+    """Torch device of every tensor."""
+    mjm: Any
+    """The robot's host mujoco.MjModel (the training environment's)."""
+    robot: Any
+    """bmimic.robot.RobotInfo: gains, limits, default pose and body indices in model order."""
+    motion: Any
+    """bmimic.motion.Motion at the control rate."""
+    layout: Any
+    """The bin layout of `cfg.sampler.bins` over the motion."""
+
+    def reference(self):
+        """The motion as the environment's device tensors (bmimic.motion.ReferenceMotion)."""
+        from bmimic.motion.reference import ReferenceMotion
+
+        return ReferenceMotion.for_robot(self.motion, self.robot, self.device)
+
+
+@dataclass
+class Training:
+    """A task with its motion sampler and training environment."""
+
+    task: Task
+    sampler: Any
+    """The sampler of `cfg.sampler` over the task's bins."""
+    env: Any
+    """bmimic.envs.TrackingEnv in `mode="train"` with `cfg.num_envs` worlds."""
+
+
+def build_task(cfg, device: str) -> Task:
+    """Robot model, robot info, motion and bins of a runtime-resolved config (validated against the motion)."""
+    from bmimic.motion.config import load_motion
+    from bmimic.robot import load_mjmodel, resolve_robot
+    from bmimic.sampling.config import layout_for, min_motion_bin_s
+
+    mjm = load_mjmodel(cfg=cfg.robot)
+    robot = resolve_robot(cfg.robot, mjm)
+    motion = load_motion(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir,
+                         control_fps=1.0 / (cfg.sim.timestep_s * cfg.sim.decimation))
+    validate(cfg, motion.duration_s)
+    layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device)
+    return Task(cfg, device, mjm, robot, motion, layout)
+
+
+def build_training(cfg, device: str, task: Task | None = None) -> Training:
+    """The sampler, its episode accounting and the training environment (`task`: build_task's result,
+    when the caller has it)."""
+    from bmimic.envs.config import episode_length_steps
+    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.sampling.accounting import EpisodeAccounting
+    from bmimic.sampling.config import make_sampler
+
+    task = task if task is not None else build_task(cfg, device)
+    check_num_envs_fit(cfg, task.mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
+    sampler = make_sampler(cfg.sampler, task.layout.num_bins, device)
+    accounting = EpisodeAccounting.from_config(cfg.sampler.accounting, sampler, task.layout, cfg.num_envs,
+                                               episode_length_steps(cfg.env, cfg.sim), device=device)
+    env = TrackingEnv(cfg.env, cfg.sim, task.mjm, task.robot, task.reference(), cfg.num_envs, device,
+                      accounting=accounting)
+    return Training(task, sampler, env)
+
+
+def build_evaluator(task: Task, robust: bool = False):
+    """The sampler-independent evaluator in an environment of its own (`eval.max_envs` worlds at most;
+    robust: with domain randomisation, observation noise and pushes, as configured for training)."""
+    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.robot import load_mjmodel
+    from bmimic.training.evaluation import Evaluator
+
+    cfg, device, layout = task.cfg, task.device, task.layout
+    total = layout.num_bins * cfg.eval.episodes_per_bin
+    n = max(1, min(total, cfg.eval.max_envs))
+    mjm = load_mjmodel(cfg=cfg.robot)
+    check_num_envs_fit(cfg, mjm, device, n, 0)
+    env = TrackingEnv(cfg.env, cfg.sim, mjm, task.robot, task.reference(), n, device, mode="eval", robust=robust,
+                      layout=layout)
+    return Evaluator(env, layout, task.motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s,
+                     max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
+
+
+def build_trainer(training: Training, evaluator, run_dir: str | Path, is_main_rank: bool = True,
+                  run_config: dict | None = None):
+    """The PPO trainer of `training` with the config's logger (TensorBoard, W&B or none) and console
+    line; rank 0 alone logs and writes (`is_main_rank`). `run_config`: the resolved config that
+    checkpoints carry."""
+    from bmimic.training.logger import RunLogger
+    from bmimic.training.runner import Trainer
+
+    cfg = training.task.cfg
+    logger = RunLogger(cfg.logger, run_dir, cfg.run_name, cfg.wandb_project,
+                       progress_bar=cfg.progress_bar and is_main_rank, enabled=is_main_rank)
+    return Trainer(training.env, evaluator, training.sampler, cfg, run_dir, training.task.device, logger,
+                   is_main_rank=is_main_rank, run_config=run_config)
+
+
+# --------------------------------------------------------------------------------------------- memory
+def check_num_envs_fit(cfg, mjm, device: str, num_worlds: int, rollout_steps: int) -> None:
+    """Refuse `num_worlds` that would not fit in the device's free memory, before allocating them.
+
+    The estimate per world is the MuJoCo-Warp state (measured on the host for one extra world) plus
+    the rollout storage (`rollout_steps` x observations, actions and scalars, observations taken as
+    16 floats per degree of freedom, about the G1's 446) plus as much again for the step's
+    temporaries: rough, but it tells 10 million worlds from 10 thousand before anything is allocated.
+    """
+    from bmimic.sim.simulator import physics_bytes_per_world
+
+    physics = physics_bytes_per_world(mjm, cfg.sim)
+    rollout = rollout_steps * (16 * mjm.nv + 4 * mjm.nu + 8) * 4
+    per_world = 2 * physics + rollout
+    need = per_world * num_worlds
+    free = free_memory_bytes(device)
+    if free is not None and need > free:
+        raise ConfigError(
+            f"num_envs: {num_worlds} worlds need about {_gib(need)} ({per_world / 1024:.0f} KiB per world: "
+            f"physics {physics / 1024:.0f} KiB, rollout {rollout / 1024:.0f} KiB, temporaries), but "
+            f"{device} has {_gib(free)} free; about {max(int(free // per_world), 0)} fit")
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**40:.1f} TiB" if n >= 2**40 else f"{n / 2**30:.1f} GiB"
+
+
+def free_memory_bytes(device: str) -> int | None:
+    """Free memory of a torch device (CPU: MemAvailable of /proc/meminfo); None when unknown."""
+    if device.startswith("cuda"):
+        import torch
+
+        try:
+            return int(torch.cuda.mem_get_info(torch.device(device))[0])
+        except (RuntimeError, AssertionError):
+            return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import os
+
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None

@@ -1,0 +1,109 @@
+"""Checkpoint files: the format, the safe reader and the atomic writer.
+
+Checkpoints are read only with `torch.load(weights_only=True)`: loading a shared checkpoint never
+runs code. Where they lie and what they are called is bmimic.run_folder's business.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import re
+from pathlib import Path
+from typing import Any
+
+from bmimic import BmimicError
+from bmimic.run_folder import LATEST_CHECKPOINT, atomic_write, checkpoint_files
+
+CHECKPOINT_FORMAT = "bmimic-checkpoint-2"
+"""Tensors and plain values only: readable with torch.load(weights_only=True)."""
+LEGACY_CHECKPOINT_FORMATS = ("bmimic-checkpoint-1",)
+"""Written by earlier bmimic versions with pickled numpy RNG states: they load only when trusted."""
+
+
+class CheckpointError(BmimicError):
+    """A checkpoint that cannot be read (missing, truncated, not a torch file)."""
+
+
+class UnsafeCheckpointError(CheckpointError):
+    """A checkpoint whose pickle names a global that could run code; refused unless trusted."""
+
+
+def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
+    """torch.save `obj` to `path` atomically."""
+    import torch
+
+    return atomic_write(path, lambda tmp: torch.save(obj, tmp))
+
+
+def load_checkpoint_file(path: str | os.PathLike, map_location: str = "cpu", trust: bool = False) -> dict:
+    """The checkpoint dict at `path`, read with `weights_only=True` (nothing in it can run code).
+
+    `trust=True` (`--trust-checkpoint`, `trust_checkpoint=true`) falls back to a full unpickling for a
+    file refused for its globals: only for checkpoints you wrote yourself, e.g. format-1 checkpoints
+    of earlier bmimic versions. Raises CheckpointError / UnsafeCheckpointError with one line.
+    """
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        found = re.search(r"GLOBAL ([\w.]+)", str(e))
+        if found is None:  # not a pickle of plain data at all (a text file, a foreign format)
+            raise CheckpointError(f"{path}: not a readable torch checkpoint (not a pickle of plain data)") from None
+        if not trust:
+            raise UnsafeCheckpointError(
+                f"{path}: refused: its pickle needs the global {found.group(1)}, which loading would run as "
+                "code; if you wrote this checkpoint yourself (bmimic before checkpoint format 2), load it "
+                "with --trust-checkpoint (eval, play) or trust_checkpoint=true (train resume)") from None
+        try:
+            state = torch.load(path, map_location=map_location, weights_only=False)
+        except Exception as e2:  # noqa: BLE001 - any reader failure is "cannot read this file"
+            raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(e2)})") from None
+    except Exception as e:  # noqa: BLE001 - truncated zip, empty file, not a torch file, I/O error
+        raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(e)})") from None
+    if not isinstance(state, dict) or "actor_state_dict" not in state:
+        raise CheckpointError(f"{path}: not an rsl-rl/bmimic checkpoint (no actor_state_dict)")
+    return state
+
+
+def _first_line(e: BaseException) -> str:
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(e)).strip()
+    return text.splitlines()[0][:200] if text else type(e).__name__
+
+
+def load_newest_intact(ckpt_dir: Path, trust: bool = False) -> tuple[Path, dict, str]:
+    """(path, state, note) of the newest checkpoint in `ckpt_dir` that reads; `note` says which
+    damaged files were passed over. A checkpoint refused as unsafe is never passed over."""
+    damaged = []
+    for path in checkpoint_files(ckpt_dir):
+        try:
+            state = load_checkpoint_file(path, "cpu", trust)
+        except UnsafeCheckpointError:
+            raise
+        except CheckpointError as e:
+            damaged.append(f"{path.name} ({str(e).split('(', 1)[-1].rstrip(')')})")
+            continue
+        note = (f"{', '.join(damaged)} could not be read; resuming from {path.name}, the newest intact "
+                "checkpoint") if damaged else ""
+        return path, state, note
+    what = f" ({'; '.join(damaged)})" if damaged else ""
+    raise CheckpointError(f"{ckpt_dir}: no readable checkpoint{what}")
+
+
+def is_latest(path: Path) -> bool:
+    """`path` is a run's latest.pt (a copy of its newest model_<it>.pt), not a numbered checkpoint."""
+    return Path(path).name == LATEST_CHECKPOINT
+
+
+class CheckpointMismatchError(BmimicError):
+    """A checkpoint that does not fit the environment, sampler or networks built from this config."""
+
+
+def mismatch_detail(e: BaseException) -> str:
+    """The first concrete line of a load_state_dict error (which parameter, which shapes)."""
+    lines = [x.strip() for x in str(e).splitlines() if x.strip()]
+    return lines[1] if len(lines) > 1 else (lines[0] if lines else type(e).__name__)

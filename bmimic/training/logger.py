@@ -1,0 +1,160 @@
+"""Where a run's numbers go besides its tables: TensorBoard or W&B scalars, the progress bar (or a
+console line every 10 iterations) and the warnings about broken worlds.
+
+The Trainer's loop calls one `RunLogger`; the back-end is opened on the first write (`open`), so a
+launch refused before training writes nothing. Under torchrun only rank 0 logs (`enabled`); the
+warnings come from every rank.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from pathlib import Path
+
+from bmimic import BmimicError
+from bmimic.run_folder import TENSORBOARD_DIR
+
+log = logging.getLogger(__name__)
+
+LOGGERS = ("tensorboard", "wandb", "none")
+"""Values of the `logger` config key."""
+
+_TAGS = {
+    "mean_episode_length": "Train/mean_episode_length", "mean_reward": "Train/mean_reward",
+    "failure_rate": "Train/failure_rate", "episodes": "Train/episodes",
+    "sampling_entropy": "Sampler/entropy", "top1_prob": "Sampler/top1_prob", "top1_bin": "Sampler/top1_bin",
+    "fps": "Perf/total_fps", "collection_time_s": "Perf/collection_time", "learning_time_s": "Perf/learning_time",
+    "learning_rate": "Loss/learning_rate", "action_std": "Policy/mean_std",
+    "nonfinite_resets": "Sim/nonfinite_resets", "out_of_bounds_resets": "Sim/out_of_bounds_resets",
+    "overflow_worlds": "Sim/overflow_worlds",
+}
+"""Scalar tag of each train_metrics column (rsl-rl's names where it has one)."""
+_PREFIXES = {"loss": "Loss", "reward": "Episode_Reward", "termination": "Episode_Termination", "metrics": "Metrics"}
+"""Tag group of the `<prefix>/<name>` columns."""
+
+
+class RunLogger:
+    """TensorBoard / W&B scalars, the console and the progress bar of one training run."""
+
+    def __init__(self, backend: str, run_dir: str | os.PathLike, run_name: str, wandb_project: str = "bmimic",
+                 progress_bar: bool = True, enabled: bool = True) -> None:
+        if backend == "wandb":
+            try:
+                import wandb  # noqa: F401  (fail at start-up, not at the first logged scalar)
+            except ImportError:
+                raise BmimicError("logger=wandb needs the wandb package: pip install wandb") from None
+        self.backend = backend if enabled else "none"
+        self.run_dir = Path(run_dir)
+        self.run_name = run_name
+        self.wandb_project = wandb_project
+        self.progress_bar = progress_bar and enabled
+        self.enabled = enabled
+        self.writer = None
+        self._opened = False
+        self._bar = None
+
+    def open(self) -> None:
+        """Open the TensorBoard / W&B writer (idempotent); the first write into the run folder."""
+        if self._opened:
+            return
+        self._opened = True
+        if self.backend == "wandb":
+            import wandb
+
+            self.writer = _WandbWriter(wandb.init(project=self.wandb_project, name=self.run_name,
+                                                  dir=str(self.run_dir)))
+        elif self.backend == "tensorboard":
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(log_dir=str(self.run_dir / TENSORBOARD_DIR), flush_secs=30)
+
+    def start(self, start_it: int, end_it: int) -> None:
+        """The training loop begins (a progress bar from `start_it` to `end_it`)."""
+        self.open()
+        if self.progress_bar and end_it > start_it:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=end_it, initial=start_it, desc="train", unit="it", dynamic_ncols=True)
+
+    def iteration(self, it: int, row: dict, broken_so_far: int, sampler=None, layout=None) -> None:
+        """One train_metrics row: its scalars, the sampler's distribution over time when `sampler` and
+        its bin `layout` are given (a histogram over the bins' time edges), the progress bar or every
+        10th a console line, and the warnings about broken worlds (`broken_so_far`: world-steps reset
+        so far in the run)."""
+        broken = row["nonfinite_resets"] + row["out_of_bounds_resets"]
+        if broken > 0:
+            log.warning("iteration %d: reset %d broken world-steps (%d non-finite, %d beyond sim.max_abs_qvel / "
+                        "sim.max_root_distance_m / env.max_abs_step_reward); %d so far", it, int(broken),
+                        int(row["nonfinite_resets"]), int(row["out_of_bounds_resets"]), broken_so_far)
+        if row["overflow_worlds"] > 0:
+            log.warning("iteration %d: %d world-steps overflowed the contact/constraint buffers; raise "
+                        "sim.nconmax / sim.njmax", it, int(row["overflow_worlds"]))
+        if self.writer is not None:
+            self._scalars(it, row)
+            if sampler is not None and hasattr(self.writer, "add_histogram_raw"):
+                self._histogram(it, sampler.probabilities().detach().cpu().double().numpy(),
+                                layout.edges_s.cpu().numpy())
+        if self._bar is not None:
+            self._bar.update(1)
+            self._bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
+                                  fps=f"{row['fps']:.0f}", **({"broken_worlds": int(broken_so_far)}
+                                                              if broken_so_far else {}))
+        elif not self.progress_bar and self.enabled and it % 10 == 0:
+            log.info("it %d: episode length %.1f, reward %.3f, failure rate %.3f, lr %.1e, %.0f steps/s", it,
+                     row["mean_episode_length"], row["mean_reward"], row["failure_rate"], row["learning_rate"],
+                     row["fps"])
+
+    def evaluation(self, iteration: int, summary: dict) -> None:
+        """One evaluation's summary (bmimic.training.evaluation.summarize)."""
+        self.open()
+        if self.writer is not None:
+            for k, v in summary.items():
+                self.writer.add_scalar(f"Eval/{k}", v, iteration)
+        log.info("eval at iteration %d: failure rate %.3f, bins mastered %.2f, MPKPE %.1f mm", iteration,
+                 summary["eval_failure_rate"], summary["eval_bins_mastered_frac"], summary["eval_mpkpe_mm"])
+
+    def end(self) -> None:
+        """The training loop ended (the bar closes; the writer stays open for the final evaluation)."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def close(self) -> None:
+        """End the loop's output and close the back-end."""
+        self.end()
+        if self.writer is not None:
+            self.writer.close()
+
+    def _scalars(self, it: int, row: dict) -> None:
+        for k, v in row.items():
+            if isinstance(v, float) and math.isnan(v):
+                continue
+            tag = _TAGS.get(k)
+            if tag is None and "/" in k:
+                prefix, name = k.split("/", 1)
+                tag = _PREFIXES[prefix] + "/" + name
+            if tag is not None:
+                self.writer.add_scalar(tag, v, it)
+
+    def _histogram(self, it: int, probs, edges) -> None:
+        self.writer.add_histogram_raw(
+            "Sampler/probability_over_time_s", min=float(edges[0]), max=float(edges[-1]), num=len(probs),
+            sum=float((probs * edges[:-1]).sum()), sum_squares=float((probs * edges[:-1] ** 2).sum()),
+            bucket_limits=edges[1:].tolist(), bucket_counts=probs.tolist(), global_step=it,
+        )
+
+
+class _WandbWriter:
+    """The subset of SummaryWriter the logger uses, over a W&B run (offline with WANDB_MODE=offline)."""
+
+    def __init__(self, run) -> None:
+        self.run = run
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        self.run.log({tag: value}, step=step)
+
+    def close(self) -> None:
+        """Finish the W&B run."""
+        self.run.finish()

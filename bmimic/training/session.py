@@ -1,0 +1,185 @@
+"""A training launch's hold on its run folder: what it may write and when.
+
+A launch writes nothing until every check has passed (`RunContext` holds the run locks meanwhile);
+`commit` then makes its first writes; `record_failure` records a failed attempt where it cannot
+damage anything; the folder Hydra made for a launch that continued another run (or was refused) is
+removed (`discard_launch_dir`), its log carried over (`move_file_logs`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+from pathlib import Path
+
+from bmimic.run_folder import (
+    LOCK,
+    RESOLVED_CONFIG,
+    RunLockedError,
+    append_error_log,
+    append_resume,
+    checkpoint_files,
+    checkpoints_dir,
+    has_hydra_record,
+    lock_run,
+    read_status,
+    write_hydra_record,
+    write_motion_segments,
+    write_provenance,
+    write_resolved_config,
+    write_status,
+)
+from bmimic.runtime import provenance
+from bmimic.training.resume import RunPlan
+
+log = logging.getLogger("bmimic.train")
+
+
+class RunContext:
+    """What a launch may write (nothing until `commit`, then its run folder) and the run locks it
+    holds (released by `release` or when the process ends)."""
+
+    def __init__(self, launch_dir: Path) -> None:
+        self.launch_dir = Path(launch_dir)
+        """The folder Hydra made for this launch."""
+        self.run_dir: Path | None = None
+        """The run folder this launch writes; None until committed."""
+        self.hydra_record: dict[str, str] | None = None
+        """This launch's .hydra files (written at commit into a new run)."""
+        self._locks: dict[Path, object] = {}
+
+    def holds(self, run_dir: Path) -> bool:
+        """This launch holds the lock of `run_dir`."""
+        return Path(run_dir).resolve() in self._locks
+
+    def lock(self, run_dir: Path) -> None:
+        """Take `run_dir`'s lock; RunLockedError when another process holds it."""
+        f = lock_run(run_dir)
+        if f is None:
+            raise RunLockedError(f"{run_dir}: is being trained by another process (its {LOCK} is held); "
+                                 "wait for it or stop it first")
+        self._locks[Path(run_dir).resolve()] = f
+
+    def release(self, run_dir: Path | None = None) -> None:
+        """Release the lock of `run_dir` (all locks when None)."""
+        for key in [k for k in self._locks if run_dir is None or k == Path(run_dir).resolve()]:
+            self._locks.pop(key).close()
+
+
+def commit(ctx: RunContext, plan: RunPlan, resolved: dict, device: str, changes: dict, motion) -> None:
+    """The first writes of a launch, once every check has passed."""
+    run_dir = plan.run_dir
+    if run_dir.resolve() != ctx.launch_dir.resolve():
+        move_file_logs(ctx.launch_dir, run_dir)  # a resumed run logs into its own folder
+        ctx.release(ctx.launch_dir)
+        discard_launch_dir(ctx.launch_dir)  # no empty timestamped folder is left behind
+    ctx.run_dir = run_dir
+    entry = {"checkpoint": str(plan.checkpoint), "iteration": int((plan.state or {}).get("iter", 0)),
+             "changes": {k: list(v) for k, v in changes.items()}, "note": plan.note or None}
+    note_previous_attempt(run_dir, read_status(run_dir))  # a sweep job's killed or failed attempt
+    if plan.continues:
+        append_resume(run_dir, {**entry, "provenance": provenance(device)})
+        if changes or not (run_dir / RESOLVED_CONFIG).exists():
+            write_resolved_config(run_dir, resolved)
+        if not has_hydra_record(run_dir):
+            write_hydra_record(run_dir, ctx.hydra_record)
+        if changes:
+            log.info("resume: accepted config changes %s (recorded in resumes.json)",
+                     ", ".join(f"{k}: {json.dumps(a, default=str)} -> {json.dumps(b, default=str)}"
+                               for k, (a, b) in changes.items()))
+    else:
+        write_hydra_record(run_dir, ctx.hydra_record)
+        write_provenance(run_dir, provenance(device))
+        write_resolved_config(run_dir, resolved)
+        if plan.state is not None:  # a new run that starts from another run's checkpoint
+            append_resume(run_dir, entry)
+    write_status(run_dir, "running", entry["iteration"])
+    write_motion_segments(run_dir, [s._asdict() for s in motion.segments])
+
+
+def note_previous_attempt(run_dir: str | os.PathLike, status: dict) -> None:
+    """Before retrying a sweep job, record how its previous attempt ended when it did not finish."""
+    state = status.get("status")
+    if state == "failed":
+        append_error_log(run_dir, f"retrying after a failed attempt (iteration {status.get('iteration')}, "
+                                  f"updated {status.get('updated')}): {status.get('error')}")
+    elif state == "running":
+        append_error_log(run_dir, f"previous attempt stopped while running (iteration {status.get('iteration')}, "
+                                  f"updated {status.get('updated')}): killed, preempted or timed out; resuming")
+
+
+def record_failure(ctx: RunContext, multirun: bool, message: str, details: str = "") -> None:
+    """Record a failed attempt where it cannot damage anything: in the run once committed; before
+    that only in a sweep job folder without checkpoints that is not done; a single run's unused
+    launch folder is removed."""
+    if ctx.run_dir is not None:
+        write_status(ctx.run_dir, "failed", read_status(ctx.run_dir).get("iteration", 0) or 0, error=message)
+        append_error_log(ctx.run_dir, f"attempt failed: {message}", details)
+    elif multirun:
+        # A sweep job that holds no checkpoint and is not done has nothing to damage: keep its history.
+        previous = read_status(ctx.launch_dir)
+        if previous.get("status") != "done" and not checkpoint_files(checkpoints_dir(ctx.launch_dir)):
+            note_previous_attempt(ctx.launch_dir, previous)
+            write_status(ctx.launch_dir, "failed", error=message)
+            append_error_log(ctx.launch_dir, f"attempt failed: {message}", details)
+    elif int(os.environ.get("RANK", "0")) == 0:  # under torchrun, rank 0 owns the folder
+        ctx.release()
+        discard_launch_dir(ctx.launch_dir)
+
+
+def discard_launch_dir(launch_dir: Path) -> bool:
+    """Remove a launch folder holding nothing but Hydra's log and bmimic's lock (a launch that
+    continued another run, or was refused); returns whether it was removed."""
+    launch_dir = Path(launch_dir)
+    try:
+        entries = list(launch_dir.iterdir())
+    except OSError:
+        return False
+    if any(not (p.is_file() and (p.suffix == ".log" or p.name == LOCK)) for p in entries):
+        return False
+    for p in entries:
+        with contextlib.suppress(OSError):
+            p.unlink()
+    with contextlib.suppress(OSError):
+        launch_dir.rmdir()
+    # Folders Hydra made on the way (outputs/runs/<run_name>/) go too when now empty, up to the cwd.
+    cwd = Path.cwd().resolve()
+    parent = launch_dir.resolve().parent
+    while parent != cwd and parent.is_relative_to(cwd):
+        try:
+            parent.rmdir()  # only succeeds when empty
+        except OSError:
+            break
+        parent = parent.parent
+    return not launch_dir.exists()
+
+
+def move_file_logs(src_dir: Path, dst_dir: Path) -> None:
+    """Point the logging file handlers writing into `src_dir` at the same file names in `dst_dir`
+    (appended), carrying over what was logged so far: a resumed run logs into its own folder."""
+    src_dir, dst_dir = Path(src_dir).resolve(), Path(dst_dir)
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        if not isinstance(handler, logging.FileHandler):
+            continue
+        old = Path(handler.baseFilename)
+        if old.parent != src_dir:
+            continue
+        handler.flush()
+        handler.close()
+        root.removeHandler(handler)
+        new = logging.FileHandler(dst_dir / old.name, mode="a", encoding=handler.encoding)
+        new.setLevel(handler.level)
+        new.setFormatter(handler.formatter)
+        for f in handler.filters:
+            new.addFilter(f)
+        try:
+            earlier = old.read_text()
+        except OSError:
+            earlier = ""
+        if earlier:
+            new.stream.write(earlier)
+            new.flush()
+        root.addHandler(new)

@@ -1,0 +1,595 @@
+"""Tests of analysis/: statistics known answers and invariants, metric definitions, the planted sweep
+report (tests/analysis/synthetic_runs.py), planted answers for the statistics (false positives, a 2x speedup,
+every censoring combination), partial sweeps, single runs and the sweep index."""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from analysis import AnalysisError
+from analysis.index import build_index, write_index
+from analysis.load import load_runs, load_table
+from analysis.markdown import plural
+from analysis.metrics import (
+    counts_as_mastered,
+    first_sustained,
+    mastery_per_seed,
+    speedup,
+    time_to_threshold,
+)
+from analysis.report import build_report, main
+from analysis.stats import (
+    censored_pvalue,
+    curve_intervals,
+    iqm,
+    km_median,
+    permutation_pvalue,
+    seed_interval,
+)
+from analysis.tables import SPEEDUP_COLUMNS, SUMMARY_COLUMNS, ReportOptions, comparisons
+from tests.analysis.synthetic_runs import (
+    FAST,
+    PLANTED,
+    SLOW,
+    UNIFORM,
+    make_speedup_sweep,
+    make_sweep,
+    write_run,
+)
+
+RESAMPLES = 200
+finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)
+
+
+# --------------------------------------------------------------------------------------------- stats
+def test_iqm_known_answers():
+    assert iqm(range(1, 9)) == 4.5  # drops 1, 2 and 7, 8
+    assert iqm([1, 2, 3]) == 2.0  # n < 4: plain mean
+    assert iqm([7.0]) == 7.0
+    assert iqm([1, 2, 3, 100]) == 2.5  # the outlier is trimmed
+    assert iqm([1, np.nan, 2, 3]) == 2.0  # NaNs ignored
+    assert math.isnan(iqm([np.nan, np.nan]))
+    cols = iqm(np.array([[1.0, 5.0], [2.0, np.nan], [3.0, 7.0], [4.0, 8.0]]), axis=0)
+    np.testing.assert_allclose(cols, [2.5, 20.0 / 3.0])
+
+
+@given(st.lists(finite, min_size=1, max_size=30), finite)
+@settings(max_examples=60, deadline=None)
+def test_iqm_invariants(values, shift):
+    x = np.array(values)
+    m = iqm(x)
+    assert x.min() - 1e-6 <= m <= x.max() + 1e-6
+    assert iqm(x[::-1]) == pytest.approx(m)
+    assert iqm(x + shift) == pytest.approx(m + shift, abs=1e-6 * (1 + abs(shift) + np.abs(x).max()))
+
+
+def test_seed_interval_is_the_range_below_five_seeds_and_a_bootstrap_from_five():
+    # Fewer than 5 seeds: the range, never a "95%" interval; the point is the mean below 4 seeds.
+    assert seed_interval([0.1, 0.3, 0.2], bootstrap=False) == pytest.approx((0.2, 0.1, 0.3, "range"))
+    assert seed_interval([4.0], bootstrap=True) == (4.0, 4.0, 4.0, "range")
+    assert seed_interval([1, 2, 3, 100], bootstrap=False)[0] == 2.5  # 4 seeds: the IQM
+    # From 5 seeds: BCa where defined, percentile for degenerate data.
+    point, low, high, method = seed_interval([1.0, 2.0, 3.0, 4.0, 7.0, 5.0], bootstrap=True, n_resamples=500)
+    assert method == "bootstrap_bca" and low < point < high and point == iqm([1, 2, 3, 4, 7, 5])
+    assert seed_interval([3.0] * 5, bootstrap=True) == (3.0, 3.0, 3.0, "bootstrap_percentile")
+    assert math.isnan(seed_interval([np.nan, np.nan], bootstrap=True)[0])
+
+
+def test_curve_intervals_match_columns_and_reproduce():
+    rng = np.random.default_rng(1)
+    m = rng.normal(size=(6, 4))
+    m[5, 3] = np.nan  # a seed that stopped early
+    a = curve_intervals(m, True, 300, seed=3)
+    b = curve_intervals(m, True, 300, seed=3)
+    for u, v in zip(a[:3], b[:3], strict=True):
+        np.testing.assert_array_equal(u, v)
+    for j in range(4):  # columns with the same seeds are resampled together, as each alone would be
+        point, low, high, method = seed_interval(m[:, j], True, 300, seed=3)
+        assert (point, low, high) == pytest.approx((a[0][j], a[1][j], a[2][j])) and method == a[3][j]
+
+
+@given(st.lists(finite, min_size=5, max_size=10))
+@settings(max_examples=25, deadline=None)
+def test_bootstrap_interval_within_data(values):
+    point, low, high, _ = seed_interval(values, bootstrap=True, n_resamples=100)
+    assert min(values) - 1e-6 <= point <= max(values) + 1e-6
+    assert low <= high + 1e-9
+
+
+def test_permutation_pvalues_are_exact_for_small_n():
+    # 3 vs 3 seeds: 20 equally likely splits; the observed one and its mirror are the most extreme.
+    assert permutation_pvalue([1, 2, 3], [4, 5, 6]) == pytest.approx(0.1)
+    assert permutation_pvalue([1, 2, 3], [1, 2, 3]) == 1.0
+    assert permutation_pvalue([0.0] * 5, [1.0] * 5) == pytest.approx(2 / 252)
+    assert math.isnan(permutation_pvalue([], [1.0]))
+    # One seed against two (scipy refuses a group of one): 3 splits, the observed one is the most
+    # extreme on one side, so p = 2 x 1/3 (capped at 1), and the same with the groups swapped.
+    assert permutation_pvalue([0.0], [1.0, 2.0]) == pytest.approx(2 / 3)
+    assert permutation_pvalue([1.0, 2.0], [0.0]) == pytest.approx(2 / 3)
+    assert permutation_pvalue([5.0], [4.0]) == 1.0
+
+
+def test_km_median_known_answers():
+    assert km_median([1, 2, 3, 4, 5], [1] * 5) == 3.0  # uncensored: the ordinary median
+    assert km_median([1, 2, 3, 4], [1] * 4) == 2.5
+    assert math.isnan(km_median([1, 2, 9, 9], [1, 1, 0, 0]))  # exactly half got there: not reached
+    assert km_median([1, 2, 3, 9], [1, 1, 1, 0]) == 2.5
+    assert km_median([10, 20, 30], [1, 1, 0]) == 20.0
+    # Censored early (a run still going at 5): Kaplan-Meier keeps it at risk only until then.
+    assert km_median([5, 10, 20, 30], [0, 1, 1, 1]) == 20.0
+    np.testing.assert_array_equal(km_median(np.array([[1, 2, 3], [4, 5, 6]]), np.ones((2, 3), bool)), [2, 5])
+
+
+def test_censored_pvalue_orders_censored_times_as_later():
+    assert censored_pvalue([1, 2, 3], [1, 1, 1], [10, 10, 10], [0, 0, 0]) == pytest.approx(0.1)
+    assert censored_pvalue([1, 2, 3], [1, 1, 1], [1, 2, 3], [1, 1, 1]) == 1.0
+    assert math.isnan(censored_pvalue([5], [0], [5], [0]))  # no event anywhere: nothing to compare
+
+
+# --------------------------------------------------------------------------------------------- metrics
+def test_first_sustained_needs_persistence_or_the_end_of_the_run():
+    assert first_sustained([0, 1, 0, 1, 1], 2) == 3  # the blip at 1 does not count
+    assert first_sustained([0, 0, 1], 2) == 2  # below for the rest of the run
+    assert first_sustained([1, 0, 0], 2) == -1
+    assert first_sustained([0, 1, 0, 1], 1) == 1
+    assert first_sustained([], 2) == -1
+    with pytest.raises(ValueError):
+        first_sustained([1], 0)
+
+
+def _curve(rates, bin_=0, step=5, **extra):
+    n = len(rates)
+    return pd.DataFrame({"run_dir": "r", "arm": "a", "seed": 0, "iteration": np.arange(n) * step,
+                         "env_steps": np.arange(n) * step * 10, "wall_time_s": np.arange(n) * 1.0, "bin": bin_,
+                         "failure_rate": rates, **extra})
+
+
+def test_mastery_per_seed_with_persistence_and_censoring():
+    df = pd.concat([
+        _curve([0.5, 0.05, 0.3, 0.02, 0.01], bin_=0),  # first below at 5 but rises: mastered at 15
+        _curve([0.5, 0.1, 0.1, 0.1, 0.1], bin_=1),  # exactly at the threshold: never (strictly below)
+        _curve([0.0] * 5, bin_=2),  # mastered at the first evaluation
+        _curve([0.5, 0.5, 0.5, 0.5, 0.05], bin_=3),  # only the last evaluation: the rest of the run
+    ])
+    m = mastery_per_seed(df, threshold=0.1, persist=2).set_index("bin")
+    assert m.loc[0, "iteration"] == 15.0 and m.loc[0, "env_steps"] == 150.0
+    assert not m.loc[1, "mastered"] and math.isnan(m.loc[1, "iteration"]) and m.loc[1, "last_iteration"] == 20.0
+    assert m.loc[2, "iteration"] == 0.0
+    assert m.loc[3, "iteration"] == 20.0
+
+
+def test_horizon_truncated_bins_need_a_bin_tracked_through():
+    df = pd.DataFrame({"failure_rate": [0.0, 0.0, 0.0, 0.5], "horizon_truncated": [False, True, True, False],
+                       "tracked_through": [0, 0, 3, 9]})
+    assert counts_as_mastered(df, 0.1).tolist() == [True, False, True, False]
+    assert counts_as_mastered(df[["failure_rate"]], 0.1).tolist() == [True, True, True, False]  # old tables
+
+
+def test_time_to_threshold_inclusive_persistent_and_never():
+    curve = pd.DataFrame({
+        "run": ["a"] * 4 + ["b"] * 4,
+        "iteration": [0, 10, 20, 30] * 2,
+        "env_steps": [0, 100, 200, 300] * 2,
+        "wall_time_s": [0.0, 1.0, 2.0, 3.0] * 2,
+        "success_rate": [0.5, 0.9, 0.95, 0.92, 0.95, 0.6, 0.7, 0.8],
+    })
+    t = time_to_threshold(curve, 0.9, persist=2, by=["run"]).set_index("run")
+    assert t.loc["a", "reached"] and t.loc["a", "iteration"] == 10 and t.loc["a", "env_steps"] == 100
+    assert not t.loc["b", "reached"] and math.isnan(t.loc["b", "iteration"]) and t.loc["b", "last_iteration"] == 30
+
+
+@pytest.mark.parametrize("base, arm, status, ratio", [
+    # (times, reached) per seed, baseline then arm; speedup = baseline median / arm median
+    (([40, 40, 40], [1, 1, 1]), ([20, 20, 20], [1, 1, 1]), "estimate", 2.0),
+    (([60, 60, 60], [0, 0, 0]), ([20, 30, 20], [1, 1, 1]), "lower_bound", 3.0),  # baseline censored at 60
+    (([40, 20, 60], [1, 1, 0]), ([20, 60, 60], [1, 0, 0]), "upper_bound", 40 / 60),  # arm: 1/3 got there
+    (([60, 60, 60], [0, 0, 1]), ([60, 60, 60], [0, 0, 0]), "not_estimable", math.nan),
+    (([10, 20, 60, 60], [1, 1, 0, 0]), ([10, 10, 10, 10], [1, 1, 1, 1]), "lower_bound", 6.0),  # half is not more than half
+])
+def test_speedup_status_for_each_censoring_combination(base, arm, status, ratio):
+    s = speedup(*base, *arm, bootstrap=False)
+    assert s.status == status
+    assert (math.isnan(s.ratio) and math.isnan(ratio)) or s.ratio == pytest.approx(ratio)
+    assert math.isnan(s.ci_low) and math.isnan(s.ci_high)  # no interval for bounds or below 5 seeds
+    assert 0.0 < s.p_value <= 1.0
+
+
+# --------------------------------------------------------------------------------------------- planted answers
+def _random_comparison(rng, n: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Two arms with no true difference: per-seed final failures and censored times to threshold."""
+    rows, times = [], []
+    for arm in ("a", "b"):
+        for seed in range(n):
+            rows.append((f"{arm}/{seed}", arm, seed, rng.beta(2, 8)))
+            t = 5 * math.ceil(rng.lognormal(math.log(300), 0.3) / 5)
+            reached = t <= 400  # runs end at iteration 400: later seeds are censored there
+            times.append((f"{arm}/{seed}", arm, seed, reached, min(t, 400)))
+    return (pd.DataFrame(rows, columns=["run_dir", "arm", "seed", "value"]),
+            pd.DataFrame(times, columns=["run_dir", "arm", "seed", "reached", "time"]))
+
+
+@pytest.mark.parametrize("n_seeds", [3, 10])
+def test_no_true_difference_is_rarely_claimed(n_seeds):
+    rng = np.random.default_rng(n_seeds)
+    opts = ReportOptions(n_resamples=RESAMPLES, n_permutations=2000)
+    claims = {"final_failure": 0, "time": 0}
+    for _ in range(200):
+        final, times = _random_comparison(rng, n_seeds)
+        comp = comparisons({"final_failure": final}, "final_failure", opts)
+        claims["final_failure"] += int(comp["claim"].iloc[0])
+        a, b = times[times["arm"] == "a"], times[times["arm"] == "b"]
+        s = speedup(b["time"], b["reached"], a["time"], a["reached"], bootstrap=False,
+                    n_permutations=opts.n_permutations)
+        claims["time"] += int(s.p_value < opts.alpha)
+    assert claims["final_failure"] <= 20 and claims["time"] <= 20, claims  # at most 10% of 200 draws
+
+
+@pytest.fixture(scope="module")
+def speedup_report(tmp_path_factory) -> Path:
+    sweep = make_speedup_sweep(tmp_path_factory.mktemp("speed"), n_seeds=10, ratio=2.0)
+    return build_report([sweep], opts=ReportOptions(n_resamples=1000))
+
+
+def test_a_two_fold_speedup_is_recovered_with_ten_seeds(speedup_report):
+    speed = pd.read_csv(speedup_report / "speedup.csv")
+    assert list(speed.columns) == SPEEDUP_COLUMNS
+    row = speed.set_index("measure").loc["iteration"]
+    assert row["status"] == "estimate" and row["baseline"] == "sampler=uniform"
+    assert row["ci_low"] <= 2.0 <= row["ci_high"] and row["ci_low"] > 1.0, row.to_dict()
+    assert row["p_value"] < 0.01
+    per_bin = pd.read_csv(speedup_report / "mastery_speedup.csv")
+    assert (per_bin["status"] == "estimate").all() and (per_bin["ci_low"] > 1.0).all()
+    summary = pd.read_csv(speedup_report / "summary.csv")
+    assert set(summary["ci_method"]) <= {"bootstrap_bca", "bootstrap_percentile"}  # 10 seeds: bootstrap
+    assert (summary.loc[summary["n_seeds"] >= 4, "iqm"].notna()).all()
+
+
+# --------------------------------------------------------------------------------------------- planted sweep
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Path:
+    return make_sweep(tmp_path_factory.mktemp("sweeps"))
+
+
+@pytest.fixture(scope="module")
+def report(sweep) -> Path:
+    return build_report([sweep], opts=ReportOptions(n_resamples=RESAMPLES))
+
+
+def test_load_runs_statuses(sweep):
+    runs = load_runs(sweep).set_index(["arm", "seed"])
+    assert set(runs.index.get_level_values("arm")) == {UNIFORM, FAST, SLOW}
+    assert runs.loc[(FAST, 2), "status"] == "failed" and not runs.loc[(FAST, 2), "included"]
+    assert "simulated crash" in runs.loc[(FAST, 2), "problem"]
+    assert runs.loc[(SLOW, 2), "status"] == "missing" and not runs.loc[(SLOW, 2), "included"]
+    assert runs.loc[(UNIFORM, 2), "status"] == "running" and runs.loc[(UNIFORM, 2), "included"]
+    assert runs.loc[(UNIFORM, 2), "iteration"] == 45
+    assert runs.loc[(FAST, 0), "param.sampler.gamma"] == 0.5
+    assert runs.loc[(SLOW, 2), "param.sampler.gamma"] == 0.9  # a missing job inherits its arm's values
+    eval_df = load_table(runs.reset_index(), "eval")
+    assert {"run_dir", "arm", "seed", "segment", "failure_rate", "visits"} <= set(eval_df.columns)
+    assert eval_df.groupby("run_dir").ngroups == 7
+
+
+def test_planted_mastery(report):
+    per_seed = pd.read_csv(report / "mastery_per_seed.csv")
+    m = pd.read_csv(report / "mastery.csv")
+    for arm, expected in PLANTED["mastery"].items():
+        got = m[m["arm"] == arm].sort_values("bin")["mastery_iteration"].to_numpy()
+        np.testing.assert_array_equal(got, expected)
+        seeds = per_seed[per_seed["arm"] == arm]
+        for b, it in enumerate(expected):  # every seed masters each bin at the planted iteration
+            np.testing.assert_array_equal(seeds.loc[seeds["bin"] == b, "iteration"], it)
+    slow = m[(m["arm"] == SLOW) & (m["bin"] == 3)].iloc[0]
+    assert slow["n_mastered"] == 0 and slow["follow_up"] == 60 and slow["per_seed"] == ">60;>60"
+    summary = pd.read_csv(report / "summary.csv")
+    bins = summary[summary["metric"] == "bins_mastered"].set_index("arm")
+    for arm, n in PLANTED["never_mastered"].items():
+        assert bins.loc[arm, "mean"] == 4 - n
+
+
+def test_summary_csv_columns_and_small_n_labels(report):
+    summary = pd.read_csv(report / "summary.csv", keep_default_na=False)
+    assert list(summary.columns) == SUMMARY_COLUMNS
+    assert set(summary["ci_method"]) == {"range"}  # 2-3 seeds per arm: never a bootstrap interval
+    assert (summary["iqm"] == "").all()  # below 4 seeds there is no IQM
+    row = summary[(summary["arm"] == UNIFORM) & (summary["metric"] == "final_failure")].iloc[0]
+    # At iteration 45 (the running seed's last evaluation) every uniform bin is mastered: 0.02 + 0.01 s.
+    assert row["per_seed"] == "0.02;0.03;0.04" and float(row["mean"]) == pytest.approx(0.03)
+    assert (float(row["ci_low"]), float(row["ci_high"])) == pytest.approx((0.02, 0.04))
+    md = (report / "report.md").read_text()
+    assert "range of 3 seeds" in md and "95%" not in md.split("## Definitions")[0]
+
+
+def test_planted_speedups(report):
+    speed = pd.read_csv(report / "speedup.csv").set_index(["arm", "measure"])
+    for measure, ratio in PLANTED["speedup"].items():
+        row = speed.loc[(FAST, measure)]
+        assert row["status"] == "estimate" and row["ratio"] == pytest.approx(ratio)
+        assert math.isnan(row["ci_low"])  # 2-3 seeds: no interval
+        assert row["p_value"] == pytest.approx(0.2)  # 3 vs 2 seeds: 10 splits, the observed is the most extreme
+    # SLOW never masters bin 3, so never reaches the threshold: its speedup is an upper bound.
+    assert speed.loc[(SLOW, "iteration"), "status"] == "upper_bound"
+    assert speed.loc[(SLOW, "iteration"), "ratio"] == pytest.approx(40.0 / 60.0)
+    per_bin = pd.read_csv(report / "mastery_speedup.csv")
+    for arm, expected in PLANTED["mastery_ratio"].items():
+        got = per_bin[per_bin["arm"] == arm].sort_values("bin")
+        np.testing.assert_allclose(got["ratio"], expected)
+    assert per_bin[(per_bin["arm"] == SLOW) & (per_bin["bin"] == 3)]["status"].item() == "upper_bound"
+    times = pd.read_csv(report / "time_to_threshold.csv")
+    for arm, it in PLANTED["time_to_threshold"].items():
+        got = times.loc[times["arm"] == arm, "iteration"].to_numpy()
+        np.testing.assert_array_equal(got, np.full(len(got), it))
+    assert len(times[times["arm"] == UNIFORM]) == 3  # the running seed reached it at 40, before 45
+
+
+def test_censoring_statuses_through_the_report(tmp_path):
+    """Baseline never reaches the threshold, the arm does: a lower bound, not an estimate; both never:
+    not estimable."""
+    never = [10.0, 20.0, 30.0, None]
+    for seed in (0, 1, 2):
+        write_run(tmp_path / "s" / "sampler=uniform" / f"seed={seed}", sampler="uniform", seed=seed,
+                  overrides=["sampler=uniform"], mastery=never)
+        write_run(tmp_path / "s" / "sampler=adaptive" / f"seed={seed}", sampler="adaptive", seed=seed,
+                  overrides=["sampler=adaptive"], mastery=[5.0, 10.0, 15.0, 20.0])
+        write_run(tmp_path / "s" / "sampler=beyondmimic" / f"seed={seed}", sampler="beyondmimic", seed=seed,
+                  overrides=["sampler=beyondmimic"], mastery=never)
+    out = build_report([tmp_path / "s"], opts=ReportOptions(n_resamples=50))
+    speed = pd.read_csv(out / "speedup.csv").set_index(["arm", "measure"])
+    lower = speed.loc[("sampler=adaptive", "iteration")]
+    assert lower["status"] == "lower_bound" and lower["ratio"] == pytest.approx(60.0 / 20.0)
+    assert speed.loc[("sampler=beyondmimic", "iteration"), "status"] == "not_estimable"
+    md = (out / "report.md").read_text()
+    assert "≥ ×3 (a lower bound" in md and "not estimable" in md
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    head = path.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n", f"{path.name} is not a PNG"
+    return struct.unpack(">II", head[16:24])
+
+
+def test_report_files(report):
+    tables = ["runs", "summary", "curves", "bin_failure", "final_bin_failure", "sampling", "mastery",
+              "mastery_per_seed", "mastery_speedup", "time_to_threshold", "time_to_threshold_summary", "speedup",
+              "sensitivity", "segment_failure", "budget", "comparisons"]
+    figures = ["curve_mean_episode_length", "curve_mean_reward", "curve_eval_failure_rate",
+               "bin_failure_heatmap", "final_bin_failure", "sampling_distribution", "mastery", "speedup",
+               "sensitivity_sampler.gamma"]
+    for name in tables:
+        assert len(pd.read_csv(report / f"{name}.csv")) > 0, name
+    for name in figures:
+        w, h = _png_size(report / f"{name}.png")
+        assert 100 < w <= 1300 and 100 < h <= 600, (name, w, h)
+    md = (report / "report.md").read_text()
+    for name in figures:
+        assert f"({name}.png)" in md
+    assert not list(report.glob("*.tmp")) and not list(report.glob(".*"))
+
+
+def test_report_tables_hold_no_absolute_paths_below_cwd(sweep, tmp_path, monkeypatch):
+    monkeypatch.chdir(sweep.parent)
+    out = build_report([sweep.name], out=tmp_path / "rep", opts=ReportOptions(n_resamples=20))
+    for name in ("runs", "time_to_threshold"):
+        text = (out / f"{name}.csv").read_text()
+        assert str(sweep.parent) not in text, name
+    runs = pd.read_csv(out / "runs.csv")
+    assert runs["run_dir"].str.startswith(sweep.name + "/").all()
+
+
+def test_segment_failure_planted(report):
+    seg = pd.read_csv(report / "segment_failure.csv").set_index(["arm", "segment"])
+    assert list(seg.loc[SLOW].index) == ["walk", "jump"]  # motion order, not alphabetical
+    # At iteration 45 SLOW has not mastered bin 3: its jump segment (bins 2, 3) is at
+    # ((0.02 + 0.01 s) + (0.5 + 0.01 s)) / 2 for seeds 0, 1 -> mean 0.265.
+    assert seg.loc[(SLOW, "jump"), "final_failure"] == pytest.approx(0.265)
+    assert seg.loc[(SLOW, "jump"), "bins_not_mastered"] == 1 and seg.loc[(SLOW, "walk"), "bins_not_mastered"] == 0
+    assert seg.loc[(SLOW, "jump"), "difficulty"] == 0.8 and seg.loc[(SLOW, "jump"), "num_bins"] == 2
+    assert seg.loc[(UNIFORM, "walk"), "final_failure"] == pytest.approx(0.03)
+    assert seg.loc[(UNIFORM, "walk"), "n_seeds"] == 3
+    assert "## Segments" in (report / "report.md").read_text()
+
+
+def test_report_text_partial_sweep(report):
+    md = (report / "report.md").read_text()
+    assert "failed — failed: RuntimeError: simulated crash" in md
+    assert "missing — job folder missing" in md
+    assert "Still running" in md and "up to iteration 45" in md
+    # The running seed stopped at 45 of 60 iterations: the budgets differ and the report says so.
+    assert "Warning: unequal budgets" in md and "iteration 45, the last evaluation every run has" in md
+    assert f"Lowest final overall failure (iteration 45, the last evaluation every run has): **`{FAST}`**" in md
+    assert "no difference shown at the 0.05 level" in md
+    assert "iterations ×2 (no interval below 5 seeds per arm), p = 0.2" in md
+    assert "≤ ×0.667 (an upper bound" in md
+    assert "1 upper bound" in md and "1 bins" not in md
+    assert set(pd.read_csv(report / "sampling.csv")["arm"]) == {FAST, SLOW}
+    sens = pd.read_csv(report / "sensitivity.csv")
+    assert set(sens["arm"]) == {FAST, SLOW} and set(sens["value"]) == {0.5, 0.9}
+
+
+def test_curves_carry_seeds_and_label_the_point(report):
+    curves = pd.read_csv(report / "curves.csv")
+    c = curves[(curves["arm"] == FAST) & (curves["metric"] == "mean_episode_length")].set_index("iteration")
+    # Seeds 0 and 1 have 10 + iteration + seed: the mean (2 seeds) is 10.5 + iteration, range [10, 11] + it.
+    assert c.loc[30, "point"] == 40.5 and c.loc[30, "ci_low"] == 40.0 and c.loc[30, "ci_high"] == 41.0
+    assert c.loc[30, "point_label"] == "mean" and c.loc[30, "ci_method"] == "range"
+    u = curves[(curves["arm"] == UNIFORM) & (curves["metric"] == "eval_failure_rate")].set_index("iteration")
+    assert u.loc[45, "n_seeds"] == 3 and u.loc[50, "n_seeds"] == 2  # the running seed stops at 45
+
+
+def test_report_is_reproducible(report, sweep, tmp_path):
+    again = build_report([sweep], out=tmp_path / "again", opts=ReportOptions(n_resamples=RESAMPLES))
+    for name in ("speedup.csv", "summary.csv", "final_bin_failure.csv", "mastery.csv"):
+        pd.testing.assert_frame_equal(pd.read_csv(report / name), pd.read_csv(again / name))
+
+
+def test_exact_ties_name_no_winner(tmp_path):
+    for arm in ("a", "b"):
+        for seed in (0, 1):
+            write_run(tmp_path / "t" / f"sampler.x={arm}" / f"seed={seed}", sampler="adaptive", seed=seed,
+                      overrides=[f"sampler.x={arm}"], mastery=[10.0, 20.0, 30.0, 40.0])
+    md = (build_report([tmp_path / "t"], opts=ReportOptions(n_resamples=20)) / "report.md").read_text()
+    assert "tie at" in md and "no winner" in md and "Lowest final overall failure" not in md
+
+
+def test_old_eval_tables_and_truncated_bins_are_flagged(tmp_path):
+    write_run(tmp_path / "old" / "sampler=uniform" / "seed=0", sampler="uniform", seed=0,
+              overrides=["sampler=uniform"], mastery=[10.0, 20.0, 30.0, 40.0], old_eval=True)
+    md = (build_report([tmp_path / "old"], opts=ReportOptions(n_resamples=20)) / "report.md").read_text()
+    assert "predates per-visit accounting" in md
+    # A horizon-truncated bin with no episode tracked through it never counts as mastered.
+    write_run(tmp_path / "trunc" / "sampler=uniform" / "seed=0", sampler="uniform", seed=0,
+              overrides=["sampler=uniform"], mastery=[10.0, 20.0, 30.0, 40.0], truncated_bins=(3,))
+    out = build_report([tmp_path / "trunc"], opts=ReportOptions(n_resamples=20))
+    m = pd.read_csv(out / "mastery.csv").set_index("bin")
+    assert m.loc[3, "n_mastered"] == 0 and m.loc[3, "horizon_truncated"] and m.loc[2, "n_mastered"] == 1
+    md = (out / "report.md").read_text()
+    assert "Horizon-truncated bin 3" in md and "| 3† |" in md
+
+
+def test_committed_study_layout(tmp_path, capsys):
+    """docs/results/<study>/runs/<arm>/seed=<s>/ holds the compact per-run tables; the report runs on it."""
+    runs = tmp_path / "study" / "runs"
+    for seed in (0, 1):
+        write_run(runs / "sampler=uniform" / f"seed={seed}", sampler="uniform", seed=seed,
+                  overrides=["sampler=uniform"], mastery=[10.0, 20.0, 30.0, 40.0])
+        write_run(runs / "sampler=adaptive" / f"seed={seed}", sampler="adaptive", seed=seed,
+                  overrides=["sampler=adaptive"], mastery=[5.0, 10.0, 15.0, 20.0])
+    assert main([str(runs), "--out", str(tmp_path / "study"), "--resamples", "20"]) == 0
+    speed = pd.read_csv(tmp_path / "study" / "speedup.csv")
+    assert set(speed["arm"]) == {"sampler=adaptive"} and set(speed["baseline"]) == {"sampler=uniform"}
+    assert main([str(runs), "--mastery-persist", "0"]) == 2
+    assert "--mastery-persist" in capsys.readouterr().err
+
+
+def test_equal_env_steps_comparison_only_when_steps_per_iteration_differ():
+    from analysis.tables import per_run_metrics
+
+    def overall(run, arm, steps_per_it, failure):
+        its = np.arange(0, 41, 10)
+        return pd.DataFrame({"run_dir": run, "arm": arm, "seed": 0, "iteration": its, "env_steps": its * steps_per_it,
+                             "wall_time_s": its * 1.0, "failure_rate": failure(its)})
+
+    same = pd.concat([overall("a", "a", 100, lambda i: 1 - i / 40), overall("b", "b", 100, lambda i: 1 - i / 80)])
+    assert "final_failure_equal_env_steps" not in per_run_metrics(None, same, None, pd.DataFrame(), pd.DataFrame())
+    # Arm b collects twice the env steps per iteration: at equal env steps (4000) it has done 20 iterations.
+    both = pd.concat([overall("a", "a", 100, lambda i: 1 - i / 40), overall("b", "b", 200, lambda i: 1 - i / 80)])
+    m = per_run_metrics(None, both, None, pd.DataFrame(), pd.DataFrame())
+    assert m["final_failure"].set_index("arm")["value"].to_dict() == {"a": 0.0, "b": 0.5}
+    assert m["final_failure_equal_env_steps"].set_index("arm")["value"].to_dict() == {"a": 0.0, "b": 0.75}
+
+
+def test_plural():
+    assert plural(1, "bin") == "1 bin" and plural(0, "bin") == "0 bins" and plural(2, "seed") == "2 seeds"
+
+
+# --------------------------------------------------------------------------------------------- single runs, errors
+def _single(root: Path, name: str, sampler: str, seed: int, overrides: list[str], **kw) -> Path:
+    return write_run(root / name / f"2026-01-0{seed + 1}_00-00-00", sampler=sampler, seed=seed,
+                     overrides=overrides, mastery=[10, 20, 30, 40], **kw)
+
+
+def test_single_run_arms(tmp_path):
+    a = _single(tmp_path, "a", "uniform", 0, ["sampler=uniform"])
+    b = _single(tmp_path, "b", "adaptive", 1, ["sampler=adaptive", "sampler.gamma=0.5"], sampler_cfg={"gamma": 0.5})
+    c = _single(tmp_path, "c", "adaptive", 2, ["sampler=adaptive", "sampler.gamma=0.7"], sampler_cfg={"gamma": 0.7})
+    runs = load_runs([a, b, c]).set_index("run_dir")
+    assert runs.loc[str(a), "arm"] == "uniform"
+    assert runs.loc[str(b), "arm"] == "adaptive,sampler.gamma=0.5"
+    assert runs.loc[str(c), "arm"] == "adaptive,sampler.gamma=0.7"
+    assert load_runs(tmp_path / "a")["arm"].tolist() == ["uniform"]
+
+
+def test_single_run_report_and_cli(tmp_path, capsys):
+    run = _single(tmp_path, "solo", "adaptive", 0, ["sampler=adaptive"])
+    assert main([str(run), "--resamples", "50"]) == 0
+    out = run / "report"
+    assert (out / "report.md").is_file() and (out / "mastery.png").stat().st_size > 0
+    assert "no arm has sampler.name == uniform" in (out / "report.md").read_text()
+    assert main([str(run), "--baseline", "nope", "--out", str(tmp_path / "r")]) == 2
+    assert "--baseline 'nope'" in capsys.readouterr().err
+    assert main([str(tmp_path / "absent")]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+
+
+def test_unreadable_table_is_excluded_not_fatal(tmp_path):
+    good = _single(tmp_path, "good", "uniform", 0, ["sampler=uniform"])
+    bad = _single(tmp_path, "bad", "uniform", 1, ["sampler=uniform"])
+    (bad / "eval.parquet").write_bytes(b"not parquet")
+    runs = load_runs(tmp_path).set_index("run_dir")
+    assert runs.loc[str(good), "included"]
+    assert not runs.loc[str(bad), "included"] and "eval.parquet unreadable" in runs.loc[str(bad), "problem"]
+    pd.read_parquet(good / "eval.parquet").drop(columns=["failure_rate"]).to_parquet(bad / "eval.parquet")
+    assert "lacks columns ['failure_rate']" in load_runs(bad)["problem"].iloc[0]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(AnalysisError, match="no run folders"):
+        load_runs(tmp_path / "empty")
+
+
+# --------------------------------------------------------------------------------------------- index
+def test_index_rebuild(tmp_path):
+    sweep = make_sweep(tmp_path)
+    path = write_index(sweep)
+    index = pd.read_csv(path)
+    assert len(index) == 8  # one row per job folder: the missing job has none
+    assert set(index.loc[index["status"] == "failed", "job"]) == {f"{FAST}/seed=2"}
+    assert set(index["git_commit"]) == {"0123abc"}
+    done = index.set_index("job").loc[f"{UNIFORM}/seed=0"]
+    assert done["final_eval_failure_rate"] == pytest.approx(0.02) and done["iterations"] == 61
+    assert math.isnan(index.set_index("job").loc[f"{UNIFORM}/seed=2", "final_eval_failure_rate"])
+    pd.testing.assert_frame_equal(build_index(sweep), index, check_dtype=False)
+
+    # A job folder that disappears after it was indexed is reported as missing.
+    job = sweep / UNIFORM / "seed=1"
+    for f in sorted(job.rglob("*"), reverse=True):
+        f.rmdir() if f.is_dir() else f.unlink()
+    job.rmdir()
+    runs = load_runs(sweep).set_index(["arm", "seed"])
+    assert runs.loc[(UNIFORM, 1), "status"] == "missing"
+
+
+def test_index_concurrent_writers(tmp_path):
+    sweep = make_sweep(tmp_path)
+    errors = []
+
+    def rebuild():
+        try:
+            for _ in range(3):
+                write_index(sweep)
+        except Exception as e:  # surfaced below: a thread's exception would otherwise be lost
+            errors.append(e)
+
+    threads = [threading.Thread(target=rebuild) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert len(pd.read_csv(sweep / "index.csv")) == 8
+    assert not [p for p in sweep.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_index_of_empty_sweep(tmp_path):
+    assert len(build_index(tmp_path)) == 0
+    assert pd.read_csv(write_index(tmp_path)).columns[0] == "job"
+
+
+def test_short_arm_labels_keep_only_what_differs():
+    from analysis.load import short_arm_labels
+
+    labels, shared = short_arm_labels(["a=1,b=2,sampler=uniform", "a=1,b=2,sampler=adaptive", None])
+    assert labels == {"a=1,b=2,sampler=uniform": "sampler=uniform", "a=1,b=2,sampler=adaptive": "sampler=adaptive"}
+    assert shared == ["a=1", "b=2"]
+    labels, _ = short_arm_labels(["k=1,sampler=adaptive", "sampler=adaptive"])
+    assert labels == {"k=1,sampler=adaptive": "k=1", "sampler=adaptive": "base"}
+    assert short_arm_labels(["only"]) == ({"only": "only"}, [])
+
+

@@ -1,0 +1,137 @@
+"""analysis.plots directly: every figure function draws a known number of lines, bars, cells and dots
+from a tiny tidy table, and writes a non-empty PNG (analysis.files.save_figure, atomically)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from matplotlib.collections import PathCollection, QuadMesh
+from matplotlib.patches import Rectangle
+
+from analysis import plots
+from analysis.files import save_figure
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _png(fig, tmp_path, name: str) -> bytes:
+    path = save_figure(tmp_path / name, fig)
+    data = path.read_bytes()
+    assert data.startswith(PNG_MAGIC) and len(data) > 1000
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp file left behind
+    return data
+
+
+def _dots(ax) -> int:
+    """Points drawn as scatter markers."""
+    return sum(len(c.get_offsets()) for c in ax.collections if isinstance(c, PathCollection))
+
+
+def _bins(n: int = 4) -> pd.DataFrame:
+    """metrics.bin_table's shape: two segments, the last bin horizon-truncated."""
+    return pd.DataFrame({"bin": range(n), "bin_start_s": np.arange(n, dtype=float),
+                         "bin_end_s": np.arange(1, n + 1, dtype=float),
+                         "segment": ["walk"] * (n // 2) + ["jump"] * (n - n // 2),
+                         "horizon_truncated": [False] * (n - 1) + [True]})
+
+
+def test_arm_colors_are_stable_and_distinct():
+    colors = plots.arm_colors(["b", "a", "c", "a"])
+    assert list(colors) == ["a", "b", "c"] and len(set(colors.values())) == 3
+    assert plots.arm_colors(["c", "a", "b"]) == colors
+
+
+def test_learning_curve_one_line_per_arm_and_per_seed(tmp_path):
+    its = np.arange(5)
+    curves = pd.concat([pd.DataFrame({"arm": arm, "iteration": its, "point": its * k, "ci_low": its * k - 1,
+                                      "ci_high": its * k + 1}) for arm, k in (("uniform", 1.0), ("adaptive", 2.0))])
+    per_seed = pd.concat([pd.DataFrame({"arm": "uniform", "run_dir": f"s{s}", "iteration": its, "value": its + s})
+                          for s in range(3)])
+    fig = plots.plot_learning_curve(curves, "reward", per_seed=per_seed, title="t")
+    ax = fig.axes[0]
+    thick = [line for line in ax.get_lines() if line.get_linewidth() > 1.0]
+    assert sorted(line.get_label() for line in thick) == ["adaptive", "uniform"]
+    assert len(ax.get_lines()) == 2 + 3  # arms, then seeds
+    assert len(ax.collections) == 2  # one band per arm
+    adaptive = next(line for line in thick if line.get_label() == "adaptive")
+    np.testing.assert_allclose(adaptive.get_ydata(), its * 2.0)
+    assert ax.get_ylabel() == "reward"
+    _png(fig, tmp_path, "curve.png")
+
+
+def test_bin_heatmap_has_one_cell_per_iteration_and_bin(tmp_path):
+    df = pd.DataFrame([(it, b, it / 10 + b / 100) for it in (0, 10, 30) for b in range(4)],
+                      columns=["iteration", "bin", "failure_rate"])
+    fig = plots.plot_bin_heatmap(df, bins=_bins())
+    mesh = next(c for c in fig.axes[0].collections if isinstance(c, QuadMesh))
+    values = np.asarray(mesh.get_array()).reshape(3, 4)
+    np.testing.assert_allclose(values, df.pivot(index="iteration", columns="bin", values="failure_rate").to_numpy())
+    assert len(fig.axes) == 2  # the heatmap and its colour bar
+    _png(fig, tmp_path, "heatmap.png")
+
+
+def test_bin_heatmaps_one_panel_per_arm_on_one_scale(tmp_path):
+    df = pd.DataFrame([(arm, it, b, k * (b + 1) / 8) for arm, k in (("a", 1.0), ("b", 2.0)) for it in (0, 5)
+                       for b in range(4)], columns=["arm", "iteration", "bin", "failure_rate"])
+    fig = plots.plot_bin_heatmaps(df, bins=_bins())
+    meshes = [next(c for c in ax.collections if isinstance(c, QuadMesh)) for ax in fig.axes[:2]]
+    assert [ax.get_title() for ax in fig.axes[:2]] == ["a", "b"]
+    assert {m.get_clim() for m in meshes} == {(0.0, 1.0)}  # shared scale up to the largest value
+    _png(fig, tmp_path, "heatmaps.png")
+
+
+def test_final_bin_failure_lines_bands_and_seed_dots(tmp_path):
+    final = pd.DataFrame([(arm, b, 0.1 * b, 0.0, 0.2 * b, "0.1;0.2;0.3") for arm in ("a", "b") for b in range(4)],
+                         columns=["arm", "bin", "point", "ci_low", "ci_high", "per_seed"])
+    fig = plots.plot_final_bin_failure(final, bins=_bins())
+    ax = fig.axes[0]
+    assert sorted(line.get_label() for line in ax.get_lines() if not line.get_label().startswith("_")) == ["a", "b"]
+    assert _dots(ax) == 2 * 4 * 3  # every seed of every bin of every arm
+    assert ax.get_ylim()[0] == 0
+    _png(fig, tmp_path, "final.png")
+
+
+def test_mastery_marks_unreached_bins_and_censored_seeds(tmp_path):
+    mastery = pd.DataFrame({"arm": ["a"] * 3, "bin": [0, 1, 2], "mastery_iteration": [10.0, 20.0, np.nan],
+                            "follow_up": [50.0, 50.0, 50.0]})
+    per_seed = pd.DataFrame({"arm": "a", "bin": [0, 0, 1, 2], "mastered": [True, True, True, False],
+                             "iteration": [10, 12, 20, np.nan], "last_iteration": [50, 50, 50, 50]})
+    fig = plots.plot_mastery(mastery, per_seed, bins=_bins(3), threshold=0.1)
+    ax = fig.axes[0]
+    scatters = [c for c in ax.collections if isinstance(c, PathCollection)]
+    # the open triangle of the unreached bin, 3 seeds that got there, 1 censored seed
+    assert sorted(len(c.get_offsets()) for c in scatters) == [1, 1, 3]
+    assert "0.1" in ax.get_title()
+    _png(fig, tmp_path, "mastery.png")
+
+
+def test_speedup_bars_and_bound_labels(tmp_path):
+    speed = pd.DataFrame({"arm": ["fast", "fast", "slow", "slow"], "measure": ["iteration", "env_steps"] * 2,
+                          "ratio": [2.0, 2.0, 0.5, np.nan], "ci_low": [1.5, np.nan, 0.4, np.nan],
+                          "ci_high": [2.5, np.nan, 0.6, np.nan],
+                          "status": ["estimate", "lower_bound", "estimate", "not_estimable"]})
+    per_seed = pd.DataFrame({"arm": "fast", "measure": "iteration", "value": [1.8, 2.2]})
+    fig = plots.plot_speedup(speed, per_seed)
+    ax = fig.axes[0]
+    bars = [p for p in ax.patches if isinstance(p, Rectangle) and p.get_width() > 0]
+    assert sorted(round(b.get_height(), 6) for b in bars) == [0.0, 0.5, 2.0, 2.0]  # n/e is drawn empty
+    assert sorted(t.get_text() for t in ax.texts) == ["n/e", "≥"]
+    assert _dots(ax) == 2
+    assert ax.get_ylim()[1] == pytest.approx(2.5 * 1.15)  # room above the highest whisker
+    _png(fig, tmp_path, "speedup.png")
+
+
+def test_sensitivity_one_line_per_series_with_reference(tmp_path):
+    sens = pd.DataFrame([("sampler.gamma", g, series, f"{series}{g}", "final_failure", g / 2, g / 2 - 0.1, g / 2 + 0.1)
+                         for series in ("K=1", "K=3") for g in (0.5, 0.9)],
+                        columns=["key", "value", "series", "arm", "metric", "point", "ci_low", "ci_high"])
+    per_seed = pd.DataFrame({"arm": ["K=10.5", "K=10.5", "K=30.9"], "value": [0.2, 0.3, 0.4]})
+    fig = plots.plot_sensitivity(sens, "final_failure", reference={"uniform (baseline)": 0.6}, per_seed=per_seed)
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert sorted(labels) == ["K=1", "K=3", "uniform (baseline)"]
+    assert [line.get_ydata()[0] for line in ax.get_lines() if line.get_linestyle() == "--"] == [0.6]
+    assert ax.get_xlabel() == "sampler.gamma" and ax.get_ylabel() == "final overall failure"
+    assert _dots(ax) == 3
+    _png(fig, tmp_path, "sensitivity.png")

@@ -1,0 +1,206 @@
+"""The architecture rules of docs/architecture.md, read from the source (ast; nothing is imported):
+
+- no import cycles among the modules of bmimic and analysis;
+- no entry point imports another entry point (they share code through non-entry modules);
+- nothing in bmimic imports analysis (the producer never depends on its consumer);
+- bmimic.task is the one composition root: the only module that constructs the environment, the
+  evaluator and the trainer;
+- entry points use public interfaces only (no `obj._private` of other modules' objects);
+- bmimic.run_folder and the analysis are torch-free (checked by importing them in a fresh process);
+- no module is over 400 lines.
+
+Imports inside functions count: a lazy import is still a dependency.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO
+
+PACKAGES = ("bmimic", "analysis")
+MAX_LINES = 400
+
+ENTRY_POINTS = ("bmimic.train", "bmimic.eval", "bmimic.play", "bmimic.bench", "bmimic.export", "bmimic.sim2sim",
+                "bmimic.launch", "bmimic.motion.convert", "analysis.report", "analysis.index")
+"""The command lines (`python -m <name>`); a package entry point (sim2sim) is all of its modules."""
+
+COMPOSITION_ROOT = "bmimic.task"
+CONSTRUCTED_ONLY_BY_THE_ROOT = ("TrackingEnv", "Evaluator", "Trainer")
+"""(Samplers are built by the sampling package's factory, which task.py calls for runs; the sampling
+benchmark, which runs samplers without an environment, calls it too.)"""
+
+@dataclass
+class Module:
+    name: str
+    path: Path
+    tree: ast.Module
+    lines: int
+
+
+def _modules() -> dict[str, Module]:
+    found = {}
+    for pkg in PACKAGES:
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            parts = list(path.relative_to(REPO).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            text = path.read_text(encoding="utf-8")
+            found[".".join(parts)] = Module(".".join(parts), path, ast.parse(text, str(path)), len(text.splitlines()))
+    return found
+
+
+MODULES = _modules()
+
+
+def _resolve(name: str) -> str | None:
+    """The module of ours a dotted import name refers to (its longest known prefix), else None."""
+    while name and name not in MODULES:
+        name = name.rpartition(".")[0]
+    return name or None
+
+
+def _imports(module: Module) -> set[str]:
+    """Our modules that `module` imports anywhere (top level, functions, TYPE_CHECKING blocks)."""
+    out = set()
+    is_package = module.path.name == "__init__.py"
+    for node in ast.walk(module.tree):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.name.split(".") if is_package else module.name.split(".")[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                origin = ".".join(base + ([node.module] if node.module else []))
+            else:
+                origin = node.module or ""
+            # `from pkg import mod` imports the module pkg.mod; `from mod import name` the module mod.
+            targets = [f"{origin}.{a.name}" if f"{origin}.{a.name}" in MODULES else origin for a in node.names]
+        else:
+            continue
+        out |= {t for t in map(_resolve, targets) if t and t != module.name}
+    return out
+
+
+GRAPH = {name: _imports(m) for name, m in MODULES.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+    counter = 0
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def _entry_point(module: str) -> str | None:
+    return next((e for e in ENTRY_POINTS if module == e or module.startswith(e + ".")), None)
+
+
+# --------------------------------------------------------------------------------------------- the helpers
+def test_the_cycle_finder_finds_planted_cycles():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a", "e"}, "e": {"d"}, "f": set()}
+    assert sorted(_cycles(graph)) == [["a", "b", "c"], ["d", "e"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_the_import_reader_sees_lazy_relative_and_from_imports():
+    assert "bmimic.task" in GRAPH["bmimic.train"]  # a top-level `from bmimic.task import ...`
+    assert "bmimic.training.policy" in GRAPH["bmimic.eval"]  # inside a function
+    assert "bmimic.sampling.config" in GRAPH["bmimic.sampling"]  # the package's __init__
+    assert all(e in MODULES for e in ENTRY_POINTS)
+
+
+# --------------------------------------------------------------------------------------------- the rules
+def test_no_import_cycles():
+    assert _cycles(GRAPH) == []
+
+
+def test_no_entry_point_imports_another():
+    crossing = sorted((a, b) for a, targets in GRAPH.items() for b in targets
+                      if _entry_point(a) and _entry_point(b) and _entry_point(a) != _entry_point(b))
+    assert crossing == []
+
+
+def test_nothing_in_bmimic_imports_analysis():
+    assert sorted((a, b) for a, targets in GRAPH.items() if a.startswith("bmimic")
+                  for b in targets if b.startswith("analysis")) == []
+
+
+def test_only_the_composition_root_constructs_envs_evaluators_and_trainers():
+    calls = []
+    for name, module in MODULES.items():
+        for node in ast.walk(module.tree):
+            if isinstance(node, ast.Call):
+                f = node.func
+                called = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+                if called in CONSTRUCTED_ONLY_BY_THE_ROOT and name != COMPOSITION_ROOT:
+                    calls.append((name, called, node.lineno))
+    assert calls == []
+
+
+def test_entry_points_use_public_interfaces_only():
+    private = []
+    for name, module in MODULES.items():
+        if not _entry_point(name):
+            continue
+        for node in ast.walk(module.tree):
+            if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+                    and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))):
+                private.append((name, ast.unparse(node), node.lineno))
+    assert private == []
+
+
+@pytest.mark.parametrize("module", ["bmimic.run_folder", "analysis.report", "analysis.index"])
+def test_run_folder_and_analysis_are_torch_free(module):
+    code = f"import sys, {module}; assert 'torch' not in sys.modules, 'torch imported'"
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+
+
+def test_no_module_over_400_lines():
+    over = {name: m.lines for name, m in MODULES.items() if m.lines > MAX_LINES}
+    assert over == {}

@@ -1,0 +1,87 @@
+"""Run folders: atomic writes, status and provenance files, seeding."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from bmimic.run_folder import (
+    atomic_write_json,
+    atomic_write_text,
+    read_status,
+    write_provenance,
+    write_status,
+)
+from bmimic.runtime import provenance, resolve_device, seed_everything
+
+
+def test_atomic_write_replaces_whole_file(tmp_path):
+    path = tmp_path / "a" / "x.json"
+    atomic_write_json(path, {"a": 1})
+    atomic_write_json(path, {"b": 2})
+    assert json.loads(path.read_text()) == {"b": 2}
+    assert [p.name for p in path.parent.iterdir()] == ["x.json"]  # no temp files left behind
+
+
+def test_atomic_write_failure_keeps_old_content(tmp_path):
+    path = tmp_path / "x.txt"
+    atomic_write_text(path, "old")
+
+    class Boom:
+        def __str__(self):
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError):
+        from bmimic.run_folder import atomic_write
+
+        atomic_write(path, lambda tmp: (open(tmp, "w").write("partial"), str(Boom())))
+    assert path.read_text() == "old"
+    assert os.listdir(tmp_path) == ["x.txt"]
+
+
+def test_status_roundtrip(tmp_path):
+    assert read_status(tmp_path)["status"] == "missing"
+    write_status(tmp_path, "running", 3)
+    assert read_status(tmp_path)["status"] == "running" and read_status(tmp_path)["iteration"] == 3
+    write_status(tmp_path, "failed", 4, error="sampler.K: must be >= 1")
+    st = read_status(tmp_path)
+    assert st["status"] == "failed" and "sampler.K" in st["error"] and st["updated"]
+
+
+def test_provenance_fields(tmp_path):
+    info = provenance("cpu")
+    write_provenance(tmp_path, info)
+    on_disk = json.loads((tmp_path / "provenance.json").read_text())
+    assert on_disk["git_commit"] == info["git_commit"]
+    for key in ("git_commit", "git_dirty", "python", "versions", "command", "torch_precision", "device"):
+        assert key in on_disk
+    for lib in ("torch", "warp-lang", "mujoco", "mujoco-warp", "rsl-rl-lib"):
+        assert on_disk["versions"][lib], lib
+    assert provenance("cpu")["device"] == "cpu"
+
+
+def test_resolve_device():
+    assert resolve_device("cpu") == "cpu"
+    expected = "cuda:0" if torch.cuda.is_available() else "cpu"
+    assert resolve_device("auto") == expected
+    if not torch.cuda.is_available():
+        from bmimic import BmimicError
+
+        with pytest.raises(BmimicError, match="device=cuda"):
+            resolve_device("cuda")
+
+
+def test_seed_reproducible_streams():
+    def draw(seed):
+        gen = seed_everything(seed)
+        return (np.random.rand(3), torch.rand(3), torch.rand(3, generator=gen), __import__("random").random())
+
+    a, b, c = draw(5), draw(5), draw(6)
+    for x, y in zip(a, b):
+        assert np.allclose(np.asarray(x), np.asarray(y))
+    assert not np.allclose(np.asarray(a[1]), np.asarray(c[1]))
+    assert not np.allclose(np.asarray(a[2]), np.asarray(a[1]))  # the sampler stream is distinct
