@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from analysis import AnalysisError, bin_tables, plots, tables
+from analysis import AnalysisError, bin_tables, clip_tables, plots, tables
 from analysis.files import save_figure, write_csv, write_text
 from analysis.load import load_runs, load_segments, load_table, short_arm_labels
 from analysis.markdown import (
@@ -184,6 +184,17 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
         md += ["## Segments", "", f"Failure per motion segment at {at} (mean over its bins per seed); "
                "(n/m): n of the segment's m bins not mastered (median over seeds not reached).", "",
                md_table(segment_view(seg)), ""]
+
+    clip_tab = clip_tables.clip_failure(eval_df, sampler_df, mastery_df, runs, opts)
+    if len(clip_tab):
+        write_csv(out / "clip_failure.csv", clip_tab)
+        md += ["## Clips", "", f"Per clip of the motion library at {at}: failure where it happened per visit over "
+               "the clip's bins; (n/m): n of its m bins not mastered (median over seeds not reached); the clip's "
+               "share of the episodes the training sampler started (mean over seeds).", "",
+               md_table(clip_tables.clip_view(clip_tab)), ""]
+        unused = clip_tables.never_started(clip_tab)
+        md += [f"- Never started from: {', '.join(unused)}." if unused else "- Every arm started episodes from "
+               "every clip.", ""]
 
     sens = tables.sensitivity(runs, overview)
     if len(sens):

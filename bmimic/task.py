@@ -56,16 +56,17 @@ class Training:
 
 def build_task(cfg, device: str) -> Task:
     """Robot model, robot info, motion and bins of a runtime-resolved config (validated against the motion)."""
-    from bmimic.motion.config import load_motion
+    from bmimic.motion.library import clip_names, load_any
     from bmimic.robot import load_mjmodel, resolve_robot
     from bmimic.sampling.config import layout_for, min_motion_bin_s
 
     mjm = load_mjmodel(cfg=cfg.robot)
     robot = resolve_robot(cfg.robot, mjm)
-    motion = load_motion(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir,
+    motion = load_any(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir,
                          control_fps=1.0 / (cfg.sim.timestep_s * cfg.sim.decimation))
     validate(cfg, motion.duration_s)
-    layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device)
+    layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device, clip_starts=motion.clip_starts,
+                        clip_names=clip_names(cfg.motion, motion))
     return Task(cfg, device, mjm, robot, motion, layout)
 
 
@@ -74,12 +75,14 @@ def build_training(cfg, device: str, task: Task | None = None) -> Training:
     when the caller has it)."""
     from bmimic.envs.config import episode_length_steps
     from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.motion.library import clip_weights
     from bmimic.sampling.accounting import EpisodeAccounting
     from bmimic.sampling.config import make_sampler
 
     task = task if task is not None else build_task(cfg, device)
     check_num_envs_fit(cfg, task.mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
-    sampler = make_sampler(cfg.sampler, task.layout.num_bins, device)
+    sampler = make_sampler(cfg.sampler, task.layout.num_bins, device, layout=task.layout,
+                           clip_weights=clip_weights(cfg.motion))
     accounting = EpisodeAccounting.from_config(cfg.sampler.accounting, sampler, task.layout, cfg.num_envs,
                                                episode_length_steps(cfg.env, cfg.sim), device=device)
     env = TrackingEnv(cfg.env, cfg.sim, task.mjm, task.robot, task.reference(), cfg.num_envs, device,

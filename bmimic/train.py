@@ -148,7 +148,10 @@ def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: boo
     """The start-up block: device, envs, motion, bins, sampler variant and run folder."""
     choices = HydraConfig.get().runtime.choices if HydraConfig.initialized() else {}
     m = cfg.motion
-    source = {"builtin": f"built-in {m.builtin}", "lafan": f"LAFAN1 {m.clip}"}.get(m.source, str(m.path))
+    names = getattr(layout, "clip_names", ())
+    library = f"library of {len(names)} clips ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})"
+    source = {"builtin": f"built-in {m.builtin}", "lafan": f"LAFAN1 {m.clip}",
+              "library": library}.get(m.source, str(m.path))
     if m.start_s is not None or m.end_s is not None:
         source += f", {m.start_s or 0:g}-{'end' if m.end_s is None else format(m.end_s, 'g')} s"
     variant = choices.get("sampler") or cfg.sampler.name

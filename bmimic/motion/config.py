@@ -15,7 +15,7 @@ import hashlib
 import logging
 import os
 from pathlib import Path
-from typing import Optional
+from typing import Any, List, Optional
 
 import mujoco
 import numpy as np
@@ -54,7 +54,13 @@ class MotionConfig:
     """Label of this motion (run names, plots)."""
     source: str = "builtin"
     """"builtin" (generated in code, no data needed), "lafan" (the LAFAN1 G1 clip `clip` in
-    data.lafan_dir) or "file" (an npz or a LAFAN1 G1 CSV at `path`)."""
+    data.lafan_dir), "file" (an npz or a LAFAN1 G1 CSV at `path`) or "library" (the clips of `clips`
+    and `glob`, bmimic.motion.library)."""
+    clips: Optional[List[Any]] = None
+    """Source "library": the clips, each a mapping with one of `path` (CSV/npz), `clip` (LAFAN1 name) or
+    `builtin` (with `seed`, `duration_s`), and optional `start_s`, `end_s`, `weight`, `name`."""
+    glob: Optional[str] = None
+    """Source "library": also every .csv/.npz file matching this pattern (relative to the launch folder)."""
     clip: Optional[str] = None
     """LAFAN1 clip for source "lafan", e.g. "dance1_subject1" (the CSV of that name in data.lafan_dir)."""
     path: Optional[str] = None
@@ -210,7 +216,8 @@ def load_motion(
         else:
             raise MotionDataError(f"motion.path: {path}: expected a .npz or .csv file")
     else:
-        raise MotionDataError(f"motion.source: expected 'builtin', 'lafan' or 'file', got {cfg.source!r}")
+        hint = " (a library loads through bmimic.motion.library.load_any)" if cfg.source == "library" else ""
+        raise MotionDataError(f"motion.source: expected 'builtin', 'lafan' or 'file', got {cfg.source!r}{hint}")
 
     if abs(motion.fps - control_fps) > 1e-6 * control_fps:
         try:
@@ -222,9 +229,14 @@ def load_motion(
             motion = motion.window(cfg.start_s, cfg.end_s)
         except MotionDataError as err:
             raise MotionDataError(f"motion.start_s/end_s: {err}") from None
+    check_two_bins(cfg, motion, bin_size_s)
+    return motion
+
+
+def check_two_bins(cfg: MotionConfig, motion: Motion, bin_size_s: float) -> None:
+    """Refuse a motion shorter than two time bins (one line naming the motion and the bin size)."""
     if motion.duration_s < 2 * bin_size_s - 1e-9:
         raise MotionDataError(
             f"motion {cfg.name!r}: {motion.duration_s:.2f} s is shorter than two time bins "
             f"of sampler.bin_size_seconds={bin_size_s:g} s; use a longer motion or window, or smaller bins"
         )
-    return motion

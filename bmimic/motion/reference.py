@@ -72,6 +72,11 @@ class ReferenceMotion:
         return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=self.device)
 
     @property
+    def nbytes(self) -> int:
+        """Bytes of the device tensors (one copy, shared by every env that reads it)."""
+        return sum(int(v.numel() * v.element_size()) for v in vars(self).values() if isinstance(v, torch.Tensor))
+
+    @property
     def duration_s(self) -> float:
         return self.motion.duration_s
 

@@ -18,11 +18,11 @@ from bmimic.sampling.bins import (
     bin_edges_s,
     bins_of_time,
     failed_mask,
-    make_layout,
     num_bins,
     visits_histogram,
 )
 from bmimic.sampling.checks import SamplerConfigError
+from bmimic.sampling.clips import ClipLayout
 from bmimic.sampling.config import (
     SamplerConfig,
     layout_for,
@@ -33,6 +33,7 @@ from bmimic.sampling.config import (
     variant_names,
 )
 from bmimic.sampling.diagnostics import bin_table, sampling_entropy, summary
+from bmimic.sampling.layouts import make_layout
 from bmimic.sampling.registry import SAMPLERS, register_sampler
 from bmimic.sampling.samplers import (
     AdaptiveConfig,
@@ -66,6 +67,7 @@ __all__ = [
     "failed_mask",
     "layout_for",
     "load_variant",
+    "ClipLayout",
     "make_layout",
     "make_sampler",
     "num_bins",

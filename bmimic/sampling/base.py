@@ -57,6 +57,37 @@ class BinSampler:
         self.method = method
         self._probs = torch.full((num_bins,), 1.0 / num_bins, dtype=DTYPE, device=self.device)
         self._cdf = torch.empty_like(self._probs)
+        self._num_clips = 1
+        self._balance_clip: torch.Tensor | None = None  # clip of each bin, when clip_balance is "clips"
+        self._refresh_cdf()
+
+    def set_clips(self, bin_clip: torch.Tensor, bin_last_in_clip: torch.Tensor, num_clips: int,
+                  clip_balance: str = "bins", clip_weights: Any = None) -> None:
+        """Make the sampler aware of a library's clips (``bin_clip``: the clip of each bin;
+        ``bin_last_in_clip``: the last bin of each bin's clip).
+
+        ``clip_balance="clips"`` gives clip c the total probability w_c / sum(w) (``clip_weights``,
+        default all 1, so 1/C each) and keeps the sampler's own proportions within the clip:
+        P'_s = P_s / M_c * w_c / sum(w), with M_c the mass of clip c under P (a clip of zero mass is
+        uniform within itself). "bins" leaves P over all bins as the sampler computes it.
+        """
+        bin_clip = torch.as_tensor(bin_clip, device=self.device).long()
+        if bin_clip.shape != (self.num_bins,):
+            raise SamplerConfigError(f"sampler set_clips: bin_clip must have shape ({self.num_bins},)")
+        self._num_clips = int(num_clips)
+        if clip_balance == "clips" and self._num_clips > 1:
+            w = torch.ones(self._num_clips, dtype=DTYPE) if clip_weights is None else torch.as_tensor(
+                clip_weights, dtype=DTYPE)
+            if w.shape != (self._num_clips,) or not bool((w > 0).all()) or not bool(torch.isfinite(w).all()):
+                raise SamplerConfigError(f"clip weights must be {self._num_clips} finite numbers > 0, got "
+                                         f"{w.tolist()}")
+            w = (w / w.sum()).to(self.device)
+            size = torch.zeros(self._num_clips, dtype=DTYPE, device=self.device).index_add_(
+                0, bin_clip, torch.ones(self.num_bins, dtype=DTYPE, device=self.device))
+            self._balance_clip = bin_clip
+            self._bin_clip_size = size[bin_clip]
+            self._bin_clip_share = w[bin_clip]
+        self._recompute()
         self._refresh_cdf()
 
     # -- probabilities and sampling -----------------------------------------------------------
@@ -64,6 +95,11 @@ class BinSampler:
     # The cached tensors are written in place (out=), so they keep their storage (friendly to CUDA
     # graphs), and with few kernels: the update runs every control step and is launch-bound.
     def _refresh_cdf(self) -> None:
+        if self._balance_clip is not None:
+            c = self._balance_clip
+            mass = torch.zeros(self._num_clips, dtype=DTYPE, device=self.device).index_add_(0, c, self._probs)[c]
+            within = torch.where(mass > 0, self._probs / mass, 1.0 / self._bin_clip_size)
+            torch.mul(within, self._bin_clip_share, out=self._probs)
         cdf = torch.cumsum(self._probs, 0)
         # Rescale so the last entry is exactly 1 and every uniform in [0, 1) lands in a bin.
         torch.div(cdf, cdf[-1], out=self._cdf)

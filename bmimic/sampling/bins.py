@@ -12,7 +12,7 @@ moves a boundary: ``num_bins(30.0, 1.0) == 30`` and frame 9 at 30 fps is in bin 
 even though ``9/30/0.1 == 2.9999999999999996``.
 
 Two bin layouts map frames to bins and draw start frames; which one a run uses is ``sampler.bins``
-(:func:`make_layout`), and the same layout serves sampling, attribution, diagnostics and the
+(:func:`bmimic.sampling.layouts.make_layout`), and the same layout serves sampling, attribution, diagnostics and the
 evaluation tables:
 
 - :class:`BinLayout` (``bins: time``): the time bins above; a start frame is drawn uniformly among
@@ -153,6 +153,11 @@ class _FrameBins:
         self.bin_first_frame = first.to(device)
         self.edges_s = self._edges_s(first).to(device)
         self.device = self.frame_to_bin.device
+        # One clip (a library's layout, bmimic.sampling.clips.ClipLayout, overrides these).
+        self.num_clips = 1
+        self.clip_names: tuple[str, ...] = ("motion",)
+        self.bin_clip = torch.zeros(self.num_bins, dtype=torch.long, device=self.device)
+        self.bin_last_in_clip = torch.full((self.num_bins,), self.num_bins - 1, dtype=torch.long, device=self.device)
 
     def _edges_s(self, first_frame: torch.Tensor) -> torch.Tensor:
         edges = torch.cat((first_frame.double() / self.fps, torch.tensor([self.duration_s], dtype=torch.float64)))
@@ -246,15 +251,6 @@ class ReleasedBinLayout(_FrameBins):
 Layout = BinLayout | ReleasedBinLayout
 
 
-def make_layout(bins: str, num_frames: int, fps: float, bin_size_seconds: float | None,
-                device: Any = "cpu") -> Layout:
-    """The bin layout ``bins`` ("time" or "released") of a motion of ``num_frames`` at ``fps``."""
-    check_choice("bins", bins, LAYOUTS)
-    if bins == "released":
-        return ReleasedBinLayout(num_frames, fps, device=device)
-    return BinLayout(num_frames, fps, bin_size_seconds, device=device)
-
-
 def visits_histogram(
     start_bins: torch.Tensor, end_bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -340,7 +336,6 @@ __all__ = [
     "bin_edges_s",
     "bins_of_time",
     "failed_mask",
-    "make_layout",
     "num_bins",
     "visits_histogram",
 ]

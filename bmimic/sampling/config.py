@@ -35,8 +35,9 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Optional
 
 from bmimic.sampling.accounting import AccountingConfig, check_accounting
-from bmimic.sampling.bins import LAYOUTS, Layout, check_bin_size, make_layout
+from bmimic.sampling.bins import LAYOUTS, Layout, check_bin_size
 from bmimic.sampling.checks import SamplerConfigError, check_choice, fail
+from bmimic.sampling.layouts import make_layout
 from bmimic.sampling.registry import SAMPLERS, sampler_entry
 
 
@@ -56,6 +57,10 @@ class SamplerConfig:
     bin_size_seconds: Optional[float] = 1.0
     """Time bins: length of one bin of the reference motion in seconds (the last may be shorter);
     null with bins=released."""
+    clip_balance: str = "bins"
+    """With a motion library: "bins" = P over all bins as the sampler computes it (under uniform
+    sampling every bin is equal, so long clips get more starts); "clips" = every clip gets the same
+    total probability, the sampler's proportions kept within each clip (one clip: no effect)."""
     accounting: AccountingConfig = field(default_factory=AccountingConfig)
     """The episode accounting: attribution, failure rule and update timing (sampler.accounting.*)."""
     log_every: Optional[int] = None
@@ -101,6 +106,9 @@ def sampler_config(cfg: Any) -> SamplerConfig:
                                  f"({str(e).splitlines()[0]})") from None
 
 
+CLIP_BALANCES = ("bins", "clips")
+
+
 def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) -> None:
     """Check every key of a sampler config (a :class:`SamplerConfig`, the composed node or a dict).
 
@@ -112,6 +120,7 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
     if not isinstance(cfg.enabled, bool):
         fail("enabled", "true or false", cfg.enabled)
     check_choice("bins", cfg.bins, LAYOUTS)
+    check_choice("clip_balance", cfg.clip_balance, CLIP_BALANCES)
     if cfg.bins == "time" or cfg.bin_size_seconds is not None:
         check_bin_size(cfg.bin_size_seconds, motion_duration_s if cfg.bins == "time" else None)
     sampler_entry(cfg.kind).cls.check_config(cfg)
@@ -121,17 +130,24 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
         fail("log_every", "an integer >= 1 or null", cfg.log_every)
 
 
-def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu"):
+def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu", layout: Any = None, clip_weights: Any = None):
     """Build the sampler ``cfg`` configures over ``num_bins`` bins on ``device`` (uniform when
-    ``cfg.enabled`` is false)."""
+    ``cfg.enabled`` is false); given the ``layout`` of a library (several clips), the sampler knows its
+    clips (look-ahead stops at clip ends; ``cfg.clip_balance`` with ``clip_weights``)."""
     cfg = sampler_config(cfg)
     cls = sampler_entry(cfg.kind).cls if cfg.enabled is not False else sampler_entry("uniform").cls
-    return cls.from_config(cfg, num_bins, device)
+    sampler = cls.from_config(cfg, num_bins, device)
+    if layout is not None and layout.num_clips > 1:
+        sampler.set_clips(layout.bin_clip, layout.bin_last_in_clip, layout.num_clips, cfg.clip_balance, clip_weights)
+    return sampler
 
 
-def layout_for(cfg: Any, num_frames: int, fps: float, device: Any = "cpu") -> Layout:
-    """The bin layout ``cfg.bins`` of a motion of ``num_frames`` frames at ``fps``."""
-    return make_layout(cfg.bins, num_frames, fps, cfg.bin_size_seconds, device=device)
+def layout_for(cfg: Any, num_frames: int, fps: float, device: Any = "cpu", clip_starts: Any = None,
+               clip_names: Any = None) -> Layout:
+    """The bin layout ``cfg.bins`` of a motion of ``num_frames`` frames at ``fps`` (of a library when
+    ``clip_starts`` has several clips; ``clip_names`` label them)."""
+    return make_layout(cfg.bins, num_frames, fps, cfg.bin_size_seconds, device=device, clip_starts=clip_starts,
+                       clip_names=clip_names)
 
 
 def min_motion_bin_s(cfg: Any) -> float:

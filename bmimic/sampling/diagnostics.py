@@ -10,9 +10,9 @@ r"""Per-iteration summaries of a sampler, for ``train_metrics.parquet`` and ``sa
 - ``top1_prob``, ``top1_bin``: the largest :math:`P_s` and its bin index (lowest on ties).
 
 :func:`bin_table` gives the tidy rows of ``sampler.parquet``, one per bin, with columns
-``iteration, bin, bin_start_s, bin_end_s, episodes, failures, raw_failure_rate,
+``iteration, bin, clip, bin_start_s, bin_end_s, episodes, failures, raw_failure_rate,
 smoothed_failure_rate, probability``; ``raw_failure_rate`` = failures / episodes (NaN where a bin
-had none) and ``smoothed_failure_rate`` = ``sampler.smoothed_failure()`` (the adaptive sampler's
+had none), ``clip`` the name of the bin's clip (a single motion: its name) and ``smoothed_failure_rate`` = ``sampler.smoothed_failure()`` (the adaptive sampler's
 EMA rate r, the BeyondMimic sampler's EMA failure count q, NaN for the uniform sampler). The counts
 are those the sampler was fed during the iteration and the probabilities those after its update,
 i.e. the distribution the next iteration samples from.
@@ -36,6 +36,7 @@ MAX_SAMPLER_ROWS = 1_000_000
 BIN_TABLE_COLUMNS = (
     "iteration",
     "bin",
+    "clip",
     "bin_start_s",
     "bin_end_s",
     "episodes",
@@ -87,6 +88,14 @@ def summary(
     }
 
 
+def _clip_names(layout, num_bins: int) -> list[str]:
+    """Each bin's clip name (a layout without clips, or bare edges: "motion")."""
+    if not hasattr(layout, "bin_clip"):
+        return ["motion"] * num_bins
+    names = layout.clip_names
+    return [names[i] for i in layout.bin_clip.cpu().tolist()]
+
+
 def bin_table(
     iteration: int,
     layout,
@@ -114,6 +123,7 @@ def bin_table(
         {
             "iteration": np.full(s, int(iteration), dtype=np.int64),
             "bin": np.arange(s, dtype=np.int64),
+            "clip": _clip_names(layout, s),
             "bin_start_s": edges[:-1],
             "bin_end_s": edges[1:],
             "episodes": np.rint(episodes).astype(np.int64),

@@ -92,11 +92,15 @@ def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype = DTYPE, device: A
     return k / k.sum()
 
 
-def lookahead_index(num_bins: int, K: int, device: Any = "cpu") -> torch.Tensor:
-    """Index table [S, K] with entry (s, u) = min(s + u, S - 1) (right end padded by replication)."""
+def lookahead_index(num_bins: int, K: int, device: Any = "cpu", last: torch.Tensor | None = None) -> torch.Tensor:
+    """Index table [S, K] with entry (s, u) = min(s + u, S - 1) (right end padded by replication); with
+    ``last`` (LongTensor[S], the last bin of each bin's clip in a library) min(s + u, last[s]), so the
+    kernel never reads across a clip boundary."""
     s = torch.arange(num_bins, device=device)[:, None]
     u = torch.arange(K, device=device)[None, :]
-    return (s + u).clamp_(max=num_bins - 1)
+    if last is None:
+        return (s + u).clamp_(max=num_bins - 1)
+    return torch.minimum(s + u, torch.as_tensor(last, device=device).long()[:, None])
 
 
 @dataclass
@@ -137,6 +141,12 @@ class _LookaheadSampler(BinSampler):
         check_fraction("gamma", cfg.gamma)
         check_int_at_least("K", cfg.K, 1)
         check_choice("empty_bins", cfg.empty_bins, EMPTY_BINS)
+
+    def set_clips(self, bin_clip: torch.Tensor, bin_last_in_clip: torch.Tensor, num_clips: int,
+                  clip_balance: str = "bins", clip_weights: Any = None) -> None:
+        """As BinSampler's; also stops the look-ahead kernel at each clip's last bin."""
+        self._index = lookahead_index(self.num_bins, self.K, device=self.device, last=bin_last_in_clip)
+        super().set_clips(bin_clip, bin_last_in_clip, num_clips, clip_balance, clip_weights)
 
     def _smooth(self, x: torch.Tensor) -> torch.Tensor:
         if self.K == 1:

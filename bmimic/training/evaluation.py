@@ -184,7 +184,15 @@ def bin_table(rollouts: Rollouts, layout, segments) -> pd.DataFrame:
     per_bin.insert(1, "bin_start_s", edges[per_bin["bin"]])
     per_bin.insert(2, "bin_end_s", edges[per_bin["bin"] + 1])
     per_bin.insert(3, "segment", [labels[b] for b in per_bin["bin"]])
+    per_bin.insert(4, "clip", clip_of_bins(layout, per_bin["bin"]))
     return per_bin
+
+
+def clip_of_bins(layout, bins) -> list[str]:
+    """The name of the clip each bin belongs to (a single motion: its name)."""
+    names = getattr(layout, "clip_names", ("motion",))
+    clip = layout.bin_clip.cpu().numpy() if hasattr(layout, "bin_clip") else None
+    return [names[int(clip[b])] if clip is not None else names[0] for b in bins]
 
 
 class Evaluator:

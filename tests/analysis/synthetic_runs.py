@@ -90,12 +90,16 @@ def write_run(
     eval_every: int = EVAL_EVERY,
     old_eval: bool = False,
     truncated_bins: tuple[int, ...] = (),
+    clips: list[str] | None = None,
+    sampler_episodes: list[int] | None = None,
 ) -> Path:
     """Write one complete run folder whose bin ``b`` is mastered at ``mastery[b]`` (None: never).
 
     ``old_eval`` writes eval.parquet as before per-visit accounting (``episodes`` per start bin, no
     ``visits``/``horizon_truncated``); ``truncated_bins`` are flagged horizon-truncated with no episode
-    tracked through them, so they never count as mastered.
+    tracked through them, so they never count as mastered. ``clips`` names each bin's clip (a motion
+    library: eval.parquet and sampler.parquet get a `clip` column); ``sampler_episodes`` replaces the 25
+    training starts per bin in sampler.parquet.
     """
     run_dir = Path(run_dir)
     (run_dir / ".hydra").mkdir(parents=True, exist_ok=True)
@@ -134,7 +138,8 @@ def write_run(
         prob = np.full(NUM_BINS, 1.0 / NUM_BINS) if sampler == "uniform" else fail / fail.sum()
         for b in range(NUM_BINS):
             start, end = b * BIN_SIZE_S, (b + 1) * BIN_SIZE_S
-            sampler_rows.append((int(it), b, start, end, 25, int(25 * fail[b]), fail[b], fail[b], prob[b]))
+            starts = 25 if sampler_episodes is None else sampler_episodes[b]
+            sampler_rows.append((int(it), b, start, end, starts, int(starts * fail[b]), fail[b], fail[b], prob[b]))
             if it % eval_every == 0 or it == last_iteration:
                 segment = next(s["name"] for s in SEGMENTS if s["start_s"] <= start < s["end_s"])
                 visits = EPISODES_PER_BIN
@@ -150,14 +155,19 @@ def write_run(
         "failures", "failure_rate", "start_episodes", "start_failures", "horizon_truncated", "tracked_through",
         "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "joint_pos_err_rad",
     ])
+    if clips is not None:
+        eval_df.insert(7, "clip", [clips[b] for b in eval_df["bin"]])
     if old_eval:
         eval_df = eval_df.drop(columns=["visits", "start_failures", "horizon_truncated", "tracked_through"]).rename(
             columns={"start_episodes": "episodes"})
     eval_df.to_parquet(run_dir / "eval.parquet", index=False)
-    pd.DataFrame(sampler_rows, columns=[
+    sampler_df = pd.DataFrame(sampler_rows, columns=[
         "iteration", "bin", "bin_start_s", "bin_end_s", "episodes", "failures", "raw_failure_rate",
         "smoothed_failure_rate", "probability",
-    ]).to_parquet(run_dir / "sampler.parquet", index=False)
+    ])
+    if clips is not None:
+        sampler_df.insert(2, "clip", [clips[b] for b in sampler_df["bin"]])
+    sampler_df.to_parquet(run_dir / "sampler.parquet", index=False)
     if status == "running":
         return run_dir  # metrics.json is written at the end of training
     (run_dir / "metrics.json").write_text(json.dumps({

@@ -593,3 +593,32 @@ def test_short_arm_labels_keep_only_what_differs():
     assert short_arm_labels(["only"]) == ({"only": "only"}, [])
 
 
+
+
+def test_the_report_has_a_per_clip_table_for_a_library(tmp_path):
+    from analysis.clip_tables import clip_failure
+    from tests.analysis.synthetic_runs import write_run
+
+    sweep = tmp_path / "lib"
+    clips = ["walk", "walk", "jump", "jump"]
+    for seed in (0, 1):
+        write_run(sweep / "sampler=uniform" / f"seed={seed}", sampler="uniform", seed=seed,
+                  overrides=["sampler=uniform"], mastery=[10.0, 20.0, 30.0, 40.0], clips=clips)
+        # the adaptive arm never masters bin 3 and its sampler never started from clip "jump"
+        write_run(sweep / "sampler=adaptive" / f"seed={seed}", sampler="adaptive", seed=seed,
+                  overrides=["sampler=adaptive"], mastery=[5.0, 10.0, 15.0, None], clips=clips,
+                  sampler_episodes=[30, 20, 0, 0])
+    out = build_report([sweep], tmp_path / "report")
+    table = pd.read_csv(out / "clip_failure.csv").set_index(["arm", "clip"])
+    # final failure of a clip: failures over visits of its bins (seed s adds 0.01 s to every rate)
+    assert table.loc[("sampler=adaptive", "jump"), "final_failure"] == pytest.approx((0.02 + 0.5) / 2 + 0.005)
+    assert table.loc[("sampler=uniform", "walk"), "final_failure"] == pytest.approx(0.02 + 0.005)
+    assert table.loc[("sampler=adaptive", "jump"), "bins_not_mastered"] == 1
+    assert table.loc[("sampler=uniform", "jump"), "bins_not_mastered"] == 0
+    assert table.loc[("sampler=uniform", "jump"), "start_share"] == pytest.approx(0.5)
+    assert table.loc[("sampler=adaptive", "walk"), "start_share"] == pytest.approx(1.0)
+    text = (out / "report.md").read_text()
+    assert "## Clips" in text and "Never started from: `sampler=adaptive`: jump." in text
+    # one clip: no per-clip section
+    assert clip_failure(pd.DataFrame({"bin": [0], "clip": ["a"]}), pd.DataFrame(), pd.DataFrame(), pd.DataFrame(),
+                        None).empty

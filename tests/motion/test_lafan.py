@@ -28,7 +28,19 @@ def _assert_guides(message: str, *fragments: str) -> None:
 
 
 def test_every_lafan_option_is_listed():
-    assert sorted(p.stem for p in (CONF / "motion").glob("lafan_*.yaml")) == sorted(OPTIONS)
+    singles = [p.stem for p in (CONF / "motion").glob("lafan_*.yaml") if p.stem != "lafan_library"]
+    assert sorted(singles) == sorted(OPTIONS)
+
+
+def test_the_lafan_library_lists_the_three_study_clips_in_full(monkeypatch):
+    from bmimic.motion.library import library_entries
+
+    monkeypatch.setenv(LAFAN_ENV, "/data/lafan/g1")
+    cfg = compose(["motion=lafan_library"])
+    entries = library_entries(cfg.motion)
+    assert [(e.name, e.source, e.start_s, e.end_s) for e in entries] == [
+        ("dance1_subject1", "lafan", None, None), ("walk1_subject1", "lafan", None, None),
+        ("run1_subject2", "lafan", None, None)]
 
 
 @pytest.mark.parametrize("option", sorted(OPTIONS))

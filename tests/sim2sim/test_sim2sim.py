@@ -348,7 +348,7 @@ def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypat
     """The same planted terminations and errors through MuJoCo-Warp's Evaluator and sim2sim's episodes:
     identical per-episode rows (end, failure frame, steps, truncation, tracking failures), per-frame
     step counts and error sums, and so identical per-bin tables."""
-    from bmimic.sampling.bins import make_layout
+    from bmimic.sampling.layouts import make_layout
     from bmimic.training import evaluation
     from bmimic.training.evaluation import EPISODE_COLUMNS, ERROR_COLUMNS, Evaluator
 
