@@ -45,6 +45,7 @@ STUDIES = {
     "design_choices": (5 * 5, {"design_choice"}),
     "dance1_full": (2 * 5, {"sampler"}),
     "mdp_action_rate": (2 * 5, {"env"}),
+    "library_lafan": (2 * 5, {"sampler.clip_balance"}),
 }
 
 
