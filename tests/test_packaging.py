@@ -76,7 +76,7 @@ def test_cfg_job_from_any_directory(installed):
 
 def test_help_from_any_directory(installed):
     text = run(installed, "-m", "bmimic.train", "--help").stdout
-    assert "motion: default*, easy_only, file, lafan_dance1" in text and "_schema" not in text
+    assert "motion: builtin_library, default*, easy_only, file, lafan_dance1" in text and "_schema" not in text
 
 
 def test_a_sweep_composes_from_any_directory(installed):
