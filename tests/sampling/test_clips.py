@@ -153,3 +153,27 @@ def test_clip_balance_is_a_checked_key():
 
     with pytest.raises(Exception, match="clip_balance"):
         validate_sampler_config({"name": "uniform", "kind": "uniform", "clip_balance": "motions"})
+
+
+@pytest.mark.parametrize("attribution", ["start", "failure"])
+def test_an_episode_across_a_clip_end_is_charged_to_the_right_clip_and_bin(attribution):
+    from bmimic.sampling.accounting import EpisodeAccounting
+
+    layout = _two_clip_layout()  # clip a: frames 0-124, bins 0-2; clip b: frames 125-184, bins 3-4
+    acc = EpisodeAccounting(UniformSampler(5), layout, num_envs=2, max_episode_length=500, attribution=attribution)
+    no = torch.zeros(2, dtype=torch.bool)
+    acc.start_episodes(torch.tensor([True, True]), torch.tensor([1, 0]))  # env 0 starts at frame 60, bin 1
+    # step k: env 0 reaches clip a's last frame (124) and is resampled into clip b, the episode goes on
+    at_clip_end = acc.count(dones=no, clip_end=torch.tensor([True, False]), end_frames=torch.tensor([124, 0]),
+                            segment_start=torch.tensor([60, 0]), terminated=no, nonfinite=no,
+                            episode_length=torch.tensor([65, 65]))
+    # later: env 0 falls at frame 182 (bin 4, clip b) after 70 steps, a short episode: a failure
+    at_fall = acc.count(dones=torch.tensor([True, False]), clip_end=no, end_frames=torch.tensor([182, 0]),
+                        segment_start=torch.tensor([180, 0]), terminated=torch.tensor([True, False]), nonfinite=no,
+                        episode_length=torch.tensor([70, 70]))
+    total = at_clip_end + at_fall
+    if attribution == "start":  # one episode, charged to its start bin (clip a) through the resample
+        assert total[0].tolist() == [0, 1, 0, 0, 0] and total[1].tolist() == [0, 1, 0, 0, 0]
+    else:  # visits where the reference ran (bins 1, 2 of clip a; bin 4 of clip b), the failure where it fell
+        assert total[0].tolist() == [0, 1, 1, 0, 1] and total[1].tolist() == [0, 0, 0, 0, 1]
+        assert layout.clip_names[int(layout.bin_clip[4])] == "b"
