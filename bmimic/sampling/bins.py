@@ -285,8 +285,11 @@ def failed_mask(
     if failure == "terminated":
         return terminated.clone()
     length = torch.as_tensor(episode_length_steps, device=terminated.device)
-    limit = failure_threshold * torch.as_tensor(max_episode_length_steps, device=terminated.device)
-    return terminated & (length < limit)
+    if not isinstance(max_episode_length_steps, torch.Tensor):
+        # A Python number stays a scalar operand: turning it into a device tensor is a host-to-device
+        # copy, which would synchronise the hot path on every step.
+        return terminated & (length < failure_threshold * max_episode_length_steps)
+    return terminated & (length < failure_threshold * max_episode_length_steps.to(terminated.device))
 
 
 def attribute(
