@@ -285,11 +285,12 @@ def failed_mask(
     if failure == "terminated":
         return terminated.clone()
     length = torch.as_tensor(episode_length_steps, device=terminated.device)
-    if not isinstance(max_episode_length_steps, torch.Tensor):
-        # A Python number stays a scalar operand: turning it into a device tensor is a host-to-device
-        # copy, which would synchronise the hot path on every step.
-        return terminated & (length < failure_threshold * max_episode_length_steps)
-    return terminated & (length < failure_threshold * max_episode_length_steps.to(terminated.device))
+    # A Python limit stays a scalar operand: making it a device tensor would be a host-to-device copy,
+    # a synchronisation on every step of the hot path.
+    limit = max_episode_length_steps
+    if isinstance(limit, torch.Tensor):
+        limit = limit.to(terminated.device)
+    return terminated & (length < failure_threshold * limit)
 
 
 def attribute(
