@@ -305,7 +305,7 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
 
 def multigpu(args: argparse.Namespace, overrides: list[str]) -> int:
     """`--multigpu-json`: full PPO iterations on every rank of this torchrun, rank 0 merges the rows."""
-    from bmimic.runtime import init_distributed, resolve_device
+    from bmimic.runtime import exit_rank, init_distributed, resolve_device
 
     path = Path(args.multigpu_json)
     read_multigpu_rows(path)  # a malformed file stops the run here, before any measurement
@@ -325,14 +325,15 @@ def multigpu(args: argparse.Namespace, overrides: list[str]) -> int:
             # its last collective can abort at exit (seen once in ten CPU runs without it).
             torch.distributed.barrier()
             torch.distributed.destroy_process_group()
-    if rank != 0:
-        return 0
-    table = merge_multigpu_rows(path, rows)
-    print("gpus | envs per GPU | env steps/s | scaling")
-    for r in table:
-        scaling = "-" if r["scaling"] is None else f"{r['scaling']:.2f}x"
-        print(f"{r['gpus']} | {r['num_envs_per_gpu']} | {r['env_steps_per_s']:,.0f} | {scaling}")
-    print(f"-> {path}")
+    if rank == 0:
+        table = merge_multigpu_rows(path, rows)
+        print("gpus | envs per GPU | env steps/s | scaling")
+        for r in table:
+            scaling = "-" if r["scaling"] is None else f"{r['scaling']:.2f}x"
+            print(f"{r['gpus']} | {r['num_envs_per_gpu']} | {r['env_steps_per_s']:,.0f} | {scaling}")
+        print(f"-> {path}")
+    if world > 1:
+        exit_rank(0)
     return 0
 
 

@@ -8,6 +8,7 @@ produced a run (bmimic.run_folder writes it to provenance.json).
 
 from __future__ import annotations
 
+import logging
 import os
 import platform
 import random
@@ -63,6 +64,17 @@ def init_distributed() -> tuple[int, int]:
         else:  # CPU ranks (gloo): the same code path, for smoke tests without a GPU
             torch.distributed.init_process_group("gloo")
     return torch.distributed.get_rank(), world
+
+
+def exit_rank(code: int) -> None:
+    """End a torchrun rank whose work is written and whose process group is destroyed: flush and
+    exit without the interpreter's teardown. C++ static destructors (gloo, Warp) run at a normal exit
+    and once aborted a rank after destroy_process_group ("terminate called without an active
+    exception", CI 2026-11-24), which torchrun reports as a failed run although every row was written."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    logging.shutdown()
+    os._exit(code)
 
 
 # --------------------------------------------------------------------------------------------- seeding
