@@ -7,6 +7,7 @@ failure raises `ConfigError` with one line naming the key.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from bmimic.config import ConfigError, TrainConfig
 from bmimic.envs.config import EnvConfigError, check_env
@@ -160,6 +161,9 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         _fail("env.episode_length_s", f"is shorter than one control step ({step_dt} s)")
     if cfg.eval.every_iters < 0:
         _fail("eval.every_iters", f"must be >= 0, got {cfg.eval.every_iters}")
+    if cfg.eval.every_iters == 0 and _eval_driven(getattr(cfg.sampler, "kind", None)):
+        _fail("eval.every_iters", f"is 0, but sampler={cfg.sampler.name} learns from the periodic evaluation "
+              "(set eval.every_iters >= 1)")
     if cfg.eval.horizon_s <= 0:
         _fail("eval.horizon_s", f"must be > 0, got {cfg.eval.horizon_s}")
     if cfg.eval.episodes_per_bin is not None and cfg.eval.episodes_per_bin < 1:
@@ -180,6 +184,13 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         if not math.isfinite(motion_duration_s) or motion_duration_s <= 0:
             _fail("motion", f"has no duration ({motion_duration_s} s)")
         validate_sampler_config(cfg.sampler, motion_duration_s)
+
+
+def _eval_driven(kind: Any) -> bool:
+    """Whether the registered sampler `kind` learns from the periodic evaluation (phc, protomotions)."""
+    from bmimic.sampling.registry import SAMPLERS
+
+    return kind in SAMPLERS and bool(SAMPLERS[kind].cls.eval_driven)
 
 
 _ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish",

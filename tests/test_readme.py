@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+from bmimic.sampling.config import variant_names
 from tests.conftest import REPO, cli_env, compose
 
 README = (REPO / "README.md").read_text()
@@ -71,7 +72,7 @@ def test_readme_train_examples_compose(line):
     args = [a for a in args if a != "-m"]
     task = [a for a in args if not a.startswith("hydra")]  # motion=lafan_*: the clip is read when a run starts
     cfg = compose(task, return_hydra_config=multirun)
-    assert cfg.sampler.name in ("uniform", "adaptive", "beyondmimic")
+    assert cfg.sampler.name in variant_names()
 
 
 # torchrun (one node or several) and the SLURM script: the overrides after the program.

@@ -34,6 +34,8 @@ from bmimic.sampling.config import (
 )
 from bmimic.sampling.diagnostics import bin_table, sampling_entropy, summary
 from bmimic.sampling.layouts import make_layout
+from bmimic.sampling.peer_clips import PHCSampler, ProtoMotionsSampler
+from bmimic.sampling.peer_errors import EGMSampler, GMTSampler
 from bmimic.sampling.registry import SAMPLERS, register_sampler
 from bmimic.sampling.samplers import (
     AdaptiveConfig,
@@ -53,7 +55,11 @@ __all__ = [
     "BeyondMimicSampler",
     "BinLayout",
     "BinSampler",
+    "EGMSampler",
     "EpisodeAccounting",
+    "GMTSampler",
+    "PHCSampler",
+    "ProtoMotionsSampler",
     "ReleasedBinLayout",
     "SamplerConfig",
     "SamplerConfigError",

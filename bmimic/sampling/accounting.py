@@ -30,6 +30,12 @@ The environment owns the reference state (frames, clip ends, resets); it calls o
    ``update_every="iteration"``, one all-reduce of the pending counts (torchrun), one
    ``sampler.update_counts`` with them, and the pending total is cleared.
 
+For samplers that learn from tracking errors (``sampler.tracking_error``, e.g. ``egm`` and
+``gmt``), ``track(state, frames)`` in every step adds each env's errors
+(:data:`bmimic.sampling.base.ERROR_COMPONENTS`) to the bin of its current reference frame, and
+``end_rollout`` hands the iteration's sums to ``sampler.update_errors`` (all-reduced first under
+torchrun), whatever ``update_every`` is. Other samplers skip it: the step pays nothing.
+
 Everything in 1-3 has fixed shapes, writes its buffers in place and never reads values on the
 host, so it runs inside the environment's captured CUDA graphs. ``pop_counts`` returns (and
 clears) the counts the sampler was fed during the iteration, summed, for the diagnostics.
@@ -43,7 +49,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from bmimic.sampling.base import bin_counts
+from bmimic.envs.quat import quat_error_magnitude
+from bmimic.sampling.base import ERROR_COMPONENTS, bin_counts
 from bmimic.sampling.bins import Layout, attribute, check_attribution, check_failure, failed_mask
 from bmimic.sampling.checks import check_choice
 
@@ -112,6 +119,11 @@ class EpisodeAccounting:
         """The bin each env's current episode started in (written only by start_episodes)."""
         self._pending = torch.zeros(2, s, dtype=torch.float64, device=dev)
         self._iteration = torch.zeros(2, s, dtype=torch.float64, device=dev)
+        self.tracks_errors = bool(getattr(sampler, "tracking_error", False))
+        """Whether the step measures per-bin tracking errors (only for a sampler that uses them)."""
+        # Rows: the ERROR_COMPONENTS sums, then the env-steps counted; float64 so that a long
+        # rollout's sums of small errors lose nothing.
+        self._errors = torch.zeros(len(ERROR_COMPONENTS) + 1, s, dtype=torch.float64, device=dev)
 
     @classmethod
     def from_config(cls, cfg: AccountingConfig, sampler: Any, layout: Layout, num_envs: int, max_episode_length: int,
@@ -159,6 +171,24 @@ class EpisodeAccounting:
                                            counted=(dones | clip_end) & ~nonfinite)
         return torch.stack((episodes, failures)).to(torch.float64)
 
+    def track(self, state: Any, frames: torch.Tensor, valid: torch.Tensor) -> None:
+        """Add every env's tracking errors of this step to the bin of its reference frame (only when
+        the sampler uses them). ``state``: the step's TrackingState; ``frames``: the reference frame
+        of each env; ``valid``: envs to count (not those reset as broken this step)."""
+        if not self.tracks_errors:
+            return
+        pos = (state.ref_body_pos_relative - state.robot_body_pos).norm(dim=-1)  # [N, bodies] m
+        per_env = torch.stack((
+            pos.mean(-1),
+            quat_error_magnitude(state.ref_body_quat_relative, state.robot_body_quat).mean(-1),
+            (state.ref_body_lin_vel - state.robot_body_lin_vel).norm(dim=-1).mean(-1),
+            pos.amax(-1),
+            torch.ones_like(pos[:, 0]),
+        ))  # [components + 1, N]
+        per_env = torch.where(valid, per_env, 0.0)  # where, not a product: a broken world's NaN stays out
+        bins = self.layout.bins_of(frames)
+        self._errors.index_add_(1, bins, per_env.to(torch.float64))
+
     def record(self, counts: torch.Tensor) -> None:
         """Feed one step's counts to the sampler now (update_every="step") or at end_rollout."""
         if self.update_every == "step":
@@ -173,7 +203,13 @@ class EpisodeAccounting:
 
     # ------------------------------------------------------------------ once per iteration
     def end_rollout(self) -> None:
-        """update_every="iteration": one sampler update with every episode of the rollout."""
+        """update_every="iteration": one sampler update with every episode of the rollout; and, for
+        a sampler that uses them, the rollout's per-bin tracking errors."""
+        if self.tracks_errors:
+            if self.world_size > 1:
+                torch.distributed.all_reduce(self._errors)
+            self.sampler.update_errors(self._errors[:-1], self._errors[-1])
+            self._errors.zero_()
         if self.update_every != "iteration":
             return
         if self.world_size > 1:
@@ -193,6 +229,7 @@ class EpisodeAccounting:
         """Forget counts not yet fed or popped (the environment's warm-up steps)."""
         self._pending.zero_()
         self._iteration.zero_()
+        self._errors.zero_()
 
 
 __all__ = ["UPDATE_EVERY", "AccountingConfig", "EpisodeAccounting", "check_accounting"]

@@ -11,6 +11,10 @@ import torch
 
 from bmimic.sampling.checks import SamplerConfigError
 
+ERROR_COMPONENTS = ("body_pos_m", "body_ori_rad", "body_lin_vel_m_per_s", "max_body_pos_m")
+"""The per-env tracking errors the episode accounting sums per bin for samplers with
+``tracking_error``: the mean over tracked bodies of the position (anchor-relative reference),
+orientation and linear-velocity errors, and the largest body position error."""
 DTYPE = torch.float64
 """Probabilities and state: float64, so 10^6 updates at alpha=0.001 accumulate no visible rounding."""
 METHODS = ("inverse_cdf", "multinomial")
@@ -37,6 +41,12 @@ class BinSampler:
     name it is registered under (`bmimic.sampling.registry.register_sampler` sets it)."""
 
     kind = ""
+    tracking_error = False
+    """True: the sampler also learns from per-bin tracking errors; the episode accounting then
+    measures them in the step and calls :meth:`update_errors` once per iteration."""
+    eval_driven = False
+    """True: the sampler also learns from the periodic evaluation; the trainer calls
+    :meth:`observe_eval` after each one (every rank, with rank 0's outcome under torchrun)."""
 
     @classmethod
     def check_config(cls, cfg: Any) -> None:
@@ -171,6 +181,15 @@ class BinSampler:
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         raise NotImplementedError
 
+    def update_errors(self, error_sums: torch.Tensor, steps: torch.Tensor) -> None:
+        """One iteration's tracking errors per bin (samplers with ``tracking_error``): ``error_sums``
+        [len(ERROR_COMPONENTS), S] sums over the env-steps spent at a frame of each bin, ``steps`` [S]
+        their number. Fixed shapes, no host synchronisation."""
+
+    def observe_eval(self, clip_failed: torch.Tensor, iterations: int) -> None:
+        """The outcome of one evaluation (samplers with ``eval_driven``): ``clip_failed`` [C] whether
+        an evaluation episode of each clip failed; ``iterations`` since the previous evaluation."""
+
     def smoothed_failure(self) -> torch.Tensor:
         """The sampler's smoothed failure signal per bin (float64 [S]), for diagnostics."""
         raise NotImplementedError
@@ -211,4 +230,4 @@ class BinSampler:
         return f"{type(self).__name__}(num_bins={self.num_bins}{', ' if args else ''}{args})"
 
 
-__all__ = ["DTYPE", "METHODS", "BinSampler", "bin_counts"]
+__all__ = ["DTYPE", "ERROR_COMPONENTS", "METHODS", "BinSampler", "bin_counts"]

@@ -17,6 +17,11 @@ prints one line with microseconds per call. Parts, each timed alone:
 - ``iteration``: a whole rollout's sampler work per control step: ``steps_per_iteration`` x (count +
   record + sample) plus ``end_rollout``, divided by ``steps_per_iteration``.
 
+For the samplers that learn from tracking errors (egm, gmt) ``count`` also measures the step's
+errors (:meth:`EpisodeAccounting.track`, 14 bodies, as BeyondMimic's G1) and ``update`` also feeds
+one iteration's errors; for the evaluation-driven ones (phc, protomotions) ``observe_eval`` times
+one evaluation's update. ``--num-clips`` cuts the bins into that many equal clips (a library).
+
 On CUDA the loops are timed with CUDA events (the host never waits inside them, as in training); on
 CPU with ``time.perf_counter``. The test suite runs 10^4 sequential updates; the long-run stability
 check of 10^6 updates is ``--iters 1000000``.
@@ -27,11 +32,13 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import torch
 
 from bmimic.sampling.accounting import EpisodeAccounting
+from bmimic.sampling.base import ERROR_COMPONENTS
 from bmimic.sampling.config import layout_for, load_variant, make_sampler, variant_names
 
 FPS = 50.0
@@ -71,6 +78,7 @@ def bench_sampler(
     seed: int = 0,
     steps_per_iteration: int = 24,
     update_every: str | None = None,
+    num_clips: int = 1,
 ) -> dict[str, Any]:
     """Time the sampler work of variant ``sampler`` (``conf/sampler/<sampler>.yaml``, with 1 s time
     bins or the released layout, ``update_every`` overridden when given) on ``device``.
@@ -85,6 +93,11 @@ def bench_sampler(
         cfg.accounting.update_every = update_every
     layout = layout_for(cfg, _frames_for(cfg.bins, num_bins), FPS, device=dev)
     s = make_sampler(cfg, layout.num_bins, dev)
+    if num_clips > 1:
+        bin_clip = torch.arange(layout.num_bins, device=dev) * num_clips // layout.num_bins
+        last = torch.zeros(num_clips, dtype=torch.long, device=dev).scatter_reduce(
+            0, bin_clip, torch.arange(layout.num_bins, device=dev), "amax")
+        s.set_clips(bin_clip, last[bin_clip], num_clips)
     acc = EpisodeAccounting.from_config(cfg.accounting, s, layout, num_envs, MAX_EPISODE_LENGTH, device=dev)
     gen = torch.Generator(device=dev).manual_seed(seed)
     n = layout.num_frames
@@ -96,12 +109,23 @@ def bench_sampler(
     length = torch.randint(0, MAX_EPISODE_LENGTH, (num_envs,), generator=gen, device=dev)
     acc.start_episodes(~never, layout.bins_of(segment_start))
     counts = acc.count(dones, never, end_frames, segment_start, terminated, never, length)
+    bodies = 14
+    quat = torch.nn.functional.normalize(torch.randn(num_envs, bodies, 4, generator=gen, device=dev), dim=-1)
+    vec = lambda: torch.randn(num_envs, bodies, 3, generator=gen, device=dev)  # noqa: E731
+    state = SimpleNamespace(ref_body_pos_relative=vec(), robot_body_pos=vec(), ref_body_quat_relative=quat,
+                            robot_body_quat=quat.roll(1, 0), ref_body_lin_vel=vec(), robot_body_lin_vel=vec())
+    error_sums = torch.rand(len(ERROR_COMPONENTS), layout.num_bins, generator=gen, device=dev, dtype=torch.float64)
+    error_steps = torch.ones(layout.num_bins, device=dev, dtype=torch.float64)
+    clip_failed = torch.rand(max(num_clips, 1), generator=gen, device=dev) < 0.5
 
     def count() -> None:
+        acc.track(state, segment_start, ~never)
         acc.record(acc.count(dones, never, end_frames, segment_start, terminated, never, length))
 
     def update() -> None:
         s.update_counts(counts[0], counts[1])
+        if s.tracking_error:
+            s.update_errors(error_sums, error_steps)
 
     def sample() -> None:
         layout.sample_frames(s.sample(num_envs, generator=gen), generator=gen)
@@ -121,6 +145,7 @@ def bench_sampler(
         "device": str(dev),
         "num_envs": num_envs,
         "num_bins": layout.num_bins,
+        "num_clips": num_clips,
         "iters": iters,
         "method": s.method,
         "count_us": us(count),
@@ -128,6 +153,8 @@ def bench_sampler(
         "end_rollout_us": us(acc.end_rollout),
         "iteration_us": us(rollout, max(1, iters // steps_per_iteration)) / steps_per_iteration,
     }
+    if s.eval_driven:
+        result["observe_eval_us"] = us(lambda: s.observe_eval(clip_failed, 200))
     for method in ("multinomial", "inverse_cdf"):
         s.method = method
         result[f"sample_{method}_us"] = us(sample)
@@ -148,9 +175,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--update-every", default=None, choices=["step", "iteration"],
                         help="override the variant's sampler.accounting.update_every")
     parser.add_argument("--steps-per-iteration", type=int, default=24)
+    parser.add_argument("--num-clips", type=int, default=1, help="cut the bins into this many equal clips")
     args = parser.parse_args(argv)
     r = bench_sampler(args.num_envs, args.num_bins, args.device, args.iters, args.sampler,
-                      steps_per_iteration=args.steps_per_iteration, update_every=args.update_every)
+                      steps_per_iteration=args.steps_per_iteration, update_every=args.update_every,
+                      num_clips=args.num_clips)
     print(
         f"{r['sampler']} (update_every={r['update_every']}) on {r['device']}: num_envs={r['num_envs']} "
         f"num_bins={r['num_bins']} iters={r['iters']} method={r['method']} "
@@ -158,6 +187,8 @@ def main(argv: list[str] | None = None) -> None:
         f"count={r['count_us']:.1f}us end_rollout={r['end_rollout_us']:.1f}us "
         f"sample: inverse_cdf={r['sample_inverse_cdf_us']:.1f}us multinomial={r['sample_multinomial_us']:.1f}us "
         f"iteration/step={r['iteration_us']:.1f}us probs_ok={r['probs_ok']}"
+        + (f" observe_eval={r['observe_eval_us']:.1f}us" if "observe_eval_us" in r else "")
+        + (f" num_clips={r['num_clips']}" if r["num_clips"] > 1 else "")
     )
 
 

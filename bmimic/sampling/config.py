@@ -18,6 +18,13 @@ adaptive           adaptive            the design (the schema defaults)
 adaptive_hybrid    adaptive            the earlier ``adaptive``: the design's formulas with the
                                        released code's bookkeeping (results in docs/results)
 beyondmimic        beyondmimic         the released code, its bins and accounting included
+egm                egm                 EGM: EMA of a composite tracking error per bin, scheduled
+                                       power and uniform ratio (:mod:`bmimic.sampling.peer_errors`)
+gmt                gmt                 GMT: completion levels of <= 10-bin sub-clips, then the
+                                       largest body error
+phc                phc                 PHC: clips weighted by their evaluation failures
+protomotions       protomotions        ProtoMotions v3: multiplicative clip weights from
+                                       evaluations, floor 1/C
 uniform            uniform             uniform start bins (the baseline)
 =================  ==================  ========================================================
 
@@ -46,7 +53,8 @@ class SamplerConfig:
     """The keys every variant of ``conf/sampler/`` has; each sampler's schema subclasses it."""
 
     name: str = ""
-    """The variant: equals the YAML's file name (adaptive, adaptive_hybrid, beyondmimic, uniform)."""
+    """The variant: equals the YAML's file name (adaptive, adaptive_hybrid, beyondmimic, egm, gmt, phc,
+    protomotions, uniform)."""
     kind: str = ""
     """The registered sampler class the variant configures (its schema's default; not set in a YAML)."""
     enabled: bool = True

@@ -42,7 +42,7 @@ from bmimic.training.checkpoints import (
     load_checkpoint_file,
     mismatch_detail,
 )
-from bmimic.training.evaluation import summarize
+from bmimic.training.evaluation import clips_failed, summarize
 from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
 from bmimic.training.resume import key_allowed
@@ -242,6 +242,21 @@ class Trainer:
         self.logger.evaluation(self.progress.iteration, summary)
         return summary
 
+    def _eval_to_sampler(self, iterations: int) -> None:
+        """An evaluation-driven sampler (phc, protomotions) learns which clips failed the evaluation
+        just run; under torchrun rank 0 (which evaluates) broadcasts it, so every rank's sampler
+        stays the same."""
+        accounting = self.env.accounting
+        if not getattr(accounting.sampler, "eval_driven", False):
+            return
+        layout = accounting.layout
+        failed = torch.zeros(layout.num_clips, dtype=torch.float32, device=self.env.device)
+        if self.is_main:
+            failed.copy_(clips_failed(self.eval_rows[-1], layout))
+        if self.runner.is_distributed:
+            torch.distributed.broadcast(failed, src=0)
+        accounting.sampler.observe_eval(failed > 0, iterations)
+
     def evaluate_robust(self, evaluator) -> dict:
         """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and
         pushes on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
@@ -305,8 +320,10 @@ class Trainer:
             done = self.progress.iteration == end_it or out_of_time
             self._record_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
             every = cfg.eval.every_iters
-            if self.is_main and (every and self.progress.iteration % every == 0):
-                self.evaluate()
+            if every and self.progress.iteration % every == 0:
+                if self.is_main:
+                    self.evaluate()
+                self._eval_to_sampler(every)
             if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
                 self.save_checkpoint()
                 write_status(self.run_dir, "running", self.progress.iteration)

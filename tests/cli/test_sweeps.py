@@ -46,6 +46,7 @@ STUDIES = {
     "dance1_full": (2 * 5, {"sampler"}),
     "mdp_action_rate": (2 * 5, {"env"}),
     "library_lafan": (2 * 5, {"sampler.clip_balance"}),
+    "peer_samplers": (7 * 5, {"sampler"}),
 }
 
 

@@ -699,7 +699,8 @@ def test_adaptive_defaults_are_the_design_from_one_source():
 
 
 def test_the_variants_are_the_yaml_files_of_registered_samplers():
-    assert variant_names() == ("adaptive", "adaptive_hybrid", "beyondmimic", "uniform")
+    assert variant_names() == ("adaptive", "adaptive_hybrid", "beyondmimic", "egm", "gmt", "phc", "protomotions",
+                               "uniform")
     assert {k: (e.cls, e.config) for k, e in SAMPLERS.items() if k in ("adaptive", "beyondmimic", "uniform")} == {
         "adaptive": (AdaptiveSampler, AdaptiveConfig), "beyondmimic": (BeyondMimicSampler, BeyondMimicConfig),
         "uniform": (UniformSampler, UniformConfig)}

@@ -58,7 +58,8 @@ def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> No
         dist.destroy_process_group()
 
 
-@pytest.mark.parametrize("sampler_name", ["adaptive", "adaptive_hybrid"])  # update_every iteration, step
+# update_every iteration, step; egm: per-bin tracking errors, all-reduced at the end of the rollout
+@pytest.mark.parametrize("sampler_name", ["adaptive", "adaptive_hybrid", "egm"])
 def test_ranks_share_one_sampling_distribution(tmp_path, sampler_name):
     mp.spawn(_rank_steps_env, args=(free_port(), str(tmp_path), sampler_name), nprocs=WORLD, join=True)
     r0 = torch.load(tmp_path / "rank0.pt")
@@ -88,6 +89,24 @@ def test_torchrun_time_limit_stops_every_rank_at_the_same_iteration(tmp_path):
     # Every rank's samples are counted: env steps = iterations x steps x envs x ranks.
     assert metrics["env_steps"] == metrics["iterations"] * 8 * 2 * WORLD
     assert json.loads((run / "status.json").read_text())["status"] == "done"
+
+
+def test_torchrun_eval_driven_sampler_learns_rank_zeros_evaluation(tmp_path):
+    """phc under torchrun: rank 0 evaluates, every rank's sampler gets its outcome (a broadcast every
+    rank joins; a rank left out would hang the run), and the checkpoint holds the failure counts."""
+    run = tmp_path / "run"
+    overrides = [a for a in TINY if not a.startswith("motion=")]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={WORLD}",
+           "-m", "bmimic.train", *overrides, "motion=builtin_library", "sampler=phc", "eval.every_iters=1",
+           "eval.episodes_per_bin=1", "logger=none", f"hydra.run.dir={run}"]
+    out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600, env=cli_env())
+    assert out.returncode == 0, (out.stdout + out.stderr)[-4000:]
+    evals = pd.read_parquet(run / "eval.parquet")
+    failed_evals = evals.groupby(["iteration", "clip"])["failures"].sum().gt(0).groupby("clip").sum()
+    ckpt = torch.load(run / "checkpoints" / "latest.pt", weights_only=True, map_location="cpu")
+    counts = ckpt["sampler"]["state"]["failures"][:3].tolist()
+    # the clips in the library's order; 2 evaluations (iterations 1 and 2) reached the sampler
+    assert counts == [float(failed_evals.get(c, 0)) for c in ("graded_s0", "graded_s1", "easy_s2")]
 
 
 # srun on one machine: the command once per "node", side by side, each node's output and exit
