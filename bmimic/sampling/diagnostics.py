@@ -13,7 +13,9 @@ r"""Per-iteration summaries of a sampler, for ``train_metrics.parquet`` and ``sa
 ``iteration, bin, clip, bin_start_s, bin_end_s, episodes, failures, raw_failure_rate,
 smoothed_failure_rate, probability``; ``raw_failure_rate`` = failures / episodes (NaN where a bin
 had none), ``clip`` the name of the bin's clip (a single motion: its name) and ``smoothed_failure_rate`` = ``sampler.smoothed_failure()`` (the adaptive sampler's
-EMA rate r, the BeyondMimic sampler's EMA failure count q, NaN for the uniform sampler). The counts
+EMA rate r, the BeyondMimic sampler's EMA failure count q, NaN for the uniform sampler; the peer
+samplers' own signal: EGM's error EMA, GMT's completion level, PHC's clip failure count,
+ProtoMotions' clip weight). The counts
 are those the sampler was fed during the iteration and the probabilities those after its update,
 i.e. the distribution the next iteration samples from.
 

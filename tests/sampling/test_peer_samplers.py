@@ -251,3 +251,36 @@ def test_two_cpu_iterations_on_the_builtin_library(kind, tmp_path):
         assert math.isclose(rows["probability"].sum(), 1.0, rel_tol=1e-9) and (rows["probability"] >= 0).all()
     ckpt = torch.load(next((run / "checkpoints").glob("*.pt")), weights_only=True, map_location="cpu")
     assert ckpt["sampler"]["kind"] == kind
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("kind", PEERS)
+def test_peer_hot_path_has_no_host_sync(kind):
+    """Error tracking in the step, the per-rollout update, an evaluation's update and sampling never
+    wait for the device."""
+    from bmimic.sampling.bins import BinLayout
+
+    dev, n = torch.device("cuda"), 4096
+    layout = BinLayout(3000, 50.0, 1.0, device=dev)
+    s = make_sampler(load_variant(kind), layout.num_bins, dev)
+    acc = EpisodeAccounting(s, layout, n, 500, device=dev)
+    g = torch.Generator(device=dev).manual_seed(0)
+    ref, robot = torch.randn(n, 14, 3, device=dev), torch.randn(n, 14, 3, device=dev)
+    quat = torch.nn.functional.normalize(torch.randn(n, 14, 4, device=dev), dim=-1)
+    state = SimpleNamespace(ref_body_pos_relative=ref, robot_body_pos=robot, ref_body_quat_relative=quat,
+                            robot_body_quat=quat.roll(1, 0), ref_body_lin_vel=ref, robot_body_lin_vel=robot)
+    frames = torch.randint(0, 3000, (n,), device=dev, generator=g)
+    done = torch.rand(n, device=dev, generator=g) < 0.1
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        acc.start_episodes(done, s.sample(n, generator=g))
+        acc.track(state, frames, ~done)
+        acc.record(acc.count(done, done & ~done, frames, frames, done, done & ~done, frames % 500))
+        acc.end_rollout()
+        s.observe_eval(torch.rand(1, device=dev, generator=g) < 0.5, 100)
+        layout.sample_frames(s.sample(n, generator=g), generator=g)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    p = s.probabilities()
+    assert torch.isfinite(p).all() and abs(float(p.sum()) - 1.0) < 1e-9
