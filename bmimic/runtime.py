@@ -70,7 +70,8 @@ def exit_rank(code: int) -> None:
     """End a torchrun rank whose work is written and whose process group is destroyed: flush and
     exit without the interpreter's teardown. C++ static destructors (gloo, Warp) run at a normal exit
     and once aborted a rank after destroy_process_group ("terminate called without an active
-    exception", CI 2026-11-24), which torchrun reports as a failed run although every row was written."""
+    exception", CI 2026-11-24, the multi-GPU bench), which torchrun reports as a failed run although
+    everything was written. bench and train call it under torchrun only."""
     sys.stdout.flush()
     sys.stderr.flush()
     logging.shutdown()

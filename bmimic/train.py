@@ -32,7 +32,7 @@ from bmimic.config import resolve_runtime, with_schema_defaults
 from bmimic.config_checks import check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.run_folder import RunLockedError, read_metrics, read_status, write_metrics, write_status
-from bmimic.runtime import init_distributed, resolve_device, seed_everything
+from bmimic.runtime import exit_rank, init_distributed, resolve_device, seed_everything
 from bmimic.sweeping.jobs import sweep_overrides
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import build_evaluator, build_task, build_trainer, build_training
@@ -256,3 +256,5 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
 if __name__ == "__main__":
     sys.argv = inspect_sweep_argv(sys.argv)
     main()
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        exit_rank(0)  # a torchrun rank whose run is written: no interpreter teardown (runtime.exit_rank)
