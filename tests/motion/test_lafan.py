@@ -28,8 +28,21 @@ def _assert_guides(message: str, *fragments: str) -> None:
 
 
 def test_every_lafan_option_is_listed():
-    singles = [p.stem for p in (CONF / "motion").glob("lafan_*.yaml") if p.stem != "lafan_library"]
+    singles = [p.stem for p in (CONF / "motion").glob("lafan_*.yaml") if not p.stem.startswith("lafan_library")]
     assert sorted(singles) == sorted(OPTIONS)
+
+
+def test_the_40_clip_library_is_10000_bins_of_the_three_clips(monkeypatch):
+    """motion=lafan_library40 (issue 20's benchmark): 40 windows of 15 s inside the three clips
+    (dance1 131.5 s, walk1 256.9 s, run1 237.8 s), so 10,000 bins at sampler.bin_size_seconds=0.06."""
+    from bmimic.motion.library import library_entries
+
+    monkeypatch.setenv(LAFAN_ENV, "/data/lafan/g1")
+    entries = library_entries(compose(["motion=lafan_library40"]).motion)
+    length_s = {"dance1_subject1": 131.5, "walk1_subject1": 256.9, "run1_subject2": 237.8}
+    assert len(entries) == 40 and len({e.name for e in entries}) == 40
+    assert all(e.end_s - e.start_s == 15 and 0 <= e.start_s and e.end_s <= length_s[e.value] for e in entries)
+    assert round(sum(e.end_s - e.start_s for e in entries) / 0.06) == 10_000
 
 
 def test_the_lafan_library_lists_the_three_study_clips_in_full(monkeypatch):
