@@ -421,6 +421,19 @@ def cases() -> list[Case]:
     add(Case("sampler=uniform sampler.gamma=0.5", "train", _train("sampler=uniform", "sampler.gamma=0.5"),
              match="gamma"))
     add(Case("+sampler.alpha under adaptive", "train", _train("+sampler.alpha=0.5"), match="alpha"))
+    # the peer samplers (issue 24)
+    for args, key in ((("sampler=egm", "sampler.power_end=0"), "power_end"),
+                      (("sampler=egm", "sampler.uniform_start=1.5"), "uniform_start"),
+                      (("sampler=egm", "sampler.power_end=sharp"), "power_end"),
+                      (("sampler=gmt", "sampler.subclip_bins=0"), "subclip_bins"),
+                      (("sampler=gmt", "sampler.initial_level=0.5"), "initial_level"),
+                      (("sampler=gmt", "sampler.clip_balance=clips"), "clip_balance"),
+                      (("sampler=phc", "eval.every_iters=1", "sampler.mode=medium"), "sampler.mode"),
+                      (("sampler=phc", "eval.every_iters=0"), "eval.every_iters"),
+                      (("sampler=protomotions", "eval.every_iters=1", "sampler.failure_decay=2"), "failure_decay"),
+                      (("sampler=protomotions", "eval.every_iters=1", "sampler.min_weight=0"), "min_weight"),
+                      (("sampler=phc", "sampler.gamma=0.5"), "gamma")):
+        add(Case(" ".join(args), "train", _train(*args), match=key))
     # ---------------------------------------------------------------- ranges and meanings
     for arg, key in (
         ("num_envs=0", "num_envs"), ("num_envs=-3", "num_envs"), ("max_iterations=-1", "max_iterations"),
