@@ -65,8 +65,9 @@ class EGMConfig(SamplerConfig):
     """Uniform ratio u at iteration 0, in [0, 1]."""
     uniform_end: float = 0.1
     """Uniform ratio u after schedule_iterations, in [0, 1]."""
-    schedule_iterations: int = 2000
-    """Iterations over which tau and u move linearly from start to end (>= 1)."""
+    schedule_iterations: int = 1000
+    """Iterations over which tau and u move linearly from start to end (>= 1); the paper's schedule
+    spans training, so set it to the run's max_iterations."""
 
 
 @register_sampler("egm", EGMConfig)
@@ -78,7 +79,7 @@ class EGMSampler(BinSampler):
 
     def __init__(self, num_bins: int, ema: float = 0.1, weights: tuple[float, float, float] = (1.0, 0.1, 0.1),
                  power: tuple[float, float] = (0.5, 2.0), uniform: tuple[float, float] = (0.5, 0.1),
-                 schedule_iterations: int = 2000, device: Any = "cpu"):
+                 schedule_iterations: int = 1000, device: Any = "cpu"):
         super().__init__(num_bins, device=device)
         self.ema = float(ema)
         self.weights = tuple(float(w) for w in weights)
