@@ -301,3 +301,32 @@ def test_yaml_schema_and_constructor_defaults_agree(kind):
     plain = entry.cls(6).hparams()
     assert built == plain
     assert set(inspect.signature(entry.cls).parameters) >= {"num_bins", "device"}
+
+
+@pytest.mark.parametrize("kind", PEERS + ("adaptive", "uniform"))
+def test_starts_move_to_a_planted_hard_segment(kind):
+    """A planted answer: 3 clips of 20 bins; bins 25-29 (in clip 1) fail 80% of the episodes started
+    there with 6x the tracking error, every other bin 5%. After 150 simulated iterations (an evaluation
+    every 10, counted as ProtoMotions' default 200) every sampler gives those 5 bins more than 1.5x
+    their uniform share (5/60), each through its own signal."""
+    g = torch.Generator().manual_seed(0)
+    s = make_sampler(load_variant(kind), 60)
+    clips = torch.arange(60) // 20
+    s.set_clips(clips, clips * 20 + 19, 3)
+    hard = torch.zeros(60, dtype=torch.bool)
+    hard[25:30] = True
+    for it in range(150):
+        starts = s.sample(512, generator=g)
+        failed = torch.rand(512, generator=g) < torch.where(hard[starts], 0.8, 0.05)
+        episodes = torch.zeros(60, dtype=torch.float64).index_add_(0, starts, torch.ones(512, dtype=torch.float64))
+        failures = torch.zeros(60, dtype=torch.float64).index_add_(0, starts, failed.double())
+        s.update_counts(episodes, failures)
+        steps = episodes * 10
+        s.update_errors(steps * torch.where(hard, 0.3, 0.05).double().expand(len(ERROR_COMPONENTS), 60), steps)
+        if it % 10 == 9:  # an evaluation: clip 1 fails, the others rarely
+            s.observe_eval(torch.tensor([False, True, False]) | (torch.rand(3, generator=g) < 0.05), 200)
+    share = float(s.probabilities()[hard].sum())
+    if kind == "uniform":  # the control: nothing moves
+        assert math.isclose(share, 5 / 60, rel_tol=1e-12)
+    else:  # (ProtoMotions' floor caps clip 1 at 1 / (1 + 2/3) of the mass, a quarter of it on the hard bins: 0.15)
+        assert share > 1.5 * 5 / 60, share
