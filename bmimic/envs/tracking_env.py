@@ -183,7 +183,7 @@ class TrackingEnv(VecEnv):
         self.stats.step(self.state)
         dones = terminated | truncated
         if self.mode == "train":
-            self.accounting.track(self.state, self.time_steps, ~broken)  # no-op unless the sampler uses errors
+            self.accounting.track(self.state, self.time_steps, broken)  # no-op unless the sampler uses errors
             self.stats.end_episodes(dones, terminated, self.episode_length_buf)
             self.rewards.end_episodes(dones)
             # What ends now, counted in one pass: finished episodes (at this frame) and, for

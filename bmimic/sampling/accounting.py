@@ -31,7 +31,7 @@ The environment owns the reference state (frames, clip ends, resets); it calls o
    ``sampler.update_counts`` with them, and the pending total is cleared.
 
 For samplers that learn from tracking errors (``sampler.tracking_error``, e.g. ``egm`` and
-``gmt``), ``track(state, frames)`` in every step adds each env's errors
+``gmt``), ``track(state, frames, broken)`` in every step adds each env's errors
 (:data:`bmimic.sampling.base.ERROR_COMPONENTS`) to the bin of its current reference frame, and
 ``end_rollout`` hands the iteration's sums to ``sampler.update_errors`` (all-reduced first under
 torchrun), whatever ``update_every`` is. Other samplers skip it: the step pays nothing.
@@ -171,10 +171,10 @@ class EpisodeAccounting:
                                            counted=(dones | clip_end) & ~nonfinite)
         return torch.stack((episodes, failures)).to(torch.float64)
 
-    def track(self, state: Any, frames: torch.Tensor, valid: torch.Tensor) -> None:
+    def track(self, state: Any, frames: torch.Tensor, broken: torch.Tensor) -> None:
         """Add every env's tracking errors of this step to the bin of its reference frame (only when
         the sampler uses them). ``state``: the step's TrackingState; ``frames``: the reference frame
-        of each env; ``valid``: envs to count (not those reset as broken this step)."""
+        of each env; ``broken``: envs reset as broken this step (not counted)."""
         if not self.tracks_errors:
             return
         pos = (state.ref_body_pos_relative - state.robot_body_pos).norm(dim=-1)  # [N, bodies] m
@@ -185,7 +185,7 @@ class EpisodeAccounting:
             pos.amax(-1),
             torch.ones_like(pos[:, 0]),
         ))  # [components + 1, N]
-        per_env = torch.where(valid, per_env, 0.0)  # where, not a product: a broken world's NaN stays out
+        per_env = torch.where(broken, 0.0, per_env)  # where, not a product: a broken world's NaN stays out
         bins = self.layout.bins_of(frames)
         self._errors.index_add_(1, bins, per_env.to(torch.float64))
 

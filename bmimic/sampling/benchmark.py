@@ -119,7 +119,7 @@ def bench_sampler(
     clip_failed = torch.rand(max(num_clips, 1), generator=gen, device=dev) < 0.5
 
     def count() -> None:
-        acc.track(state, segment_start, ~never)
+        acc.track(state, segment_start, never)
         acc.record(acc.count(dones, never, end_frames, segment_start, terminated, never, length))
 
     def update() -> None:

@@ -47,5 +47,12 @@ def check_positive(key: str, x: Any) -> None:
         fail(key, "a finite number > 0", x)
 
 
-__all__ = ["SamplerConfigError", "check_choice", "check_fraction", "check_int_at_least", "check_positive", "fail",
+def check_nonnegative(key: str, x: Any) -> None:
+    """A finite number >= 0."""
+    if not (is_number(x) and 0.0 <= x < math.inf):
+        fail(key, "a finite number >= 0", x)
+
+
+__all__ = ["SamplerConfigError", "check_choice", "check_fraction", "check_int_at_least", "check_nonnegative",
+           "check_positive", "fail",
            "is_number"]

@@ -27,27 +27,14 @@ from typing import Any, Optional
 import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
-from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, fail
+from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, check_positive, fail
 from bmimic.sampling.config import SamplerConfig
 from bmimic.sampling.registry import register_sampler
-
-
-def check_nonneg(key: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
-        fail(key, "a finite number >= 0", value)
-
-
-def check_positive(key: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0 or value == float("inf"):
-        fail(key, "a finite number > 0", value)
 
 
 class GroupSampler(BinSampler):
     """A sampler whose weights live on groups of consecutive bins (clips or sub-clips); each group's
     share is spread evenly over its bins."""
-
-    per_clip = True
-    """Groups are clips (False: the subclass cuts clips into sub-clips)."""
 
     def __init__(self, num_bins: int, device: Any = "cpu"):
         super().__init__(num_bins, device=device)
@@ -59,6 +46,7 @@ class GroupSampler(BinSampler):
             fail("clip_balance", f"bins (the {cls.kind} sampler weights clips itself)", cfg.clip_balance)
 
     def _groups_of(self, bin_clip: torch.Tensor) -> torch.Tensor:
+        """The group of each bin: its clip (a subclass may cut clips finer)."""
         return bin_clip
 
     def _set_groups(self, bin_clip: torch.Tensor) -> None:
@@ -221,5 +209,4 @@ class ProtoMotionsSampler(GroupSampler):
         return {"weight": self._weight}
 
 
-__all__ = ["GroupSampler", "PHCConfig", "PHCSampler", "ProtoMotionsConfig", "ProtoMotionsSampler",
-           "check_nonneg", "check_positive"]
+__all__ = ["GroupSampler", "PHCConfig", "PHCSampler", "ProtoMotionsConfig", "ProtoMotionsSampler"]

@@ -35,9 +35,9 @@ from typing import Any
 import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
-from bmimic.sampling.checks import check_fraction, check_int_at_least, fail
+from bmimic.sampling.checks import check_fraction, check_int_at_least, check_nonnegative, check_positive, fail
 from bmimic.sampling.config import SamplerConfig
-from bmimic.sampling.peer_clips import GroupSampler, check_nonneg, check_positive
+from bmimic.sampling.peer_clips import GroupSampler
 from bmimic.sampling.registry import register_sampler
 
 
@@ -95,7 +95,7 @@ class EGMSampler(BinSampler):
     def check_config(cls, cfg: Any) -> None:
         check_fraction("ema", cfg.ema)
         for key in ("weight_body_pos", "weight_body_ori", "weight_body_lin_vel"):
-            check_nonneg(key, getattr(cfg, key))
+            check_nonnegative(key, getattr(cfg, key))
         if cfg.weight_body_pos + cfg.weight_body_ori + cfg.weight_body_lin_vel <= 0:
             fail("weight_body_pos", "weights whose sum is > 0", cfg.weight_body_pos)
         for key in ("power_start", "power_end"):
@@ -175,7 +175,6 @@ class GMTSampler(GroupSampler):
     """Completion levels per sub-clip, then the largest body error once mastered (module doc)."""
 
     tracking_error = True
-    per_clip = False
 
     def __init__(self, num_bins: int, subclip_bins: int = 10, initial_level: float = 10.0,
                  completion_decay: float = 0.99, min_level: float = 1.0, error_scale_m: float = 0.15,

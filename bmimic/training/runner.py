@@ -247,7 +247,7 @@ class Trainer:
         just run; under torchrun rank 0 (which evaluates) broadcasts it, so every rank's sampler
         stays the same."""
         accounting = self.env.accounting
-        if not getattr(accounting.sampler, "eval_driven", False):
+        if not accounting.sampler.eval_driven:
             return
         layout = accounting.layout
         failed = torch.zeros(layout.num_clips, dtype=torch.float32, device=self.env.device)

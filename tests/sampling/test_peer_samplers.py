@@ -186,7 +186,7 @@ def test_accounting_sums_errors_per_bin_of_the_current_frame_and_skips_broken_wo
     # env 0 at frame 5 (bin 0): bodies 0.3 m and 0.1 m off; env 1 at frame 25 (bin 2): 0.2 m, 0; env 2 broken
     ref = [[[0, 0, 0], [0, 0, 0]]] * 3
     robot = [[[0.3, 0, 0], [0, 0.1, 0]], [[0, 0, 0.2], [0, 0, 0]], [[float("nan"), 0, 0], [0, 0, 0]]]
-    acc.track(_state(ref, robot), torch.tensor([5, 25, 15]), torch.tensor([True, True, False]))
+    acc.track(_state(ref, robot), torch.tensor([5, 25, 15]), torch.tensor([False, False, True]))
     acc.end_rollout()
     sums, steps = rec.calls[0]
     np.testing.assert_allclose(steps.numpy(), [1, 0, 1])
@@ -201,7 +201,7 @@ def test_accounting_measures_nothing_for_samplers_without_errors():
     layout = SimpleNamespace(num_bins=2, bins_of=lambda f: f)
     acc = EpisodeAccounting(make_sampler(load_variant("adaptive"), 2), layout, num_envs=1, max_episode_length=10)
     assert not acc.tracks_errors
-    acc.track(None, torch.tensor([0]), torch.tensor([True]))  # returns before reading the state
+    acc.track(None, torch.tensor([0]), torch.tensor([False]))  # returns before reading the state
 
 
 def test_clips_failed_from_an_evaluation_table():
@@ -275,7 +275,7 @@ def test_peer_hot_path_has_no_host_sync(kind):
     torch.cuda.set_sync_debug_mode("error")
     try:
         acc.start_episodes(done, s.sample(n, generator=g))
-        acc.track(state, frames, ~done)
+        acc.track(state, frames, done)
         acc.record(acc.count(done, done & ~done, frames, frames, done, done & ~done, frames % 500))
         acc.end_rollout()
         s.observe_eval(torch.rand(1, device=dev, generator=g) < 0.5, 100)
