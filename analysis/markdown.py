@@ -84,9 +84,10 @@ def cell(summary: pd.DataFrame, arm: str, metric: str) -> str:
 
 
 def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: str, at: str,
-                 opts: ReportOptions) -> list[str]:
+                 opts: ReportOptions, noun: str | None = None) -> list[str]:
     """Which arm has the lowest ``metric``, and for every other arm the difference and its p-value.
-    Arms whose points are exactly equal to the lowest tie: no winner is named."""
+    Arms whose points are exactly equal to the lowest tie: no winner is named. ``noun``: ``what`` as
+    it reads after "Lowest" (default: lower-cased)."""
     rows = summary[summary["metric"] == metric]
     if not len(rows):
         return [f"- {what}: no arm has a value yet."]
@@ -99,7 +100,7 @@ def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: st
         lines = [f"- {what} ({at}): {', '.join(f'`{a}`' for a in sorted(tied))} tie at "
                  f"{fmt(comp['best_point'].iloc[0])}: no winner."]
     else:
-        lines = [f"- Lowest {what.lower()} ({at}): **`{best}`** {cell(summary, best, metric)}."]
+        lines = [f"- Lowest {noun or what.lower()} ({at}): **`{best}`** {cell(summary, best, metric)}."]
     for r in comp[comp["difference"] != 0].itertuples(index=False):
         verdict = (f"a difference at the {opts.alpha:g} level" if r.claim
                    else f"no difference shown at the {opts.alpha:g} level")
@@ -238,6 +239,15 @@ def arms_view(summary: pd.DataFrame, time_df: pd.DataFrame, per_run: dict, at: s
     view["bins mastered"] = [cell(summary, a, "bins_mastered") for a in arms]
     for m in ("iteration", "env_steps", "wall_time_s"):
         view[f"{MEASURE_WORDS[m]} to threshold (median)"] = [time_cell(time_df, a, m) for a in arms]
+    return pd.DataFrame(view)
+
+
+def tracking_view(summary: pd.DataFrame, metrics: dict[str, str]) -> pd.DataFrame:
+    """The Tracking quality table: per arm (rows) each ``final_<error>`` of ``metrics`` (column -> label)."""
+    arms = sorted(set(summary["arm"]))
+    view = {"arm": arms}
+    for col, label in metrics.items():
+        view[label] = [cell(summary, a, f"final_{col}") for a in arms]
     return pd.DataFrame(view)
 
 

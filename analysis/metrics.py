@@ -240,6 +240,39 @@ def final_rows(df: pd.DataFrame, by=("run_dir",)) -> pd.DataFrame:
     return df[df["iteration"] == last].reset_index(drop=True)
 
 
+ERROR_METRICS = {
+    "mpkpe_rel_mm": "root-relative MPKPE (mm)",
+    "mpkpe_mm": "global MPKPE (mm)",
+    "joint_pos_err_rad": "joint position error (rad)",
+    "joint_vel_err_radps": "joint velocity error (rad/s)",
+    "body_ori_err_rad": "body orientation error (rad)",
+    "ee_pos_err_mm": "end-effector position error (mm)",
+}
+"""eval.parquet tracking-error column -> label (lower is better), in the order the report shows them."""
+
+
+def tracking_errors(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
+    """Step-weighted mean tracking errors per run and evaluation: ``by + [iteration, env_steps, <error>...]``.
+
+    Each bin's error is a mean over the steps the evaluation episodes spent at its frames
+    (``eval_steps``), so the run's error is the ``eval_steps``-weighted mean over bins, the run's own
+    ``eval_<error>`` (bmimic.training.evaluation.summarize). Steps after an episode failed are not
+    measured: an arm that fails more is measured over fewer steps. Empty when the table has no errors.
+    """
+    by = list(by)
+    cols = [c for c in ERROR_METRICS if c in eval_df.columns]
+    if not cols or "eval_steps" not in eval_df.columns or not len(eval_df):
+        return pd.DataFrame(columns=[*by, "iteration", "env_steps"])
+    w = eval_df["eval_steps"].astype(float).where(lambda x: x > 0, 0.0)
+    parts = eval_df[cols].astype(float).mul(w, axis=0).where(w > 0, 0.0)
+    frame = pd.concat([eval_df[[*by, "iteration", "env_steps"]], parts, w.rename("_steps")], axis=1)
+    g = frame.groupby([*by, "iteration"], sort=True).agg({"env_steps": "max", "_steps": "sum",
+                                                          **{c: "sum" for c in cols}}).reset_index()
+    for c in cols:
+        g[c] = g[c] / g["_steps"].where(g["_steps"] > 0)
+    return g.drop(columns="_steps")
+
+
 def at_budget(df: pd.DataFrame, measure: str, budget: float, by=("run_dir",)) -> pd.DataFrame:
     """Each group's rows of its last evaluation with ``measure <= budget`` (groups with none are left out)."""
     by = list(by)

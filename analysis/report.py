@@ -37,11 +37,15 @@ from analysis.markdown import (
     runs_section,
     segment_view,
     speedup_text,
+    tracking_view,
     winner_text,
 )
-from analysis.metrics import bin_table
+from analysis.metrics import ERROR_METRICS, bin_table, tracking_errors
 from analysis.stats import MIN_SEEDS_IQM
 from analysis.tables import ReportOptions
+
+TRACKING_HEADLINE = ("mpkpe_rel_mm", "joint_vel_err_radps")
+"""Errors the Tracking quality section compares between arms in words (accuracy and smoothness)."""
 
 
 def default_out(paths: list[Path]) -> Path:
@@ -108,7 +112,8 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     times = bin_tables.run_times(overall, opts)
     time_df = bin_tables.time_summary(times)
     budget = tables.budgets(runs, train)
-    per_run = tables.per_run_metrics(runs, overall, robust_overall, mastery_seed_df, budget)
+    errors = tracking_errors(eval_df)
+    per_run = tables.per_run_metrics(runs, overall, robust_overall, mastery_seed_df, budget, errors)
     summary = tables.summary(per_run, runs, opts)
     overview = tables.arm_overview(summary, time_df)
     common = tables.common_budget(overall)
@@ -160,7 +165,11 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     write_csv(out / "summary.csv", summary)
     comp = tables.comparisons(per_run, "final_failure", opts)
     comp_robust = tables.comparisons(per_run, "final_failure_robust", opts)
-    write_csv(out / "comparisons.csv", pd.concat([comp, comp_robust], ignore_index=True))
+    shown = {c: label for c, label in ERROR_METRICS.items() if f"final_{c}" in per_run}
+    comp_errors = {c: tables.comparisons(per_run, f"final_{c}", opts) for c in shown}
+    write_csv(out / "comparisons.csv", pd.concat([comp, comp_robust, *comp_errors.values()], ignore_index=True))
+    if len(errors):
+        write_csv(out / "tracking_errors.csv", errors)
 
     md += ["## Summary", "", *winner_text(comp, summary, "final_failure", "Final overall failure", at, opts)]
     if "final_failure_robust" in per_run:
@@ -177,6 +186,15 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
                                        "baseline median / each arm seed)"))
         md += speedup_text(speed, per_bin, time_df, baseline, opts)
     md += ["", "## Arms", "", md_table(arms_view(summary, time_df, per_run, at)), ""]
+    if shown:
+        md += ["## Tracking quality", "", f"Step-weighted mean errors of the evaluation at {at}, over the steps the "
+               "evaluation episodes were alive (an arm that fails more is measured over fewer steps); lower is "
+               "better.", "", md_table(tracking_view(summary, shown)), ""]
+        for c in TRACKING_HEADLINE:
+            if c in comp_errors:
+                md += winner_text(comp_errors[c], summary, f"final_{c}", shown[c][0].upper() + shown[c][1:], at, opts,
+                                  noun=shown[c])
+        md.append("")
 
     seg = bin_tables.segment_failure(eval_df, bins, mastery_df, segments, runs, opts)
     if len(seg):

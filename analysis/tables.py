@@ -16,6 +16,7 @@ import pandas as pd
 
 from analysis import AnalysisError
 from analysis.metrics import (
+    ERROR_METRICS,
     at_budget,
     overall_failure,
 )
@@ -224,7 +225,7 @@ def summary_rows(arm: str, metric: str, per_run: pd.DataFrame, value: str, boot:
     }
 
 
-def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget) -> dict[str, pd.DataFrame]:
+def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors=None) -> dict[str, pd.DataFrame]:
     """metric -> one row per run (``run_dir, arm, seed, value``): the per-seed numbers summary.csv is over.
 
     - ``final_failure``: overall failure at the last evaluation iteration every run has;
@@ -232,7 +233,9 @@ def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget) -> dic
       steps per iteration);
     - ``final_failure_robust``: the last robust evaluation (eval_robust.parquet), where present;
     - ``bins_mastered``: bins the run mastered (persistent, counts_as_mastered);
-    - ``iterations``, ``env_steps``, ``wall_time_s``: what the run completed.
+    - ``iterations``, ``env_steps``, ``wall_time_s``: what the run completed;
+    - ``final_<error>`` for each metrics.ERROR_METRICS column of ``errors`` (metrics.tracking_errors):
+      the step-weighted tracking error at the same evaluation as ``final_failure``.
     """
     out = {}
     keep = ["run_dir", "arm", "seed"]
@@ -249,6 +252,11 @@ def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget) -> dic
     if len(mastery_seeds):
         m = mastery_seeds.groupby(keep, dropna=False)["mastered"].sum().reset_index()
         out["bins_mastered"] = m[keep].assign(value=m["mastered"].astype(float).to_numpy())
+    if errors is not None and len(errors) and len(overall):
+        f = at_budget(errors, "iteration", common_budget(overall)["iteration"])
+        for col in ERROR_METRICS:
+            if col in f and f[col].notna().any():
+                out[f"final_{col}"] = f[keep].assign(value=f[col].to_numpy(dtype=float)).dropna(subset=["value"])
     for col in ("iterations", "env_steps", "wall_time_s"):
         if len(budget):
             out[col] = budget[keep].assign(value=budget[col].astype(float).to_numpy())

@@ -25,6 +25,7 @@ from analysis.metrics import (
     mastery_per_seed,
     speedup,
     time_to_threshold,
+    tracking_errors,
 )
 from analysis.report import build_report, main
 from analysis.stats import (
@@ -485,6 +486,43 @@ def test_equal_env_steps_comparison_only_when_steps_per_iteration_differ():
     m = per_run_metrics(None, both, None, pd.DataFrame(), pd.DataFrame())
     assert m["final_failure"].set_index("arm")["value"].to_dict() == {"a": 0.0, "b": 0.5}
     assert m["final_failure_equal_env_steps"].set_index("arm")["value"].to_dict() == {"a": 0.0, "b": 0.75}
+
+
+def test_tracking_errors_are_weighted_by_the_steps_measured():
+    # Bin 2 was never reached (0 steps, errors NaN): it must not dilute or poison the mean.
+    e = pd.DataFrame({"run_dir": "r", "arm": "a", "seed": 0, "iteration": [5, 5, 5, 10, 10, 10],
+                      "env_steps": [50, 50, 50, 100, 100, 100], "bin": [0, 1, 2] * 2,
+                      "eval_steps": [1, 3, 0, 2, 2, 0], "mpkpe_rel_mm": [10.0, 20.0, np.nan, 30.0, 50.0, np.nan],
+                      "joint_vel_err_radps": [1.0, 2.0, np.nan, 1.0, 1.0, np.nan]})
+    t = tracking_errors(e).set_index("iteration")
+    assert t.loc[5, "mpkpe_rel_mm"] == pytest.approx(17.5) and t.loc[5, "joint_vel_err_radps"] == pytest.approx(1.75)
+    assert t.loc[10, "mpkpe_rel_mm"] == pytest.approx(40.0) and t.loc[10, "env_steps"] == 100
+    assert "mpkpe_mm" not in t  # only the error columns the table has
+    assert tracking_errors(e.drop(columns="eval_steps")).empty  # tables without step counts: no errors
+
+
+def test_tracking_quality_names_the_planted_winner_of_each_error(tmp_path):
+    # Arm `a` tracks closer (root-relative MPKPE 40 vs 45 mm), arm `b` has the smaller joint-velocity
+    # error (0.9 vs 1.0 rad/s), 5 seeds each: each error's winner is named with a significant difference.
+    for arm, mpkpe, jvel in (("a", 40.0, 1.0), ("b", 45.0, 0.9)):
+        for seed in range(5):
+            run = write_run(tmp_path / f"env={arm}" / f"seed={seed}", sampler="adaptive", seed=seed,
+                            overrides=[f"env={arm}"], mastery=[10, 20, 30, 40])
+            e = pd.read_parquet(run / "eval.parquet")
+            e["eval_steps"] = 100
+            e["mpkpe_rel_mm"] = mpkpe + 0.1 * seed
+            e["joint_vel_err_radps"] = jvel + 0.01 * seed
+            e.to_parquet(run / "eval.parquet", index=False)
+    out = build_report([tmp_path], tmp_path / "report", ReportOptions(n_resamples=RESAMPLES))
+    md = (out / "report.md").read_text()
+    section = md.split("## Tracking quality")[1].split("\n## ")[0]
+    assert "| env=a | 40.2 " in section and "| env=b | 45.2 " in section
+    assert "Lowest root-relative MPKPE (mm) (iteration 60, the last evaluation every run has): **`env=a`**" in section
+    assert "Lowest joint velocity error (rad/s) (iteration 60, the last evaluation every run has): **`env=b`**" in section
+    assert section.count("a difference at the 0.05 level") == 2
+    comp = pd.read_csv(out / "comparisons.csv").set_index("metric")
+    assert comp.loc["final_mpkpe_rel_mm", "best"] == "env=a" and comp.loc["final_joint_vel_err_radps", "best"] == "env=b"
+    assert set(pd.read_csv(out / "tracking_errors.csv")["iteration"]) == set(range(0, 61, 5))
 
 
 def test_plural():
