@@ -143,10 +143,12 @@ def test_reward_terms_are_overridable():
     assert cfg.env.rewards.alive.func == "is_alive" and cfg.env.rewards.alive.weight == 1.0
     validate(cfg, motion_duration_s=30.0)
     assert _resolved([]).env.rewards.alive.weight == 0.0  # not a BeyondMimic term: off by default
-    # The default MDP differs from BeyondMimic's only in the action-rate weight; env=beyondmimic restores it.
-    default, published = _resolved([]).env, _resolved(["env=beyondmimic"]).env
-    assert default.rewards.action_rate.weight == -0.01 and published.rewards.action_rate.weight == -0.1
-    published.rewards.action_rate.weight = -0.01
-    assert published == default
+    # The default MDP is BeyondMimic's as published (issue 22); env=tracking differs only in the
+    # action-rate weight.
+    default, lighter = _resolved([]).env, _resolved(["env=tracking"]).env
+    assert default == _resolved(["env=beyondmimic"]).env
+    assert default.rewards.action_rate.weight == -0.1 and lighter.rewards.action_rate.weight == -0.01
+    lighter.rewards.action_rate.weight = -0.1
+    assert lighter == default
     with pytest.raises(ConfigError, match="env.rewards.alive.func"):
         validate(_resolved(["env.rewards.alive.func=is_alivee"]), motion_duration_s=30.0)
