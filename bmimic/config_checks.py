@@ -186,6 +186,18 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         validate_sampler_config(cfg.sampler, motion_duration_s)
 
 
+def advisories(cfg: Any) -> list[str]:
+    """Lines worth a warning in a config that validates: settings that are legal but make a run
+    measure less than its user likely meant (call after the runtime defaults are resolved)."""
+    notes = []
+    every, budget = cfg.eval.every_iters, cfg.max_iterations
+    if _eval_driven(getattr(cfg.sampler, "kind", None)) and budget is not None and every >= budget > 0:
+        notes.append(f"sampler={cfg.sampler.name} learns only from the periodic evaluation, which runs every "
+                     f"eval.every_iters={every} iterations: with max_iterations={budget} it starts every "
+                     "episode uniformly for the whole run")
+    return notes
+
+
 def _eval_driven(kind: Any) -> bool:
     """Whether the registered sampler `kind` learns from the periodic evaluation (phc, protomotions)."""
     from bmimic.sampling.registry import SAMPLERS

@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic.cli_common import first_line, user_errors
 from bmimic.config import resolve_runtime, with_schema_defaults
-from bmimic.config_checks import check_composed, validate
+from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.run_folder import RunLockedError, read_metrics, read_status, write_metrics, write_status
 from bmimic.runtime import exit_rank, init_distributed, resolve_device, seed_everything
@@ -66,6 +66,9 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
     resolve_runtime(cfg, device)
     validate(cfg)
+    if rank == 0:
+        for note in advisories(cfg):
+            log.warning(note)
     smoke = not device.startswith("cuda") and smoke_defaults
     main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
     plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint))

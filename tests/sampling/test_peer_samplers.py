@@ -239,6 +239,23 @@ def test_eval_driven_sampler_needs_the_periodic_evaluation():
         validate(cfg, motion_duration_s=30.0)
 
 
+def test_an_evaluation_interval_beyond_the_budget_is_flagged_for_eval_driven_samplers():
+    from bmimic.config import resolve_runtime
+    from bmimic.config_checks import advisories
+    from tests.conftest import compose
+
+    def notes(*overrides):
+        cfg = compose(list(overrides))
+        resolve_runtime(cfg, "cpu")
+        return advisories(cfg)
+
+    (note,) = notes("sampler=phc", "eval.every_iters=100", "max_iterations=50")
+    assert "sampler=phc" in note and "eval.every_iters=100" in note and "max_iterations=50" in note
+    assert len(notes("sampler=protomotions", "eval.every_iters=4", "max_iterations=4")) == 1  # only at the end
+    assert notes("sampler=phc", "eval.every_iters=2", "max_iterations=4") == []
+    assert notes("sampler=uniform", "eval.every_iters=100", "max_iterations=4") == []  # not eval-driven
+
+
 # ---------------------------------------------------------------------------------------------- end to end
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", PEERS)
