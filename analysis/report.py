@@ -122,7 +122,7 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     md += budget_section(budget, opts)
     md += evaluation_notes(eval_df, bins)
 
-    per_seed_curves = tables.seed_curves(train, overall, opts)
+    per_seed_curves = tables.seed_curves(train, overall, opts, errors)
     curves = tables.learning_curves(per_seed_curves, runs, opts)
     write_csv(out / "curves.csv", curves)
     figures = []

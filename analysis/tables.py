@@ -74,8 +74,9 @@ CURVE_METRICS = {
     "mean_episode_length": ("train_metrics", "mean episode length (steps)"),
     "mean_reward": ("train_metrics", "mean reward"),
     "eval_failure_rate": ("eval", "evaluated overall failure rate"),
+    "eval_mpkpe_rel_mm": ("errors", "evaluated root-relative MPKPE (mm)"),
 }
-"""Learning-curve metric -> (source table, axis label)."""
+"""Learning-curve metric -> (source table, axis label); ``errors`` is metrics.tracking_errors."""
 
 SUMMARY_COLUMNS = ["arm", "n_seeds", "metric", "mean", "iqm", "ci_low", "ci_high", "ci_method", "per_seed"]
 """Columns of summary.csv: one row per arm and metric."""
@@ -132,12 +133,16 @@ def thin_iterations(iterations, max_points: int) -> np.ndarray:
     return its[keep]
 
 
-def seed_curves(train: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+def seed_curves(train: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions,
+                errors: pd.DataFrame | None = None) -> pd.DataFrame:
     """Per-run curves ``arm, run_dir, seed, metric, iteration, value`` for every CURVE_METRICS entry
     (training metrics at most ``max_curve_points`` iterations): the thin lines of the figures."""
     frames = []
+    sources = {"train_metrics": train, "eval": overall.rename(columns={"failure_rate": "eval_failure_rate"}),
+               "errors": (errors if errors is not None else pd.DataFrame()).rename(
+                   columns={"mpkpe_rel_mm": "eval_mpkpe_rel_mm"})}
     for metric, (source, _) in CURVE_METRICS.items():
-        df = train if source == "train_metrics" else overall.rename(columns={"failure_rate": metric})
+        df = sources[source]
         if not len(df) or metric not in df:
             continue
         if source == "train_metrics":

@@ -523,6 +523,8 @@ def test_tracking_quality_names_the_planted_winner_of_each_error(tmp_path):
     comp = pd.read_csv(out / "comparisons.csv").set_index("metric")
     assert comp.loc["final_mpkpe_rel_mm", "best"] == "env=a" and comp.loc["final_joint_vel_err_radps", "best"] == "env=b"
     assert set(pd.read_csv(out / "tracking_errors.csv")["iteration"]) == set(range(0, 61, 5))
+    curve = pd.read_csv(out / "curves.csv").query("metric == 'eval_mpkpe_rel_mm'").groupby("arm")["point"].max()
+    assert curve.to_dict() == pytest.approx({"env=a": 40.2, "env=b": 45.2}) and (out / "curve_eval_mpkpe_rel_mm.png").is_file()
 
 
 def test_plural():
