@@ -23,5 +23,5 @@ def user_errors() -> tuple[type[BaseException], ...]:
 def add_trust_flag(p: argparse.ArgumentParser) -> None:
     """Add --trust-checkpoint to a command's parser."""
     p.add_argument("--trust-checkpoint", action="store_true",
-                   help="unpickle a checkpoint that torch.load(weights_only=True) refuses; only for checkpoints "
-                        "you wrote yourself (bmimic checkpoint format 1): a shared one could run code")
+                   help="also read bmimic checkpoint format 1 (pickled numpy RNG state), still weights-only: "
+                        "numpy arrays are admitted, any other global is refused")

@@ -76,9 +76,8 @@ class TrainConfig:
     in the run's resumes.json. Budget and logistics keys (max_iterations, time_limit_s, device, logger,
     progress_bar, ...: bmimic.training.resume.RESUME_FREE_KEYS) never need naming."""
     trust_checkpoint: bool = False
-    """Load a resume checkpoint with full unpickling when torch.load(weights_only=True) refuses it:
-    only for checkpoints you wrote yourself (bmimic checkpoint format 1). A shared checkpoint can run
-    code this way."""
+    """Also read a resume checkpoint of bmimic format 1 (pickled numpy RNG state), still with
+    torch.load(weights_only=True): numpy's array reconstruction is admitted, any other global refused."""
     logger: str = "tensorboard"
     """`tensorboard`, `wandb` (offline-capable via WANDB_MODE) or `none`."""
     wandb_project: str = "bmimic"

@@ -27,7 +27,7 @@ log = logging.getLogger("bmimic.export")
 
 def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False) -> list[Path]:
     """Export the run's latest checkpoint (or the given one); returns the written files. `trust`
-    (--trust-checkpoint) unpickles a format-1 checkpoint of your own, as bmimic.eval does."""
+    (--trust-checkpoint) also reads a format-1 checkpoint (still weights-only), as bmimic.eval does."""
     from bmimic.evaluation.saved_run import load_run
     from bmimic.task import build_evaluator
     from bmimic.training.checkpoints import load_checkpoint_file

@@ -1,7 +1,8 @@
 """Checkpoint files: the format, the safe reader and the atomic writer.
 
 Checkpoints are read only with `torch.load(weights_only=True)`: loading a shared checkpoint never
-runs code. Where they lie and what they are called is bmimic.run_folder's business.
+runs code, trusted or not (a trusted format-1 file only widens the allowlist by numpy's array
+reconstruction). Where they lie and what they are called is bmimic.run_folder's business.
 """
 
 from __future__ import annotations
@@ -19,6 +20,9 @@ CHECKPOINT_FORMAT = "bmimic-checkpoint-2"
 """Tensors and plain values only: readable with torch.load(weights_only=True)."""
 LEGACY_CHECKPOINT_FORMATS = ("bmimic-checkpoint-1",)
 """Written by earlier bmimic versions with pickled numpy RNG states: they load only when trusted."""
+LEGACY_GLOBALS = ("numpy.dtype", "numpy.ndarray", "numpy._core.multiarray._reconstruct",
+                  "numpy.core.multiarray._reconstruct", "numpy.dtypes.UInt32DType")
+"""The globals a format-1 checkpoint's numpy RNG state needs: they rebuild arrays and run no code."""
 
 
 class CheckpointError(BmimicError):
@@ -39,9 +43,9 @@ def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
 def load_checkpoint_file(path: str | os.PathLike, map_location: str = "cpu", trust: bool = False) -> dict:
     """The checkpoint dict at `path`, read with `weights_only=True` (nothing in it can run code).
 
-    `trust=True` (`--trust-checkpoint`, `trust_checkpoint=true`) falls back to a full unpickling for a
-    file refused for its globals: only for checkpoints you wrote yourself, e.g. format-1 checkpoints
-    of earlier bmimic versions. Raises CheckpointError / UnsafeCheckpointError with one line.
+    `trust=True` (`--trust-checkpoint`, `trust_checkpoint=true`) reads a file refused for its globals
+    when they are all LEGACY_GLOBALS (format-1 checkpoints of earlier bmimic versions), still with
+    `weights_only=True`. Raises CheckpointError / UnsafeCheckpointError with one line.
     """
     import torch
 
@@ -59,15 +63,41 @@ def load_checkpoint_file(path: str | os.PathLike, map_location: str = "cpu", tru
                 f"{path}: refused: its pickle needs the global {found.group(1)}, which loading would run as "
                 "code; if you wrote this checkpoint yourself (bmimic before checkpoint format 2), load it "
                 "with --trust-checkpoint (eval, play) or trust_checkpoint=true (train resume)") from None
-        try:
-            state = torch.load(path, map_location=map_location, weights_only=False)
-        except Exception as e2:  # noqa: BLE001 - any reader failure is "cannot read this file"
-            raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(e2)})") from None
+        state = _load_legacy(path, map_location)
     except Exception as e:  # noqa: BLE001 - truncated zip, empty file, not a torch file, I/O error
         raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(e)})") from None
     if not isinstance(state, dict) or "actor_state_dict" not in state:
         raise CheckpointError(f"{path}: not an rsl-rl/bmimic checkpoint (no actor_state_dict)")
     return state
+
+
+def _load_legacy(path: Path, map_location: str) -> dict:
+    """A trusted file refused for its globals, read with weights_only=True and LEGACY_GLOBALS allowed;
+    a file needing any other global is refused even when trusted."""
+    import importlib
+
+    import torch
+
+    try:
+        needed = torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    except Exception as e:  # noqa: BLE001 - any reader failure is "cannot read this file"
+        raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(e)})") from None
+    other = sorted(set(needed) - set(LEGACY_GLOBALS))
+    if other:
+        raise UnsafeCheckpointError(f"{path}: refused even with trust: its pickle needs {', '.join(other)}, which "
+                                    "no bmimic checkpoint contains and loading would run as code")
+    allowed = []  # all of them: the dtype classes are asked for only while loading
+    for name in LEGACY_GLOBALS:
+        module, _, attr = name.rpartition(".")
+        try:
+            allowed.append(getattr(importlib.import_module(module), attr))
+        except (ImportError, AttributeError):  # numpy 1 has no numpy._core, numpy 2 warns on numpy.core
+            continue
+    try:
+        with torch.serialization.safe_globals(allowed):
+            return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any reader failure is "cannot read this file"
+        raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(e)})") from None
 
 
 def _first_line(e: BaseException) -> str:

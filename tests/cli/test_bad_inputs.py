@@ -823,6 +823,10 @@ def test_crafted_checkpoint_is_refused_by_every_loader(tmp_path) -> None:
         load_checkpoint_file(path)
     assert "\n" not in str(err.value) and ("builtins.open" in str(err.value) or "io.open" in str(err.value))
     assert not ws.sentinel.exists()
+    # Trust admits format-1 checkpoints (numpy arrays), never a global that would run code.
+    with pytest.raises(UnsafeCheckpointError, match="even with trust"):
+        load_checkpoint_file(path, trust=True)
+    assert not ws.sentinel.exists()
 
 
 def test_absurd_num_envs_is_refused_before_allocating(tmp_path) -> None:
