@@ -263,8 +263,8 @@ def tracking_errors(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     cols = [c for c in ERROR_METRICS if c in eval_df.columns]
     if not cols or "eval_steps" not in eval_df.columns or not len(eval_df):
         return pd.DataFrame(columns=[*by, "iteration", "env_steps"])
-    w = eval_df["eval_steps"].astype(float).where(lambda x: x > 0, 0.0)
-    parts = eval_df[cols].astype(float).mul(w, axis=0).where(w > 0, 0.0)
+    w = eval_df["eval_steps"].astype(float).clip(lower=0.0)
+    parts = eval_df[cols].astype(float).mul(w, axis=0).where(w > 0, 0.0)  # a bin never reached has NaN errors
     frame = pd.concat([eval_df[[*by, "iteration", "env_steps"]], parts, w.rename("_steps")], axis=1)
     g = frame.groupby([*by, "iteration"], sort=True).agg({"env_steps": "max", "_steps": "sum",
                                                           **{c: "sum" for c in cols}}).reset_index()
