@@ -133,6 +133,8 @@ def resolve_runtime(cfg, device: str) -> None:
         cfg.num_envs = GPU_DEFAULT_NUM_ENVS if on_gpu else CPU_DEFAULT_NUM_ENVS
     if cfg.max_iterations is None:
         cfg.max_iterations = cfg.ppo.max_iterations if on_gpu else CPU_DEFAULT_MAX_ITERATIONS
+    if "schedule_iterations" in cfg.sampler and cfg.sampler.schedule_iterations is None:
+        cfg.sampler.schedule_iterations = cfg.max_iterations  # EGM: a schedule that spans training
     if cfg.eval.episodes_per_bin is None:
         cfg.eval.episodes_per_bin = 32 if on_gpu else 1
 

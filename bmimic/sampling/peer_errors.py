@@ -30,7 +30,7 @@ spread evenly over the sub-clip's |i| bins (uniform while every s is 0).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Optional
 
 import torch
 
@@ -39,6 +39,9 @@ from bmimic.sampling.checks import check_fraction, check_int_at_least, check_non
 from bmimic.sampling.config import SamplerConfig
 from bmimic.sampling.peer_clips import GroupSampler
 from bmimic.sampling.registry import register_sampler
+
+UNSET_SCHEDULE_ITERATIONS = 1000
+"""EGM's schedule length where no run's max_iterations fills a null ``schedule_iterations``."""
 
 
 # ------------------------------------------------------------------------------------------------ EGM
@@ -65,9 +68,10 @@ class EGMConfig(SamplerConfig):
     """Uniform ratio u at iteration 0, in [0, 1]."""
     uniform_end: float = 0.1
     """Uniform ratio u after schedule_iterations, in [0, 1]."""
-    schedule_iterations: int = 1000
-    """Iterations over which tau and u move linearly from start to end (>= 1); the paper's schedule
-    spans training, so set it to the run's max_iterations."""
+    schedule_iterations: Optional[int] = None
+    """Iterations over which tau and u move linearly from start to end (>= 1); null: the run's
+    max_iterations (the paper's schedule spans training; filled by bmimic.config.resolve_runtime),
+    or UNSET_SCHEDULE_ITERATIONS where no run exists (benchmarks, unit tests)."""
 
 
 @register_sampler("egm", EGMConfig)
@@ -102,13 +106,15 @@ class EGMSampler(BinSampler):
             check_positive(key, getattr(cfg, key))
         for key in ("uniform_start", "uniform_end"):
             check_fraction(key, getattr(cfg, key), closed_below=True)
-        check_int_at_least("schedule_iterations", cfg.schedule_iterations, 1)
+        if cfg.schedule_iterations is not None:
+            check_int_at_least("schedule_iterations", cfg.schedule_iterations, 1)
 
     @classmethod
     def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "EGMSampler":
         return cls(num_bins, ema=cfg.ema, weights=(cfg.weight_body_pos, cfg.weight_body_ori, cfg.weight_body_lin_vel),
                    power=(cfg.power_start, cfg.power_end), uniform=(cfg.uniform_start, cfg.uniform_end),
-                   schedule_iterations=cfg.schedule_iterations, device=device)
+                   schedule_iterations=(UNSET_SCHEDULE_ITERATIONS if cfg.schedule_iterations is None
+                                        else cfg.schedule_iterations), device=device)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         pass  # EGM learns from tracking errors only

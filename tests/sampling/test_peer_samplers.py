@@ -16,6 +16,7 @@ from bmimic.sampling import EGMSampler, EpisodeAccounting, GMTSampler, PHCSample
 from bmimic.sampling.base import ERROR_COMPONENTS
 from bmimic.sampling.checks import SamplerConfigError
 from bmimic.sampling.config import load_variant, make_sampler, validate_sampler_config
+from bmimic.sampling.peer_errors import UNSET_SCHEDULE_ITERATIONS
 from bmimic.training.evaluation import clips_failed
 from tests.conftest import TINY, train_in_process
 
@@ -226,6 +227,19 @@ def test_egm_range_checks(key, value):
     setattr(cfg, key, value)
     with pytest.raises(SamplerConfigError, match=key):
         validate_sampler_config(cfg)
+
+
+def test_egm_schedule_spans_the_run_unless_set():
+    from bmimic.config import resolve_runtime
+    from tests.conftest import compose
+
+    cfg = compose(["sampler=egm", "max_iterations=600"])
+    resolve_runtime(cfg, "cpu")
+    assert cfg.sampler.schedule_iterations == 600
+    cfg = compose(["sampler=egm", "max_iterations=600", "sampler.schedule_iterations=50"])
+    resolve_runtime(cfg, "cpu")
+    assert cfg.sampler.schedule_iterations == 50
+    assert make_sampler(load_variant("egm"), 3).schedule_iterations == UNSET_SCHEDULE_ITERATIONS
 
 
 def test_eval_driven_sampler_needs_the_periodic_evaluation():
