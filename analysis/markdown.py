@@ -109,6 +109,23 @@ def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: st
     return lines
 
 
+def baseline_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: str, at: str,
+                  opts: ReportOptions) -> list[str]:
+    """Every arm's ``metric`` against the baseline's (:func:`analysis.tables.baseline_comparisons`)."""
+    if not len(comp):
+        return []
+    base = comp["baseline"].iloc[0]
+    lines = [f"- {what} against the baseline `{base}` {cell(summary, base, metric)} ({at}; two-sided "
+             f"permutation tests over seeds, one per arm, uncorrected for the {len(comp)} tests):"]
+    for r in comp.itertuples(index=False):
+        word = "lower" if r.difference < 0 else "higher" if r.difference > 0 else "equal"
+        verdict = (f"a difference at the {opts.alpha:g} level" if r.claim
+                   else f"no difference shown at the {opts.alpha:g} level")
+        lines.append(f"  - `{r.arm}` {cell(summary, r.arm, metric)}: {word} by {fmt(abs(r.difference))}, "
+                     f"p = {fmt(r.p_value, 2)}: {verdict}.")
+    return lines
+
+
 def speedup_phrase(r, time_row_base, time_row_arm, word: str) -> str:
     """One measure's speedup in words: the estimate with its interval, or the bound and why."""
     p = f"p = {fmt(r.p_value, 2)}"

@@ -27,6 +27,7 @@ from analysis.files import save_figure, write_csv, write_text
 from analysis.load import load_runs, load_segments, load_table, short_arm_labels
 from analysis.markdown import (
     arms_view,
+    baseline_text,
     budget_section,
     definitions,
     evaluation_notes,
@@ -168,6 +169,9 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     shown = {c: label for c, label in ERROR_METRICS.items() if f"final_{c}" in per_run}
     comp_errors = {c: tables.comparisons(per_run, f"final_{c}", opts) for c in shown}
     write_csv(out / "comparisons.csv", pd.concat([comp, comp_robust, *comp_errors.values()], ignore_index=True))
+    comp_base = tables.baseline_comparisons(per_run, "final_failure", baseline, opts)
+    if len(comp_base):
+        write_csv(out / "baseline_comparisons.csv", comp_base)
     if len(errors):
         write_csv(out / "tracking_errors.csv", errors)
 
@@ -175,6 +179,7 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     if "final_failure_robust" in per_run:
         md += winner_text(comp_robust, summary, "final_failure_robust",
                            "Final overall failure, robust evaluation (DR, noise, pushes)", "last evaluation", opts)
+    md += baseline_text(comp_base, summary, "final_failure", "Final overall failure", at, opts)
     md.append(f"- Speedups: {baseline_note}.")
     speed = None
     if baseline is not None and runs.loc[runs["included"], "arm"].nunique() > 1:

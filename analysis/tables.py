@@ -284,18 +284,42 @@ def comparisons(per_run: dict[str, pd.DataFrame], metric: str, opts: ReportOptio
     p < alpha (two-sided permutation test of the per-seed values) and the points differ."""
     if metric not in per_run:
         return pd.DataFrame()
-    df = per_run[metric]
-    values = {a: g.sort_values("seed")["value"].to_numpy(dtype=float) for a, g in df.groupby("arm", sort=True)}
-    points = {a: (iqm(v) if len(v) >= MIN_SEEDS_IQM else float(np.mean(v))) for a, v in values.items()}
+    values, points = _seed_values(per_run[metric])
     best = min(points, key=lambda a: (points[a], a))
+    return pd.DataFrame(_against(metric, values, points, best, opts),
+                        columns=["metric", "arm", "best", "point", "best_point", "difference", "p_value", "claim"])
+
+
+def baseline_comparisons(per_run: dict[str, pd.DataFrame], metric: str, baseline: str | None,
+                         opts: ReportOptions) -> pd.DataFrame:
+    """Every arm against ``baseline`` (e.g. uniform sampling): ``metric, arm, baseline, point,
+    baseline_point, difference (arm - baseline), p_value, claim``, tested as in :func:`comparisons`;
+    one test per arm, uncorrected for their number. Empty without the baseline or the metric."""
+    cols = ["metric", "arm", "baseline", "point", "baseline_point", "difference", "p_value", "claim"]
+    if metric not in per_run or baseline is None:
+        return pd.DataFrame(columns=cols)
+    values, points = _seed_values(per_run[metric])
+    if baseline not in values:
+        return pd.DataFrame(columns=cols)
+    return pd.DataFrame(_against(metric, values, points, baseline, opts), columns=cols)
+
+
+def _seed_values(df: pd.DataFrame) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Per arm: the per-seed values (by seed) and their point (IQM from MIN_SEEDS_IQM seeds, else the mean)."""
+    values = {a: g.sort_values("seed")["value"].to_numpy(dtype=float) for a, g in df.groupby("arm", sort=True)}
+    return values, {a: (iqm(v) if len(v) >= MIN_SEEDS_IQM else float(np.mean(v))) for a, v in values.items()}
+
+
+def _against(metric: str, values: dict[str, np.ndarray], points: dict[str, float], ref: str,
+             opts: ReportOptions) -> list[tuple]:
     rows = []
     for arm, v in values.items():
-        if arm == best:
+        if arm == ref:
             continue
-        p = permutation_pvalue(v, values[best], n_resamples=opts.n_permutations, seed=opts.bootstrap_seed)
-        diff = points[arm] - points[best]
-        rows.append((metric, arm, best, points[arm], points[best], diff, p, bool(diff != 0 and p < opts.alpha)))
-    return pd.DataFrame(rows, columns=["metric", "arm", "best", "point", "best_point", "difference", "p_value", "claim"])
+        p = permutation_pvalue(v, values[ref], n_resamples=opts.n_permutations, seed=opts.bootstrap_seed)
+        diff = points[arm] - points[ref]
+        rows.append((metric, arm, ref, points[arm], points[ref], diff, p, bool(diff != 0 and p < opts.alpha)))
+    return rows
 
 
 def arm_overview(summary_df: pd.DataFrame, time_df: pd.DataFrame) -> pd.DataFrame:

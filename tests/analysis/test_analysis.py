@@ -36,7 +36,7 @@ from analysis.stats import (
     permutation_pvalue,
     seed_interval,
 )
-from analysis.tables import SPEEDUP_COLUMNS, SUMMARY_COLUMNS, ReportOptions, comparisons
+from analysis.tables import SPEEDUP_COLUMNS, SUMMARY_COLUMNS, ReportOptions, baseline_comparisons, comparisons
 from tests.analysis.synthetic_runs import (
     FAST,
     PLANTED,
@@ -218,6 +218,21 @@ def _random_comparison(rng, n: int) -> tuple[pd.DataFrame, pd.DataFrame]:
             pd.DataFrame(times, columns=["run_dir", "arm", "seed", "reached", "time"]))
 
 
+def test_baseline_comparisons_planted():
+    # every seed of "better" lies below every seed of "base": the exact two-sided p for 4 v 4 is 2/70;
+    # "same" interleaves with the baseline: no claim
+    vals = {"base": [0.30, 0.31, 0.32, 0.33], "better": [0.20, 0.21, 0.22, 0.23], "same": [0.305, 0.315, 0.325, 0.335]}
+    df = pd.DataFrame([(f"{a}/{i}", a, i, v) for a, vs in vals.items() for i, v in enumerate(vs)],
+                      columns=["run_dir", "arm", "seed", "value"])
+    comp = baseline_comparisons({"final_failure": df}, "final_failure", "base", ReportOptions()).set_index("arm")
+    assert set(comp.index) == {"better", "same"} and (comp["baseline"] == "base").all()
+    assert comp.loc["better", "difference"] == pytest.approx(-0.10)
+    assert comp.loc["better", "p_value"] == pytest.approx(2 / 70) and comp.loc["better", "claim"]
+    assert not comp.loc["same", "claim"]
+    assert baseline_comparisons({"final_failure": df}, "final_failure", "absent", ReportOptions()).empty
+    assert baseline_comparisons({"final_failure": df}, "final_failure", None, ReportOptions()).empty
+
+
 @pytest.mark.parametrize("n_seeds", [3, 10])
 def test_no_true_difference_is_rarely_claimed(n_seeds):
     rng = np.random.default_rng(n_seeds)
@@ -361,7 +376,7 @@ def _png_size(path: Path) -> tuple[int, int]:
 def test_report_files(report):
     tables = ["runs", "summary", "curves", "bin_failure", "final_bin_failure", "sampling", "mastery",
               "mastery_per_seed", "mastery_speedup", "time_to_threshold", "time_to_threshold_summary", "speedup",
-              "sensitivity", "segment_failure", "budget", "comparisons"]
+              "sensitivity", "segment_failure", "budget", "comparisons", "baseline_comparisons"]
     figures = ["curve_mean_episode_length", "curve_mean_reward", "curve_eval_failure_rate",
                "bin_failure_heatmap", "final_bin_failure", "sampling_distribution", "mastery", "speedup",
                "sensitivity_sampler.gamma"]
