@@ -102,10 +102,8 @@ def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: st
     else:
         lines = [f"- Lowest {noun or what.lower()} ({at}): **`{best}`** {cell(summary, best, metric)}."]
     for r in comp[comp["difference"] != 0].itertuples(index=False):
-        verdict = (f"a difference at the {opts.alpha:g} level" if r.claim
-                   else f"no difference shown at the {opts.alpha:g} level")
         lines.append(f"  - `{r.arm}` {cell(summary, r.arm, metric)}: higher by {fmt(r.difference)}, "
-                     f"p = {fmt(r.p_value, 2)} (two-sided permutation test over seeds): {verdict}.")
+                     f"p = {fmt(r.p_value, 2)} (two-sided permutation test over seeds): {_verdict(r.claim, opts)}.")
     return lines
 
 
@@ -119,11 +117,13 @@ def baseline_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: 
              f"permutation tests over seeds, one per arm, uncorrected for the {len(comp)} tests):"]
     for r in comp.itertuples(index=False):
         word = "lower" if r.difference < 0 else "higher" if r.difference > 0 else "equal"
-        verdict = (f"a difference at the {opts.alpha:g} level" if r.claim
-                   else f"no difference shown at the {opts.alpha:g} level")
         lines.append(f"  - `{r.arm}` {cell(summary, r.arm, metric)}: {word} by {fmt(abs(r.difference))}, "
-                     f"p = {fmt(r.p_value, 2)}: {verdict}.")
+                     f"p = {fmt(r.p_value, 2)}: {_verdict(r.claim, opts)}.")
     return lines
+
+
+def _verdict(claim: bool, opts: ReportOptions) -> str:
+    return f"a difference at the {opts.alpha:g} level" if claim else f"no difference shown at the {opts.alpha:g} level"
 
 
 def speedup_phrase(r, time_row_base, time_row_arm, word: str) -> str:

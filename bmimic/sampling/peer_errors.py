@@ -83,7 +83,7 @@ class EGMSampler(BinSampler):
 
     def __init__(self, num_bins: int, ema: float = 0.1, weights: tuple[float, float, float] = (1.0, 0.1, 0.1),
                  power: tuple[float, float] = (0.5, 2.0), uniform: tuple[float, float] = (0.5, 0.1),
-                 schedule_iterations: int = 1000, device: Any = "cpu"):
+                 schedule_iterations: int = UNSET_SCHEDULE_ITERATIONS, device: Any = "cpu"):
         super().__init__(num_bins, device=device)
         self.ema = float(ema)
         self.weights = tuple(float(w) for w in weights)
