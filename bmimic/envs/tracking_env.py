@@ -210,7 +210,8 @@ class TrackingEnv(VecEnv):
                 self.events.interval(self, self.step_dt)
                 self.sim.forward_kinematics()
         self._dones_long = dones.long()
-        self.extras = {"time_outs": truncated, "terminated": terminated}
+        # `broken` (a time-out for PPO's bootstrap) lets the evaluator count a broken world as a failure.
+        self.extras = {"time_outs": truncated, "terminated": terminated, "broken": broken}
 
     def _observe(self) -> None:
         self.state = compute_state(self.sim, self.reference, self.bodies, self.time_steps)

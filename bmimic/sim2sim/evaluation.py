@@ -53,14 +53,15 @@ def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int
     and per motion frame the steps judged at it and their error sums."""
     import pandas as pd
 
-    from bmimic.training.evaluation import ERROR_COLUMNS, Rollouts
+    from bmimic.training.evaluation import ERROR_COLUMNS, SMOOTHNESS_COLUMNS, Rollouts
 
     rows = pd.DataFrame([e.row for e in episodes])
     rows.insert(0, "bin", np.asarray(start_bins, dtype=np.int64))
-    sums = np.zeros((num_frames, 1 + len(ERROR_COLUMNS)))
+    measured = [*ERROR_COLUMNS, *SMOOTHNESS_COLUMNS]
+    sums = np.zeros((num_frames, 1 + len(measured)))
     for e in episodes:
         np.add.at(sums, e.frames, np.column_stack((np.ones(len(e.frames)), e.errors)))
-    return Rollouts(rows, pd.DataFrame(sums, columns=["steps", *ERROR_COLUMNS]))
+    return Rollouts(rows, pd.DataFrame(sums, columns=["steps", *measured]))
 
 
 def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,

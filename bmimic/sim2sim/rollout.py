@@ -19,6 +19,9 @@ ERROR_NAMES = ("mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_r
                "joint_vel_err_radps", "ee_pos_err_mm")
 """Per-step tracking errors, named and ordered as bmimic.training.evaluation.ERROR_COLUMNS."""
 REL_MPKPE = ERROR_NAMES.index("mpkpe_rel_mm")
+SMOOTHNESS_NAMES = ("action_rate", "joint_acc_radps2")
+"""The policy's per-step smoothness, as bmimic.training.evaluation.SMOOTHNESS_COLUMNS."""
+MEASURED = (*ERROR_NAMES, *SMOOTHNESS_NAMES)
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -217,6 +220,12 @@ class Rollout:
             1000.0 * np.linalg.norm(s["rel_pos"][ee] - s["pos"][ee], axis=-1).mean(),
         ))
 
+    def smoothness(self, last_actions: np.ndarray, last_joint_vel: np.ndarray) -> np.ndarray:
+        """The SMOOTHNESS_NAMES of the step just taken from `last_actions` and `last_joint_vel`."""
+        joint_vel = self.d.qvel[self.vadr]
+        return np.array((float(np.square(self.actions - last_actions).sum()),
+                         float(np.abs(joint_vel - last_joint_vel).mean() / self.spec.control_dt_s)))
+
     # ---------------------------------------------------------------------------------- stepping
     def policy_action(self) -> np.ndarray:
         """The deterministic action for the current observation and reference frame."""
@@ -246,12 +255,12 @@ class Episode(NamedTuple):
     """One evaluation episode: its tidy row and the errors of each step where they were measured."""
 
     row: dict
-    """bmimic.training.evaluation.EPISODE_COLUMNS, `error_failed`, the mean of each ERROR_NAMES entry over
+    """bmimic.training.evaluation.EPISODE_COLUMNS, `error_failed`, the mean of each MEASURED entry over
     the alive steps, `diverged` and `wall_s`."""
     frames: np.ndarray
     """[steps] the reference frame each step was judged at."""
     errors: np.ndarray
-    """[steps, len(ERROR_NAMES)] the errors of each step."""
+    """[steps, len(MEASURED)] the errors and smoothness of each step."""
 
 
 def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkpe_rel_mm: float | None = None,
@@ -279,6 +288,7 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
     t0 = time.perf_counter()
     for _ in range(horizon_steps):
         frame = end_frame = rollout.frame
+        last_actions, last_joint_vel = rollout.actions.copy(), rollout.d.qvel[rollout.vadr].copy()
         action = rollout.policy_action()
         if not rollout.physics(action):
             terminated = diverged = True
@@ -286,7 +296,7 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
         stop = rollout.terminated()
         clip_end = rollout.advance()
         frames.append(frame)
-        errors.append(rollout.errors())
+        errors.append(np.concatenate((rollout.errors(), rollout.smoothness(last_actions, last_joint_vel))))
         if on_step is not None:
             on_step(rollout, stop)
         if stop:
@@ -295,7 +305,7 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
         if clip_end:
             end_frame = rollout.frame  # tracked up to the clip's last frame
             break
-    err = np.asarray(errors, dtype=np.float64).reshape(len(frames), len(ERROR_NAMES))
+    err = np.asarray(errors, dtype=np.float64).reshape(len(frames), len(MEASURED))
     means = err.sum(axis=0) / max(len(frames), 1)
     error_failed = bool(max_mpkpe_rel_mm is not None and not terminated and means[REL_MPKPE] > max_mpkpe_rel_mm)
     if terminated:
@@ -307,7 +317,7 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
     row = {
         "start_frame": int(start), "end_frame": int(end_frame), "failed": terminated or error_failed,
         "failure_frame": int(failure_frame), "terminated": terminated, "error_failed": error_failed,
-        "steps": len(frames), "horizon_truncated": bool(truncated), **dict(zip(ERROR_NAMES, means.tolist())),
+        "steps": len(frames), "horizon_truncated": bool(truncated), **dict(zip(MEASURED, means.tolist())),
         "diverged": diverged, "wall_s": time.perf_counter() - t0,
     }
     return Episode(row, np.asarray(frames, dtype=np.int64), err)

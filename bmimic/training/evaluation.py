@@ -18,10 +18,13 @@ Failures are charged where they happen. A 2 s horizon spans two or three 1 s bin
   mastered only when this is at least 1 (bmimic.evaluation.mastery.counts_as_mastered), so the clip's last
   bins are not "mastered" by an untrained policy whose episodes simply run out of clip.
 
-An episode fails when it terminates (any termination but a time-out), or, with `max_mpkpe_rel_mm`
-set, when its mean root-relative MPKPE exceeds it; a termination is charged to the frame it happened
-at, a tracking failure to the frame with the episode's largest root-relative MPKPE. Tracking errors
-per bin are means over the evaluation steps taken at frames of that bin.
+An episode fails when it terminates (any termination but a time-out), when its world breaks (the
+simulator's state turns non-finite or leaves its bounds: `broken`, so a policy that blows up the
+simulation never scores as tracking), or, with `max_mpkpe_rel_mm` set, when its mean root-relative
+MPKPE exceeds it; a termination or break is charged to the frame it happened at, a tracking failure
+to the frame with the episode's largest root-relative MPKPE. Tracking errors per bin are means over
+the evaluation steps taken at frames of that bin; so are the policy's own smoothness measures
+(SMOOTHNESS_COLUMNS: action rate, joint acceleration), which describe the policy, not its tracking.
 
 `aggregate` turns tidy per-episode rows (plus optional per-frame error sums) into the per-bin table;
 the Evaluator and any other evaluator (e.g. a native-MuJoCo one) share it.
@@ -47,17 +50,24 @@ ERROR_COLUMNS = (
 )
 REL_MPKPE = ERROR_COLUMNS.index("mpkpe_rel_mm")
 
+SMOOTHNESS_COLUMNS = ("action_rate", "joint_acc_radps2")
+"""Per-step smoothness of the policy itself (averaged like the errors): `action_rate` is the MDP's
+action_rate_l2 term, sum over joints of (a_t - a_{t-1})^2 (a_{-1} = 0 at an episode's start);
+`joint_acc_radps2` is the mean over joints of |qvel_t - qvel_{t-1}| / control period (a finite
+difference over one control step, so it is the acceleration a controller at that rate sees)."""
+
 EPISODE_COLUMNS = (
     "start_frame", "end_frame", "failed", "failure_frame", "terminated", "steps", "horizon_truncated",
 )
 """Per-episode columns `aggregate` reads (error means may follow): the first frame and the last frame
 the episode was alive at (the clip's last frame for one that reached it), whether it failed and at
 which frame (-1 if not), whether it terminated, steps alive, and whether its clip ends before the
-horizon (the clip's exclusive end frame minus 1 minus the start frame < horizon steps)."""
+horizon (the clip's exclusive end frame minus 1 minus the start frame < horizon steps). An optional
+`broken` column marks episodes that ended because their world broke (a failure, not a termination)."""
 
 BIN_COLUMNS = (
     "bin", "visits", "failures", "failure_rate", "start_episodes", "start_failures", "terminations",
-    "tracking_failures", "horizon_truncated", "tracked_through", "eval_steps",
+    "tracking_failures", "broken", "horizon_truncated", "tracked_through", "eval_steps",
 )
 """The counts of the per-bin table, in order; the error columns (means per step) follow."""
 
@@ -87,9 +97,9 @@ def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame |
     the mean of every error column of `frame_errors` over the steps taken at the bin's frames.
 
     Args:
-        episodes: one row per episode with EPISODE_COLUMNS (`failure_frame`, `terminated` and
-            `horizon_truncated` may be absent: failures are then charged at `end_frame`, all failures
-            count as terminations and no bin is truncated).
+        episodes: one row per episode with EPISODE_COLUMNS (`failure_frame`, `terminated`,
+            `horizon_truncated` and `broken` may be absent: failures are then charged at `end_frame`,
+            all failures count as terminations, no bin is truncated and no world broke).
         frame_to_bin: [F] bin of each motion frame, non-decreasing (BinLayout.frame_to_bin); any
             monotone frame grouping works (e.g. contiguous motion segments).
         frame_errors: optional, one row per frame (F rows): `steps` (evaluation steps taken at that
@@ -114,6 +124,9 @@ def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame |
     terminated = episodes["terminated"].to_numpy(dtype=bool) if "terminated" in episodes else failed
     truncated = (episodes["horizon_truncated"].to_numpy(dtype=bool) if "horizon_truncated" in episodes
                  else np.zeros(len(start), dtype=bool))
+    broken = episodes["broken"].to_numpy(dtype=bool) if "broken" in episodes else np.zeros(len(start), dtype=bool)
+    if np.any(broken & ~failed):
+        raise ValueError("aggregate: an episode whose world broke must count as failed")
     if np.any(failed & ((failure_frame < start) | (failure_frame > end))):
         raise ValueError("aggregate: a failed episode's failure_frame must lie between its start_frame and end_frame")
 
@@ -131,8 +144,9 @@ def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame |
         "failures": _counts(fail_bin, num_bins, failed),
         "start_episodes": _counts(start_bin, num_bins),
         "start_failures": _counts(start_bin, num_bins, failed),
-        "terminations": _counts(fail_bin, num_bins, failed & terminated),
-        "tracking_failures": _counts(fail_bin, num_bins, failed & ~terminated),
+        "terminations": _counts(fail_bin, num_bins, failed & terminated & ~broken),
+        "tracking_failures": _counts(fail_bin, num_bins, failed & ~terminated & ~broken),
+        "broken": _counts(fail_bin, num_bins, broken),
         "horizon_truncated": _counts(start_bin, num_bins, truncated) > 0,
         "tracked_through": _visits(through_lo, np.maximum(through_hi, through_lo), num_bins, through),
     })
@@ -155,10 +169,12 @@ class Rollouts(NamedTuple):
     """What one evaluation pass produced."""
 
     episodes: pd.DataFrame
-    """One row per episode: `bin` (its start bin), EPISODE_COLUMNS, `error_failed` and the episode's
-    mean of every ERROR_COLUMNS entry over its alive steps."""
+    """One row per episode: `bin` (its start bin), EPISODE_COLUMNS, `error_failed`, `broken` (the
+    training evaluator's) and the episode's mean of every ERROR_COLUMNS (and SMOOTHNESS_COLUMNS)
+    entry over its alive steps."""
     frame_errors: pd.DataFrame
-    """One row per motion frame: `steps` taken at it and the per-step sums of ERROR_COLUMNS."""
+    """One row per motion frame: `steps` taken at it and the per-step sums of ERROR_COLUMNS (and
+    SMOOTHNESS_COLUMNS)."""
 
 
 def segment_of_bin(layout, segments) -> list[str]:
@@ -221,7 +237,8 @@ class Evaluator:
         n, dev = env.num_envs, env.device
         frame_to_bin = self.layout.frame_to_bin
         num_frames = int(frame_to_bin.shape[0])
-        frame_sums = torch.zeros(num_frames, len(ERROR_COLUMNS) + 1, device=dev)  # steps, then error sums
+        measured = (*ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
+        frame_sums = torch.zeros(num_frames, len(measured) + 1, device=dev)  # steps, then per-step sums
         rows = []
         for first in range(0, len(self.frames), n):
             frames = self.frames[first : first + n]
@@ -236,36 +253,44 @@ class Evaluator:
             worst_frame = start.clone()
             worst_rel = torch.full((n,), -1.0, device=dev)
             terminated = torch.zeros(n, dtype=torch.bool, device=dev)
+            broken = torch.zeros(n, dtype=torch.bool, device=dev)
             steps = torch.zeros(n, device=dev)
-            sums = torch.zeros(n, len(ERROR_COLUMNS), device=dev)
+            sums = torch.zeros(n, len(measured), device=dev)
             obs = env.get_observations()
             for _ in range(self.horizon_steps):
                 frame = env.time_steps.clone()  # the frame this step is judged at (terminations)
                 end_frame = torch.where(alive, frame, end_frame)
+                prev_joint_vel = env.state.joint_vel.clone()
                 actions = policy(obs, stochastic_output=False)
                 obs, _, _, extras = env.step(actions)
-                alive_f = alive.float()[:, None]
-                err = _errors(env) * alive_f
+                broke = extras["broken"] & alive
+                # A world that broke was put back at the initial pose: its errors this step are not
+                # the policy's tracking, so the step is not measured (the episode fails here).
+                measured_f = (alive & ~broke).float()[:, None]
+                err = torch.cat((_errors(env), _smoothness(env, prev_joint_vel)), dim=-1)
+                err = torch.where(measured_f > 0, err, 0.0)
                 sums += err
-                steps += alive_f[:, 0]
-                frame_sums.index_add_(0, frame, torch.cat((alive_f, err), dim=-1))
-                worse = alive & (err[:, REL_MPKPE] > worst_rel)
+                steps += measured_f[:, 0]
+                frame_sums.index_add_(0, frame, torch.cat((measured_f, err), dim=-1))
+                worse = (measured_f[:, 0] > 0) & (err[:, REL_MPKPE] > worst_rel)
                 worst_rel = torch.where(worse, err[:, REL_MPKPE], worst_rel)
                 worst_frame = torch.where(worse, frame, worst_frame)
-                stop = extras["terminated"] & alive
-                terminated |= stop
+                terminated |= extras["terminated"] & alive
+                broken |= broke
+                stop = (extras["terminated"] | extras["broken"]) & alive
                 # An episode that reaches the end of its clip tracked up to the clip's last frame.
                 end_frame = torch.where(alive & ~stop & env.reached_clip_end, env.time_steps, end_frame)
                 alive &= ~stop & ~env.reached_clip_end
             means = sums / steps.clamp_min(1)[:, None]
             error_failed = torch.zeros_like(terminated)
             if self.max_mpkpe_rel_mm is not None:
-                error_failed = ~terminated & (means[:, REL_MPKPE] > self.max_mpkpe_rel_mm)
-            failed = terminated | error_failed
-            failure_frame = torch.where(terminated, end_frame, torch.where(error_failed, worst_frame, -1))
+                error_failed = ~terminated & ~broken & (means[:, REL_MPKPE] > self.max_mpkpe_rel_mm)
+            ended = terminated | broken
+            failed = ended | error_failed
+            failure_frame = torch.where(ended, end_frame, torch.where(error_failed, worst_frame, -1))
             ints = torch.stack((start, end_frame, failure_frame, steps.long(), terminated.long(),
-                                error_failed.long(), truncated.long()), dim=-1)[:m].cpu().numpy()
-            wave = pd.DataFrame(means[:m].cpu().numpy(), columns=list(ERROR_COLUMNS))
+                                error_failed.long(), truncated.long(), broken.long()), dim=-1)[:m].cpu().numpy()
+            wave = pd.DataFrame(means[:m].cpu().numpy(), columns=list(measured))
             head = pd.DataFrame({
                 "bin": self.bins[first : first + m],
                 "start_frame": ints[:, 0],
@@ -276,9 +301,10 @@ class Evaluator:
                 "error_failed": ints[:, 5].astype(bool),
                 "steps": ints[:, 3],
                 "horizon_truncated": ints[:, 6].astype(bool),
+                "broken": ints[:, 7].astype(bool),
             })
             rows.append(pd.concat([head, wave], axis=1))
-        frame_errors = pd.DataFrame(frame_sums.double().cpu().numpy(), columns=["steps", *ERROR_COLUMNS])
+        frame_errors = pd.DataFrame(frame_sums.double().cpu().numpy(), columns=["steps", *measured])
         return Rollouts(pd.concat(rows, ignore_index=True), frame_errors)
 
     def bin_table(self, rollouts: Rollouts) -> pd.DataFrame:
@@ -317,6 +343,13 @@ def _errors(env) -> torch.Tensor:
     )
 
 
+def _smoothness(env, prev_joint_vel: torch.Tensor) -> torch.Tensor:
+    """[N, len(SMOOTHNESS_COLUMNS)] the policy's action rate and joint acceleration this step."""
+    action_rate = (env.actions - env.last_actions).square().sum(-1)
+    joint_acc = ((env.state.joint_vel - prev_joint_vel).abs() / env.step_dt).mean(-1)
+    return torch.stack((action_rate, joint_acc), dim=-1)
+
+
 def clips_failed(per_bin: pd.DataFrame, layout) -> torch.Tensor:
     """Whether some evaluation episode of each clip failed (BoolTensor [layout.num_clips]): the
     outcome the evaluation-driven samplers (phc, protomotions) learn from."""
@@ -327,8 +360,10 @@ def clips_failed(per_bin: pd.DataFrame, layout) -> torch.Tensor:
 
 def summarize(per_bin: pd.DataFrame, prefix: str = "eval") -> dict[str, float]:
     """Overall numbers of one evaluation: the fraction of episodes that failed (each failure is charged
-    to exactly one bin, so it is failures / start_episodes summed), the fraction of bins mastered
-    (counts_as_mastered at MASTERED_BELOW) and step-weighted mean errors. Keys `<prefix>_...`."""
+    to exactly one bin, so it is failures / start_episodes summed), the number of episodes whose world
+    broke (`broken`, part of the failures), the fraction of bins mastered (counts_as_mastered at
+    MASTERED_BELOW) and step-weighted means of the errors and smoothness measures (NaN where the
+    table lacks a column). Keys `<prefix>_...`."""
     episodes = int(per_bin["start_episodes"].sum())
     steps = per_bin["eval_steps"].to_numpy(dtype=float)
     out = {
@@ -336,7 +371,8 @@ def summarize(per_bin: pd.DataFrame, prefix: str = "eval") -> dict[str, float]:
         f"{prefix}_bins_mastered_frac": float(counts_as_mastered(per_bin, MASTERED_BELOW).mean()),
     }
     out[f"{prefix}_success_rate"] = 1.0 - out[f"{prefix}_failure_rate"]
-    for c in ERROR_COLUMNS:
+    out[f"{prefix}_broken"] = float(per_bin["broken"].sum()) if "broken" in per_bin else math.nan
+    for c in (*ERROR_COLUMNS, *SMOOTHNESS_COLUMNS):
         if c in per_bin and steps.sum() > 0:
             ok = steps > 0
             out[f"{prefix}_{c}"] = float(np.average(per_bin[c].to_numpy(dtype=float)[ok], weights=steps[ok]))

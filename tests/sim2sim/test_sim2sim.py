@@ -316,11 +316,12 @@ def test_rows_are_tidy_and_follow_the_evaluation_semantics(task):
     ref = sim2sim.read_reference(session, spec)
     rollout = sim2sim.Rollout(sim2sim.build_model(spec)[0], spec, ref, session)
     episode = sim2sim.run_episode(rollout, 100, 7)
+    from bmimic.sim2sim.rollout import MEASURED
     row = episode.row
     assert (row["start_frame"], row["end_frame"], row["steps"], row["failed"]) == (100, 106, 7, False)
     assert (row["failure_frame"], row["horizon_truncated"]) == (-1, False)
-    assert episode.frames.tolist() == list(range(100, 107)) and episode.errors.shape == (7, len(sim2sim.ERROR_NAMES))
-    np.testing.assert_allclose([row[c] for c in sim2sim.ERROR_NAMES], episode.errors.mean(axis=0))
+    assert episode.frames.tolist() == list(range(100, 107)) and episode.errors.shape == (7, len(MEASURED))
+    np.testing.assert_allclose([row[c] for c in MEASURED], episode.errors.mean(axis=0))
     last = spec.num_frames - 1
     row = sim2sim.run_episode(rollout, last - 2, 50).row  # the reference stops at the clip's last frame
     assert (row["end_frame"], row["steps"], row["failed"], row["horizon_truncated"]) == (last, 2, False, True)
@@ -342,6 +343,12 @@ def planted_errors(frames: np.ndarray) -> np.ndarray:
     """[N, 7] integer errors of the frame the reference stands at (distinct within any 97 frames)."""
     rel = 20.0 + (62 * np.asarray(frames, dtype=np.int64)) % 97
     return rel[:, None] * np.arange(1, len(sim2sim.ERROR_NAMES) + 1)[None, :] / 2.0
+
+
+def planted_smoothness(frames: np.ndarray) -> np.ndarray:
+    """[N, 2] planted action rate and joint acceleration of the frame the reference stands at."""
+    f = np.asarray(frames, dtype=np.int64)
+    return np.stack((f % 7, 3.0 * (f % 11)), axis=-1).astype(np.float64)
 
 
 def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypatch):
@@ -373,6 +380,8 @@ def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypat
 
     monkeypatch.setattr(evaluation, "_errors",
                         lambda e: torch.as_tensor(planted_errors(e.time_steps.numpy()), dtype=torch.float32))
+    monkeypatch.setattr(evaluation, "_smoothness",
+                        lambda e, _: torch.as_tensor(planted_smoothness(e.time_steps.numpy()), dtype=torch.float32))
     spec = sim2sim.read_policy(paths[1])
     ev = Evaluator(Planted(), env.layout, spec.segments, per_bin, horizon_s, max_rel_mm)
     warp = ev.run_episodes(lambda obs, stochastic_output=False: torch.zeros(env.num_envs, env.num_actions))
@@ -390,6 +399,9 @@ def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypat
 
         def errors(self):
             return planted_errors([self.frame])[0]
+
+        def smoothness(self, last_actions, last_joint_vel):
+            return planted_smoothness([self.frame])[0]
 
     layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s)
     assert layout.frame_to_bin.tolist() == env.layout.frame_to_bin.tolist()

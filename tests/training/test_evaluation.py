@@ -8,6 +8,8 @@ independent frame-by-frame count.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -59,6 +61,18 @@ def test_tracking_failure_and_defaults():
     plain = aggregate(ep[["start_frame", "end_frame", "failed"]], FRAME_TO_BIN)
     assert plain["failures"].tolist() == [0, 1, 0] and plain["terminations"].tolist() == [0, 1, 0]
     assert not plain["horizon_truncated"].any()
+
+
+def test_a_broken_world_is_a_failure_of_its_own_kind():
+    ep = _episodes([(5, 14, True, 14, False, 10, False), (15, 24, True, 22, True, 8, False)])
+    ep["broken"] = [True, False]
+    t = aggregate(ep, FRAME_TO_BIN)
+    assert t["failures"].tolist() == [0, 1, 1]
+    assert t["broken"].tolist() == [0, 1, 0]
+    assert t["terminations"].tolist() == [0, 0, 1] and t["tracking_failures"].tolist() == [0, 0, 0]
+    ep["failed"] = [False, True]
+    with pytest.raises(ValueError, match="broke must count as failed"):
+        aggregate(ep, FRAME_TO_BIN)
 
 
 def test_frame_errors_average_per_step_where_they_were_measured():
@@ -178,3 +192,34 @@ def test_robust_env_pushes_the_robot(robust_evaluator):
     before = push_timer_s.clone()
     env.step(torch.zeros(env.num_envs, env.num_actions))
     assert (push_timer_s > before).all()  # pushed, and the next push drawn
+
+
+def test_a_policy_that_breaks_the_simulation_fails_every_episode(robust_evaluator):
+    # NaN actions make every world non-finite on the first step: the environment resets those worlds
+    # (a time-out for PPO), and the evaluation must count each as a failure, never as tracking.
+    from bmimic.training.evaluation import summarize
+
+    ev = robust_evaluator
+    env = ev.env
+    rollouts = ev.run_episodes(lambda obs, stochastic_output=False: torch.full((env.num_envs, env.num_actions), math.nan))
+    ep = rollouts.episodes
+    assert ep["failed"].all() and ep["broken"].all() and not ep["terminated"].any()
+    assert (ep["failure_frame"] == ep["start_frame"]).all() and (ep["steps"] == 0).all()
+    summary = summarize(ev.bin_table(rollouts))
+    assert summary["eval_success_rate"] == 0.0 and summary["eval_broken"] == len(ep)
+    assert summary["eval_bins_mastered_frac"] == 0.0
+
+
+def test_smoothness_is_the_policy_own_action_rate_and_joint_acceleration(robust_evaluator):
+    # A constant action c: the action rate is sum(c^2) on an episode's first step (a_-1 = 0) and 0
+    # after, so an episode's per-step mean times its measured steps is 29 c^2.
+    ev = robust_evaluator
+    env = ev.env
+    c = 0.1
+    rollouts = ev.run_episodes(lambda obs, stochastic_output=False: torch.full((env.num_envs, env.num_actions), c))
+    ep = rollouts.episodes[lambda d: d["steps"] > 0]
+    assert len(ep)
+    np.testing.assert_allclose(ep["action_rate"] * ep["steps"], env.num_actions * c * c, rtol=1e-5)
+    assert (ep["joint_acc_radps2"] > 0).all() and np.isfinite(ep["joint_acc_radps2"]).all()
+    per_bin = ev.bin_table(rollouts)
+    assert {"action_rate", "joint_acc_radps2", "broken"} <= set(per_bin.columns)
