@@ -43,6 +43,7 @@ STUDIES = {
     "bin_size": (4 * 5, {"sampler.bin_size_seconds"}),
     "variants": (8 * 5, {"sampler", "sampler.accounting.attribution", "sampler.accounting.failure"}),
     "design_choices": (5 * 5, {"design_choice"}),
+    "design_choices_dance1": (6 * 5, {"design_choice"}),
     "dance1_full": (2 * 5, {"sampler"}),
     "mdp_action_rate": (2 * 5, {"env"}),
     "library_lafan": (2 * 5, {"sampler.clip_balance"}),
