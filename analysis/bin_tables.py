@@ -19,6 +19,7 @@ from analysis.metrics import (
     event_times,
     mastery_per_seed,
     speedup,
+    start_failure,
     time_to_threshold,
 )
 from analysis.stats import MIN_SEEDS_IQM, curve_intervals, seed_interval
@@ -142,16 +143,16 @@ def final_bin_failure(eval_df: pd.DataFrame, runs: pd.DataFrame, opts: ReportOpt
 
 def segment_failure(eval_df: pd.DataFrame, bins: pd.DataFrame, mastery_df: pd.DataFrame,
                     segments: pd.DataFrame | None, runs: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
-    """Final failure per ``arm, segment`` at the common final iteration: the mean over the segment's
-    bins per run, then point and interval over seeds; with the segment's difficulty (when the motion
-    names one), its bins, and how many of them the arm has not mastered (median not reached). Empty
-    for a motion of fewer than two segments."""
+    """Final failure per ``arm, segment`` at the common final iteration, in the unit of the overall
+    failure: failed episodes / episodes started in the segment (metrics.start_failure) per run, then
+    point and interval over seeds; with the segment's difficulty (when the motion names one), its
+    bins, and how many of them the arm has not mastered (median not reached). Empty for a motion of
+    fewer than two segments."""
     if bins["segment"].nunique() < 2:
         return pd.DataFrame()
     common = float(eval_df.groupby("run_dir")["iteration"].max().min())
-    last = at_budget(eval_df, "iteration", common).drop(columns=["segment"], errors="ignore")
-    last = last.merge(bins[["bin", "segment"]], on="bin", how="left")
-    per_run = last.groupby(["arm", "segment", "run_dir"], sort=False)["failure_rate"].mean().reset_index()
+    last = at_budget(eval_df, "iteration", common)
+    per_run = start_failure(last, bins.set_index("bin")["segment"]).rename(columns={"group": "segment"})
     difficulty = {}
     if segments is not None and "difficulty" in segments.columns:
         difficulty = dict(zip(segments["name"].astype(str), segments["difficulty"].astype(str), strict=True))

@@ -1,19 +1,25 @@
-"""Per-clip results of a motion library: final failure, bins never mastered, share of starts.
+"""Per-clip results of a motion library: final failure, bins never mastered, where the sampler put its mass.
 
-A clip's failure is counted as the overall failure is (failures where they happened over visits,
-summed over the clip's bins) at the common final evaluation; bins never mastered are the clip's bins
-whose median mastery over seeds was not reached; the share of starts is the clip's fraction of the
-episodes the training sampler started (sampler.parquet's counts), a mean over seeds. Empty for a
-single clip or for tables without a `clip` column (runs from before motion libraries)."""
+A clip's failure is in the unit of the overall failure: failed evaluation episodes over the episodes
+that started in the clip (metrics.start_failure), at the common final evaluation, so the overall
+failure is the start-weighted mean of the clips'. Bins never mastered are the clip's bins whose
+median mastery over seeds was not reached (mastery uses the per-visit bin rate). The sampling mass is
+the clip's share of the training sampler's probability (sampler.parquet's ``probability`` summed over
+the clip's bins), a mean over the logged iterations and then over seeds: the same quantity for every
+sampler, whatever its own accounting counts. Empty for a single clip or for tables without a `clip`
+column (runs from before motion libraries)."""
 
 from __future__ import annotations
 
 import pandas as pd
 
 from analysis.markdown import estimate_cell
-from analysis.metrics import at_budget
+from analysis.metrics import at_budget, start_failure
 from analysis.stats import seed_interval
 from analysis.tables import ReportOptions, use_bootstrap
+
+FAILURE_HEADER = "final failure (failed / started episodes, by start clip)"
+MASS_HEADER = "sampling probability mass (mean over training)"
 
 
 def bin_clips(eval_df: pd.DataFrame) -> pd.Series:
@@ -23,55 +29,62 @@ def bin_clips(eval_df: pd.DataFrame) -> pd.Series:
     return eval_df.drop_duplicates("bin").set_index("bin")["clip"].sort_index()
 
 
+def clip_mass(sampler_df: pd.DataFrame, clips: pd.Series) -> pd.Series:
+    """Per ``arm, clip``: the clip's probability mass in the training sampler, the mean over each run's
+    logged iterations, then over the arm's runs (empty without sampler tables)."""
+    if not len(sampler_df) or "probability" not in sampler_df.columns:
+        return pd.Series(dtype=float)
+    df = sampler_df.assign(clip=sampler_df["bin"].map(clips))
+    per_it = df.groupby(["arm", "run_dir", "iteration", "clip"])["probability"].sum()
+    per_run = per_it.groupby(["arm", "run_dir", "clip"]).mean()
+    return per_run.groupby(["arm", "clip"]).mean()
+
+
 def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd.DataFrame, runs: pd.DataFrame,
                  opts: ReportOptions) -> pd.DataFrame:
-    """One row per ``arm, clip``: final failure (point and interval over seeds), its bins, bins never
-    mastered, and the mean share of training starts (NaN without sampler tables)."""
+    """One row per ``arm, clip``: final failure per started episode (point and interval over seeds),
+    its bins, bins never mastered, and the mean sampling probability mass (NaN without sampler tables)."""
     clips = bin_clips(eval_df)
     if clips.empty:
         return pd.DataFrame()
     common = float(eval_df.groupby("run_dir")["iteration"].max().min())
-    last = at_budget(eval_df, "iteration", common).drop(columns=["clip"]).merge(
-        clips.rename("clip"), left_on="bin", right_index=True)
-    sums = last.groupby(["arm", "clip", "run_dir"], sort=False)[["failures", "visits"]].sum().reset_index()
-    sums["failure"] = sums["failures"] / sums["visits"].where(sums["visits"] > 0)
+    last = at_budget(eval_df, "iteration", common)
+    per_run = start_failure(last, clips).rename(columns={"group": "clip"})
     never = mastery_df[mastery_df["mastery_iteration"].isna()].assign(clip=lambda d: d["bin"].map(clips))
     never = never.groupby(["arm", "clip"]).size()
-    share = pd.Series(dtype=float)
-    if len(sampler_df) and "episodes" in sampler_df.columns:
-        starts = sampler_df.assign(clip=sampler_df["bin"].map(clips)).groupby(["arm", "run_dir", "clip"])["episodes"].sum()
-        share = (starts / starts.groupby(["arm", "run_dir"]).transform("sum")).groupby(["arm", "clip"]).mean()
+    mass = clip_mass(sampler_df, clips)
     boot = use_bootstrap(runs)
     rows = []
-    for (arm, clip), g in sums.groupby(["arm", "clip"], sort=False):
-        p, low, high, method = seed_interval(g["failure"].dropna(), boot, opts.n_resamples, opts.confidence,
+    for (arm, clip), g in per_run.groupby(["arm", "clip"], sort=False):
+        p, low, high, method = seed_interval(g["failure_rate"].dropna(), boot, opts.n_resamples, opts.confidence,
                                              opts.bootstrap_seed)
         rows.append({"arm": arm, "clip": clip, "num_bins": int((clips == clip).sum()), "final_failure": p,
                      "final_failure_low": low, "final_failure_high": high, "ci_method": method, "n_seeds": len(g),
                      "bins_not_mastered": int(never.get((arm, clip), 0)),
-                     "start_share": float(share.get((arm, clip), float("nan")))})
+                     "sampling_mass": float(mass.get((arm, clip), float("nan")))})
     order = {c: i for i, c in enumerate(dict.fromkeys(clips))}
     out = pd.DataFrame(rows)
     return out.sort_values(["clip", "arm"], key=lambda s: s.map(order) if s.name == "clip" else s).reset_index(drop=True)
 
 
 def clip_view(table: pd.DataFrame) -> pd.DataFrame:
-    """The Clips table: per clip (rows) and arm (columns): final failure, (bins not mastered / bins),
-    share of starts."""
-    cells = [f"{estimate_cell(p, lo, hi, m, n)} ({nm}/{b}); starts {s:.1%}" if s == s else
-             f"{estimate_cell(p, lo, hi, m, n)} ({nm}/{b})"
-             for p, lo, hi, m, n, nm, b, s in zip(table["final_failure"], table["final_failure_low"],
-                                                   table["final_failure_high"], table["ci_method"], table["n_seeds"],
-                                                   table["bins_not_mastered"], table["num_bins"], table["start_share"],
-                                                   strict=True)]
-    view = table.assign(cell=cells).pivot_table(index="clip", columns="arm", values="cell", aggfunc="first", sort=False)
-    return view.reset_index()
+    """The Clips table, one row per clip and arm, every column named with its unit."""
+    return pd.DataFrame({
+        "clip": table["clip"],
+        "arm": table["arm"],
+        FAILURE_HEADER: [estimate_cell(p, lo, hi, m, n) for p, lo, hi, m, n in zip(
+            table["final_failure"], table["final_failure_low"], table["final_failure_high"], table["ci_method"],
+            table["n_seeds"], strict=True)],
+        "bins not mastered / bins": [f"{nm}/{b}" for nm, b in zip(table["bins_not_mastered"], table["num_bins"],
+                                                                  strict=True)],
+        MASS_HEADER: [f"{s:.1%}" if s == s else "–" for s in table["sampling_mass"]],
+    })
 
 
 def never_started(table: pd.DataFrame) -> list[str]:
-    """`arm: clip` for every clip an arm's sampler never started an episode from."""
-    hit = table[table["start_share"] == 0]
+    """`arm: clip` for every clip an arm's sampler gave no probability at any logged iteration."""
+    hit = table[table["sampling_mass"] == 0]
     return [f"`{a}`: {c}" for a, c in zip(hit["arm"], hit["clip"], strict=True)]
 
 
-__all__ = ["bin_clips", "clip_failure", "clip_view", "never_started"]
+__all__ = ["bin_clips", "clip_failure", "clip_mass", "clip_view", "never_started"]

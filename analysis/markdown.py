@@ -14,6 +14,10 @@ from analysis.tables import ReportOptions
 MEASURE_WORDS = {"iteration": "iterations", "env_steps": "env steps", "wall_time_s": "wall time (s)"}
 
 
+def _verdict(claim: bool, opts: ReportOptions) -> str:
+    return f"a difference at the {opts.alpha:g} level" if claim else f"no difference shown at the {opts.alpha:g} level"
+
+
 def plural(n: int, word: str) -> str:
     """``"1 bin"``, ``"2 bins"``."""
     return f"{n} {word}" if n == 1 else f"{n} {word}s"
@@ -83,9 +87,16 @@ def cell(summary: pd.DataFrame, arm: str, metric: str) -> str:
     return estimate_cell(p, r["ci_low"], r["ci_high"], str(r["ci_method"]), int(r["n_seeds"]), str(r["per_seed"]))
 
 
+def p_text(p: float, smallest: float, corrected: str = "uncorrected") -> str:
+    """``p = 0.029 (uncorrected; smallest attainable 0.029)``: a p-value, what it is corrected for,
+    and the smallest p the test could give with these seeds (stats.smallest_pvalue)."""
+    return f"p = {fmt(p, 2)} ({corrected}; smallest attainable {fmt(smallest, 2)})"
+
+
 def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: str, at: str,
                  opts: ReportOptions, noun: str | None = None) -> list[str]:
-    """Which arm has the lowest ``metric``, and for every other arm the difference and its p-value.
+    """Which arm has the lowest ``metric``, and for every other arm the difference of means and its
+    p-value. The lowest arm is picked after seeing the data, so the tests are post hoc and say so.
     Arms whose points are exactly equal to the lowest tie: no winner is named. ``noun``: ``what`` as
     it reads after "Lowest" (default: lower-cased)."""
     rows = summary[summary["metric"] == metric]
@@ -95,40 +106,59 @@ def winner_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: st
         arm = rows.iloc[0]["arm"]
         return [f"- {what} ({at}): `{arm}` {cell(summary, arm, metric)}."]
     best = comp["best"].iloc[0] if len(comp) else rows.iloc[0]["arm"]
-    tied = [best, *comp.loc[comp["difference"] == 0, "arm"]]
+    tied = [best, *comp.loc[comp["point"] == comp["best_point"], "arm"]]
     if len(tied) > 1:
         lines = [f"- {what} ({at}): {', '.join(f'`{a}`' for a in sorted(tied))} tie at "
                  f"{fmt(comp['best_point'].iloc[0])}: no winner."]
-    else:
+    elif len(comp) == 1:  # two arms: one two-sided test, whichever arm is named first
         lines = [f"- Lowest {noun or what.lower()} ({at}): **`{best}`** {cell(summary, best, metric)}."]
-    for r in comp[comp["difference"] != 0].itertuples(index=False):
-        lines.append(f"  - `{r.arm}` {cell(summary, r.arm, metric)}: higher by {fmt(r.difference)}, "
-                     f"p = {fmt(r.p_value, 2)} (two-sided permutation test over seeds): {_verdict(r.claim, opts)}.")
+    else:
+        lines = [f"- Lowest {noun or what.lower()} ({at}): **`{best}`** {cell(summary, best, metric)}. This arm "
+                 f"was picked after seeing the data: the {len(comp)} tests against it below are post hoc and "
+                 "uncorrected (for that choice and for their number)."]
+    corrected = "one two-sided test" if len(comp) == 1 else "post hoc, uncorrected"
+    for r in comp[comp["point"] != comp["best_point"]].itertuples(index=False):
+        lines.append(f"  - `{r.arm}` {cell(summary, r.arm, metric)}: {_direction(r.difference)} "
+                     f"(difference of means over seeds, the statistic tested), "
+                     f"{p_text(r.p_value, r.smallest_p, corrected)}: {_verdict(r.claim, opts)}.")
     return lines
+
+
+def _direction(difference: float) -> str:
+    """``mean higher by 0.01`` / ``mean lower by 0.01`` / ``equal means``."""
+    if difference == 0 or is_nan(difference):
+        return "equal means"
+    return f"mean {'lower' if difference < 0 else 'higher'} by {fmt(abs(difference))}"
 
 
 def baseline_text(comp: pd.DataFrame, summary: pd.DataFrame, metric: str, what: str, at: str,
                   opts: ReportOptions) -> list[str]:
-    """Every arm's ``metric`` against the baseline's (:func:`analysis.tables.baseline_comparisons`)."""
+    """Every arm's ``metric`` against the baseline's (:func:`analysis.comparisons.baseline_comparisons`): a
+    sentence and a table with the uncorrected and Holm-adjusted p-values."""
     if not len(comp):
         return []
     base = comp["baseline"].iloc[0]
-    lines = [f"- {what} against the baseline `{base}` {cell(summary, base, metric)} ({at}; two-sided "
-             f"permutation tests over seeds, one per arm, uncorrected for the {len(comp)} tests):"]
-    for r in comp.itertuples(index=False):
-        word = "lower" if r.difference < 0 else "higher" if r.difference > 0 else "equal"
-        lines.append(f"  - `{r.arm}` {cell(summary, r.arm, metric)}: {word} by {fmt(abs(r.difference))}, "
-                     f"p = {fmt(r.p_value, 2)}: {_verdict(r.claim, opts)}.")
-    return lines
-
-
-def _verdict(claim: bool, opts: ReportOptions) -> str:
-    return f"a difference at the {opts.alpha:g} level" if claim else f"no difference shown at the {opts.alpha:g} level"
+    k = len(comp)
+    lines = [f"- {what} against the baseline `{base}` {cell(summary, base, metric)} ({at}): two-sided permutation "
+             f"tests of the difference of per-seed means, one per arm; `p` is uncorrected, `p (Holm)` is adjusted "
+             f"for the {plural(k, 'test')} (Holm's step-down), and the verdict uses it.", ""]
+    view = pd.DataFrame({
+        "arm": [f"`{a}`" for a in comp["arm"]],
+        "mean (arm)": comp["mean"], "mean (baseline)": comp["baseline_mean"],
+        "difference of means (arm − baseline)": comp["difference"],
+        "p (uncorrected)": [fmt(p, 2) for p in comp["p_value"]],
+        f"p (Holm, {plural(k, 'test')})": [fmt(p, 2) for p in comp["p_holm"]],
+        "smallest attainable p": [fmt(p, 2) for p in comp["smallest_p"]],
+        "verdict (Holm)": [_verdict(c, opts) for c in comp["claim_holm"]],
+    })
+    return lines + [md_table(view)]
 
 
 def speedup_phrase(r, time_row_base, time_row_arm, word: str) -> str:
     """One measure's speedup in words: the estimate with its interval, or the bound and why."""
-    p = f"p = {fmt(r.p_value, 2)}"
+    from analysis.stats import smallest_pvalue
+
+    p = p_text(r.p_value, smallest_pvalue(int(time_row_arm["n_seeds"]), int(time_row_base["n_seeds"])))
     if r.status == "estimate":
         ci = (f" [{fmt(r.ci_low)}, {fmt(r.ci_high)}]" if not is_nan(r.ci_low)
               else f" (no interval below {MIN_SEEDS_BOOTSTRAP} seeds per arm)")
@@ -146,7 +176,8 @@ def speedup_phrase(r, time_row_base, time_row_arm, word: str) -> str:
 
 def speedup_text(speed: pd.DataFrame, per_bin: pd.DataFrame, time_df: pd.DataFrame, baseline: str,
                   opts: ReportOptions) -> list[str]:
-    """Per arm: the speedups against the baseline and a summary of its per-bin mastery speedups."""
+    """Per arm: the speedups against the baseline at the report's success threshold and a summary of its
+    per-bin mastery speedups."""
     lines = []
     t = time_df.set_index(["arm", "measure"])
     for arm, g in speed.groupby("arm", sort=True):
@@ -154,22 +185,42 @@ def speedup_text(speed: pd.DataFrame, per_bin: pd.DataFrame, time_df: pd.DataFra
                  for r in g.itertuples(index=False)]
         lines.append(f"- `{arm}` vs `{baseline}`, time to overall success ≥ {opts.success_threshold:g} "
                      f"(baseline median / arm median): " + "; ".join(parts) + ".")
-        b = per_bin[per_bin["arm"] == arm]
-        if len(b):
-            est = b[b["status"] == "estimate"]
-            counts = b["status"].value_counts()
-            text = (f"  Per-bin mastery speedups: {plural(len(est), 'bin')} estimable"
-                    + (f" (median ratio ×{fmt(float(np.median(est['ratio'])))})" if len(est) else ""))
-            for status, word in (("lower_bound", "lower bound"), ("upper_bound", "upper bound"),
-                                 ("not_estimable", "not estimable")):
-                if counts.get(status, 0):
-                    text += f", {plural(int(counts[status]), word)}"
-            sig = b[b["p_value"] < opts.alpha]
-            faster, slower = int((sig["ratio"] > 1).sum()), int((sig["ratio"] < 1).sum())
-            text += (f"; p < {opts.alpha:g} in {plural(len(sig), 'bin')} of {len(b)} "
-                     f"({faster} faster, {slower} slower; uncorrected for {plural(len(b), 'test')}).")
-            lines.append(text)
+        lines += mastery_speedup_line(per_bin, arm, opts)
     return lines
+
+
+def speed_view(speed: pd.DataFrame, time_df: pd.DataFrame) -> pd.DataFrame:
+    """The Speedup table (speedup.csv) with its columns named, and the smallest attainable p."""
+    from analysis.stats import smallest_pvalue
+
+    n = time_df.drop_duplicates("arm").set_index("arm")["n_seeds"]
+    return pd.DataFrame({
+        "arm": speed["arm"], "baseline": speed["baseline"], "measure": speed["measure"].map(MEASURE_WORDS),
+        "ratio (baseline / arm)": speed["ratio"], "interval low": speed["ci_low"], "interval high": speed["ci_high"],
+        "status": speed["status"], "p (uncorrected)": [fmt(p, 2) for p in speed["p_value"]],
+        "smallest attainable p": [fmt(smallest_pvalue(int(n[a]), int(n[b])), 2)
+                                  for a, b in zip(speed["arm"], speed["baseline"], strict=True)],
+    })
+
+
+def mastery_speedup_line(per_bin: pd.DataFrame, arm: str, opts: ReportOptions) -> list[str]:
+    """One arm's per-bin mastery speedups in one indented line (none without per-bin rows)."""
+    b = per_bin[per_bin["arm"] == arm]
+    if not len(b):
+        return []
+    est = b[b["status"] == "estimate"]
+    counts = b["status"].value_counts()
+    text = (f"  Per-bin mastery speedups: {plural(len(est), 'bin')} estimable"
+            + (f" (median ratio ×{fmt(float(np.median(est['ratio'])))})" if len(est) else ""))
+    for status, word in (("lower_bound", "lower bound"), ("upper_bound", "upper bound"),
+                         ("not_estimable", "not estimable")):
+        if counts.get(status, 0):
+            text += f", {plural(int(counts[status]), word)}"
+    sig = b[b["p_value"] < opts.alpha]
+    faster, slower = int((sig["ratio"] > 1).sum()), int((sig["ratio"] < 1).sum())
+    text += (f"; p < {opts.alpha:g} in {plural(len(sig), 'bin')} of {len(b)} "
+             f"({faster} faster, {slower} slower; uncorrected for {plural(len(b), 'test')}).")
+    return [text]
 
 
 def evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
@@ -190,19 +241,28 @@ def evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
     return lines + ([""] if lines else [])
 
 
-def budget_section(budget: pd.DataFrame, opts: ReportOptions) -> list[str]:
-    """The report's budget table (completed iterations, env steps, wall time) and its warning."""
+def budget_section(budget: pd.DataFrame, opts: ReportOptions, kinds: pd.Series | None = None,
+                   machines: str = "") -> list[str]:
+    """The report's budget table (completed iterations, env steps, wall time per machine kind) and its
+    warnings. ``kinds``: the machine kind of each run (analysis.machines); ``machines``: the sentence
+    saying why wall times are not compared (empty when every run trained on one kind)."""
     if not len(budget):
         return []
-    g = budget.groupby("arm", sort=True)
+    budget = budget.assign(machine=budget["run_dir"].map(kinds) if kinds is not None else "")
+    g = budget.groupby(["arm", "machine"], sort=True)
     view = pd.DataFrame({
-        "arm": list(g.groups),
+        "arm": [a for a, _ in g.groups],
         "iterations": [span(x) for _, x in g["iterations"]],
         "env steps": [span(x) for _, x in g["env_steps"]],
         "wall time (s)": [span(x) for _, x in g["wall_time_s"]],
     })
-    lines = ["## Budget", "", "Completed per run (min–max over seeds). Arms are compared at equal iterations and "
-             "env steps; wall time is reported, not compared.", "", md_table(view)]
+    if kinds is not None:
+        view.insert(1, "machine (provenance.json)", [k for _, k in g.groups])
+        view.insert(2, "runs", g.size().to_numpy())
+    note = (f" {machines}" if machines else " Every run trained on one machine kind, so wall-time speedups are "
+            "printed; runs that shared a GPU (CUDA MPS) are slower than alone, which provenance.json does not record.")
+    lines = ["## Budget", "", "Completed per run (min–max over seeds, per arm and machine kind). Arms are compared "
+             "at equal iterations and env steps." + note, "", md_table(view)]
     warning = tables.budget_warning(budget, opts)
     if warning:
         lines += [warning, ""]
@@ -244,37 +304,62 @@ def time_cell(time_df: pd.DataFrame, arm: str, measure: str) -> str:
     return f"{head} ({int(r['n_reached'])}/{int(r['n_seeds'])} seeds; {seeds})"
 
 
-def arms_view(summary: pd.DataFrame, time_df: pd.DataFrame, per_run: dict, at: str) -> pd.DataFrame:
-    """The Arms table: per arm its final failure, bins mastered and times to threshold."""
+FAILURE_UNIT = "failed / started episodes"
+"""The unit of every overall, clip and segment failure in the report (per-bin rates are per visit)."""
+
+
+def arms_view(summary: pd.DataFrame, time_df: pd.DataFrame, per_run: dict, at: str,
+              measures=("iteration", "env_steps", "wall_time_s")) -> pd.DataFrame:
+    """The Arms table: per arm its final failure, bins mastered and times to threshold (``measures``:
+    wall time only where it compares)."""
     arms = sorted(set(summary["arm"]))
     view = {"arm": arms, "seeds": [int(summary.loc[summary["arm"] == a, "n_seeds"].max()) for a in arms],
-            f"final failure ({at.split(',')[0]})": [cell(summary, a, "final_failure") for a in arms]}
+            f"final failure ({FAILURE_UNIT}; {at.split(',')[0]})": [cell(summary, a, "final_failure") for a in arms]}
     if "final_failure_equal_env_steps" in per_run:
-        view["final failure (equal env steps)"] = [cell(summary, a, "final_failure_equal_env_steps") for a in arms]
+        view[f"final failure ({FAILURE_UNIT}; equal env steps)"] = [
+            cell(summary, a, "final_failure_equal_env_steps") for a in arms]
     if "final_failure_robust" in per_run:
-        view["final failure, robust eval"] = [cell(summary, a, "final_failure_robust") for a in arms]
-    view["bins mastered"] = [cell(summary, a, "bins_mastered") for a in arms]
-    for m in ("iteration", "env_steps", "wall_time_s"):
-        view[f"{MEASURE_WORDS[m]} to threshold (median)"] = [time_cell(time_df, a, m) for a in arms]
+        view[f"final failure, robust eval ({FAILURE_UNIT})"] = [cell(summary, a, "final_failure_robust") for a in arms]
+    view["bins mastered (count)"] = [cell(summary, a, "bins_mastered") for a in arms]
+    for m in measures:
+        view[f"{MEASURE_WORDS[m]} to threshold (KM median)"] = [time_cell(time_df, a, m) for a in arms]
     return pd.DataFrame(view)
 
 
-def tracking_view(summary: pd.DataFrame, metrics: dict[str, str]) -> pd.DataFrame:
-    """The Tracking quality table: per arm (rows) each ``final_<error>`` of ``metrics`` (column -> label)."""
-    arms = sorted(set(summary["arm"]))
+NOT_RECORDED = "not recorded"
+"""A cell of a quantity the arm's evaluation tables do not have (runs from before it was recorded)."""
+
+
+def tracking_view(summary: pd.DataFrame, metrics: dict[str, str], seeds: dict[str, int] | None = None) -> pd.DataFrame:
+    """Per arm (rows) the summary metric of every ``metrics`` key (metric -> column label): "not
+    recorded" where the arm has no value, and "recorded by k of n seeds" where only some runs had it
+    (``seeds``: the arm's included runs)."""
+    arms = sorted(set(summary["arm"]) | set(seeds or {}))
     view = {"arm": arms}
-    for col, label in metrics.items():
-        view[label] = [cell(summary, a, f"final_{col}") for a in arms]
+    for metric, label in metrics.items():
+        cells = []
+        for a in arms:
+            r = summary_row(summary, a, metric)
+            if r is None:
+                cells.append(NOT_RECORDED)
+                continue
+            text = cell(summary, a, metric)
+            n = (seeds or {}).get(a)
+            cells.append(text + (f"; recorded by {int(r['n_seeds'])} of {n} seeds" if n and r["n_seeds"] < n else ""))
+        view[label] = cells
     return pd.DataFrame(view)
 
 
 def segment_view(seg: pd.DataFrame) -> pd.DataFrame:
-    """The Segments table: final failure per segment (rows) and arm (columns)."""
-    seg = seg.assign(cell=[f"{estimate_cell(p, lo, hi, m, n)} ({nm}/{b})" for p, lo, hi, m, n, nm, b in zip(
-        seg["final_failure"], seg["final_failure_low"], seg["final_failure_high"], seg["ci_method"], seg["n_seeds"],
-        seg["bins_not_mastered"], seg["num_bins"], strict=True)])
-    view = seg.pivot_table(index=["segment", "difficulty"], columns="arm", values="cell", aggfunc="first", sort=False)
-    return view.reset_index()
+    """The Segments table: one row per segment and arm, every column named with its unit."""
+    return pd.DataFrame({
+        "segment": seg["segment"], "difficulty": seg["difficulty"], "arm": seg["arm"],
+        f"final failure ({FAILURE_UNIT}, by start segment)": [estimate_cell(p, lo, hi, m, n) for p, lo, hi, m, n in zip(
+            seg["final_failure"], seg["final_failure_low"], seg["final_failure_high"], seg["ci_method"],
+            seg["n_seeds"], strict=True)],
+        "bins not mastered / bins": [f"{nm}/{b}" for nm, b in zip(seg["bins_not_mastered"], seg["num_bins"],
+                                                                  strict=True)],
+    })
 
 
 def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
@@ -287,32 +372,3 @@ def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
                                                                       strict=True)], _key=meta["bin"])
     view = meta.merge(view.rename(columns={"bin": "_key"}), on="_key").drop(columns=["_key", "horizon_truncated"])
     return view
-
-
-def definitions(opts: ReportOptions) -> list[str]:
-    """The report's Definitions section, with this report's thresholds."""
-    return ["## Definitions", "",
-            "- Evaluation (every `eval.every_iters`, sampler-independent, deterministic policy): episodes start at "
-            "stratified frames of every bin and run for the horizon; a bin's failure rate is the failures that "
-            "happened at its frames over the episodes that visited it. Overall failure of an evaluation = the "
-            "unweighted mean of the per-bin failure rates; success = 1 − failure.",
-            f"- A bin counts as mastered at an evaluation where its failure rate is < {opts.mastery_threshold:g} "
-            "(a horizon-truncated bin also needs an episode that tracked all its frames after entering from an "
-            "earlier bin). Its mastery iteration in one seed = the first evaluation from which it counts as "
-            f"mastered for {plural(opts.mastery_persist, 'consecutive evaluation')} or for the rest of the run; "
-            "a seed that never got there is censored at its last evaluation.",
-            f"- Time to threshold = the first evaluation from which overall success ≥ {opts.success_threshold:g} "
-            "with the same persistence, per seed, in iterations, env steps and wall time (censored likewise).",
-            "- Per arm, such times are summarised by the Kaplan-Meier median over seeds: only when more than half "
-            "of the seeds got there (censored seeds count as not yet), else `not reached`.",
-            "- Speedup = baseline median / arm median (> 1: the arm is faster). `estimate` when both medians are "
-            "defined (bootstrap interval over seeds, each arm resampled on its own, when every arm has "
-            f"≥ {MIN_SEEDS_BOOTSTRAP} seeds); `lower_bound` when only the baseline's median was not reached (its "
-            "last follow-up over the arm's median); `upper_bound` the reverse; `not_estimable` when neither was.",
-            f"- Point estimates: IQM (mean of the middle half of the seeds) from {MIN_SEEDS_IQM} seeds, else the "
-            f"mean. Intervals: BCa bootstrap (percentile where BCa is undefined) only when every arm has "
-            f"≥ {MIN_SEEDS_BOOTSTRAP} seeds; with fewer, the range of the seeds, labelled so. Per-seed values are "
-            "listed beside every estimate.",
-            f"- Differences: two-sided permutation test over seeds (exact for small n); claimed at p < {opts.alpha:g}. "
-            "Times to an event are compared with Gehan's generalised Wilcoxon scores (censoring-aware). Exact ties "
-            "name no winner.", ""]

@@ -3,10 +3,16 @@ censored per-arm medians and speedups.
 
 Definitions (used by the report and its text):
 
-- *overall failure* of an evaluation = the fraction of its episodes that failed (starts are
-  stratified, the same number in every bin, so every part of the motion counts the same); *overall
-  success* = 1 - that; the same number as the run's ``eval_failure_rate``. A bin's ``failure_rate``
-  is failures per visit, charged to the bin where the failure happened (bmimic.training.evaluation).
+- *overall failure* of an evaluation = failed evaluation episodes / started evaluation episodes
+  (starts are stratified, the same number in every bin, so every part of the motion counts the
+  same); *overall success* = 1 - that; the same number as the run's ``eval_failure_rate``. It is
+  not the mean of the per-bin rates: an episode spans several bins.
+- the failure of a clip or a segment (``start_failure``) is counted in the same unit: failed
+  episodes / episodes started in it, each episode charged to the clip (segment) it started in, so
+  the overall failure is the start-weighted mean of the clips' failures.
+- a bin's ``failure_rate`` is failures per *visit*, charged to the bin where the failure happened
+  (bmimic.training.evaluation): a different unit, used for bin mastery and the per-bin figures,
+  always labelled "per visit".
 - an evaluation *counts a bin as mastered* when its failure rate is below the threshold and, if the
   bin is ``horizon_truncated`` (its episodes run out of clip before the horizon), at least one
   episode tracked all of its frames after entering it from an earlier bin (``tracked_through``).
@@ -75,6 +81,26 @@ def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     out["failure_rate"] = out["failures"] / out["starts"].where(out["starts"] > 0)
     out["success_rate"] = 1.0 - out["failure_rate"]
     return out[[*by, "iteration", "env_steps", "wall_time_s", "failure_rate", "success_rate", "num_bins"]]
+
+
+def start_failure(eval_df: pd.DataFrame, groups: pd.Series, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
+    """Failure per started episode of each group of bins (a clip, a segment), every episode charged to
+    the group it started in: ``by + [iteration, group, failures, starts, failure_rate]``.
+
+    ``groups`` maps each bin (index) to its group. Uses ``start_failures / start_episodes``; tables
+    written before per-visit accounting charged failures to the start bin already (``failures /
+    episodes``). Summed over the groups it is :func:`overall_failure`'s numerator and denominator.
+    """
+    by = list(by)
+    if "start_failures" in eval_df.columns and "start_episodes" in eval_df.columns:
+        fails, starts = "start_failures", "start_episodes"
+    else:
+        fails, starts = "failures", "episodes"
+    df = eval_df[[*by, "iteration", "bin", fails, starts]].assign(group=eval_df["bin"].map(groups))
+    out = (df.groupby([*by, "iteration", "group"], sort=False)
+           .agg(failures=(fails, "sum"), starts=(starts, "sum")).reset_index())
+    out["failure_rate"] = out["failures"] / out["starts"].where(out["starts"] > 0)
+    return out
 
 
 def first_sustained(ok, persist: int) -> int:
@@ -251,26 +277,54 @@ ERROR_METRICS = {
 """eval.parquet tracking-error column -> label (lower is better), in the order the report shows them."""
 
 
-def tracking_errors(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
-    """Step-weighted mean tracking errors per run and evaluation: ``by + [iteration, env_steps, <error>...]``.
+SMOOTHNESS_METRICS = {
+    "action_rate": "action rate (Σ over joints of (a_t − a_{t−1})², per step)",
+    "joint_acc_radps2": "joint acceleration (rad/s², mean over joints)",
+}
+"""eval.parquet smoothness column -> label (lower is smoother): the policy's own actions and joint motion,
+not a tracking error (bmimic.training.evaluation.SMOOTHNESS_COLUMNS). Tables written before they were
+recorded lack them: the report says "not recorded"."""
 
-    Each bin's error is a mean over the steps the evaluation episodes spent at its frames
-    (``eval_steps``), so the run's error is the ``eval_steps``-weighted mean over bins, the run's own
-    ``eval_<error>`` (bmimic.training.evaluation.summarize). Steps after an episode failed are not
-    measured: an arm that fails more is measured over fewer steps. Empty when the table has no errors.
+BROKEN = "broken"
+"""eval.parquet count of episodes that ended because their world broke (non-finite or out of bounds),
+charged to the bin where it happened; each is also a failure. Absent from older tables."""
+
+
+def tracking_errors(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
+    """Step-weighted means per run and evaluation of every tracking error (ERROR_METRICS) and
+    smoothness measure (SMOOTHNESS_METRICS) the table has: ``by + [iteration, env_steps, <column>...]``.
+
+    Each bin's value is a mean over the steps the evaluation episodes spent at its frames
+    (``eval_steps``), so the run's is the ``eval_steps``-weighted mean over bins, the run's own
+    ``eval_<column>`` (bmimic.training.evaluation.summarize). Steps after an episode failed are not
+    measured: an arm that fails more is measured over fewer steps. A run whose table lacks a column
+    (stacked with runs that have it) gets NaN there, never 0. Empty when the table has none.
     """
     by = list(by)
-    cols = [c for c in ERROR_METRICS if c in eval_df.columns]
+    cols = [c for c in (*ERROR_METRICS, *SMOOTHNESS_METRICS) if c in eval_df.columns]
     if not cols or "eval_steps" not in eval_df.columns or not len(eval_df):
         return pd.DataFrame(columns=[*by, "iteration", "env_steps"])
     w = eval_df["eval_steps"].astype(float).clip(lower=0.0)
-    parts = eval_df[cols].astype(float).mul(w, axis=0).where(w > 0, 0.0)  # a bin never reached has NaN errors
-    frame = pd.concat([eval_df[[*by, "iteration", "env_steps"]], parts, w.rename("_steps")], axis=1)
-    g = frame.groupby([*by, "iteration"], sort=True).agg({"env_steps": "max", "_steps": "sum",
-                                                          **{c: "sum" for c in cols}}).reset_index()
+    values = eval_df[cols].astype(float)
+    weights = pd.DataFrame({c: w.where(values[c].notna() & (w > 0), 0.0) for c in cols})
+    parts = values.fillna(0.0).mul(weights)  # a bin never reached has NaN values and no weight
+    frame = pd.concat([eval_df[[*by, "iteration", "env_steps"]], parts, weights.add_prefix("_w_")], axis=1)
+    g = frame.groupby([*by, "iteration"], sort=True).agg(
+        {"env_steps": "max", **{c: "sum" for c in cols}, **{f"_w_{c}": "sum" for c in cols}}).reset_index()
     for c in cols:
-        g[c] = g[c] / g["_steps"].where(g["_steps"] > 0)
-    return g.drop(columns="_steps")
+        g[c] = g[c] / g[f"_w_{c}"].where(g[f"_w_{c}"] > 0)
+    return g.drop(columns=[f"_w_{c}" for c in cols])
+
+
+def broken_episodes(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
+    """Episodes whose world broke, per run: ``by + [broken, evaluations]`` summed over every evaluation
+    (``broken`` column); runs whose table lacks the column are left out (not recorded)."""
+    by = list(by)
+    if BROKEN not in eval_df.columns or not len(eval_df):
+        return pd.DataFrame(columns=[*by, BROKEN, "evaluations"])
+    df = eval_df.dropna(subset=[BROKEN])
+    out = df.groupby(by, sort=True).agg(broken=(BROKEN, "sum"), evaluations=("iteration", "nunique")).reset_index()
+    return out
 
 
 def at_budget(df: pd.DataFrame, measure: str, budget: float, by=("run_dir",)) -> pd.DataFrame:

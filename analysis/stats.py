@@ -12,7 +12,15 @@ The rules a reviewer would apply, in one place:
   and their range are shown instead, labelled "range of n seeds" (``ci_method="range"``).
 - A difference between two arms gets a two-sided permutation-test p-value
   (``scipy.stats.permutation_test``), exact (every relabelling) when there are at most
-  ``EXACT_PERMUTATIONS`` of them, else from ``n_resamples`` random ones.
+  ``EXACT_PERMUTATIONS`` of them, else from ``n_resamples`` random ones. The test statistic is the
+  difference of means, and the difference the report prints beside the p-value is that same
+  difference of means (the IQM is the point estimate of one arm, not a test statistic: with 4 seeds
+  an IQM difference cannot reach p < 0.05). With n and m seeds no exact test can give p below
+  ``smallest_pvalue(n, m)`` = 2 / C(n + m, n) (0.029 for 4 v 4, 0.0079 for 5 v 5), printed beside
+  every p. Several arms tested against one baseline get Holm's step-down adjustment (``holm``).
+- Bootstrap intervals undercover at few seeds: ``bootstrap_coverage`` simulates the actual coverage
+  of the nominal interval on normal data, which the report prints beside its intervals (a nominal
+  95% BCa interval of the IQM covers about 89% at 5 seeds, 91% at 7 and 94% at 10).
 - Times to an event (a bin mastered, a success threshold reached) are censored at a seed's last
   evaluation when the event never came. Their per-arm summary is the Kaplan-Meier median
   (``km_median``): defined only when more than half of the seeds had the event (earlier censoring
@@ -228,6 +236,49 @@ def _exact_permutation_pvalue(a: np.ndarray, b: np.ndarray, statistic: Callable)
     greater = np.mean(null >= observed - tol)
     less = np.mean(null <= observed + tol)
     return float(min(1.0, 2.0 * min(greater, less)))
+
+
+def smallest_pvalue(n_a: int, n_b: int, n_resamples: int = 9999) -> float:
+    """The smallest two-sided p-value a permutation test of two groups of ``n_a`` and ``n_b`` values
+    can give (as permutation_pvalue computes it): 2 / C(n_a + n_b, n_a) when every split is
+    enumerated (4 v 4: 2/70 = 0.029; 5 v 5: 2/252 = 0.0079), 2 / (n_resamples + 1) from random
+    splits; capped at 1, NaN for an empty group. Ties among the values can only raise it."""
+    if n_a < 1 or n_b < 1:
+        return math.nan
+    splits = math.comb(n_a + n_b, n_a)
+    if splits > EXACT_PERMUTATIONS and min(n_a, n_b) >= 2:
+        return min(1.0, 2.0 / (n_resamples + 1))
+    return min(1.0, 2.0 / splits)
+
+
+def holm(pvalues) -> np.ndarray:
+    """Holm's step-down adjusted p-values of a family of tests (same order as given; NaNs are left
+    out of the family and stay NaN). With m tests sorted p_(1) <= ... <= p_(m), the adjusted
+    p_(i) = max over j <= i of min(1, (m - j + 1) p_(j)); rejecting where it is below alpha controls
+    the family-wise error rate at alpha. Holm([0.01, 0.04, 0.03]) = [0.03, 0.06, 0.06]."""
+    p = np.asarray(pvalues, dtype=float).reshape(-1)
+    out = np.full(p.shape, np.nan)
+    ok = np.flatnonzero(~np.isnan(p))
+    m = len(ok)
+    if not m:
+        return out
+    order = ok[np.argsort(p[ok], kind="stable")]
+    adjusted = np.minimum(1.0, (m - np.arange(m)) * p[order])
+    out[order] = np.maximum.accumulate(adjusted)
+    return out
+
+
+def bootstrap_coverage(n_seeds: int, n_draws: int = 1000, n_resamples: int = DEFAULT_RESAMPLES,
+                       confidence: float = 0.95, seed: int = 0) -> float:
+    """The fraction of ``n_draws`` standard-normal samples of ``n_seeds`` values whose bootstrap
+    interval of the report's point statistic (seed_interval: IQM from MIN_SEEDS_IQM seeds, BCa where
+    defined) contains the true centre, 0: the actual coverage of the nominal ``confidence``."""
+    rng = np.random.default_rng(seed)
+    hits = 0
+    for i in range(n_draws):
+        _, low, high, _ = seed_interval(rng.normal(size=n_seeds), True, n_resamples, confidence, seed + i)
+        hits += bool(low <= 0.0 <= high)
+    return hits / n_draws
 
 
 def km_median(time, event, axis: int = -1):

@@ -17,6 +17,7 @@ import pandas as pd
 from analysis import AnalysisError
 from analysis.metrics import (
     ERROR_METRICS,
+    SMOOTHNESS_METRICS,
     at_budget,
     overall_failure,
 )
@@ -26,7 +27,6 @@ from analysis.stats import (
     MIN_SEEDS_IQM,
     curve_intervals,
     iqm,
-    permutation_pvalue,
     seed_interval,
 )
 
@@ -230,7 +230,8 @@ def summary_rows(arm: str, metric: str, per_run: pd.DataFrame, value: str, boot:
     }
 
 
-def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors=None) -> dict[str, pd.DataFrame]:
+def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors=None,
+                    broken=None) -> dict[str, pd.DataFrame]:
     """metric -> one row per run (``run_dir, arm, seed, value``): the per-seed numbers summary.csv is over.
 
     - ``final_failure``: overall failure at the last evaluation iteration every run has;
@@ -239,8 +240,11 @@ def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors
     - ``final_failure_robust``: the last robust evaluation (eval_robust.parquet), where present;
     - ``bins_mastered``: bins the run mastered (persistent, counts_as_mastered);
     - ``iterations``, ``env_steps``, ``wall_time_s``: what the run completed;
-    - ``final_<error>`` for each metrics.ERROR_METRICS column of ``errors`` (metrics.tracking_errors):
-      the step-weighted tracking error at the same evaluation as ``final_failure``.
+    - ``final_<column>`` for each metrics.ERROR_METRICS and metrics.SMOOTHNESS_METRICS column of
+      ``errors`` (metrics.tracking_errors): the step-weighted value at the same evaluation as
+      ``final_failure``, for the runs that recorded it;
+    - ``broken_episodes``: episodes whose world broke, summed over every evaluation of the run
+      (``broken``: metrics.broken_episodes), for the runs that recorded it.
     """
     out = {}
     keep = ["run_dir", "arm", "seed"]
@@ -259,9 +263,11 @@ def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors
         out["bins_mastered"] = m[keep].assign(value=m["mastered"].astype(float).to_numpy())
     if errors is not None and len(errors) and len(overall):
         f = at_budget(errors, "iteration", common_budget(overall)["iteration"])
-        for col in ERROR_METRICS:
+        for col in (*ERROR_METRICS, *SMOOTHNESS_METRICS):
             if col in f and f[col].notna().any():
                 out[f"final_{col}"] = f[keep].assign(value=f[col].to_numpy(dtype=float)).dropna(subset=["value"])
+    if broken is not None and len(broken):
+        out["broken_episodes"] = broken[keep].assign(value=broken["broken"].astype(float).to_numpy())
     for col in ("iterations", "env_steps", "wall_time_s"):
         if len(budget):
             out[col] = budget[keep].assign(value=budget[col].astype(float).to_numpy())
@@ -276,50 +282,6 @@ def summary(per_run: dict[str, pd.DataFrame], runs: pd.DataFrame, opts: ReportOp
         for arm, g in df.groupby("arm", sort=True):
             rows.append(summary_rows(arm, metric, g, "value", boot, opts))
     return pd.DataFrame(rows, columns=SUMMARY_COLUMNS)
-
-
-def comparisons(per_run: dict[str, pd.DataFrame], metric: str, opts: ReportOptions) -> pd.DataFrame:
-    """Every arm against the arm with the lowest point estimate of ``metric`` (lower is better):
-    ``metric, arm, best, point, best_point, difference, p_value, claim`` where ``claim`` means
-    p < alpha (two-sided permutation test of the per-seed values) and the points differ."""
-    if metric not in per_run:
-        return pd.DataFrame()
-    values, points = _seed_values(per_run[metric])
-    best = min(points, key=lambda a: (points[a], a))
-    return pd.DataFrame(_against(metric, values, points, best, opts),
-                        columns=["metric", "arm", "best", "point", "best_point", "difference", "p_value", "claim"])
-
-
-def baseline_comparisons(per_run: dict[str, pd.DataFrame], metric: str, baseline: str | None,
-                         opts: ReportOptions) -> pd.DataFrame:
-    """Every arm against ``baseline`` (e.g. uniform sampling): ``metric, arm, baseline, point,
-    baseline_point, difference (arm - baseline), p_value, claim``, tested as in :func:`comparisons`;
-    one test per arm, uncorrected for their number. Empty without the baseline or the metric."""
-    cols = ["metric", "arm", "baseline", "point", "baseline_point", "difference", "p_value", "claim"]
-    if metric not in per_run or baseline is None:
-        return pd.DataFrame(columns=cols)
-    values, points = _seed_values(per_run[metric])
-    if baseline not in values:
-        return pd.DataFrame(columns=cols)
-    return pd.DataFrame(_against(metric, values, points, baseline, opts), columns=cols)
-
-
-def _seed_values(df: pd.DataFrame) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """Per arm: the per-seed values (by seed) and their point (IQM from MIN_SEEDS_IQM seeds, else the mean)."""
-    values = {a: g.sort_values("seed")["value"].to_numpy(dtype=float) for a, g in df.groupby("arm", sort=True)}
-    return values, {a: (iqm(v) if len(v) >= MIN_SEEDS_IQM else float(np.mean(v))) for a, v in values.items()}
-
-
-def _against(metric: str, values: dict[str, np.ndarray], points: dict[str, float], ref: str,
-             opts: ReportOptions) -> list[tuple]:
-    rows = []
-    for arm, v in values.items():
-        if arm == ref:
-            continue
-        p = permutation_pvalue(v, values[ref], n_resamples=opts.n_permutations, seed=opts.bootstrap_seed)
-        diff = points[arm] - points[ref]
-        rows.append((metric, arm, ref, points[arm], points[ref], diff, p, bool(diff != 0 and p < opts.alpha)))
-    return rows
 
 
 def arm_overview(summary_df: pd.DataFrame, time_df: pd.DataFrame) -> pd.DataFrame:

@@ -92,6 +92,7 @@ def write_run(
     truncated_bins: tuple[int, ...] = (),
     clips: list[str] | None = None,
     sampler_episodes: list[int] | None = None,
+    machine: str = "Test GPU",
 ) -> Path:
     """Write one complete run folder whose bin ``b`` is mastered at ``mastery[b]`` (None: never).
 
@@ -99,7 +100,8 @@ def write_run(
     ``visits``/``horizon_truncated``); ``truncated_bins`` are flagged horizon-truncated with no episode
     tracked through them, so they never count as mastered. ``clips`` names each bin's clip (a motion
     library: eval.parquet and sampler.parquet get a `clip` column); ``sampler_episodes`` replaces the 25
-    training starts per bin in sampler.parquet.
+    training starts per bin in sampler.parquet (and sets the sampling probabilities in proportion).
+    ``machine`` is the GPU name provenance.json records.
     """
     run_dir = Path(run_dir)
     (run_dir / ".hydra").mkdir(parents=True, exist_ok=True)
@@ -110,7 +112,8 @@ def write_run(
     (run_dir / "status.json").write_text(json.dumps(
         {"status": status, "error": error, "iteration": iteration, "updated": "2026-01-01T00:00:00+00:00"}
     ))
-    (run_dir / "provenance.json").write_text(json.dumps({"git_commit": "0123abc", "git_dirty": False}))
+    (run_dir / "provenance.json").write_text(json.dumps({"git_commit": "0123abc", "git_dirty": False,
+                                                         "gpu": {"name": machine, "count": 1}}))
     (run_dir / "motion_segments.json").write_text(json.dumps(SEGMENTS))
     if not write_tables:
         return run_dir
@@ -136,6 +139,8 @@ def write_run(
     for it in iterations:
         fail = _failure(mastery, seed, int(it))
         prob = np.full(NUM_BINS, 1.0 / NUM_BINS) if sampler == "uniform" else fail / fail.sum()
+        if sampler_episodes is not None:
+            prob = np.asarray(sampler_episodes, dtype=float) / sum(sampler_episodes)
         for b in range(NUM_BINS):
             start, end = b * BIN_SIZE_S, (b + 1) * BIN_SIZE_S
             starts = 25 if sampler_episodes is None else sampler_episodes[b]

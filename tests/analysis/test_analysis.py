@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis import AnalysisError
+from analysis.comparisons import baseline_comparisons, comparisons
 from analysis.index import build_index, write_index
 from analysis.load import load_runs, load_table
 from analysis.markdown import plural
@@ -36,7 +37,7 @@ from analysis.stats import (
     permutation_pvalue,
     seed_interval,
 )
-from analysis.tables import SPEEDUP_COLUMNS, SUMMARY_COLUMNS, ReportOptions, baseline_comparisons, comparisons
+from analysis.tables import SPEEDUP_COLUMNS, SUMMARY_COLUMNS, ReportOptions
 from tests.analysis.synthetic_runs import (
     FAST,
     PLANTED,
@@ -376,10 +377,11 @@ def _png_size(path: Path) -> tuple[int, int]:
 def test_report_files(report):
     tables = ["runs", "summary", "curves", "bin_failure", "final_bin_failure", "sampling", "mastery",
               "mastery_per_seed", "mastery_speedup", "time_to_threshold", "time_to_threshold_summary", "speedup",
-              "sensitivity", "segment_failure", "budget", "comparisons", "baseline_comparisons"]
+              "sensitivity", "segment_failure", "budget", "comparisons", "baseline_comparisons", "speedup_curve",
+              "iso_failure", "sampling_support", "sampling_support_summary", "sampler_signals"]
     figures = ["curve_mean_episode_length", "curve_mean_reward", "curve_eval_failure_rate",
                "bin_failure_heatmap", "final_bin_failure", "sampling_distribution", "mastery", "speedup",
-               "sensitivity_sampler.gamma"]
+               "sensitivity_sampler.gamma", "speedup_curve", "iso_failure", "sampling_support"]
     for name in tables:
         assert len(pd.read_csv(report / f"{name}.csv")) > 0, name
     for name in figures:
@@ -423,8 +425,10 @@ def test_report_text_partial_sweep(report):
     assert "Warning: unequal budgets" in md and "iteration 45, the last evaluation every run has" in md
     assert f"Lowest final overall failure (iteration 45, the last evaluation every run has): **`{FAST}`**" in md
     assert "no difference shown at the 0.05 level" in md
-    assert "iterations ×2 (no interval below 5 seeds per arm), p = 0.2" in md
-    assert "≤ ×0.667 (an upper bound" in md
+    assert "This arm was picked after seeing the data: the 2 tests against it below are post hoc" in md
+    assert "(post hoc, uncorrected; smallest attainable 0.2)" in md  # 3 v 2 seeds: 10 splits
+    assert "at 0.9: ×2 (no interval), p = 0.2 (uncorrected; smallest attainable 0.2)" in md
+    assert "0.86–0.97: ≤ ×0.667 (the arm's median not reached: a bound)" in md
     assert "1 upper bound" in md and "1 bins" not in md
     assert set(pd.read_csv(report / "sampling.csv")["arm"]) == {FAST, SLOW}
     sens = pd.read_csv(report / "sensitivity.csv")
@@ -665,15 +669,17 @@ def test_the_report_has_a_per_clip_table_for_a_library(tmp_path):
                   sampler_episodes=[30, 20, 0, 0])
     out = build_report([sweep], tmp_path / "report")
     table = pd.read_csv(out / "clip_failure.csv").set_index(["arm", "clip"])
-    # final failure of a clip: failures over visits of its bins (seed s adds 0.01 s to every rate)
+    # final failure of a clip: failed / started episodes of its bins (episodes stay in their start bin
+    # here; seed s adds 0.01 s to every rate)
     assert table.loc[("sampler=adaptive", "jump"), "final_failure"] == pytest.approx((0.02 + 0.5) / 2 + 0.005)
     assert table.loc[("sampler=uniform", "walk"), "final_failure"] == pytest.approx(0.02 + 0.005)
     assert table.loc[("sampler=adaptive", "jump"), "bins_not_mastered"] == 1
     assert table.loc[("sampler=uniform", "jump"), "bins_not_mastered"] == 0
-    assert table.loc[("sampler=uniform", "jump"), "start_share"] == pytest.approx(0.5)
-    assert table.loc[("sampler=adaptive", "walk"), "start_share"] == pytest.approx(1.0)
+    # the sampler's probability mass on the clip (uniform over 4 bins: half on each clip of 2)
+    assert table.loc[("sampler=uniform", "jump"), "sampling_mass"] == pytest.approx(0.5)
+    assert table.loc[("sampler=adaptive", "walk"), "sampling_mass"] == pytest.approx(1.0)
     text = (out / "report.md").read_text()
-    assert "## Clips" in text and "Never started from: `sampler=adaptive`: jump." in text
+    assert "## Clips" in text and "No sampling probability at any logged iteration: `sampler=adaptive`: jump." in text
     # one clip: no per-clip section
     assert clip_failure(pd.DataFrame({"bin": [0], "clip": ["a"]}), pd.DataFrame(), pd.DataFrame(), pd.DataFrame(),
                         None).empty

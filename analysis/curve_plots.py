@@ -1,0 +1,107 @@
+"""The figures of the speedup curve, the iso-failure ratios and the sampling distribution's support
+(same conventions as ``analysis.plots``: ``plot_x(df, ax=None, ...) -> Figure``, no pyplot state)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from analysis.plots import _axes, _marker, arm_colors
+
+CURVE_MARKERS = {"estimate": "o", "lower_bound": "^", "upper_bound": "v"}
+"""Marker of each speedup status on the curve figures (not estimable: not drawn)."""
+
+
+def _ratio_curve(ax, x: np.ndarray, ratio: np.ndarray, status, color, label: str,
+                 low: np.ndarray | None = None, high: np.ndarray | None = None) -> float:
+    """One arm's ratio curve: a line through the estimates, markers by status (^ lower bound, v upper
+    bound), the interval as a band where there is one; returns the largest value drawn."""
+    status = np.asarray(status, dtype=object)
+    est = status == "estimate"
+    ax.plot(np.where(est, x, np.nan), np.where(est, ratio, np.nan), color=color, lw=1.4, label=label)
+    for s, marker in CURVE_MARKERS.items():
+        sel = (status == s) & np.isfinite(ratio)
+        if sel.any():
+            ax.scatter(x[sel], ratio[sel], marker=marker, s=22 if s == "estimate" else 36, color=color,
+                       facecolors=color if s == "estimate" else "none", lw=1, zorder=3)
+    top = float(np.nanmax(np.where(np.isfinite(ratio), ratio, np.nan))) if np.isfinite(ratio).any() else 1.0
+    if low is not None and high is not None:
+        ok = np.isfinite(low) & np.isfinite(high)
+        if ok.any():
+            ax.fill_between(x, np.where(ok, low, np.nan), np.where(ok, high, np.nan), color=color, alpha=0.2, lw=0)
+            top = max(top, float(np.nanmax(np.where(ok, high, np.nan))))
+    return top
+
+
+def _ratio_figure(df: pd.DataFrame, x: str, ax, colors: dict | None, band: bool, xlabel: str, ylabel: str,
+                  title: str, cap: float = 20.0) -> Figure:
+    """One _ratio_curve per arm of ``df`` (columns ``arm``, ``x``, ``ratio``, ``status`` and, with
+    ``band``, ``ci_low``/``ci_high``) against ``x``, a dashed line at 1, the y axis up to the largest
+    value drawn (at most ``cap``)."""
+    fig, ax = _axes(ax)
+    colors = colors or arm_colors(df["arm"])
+    top = 1.0
+    for arm, g in df.groupby("arm", sort=True):
+        g = g.sort_values(x)
+        lo, hi = (g["ci_low"].to_numpy(float), g["ci_high"].to_numpy(float)) if band else (None, None)
+        top = max(top, _ratio_curve(ax, g[x].to_numpy(float), g["ratio"].to_numpy(float), g["status"], colors[arm],
+                                    arm, lo, hi))
+    ax.axhline(1.0, color="0.2", lw=0.8, ls="--")
+    ax.set_ylim(0, min(top, cap) * 1.15)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=7)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    return fig
+
+
+def plot_speedup_curve(curve: pd.DataFrame, measure: str = "iteration", ax=None,
+                       colors: dict | None = None) -> Figure:
+    """Speedup against the baseline (baseline median / arm median time to a success threshold) over the
+    success thresholds, one line per arm: filled dots are estimates (band: bootstrap interval where there
+    is one), open ^ lower bounds (the baseline's median not reached), open v upper bounds; thresholds
+    where neither median was reached are not drawn. ``curve`` is speedup_curve.csv."""
+    return _ratio_figure(curve[curve["measure"] == measure], "threshold", ax, colors, True,
+                         "overall success threshold (1 − failed / started episodes)",
+                         f"speedup in {measure.replace('_', ' ')} (baseline / arm)",
+                         "dots: estimates (band: bootstrap interval); open ^: lower bound; open v: upper bound")
+
+
+def plot_iso_failure(iso: pd.DataFrame, measure: str = "iteration", ax=None, colors: dict | None = None) -> Figure:
+    """Iso-failure ratio over training: at each evaluation of the baseline, its time over the time the
+    arm first reached the baseline's failure level there (> 1: the arm got there sooner), one line per
+    arm; markers as plot_speedup_curve. ``iso`` is iso_failure.csv."""
+    return _ratio_figure(iso[iso["measure"] == measure], "baseline_time", ax, colors, False,
+                         f"baseline {measure.replace('_', ' ')}", "baseline time / arm time to the same failure",
+                         "point curves over seeds; open ^: lower bound; open v: upper bound (arm never got there)")
+
+
+def plot_sampling_support(summary: pd.DataFrame, colors: dict | None = None) -> Figure:
+    """Two panels over training, one line per arm (mean over seeds): the effective support of the
+    sampling distribution, (1 / Σ p²) / S (1 = uniform), and its largest probability relative to
+    uniform, max p × S; dashed where a library's clip-level values exist (over the C clips' masses).
+    ``summary`` is sampling_support.csv."""
+    fig = Figure(figsize=(9.0, 3.4), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2)
+    colors = colors or arm_colors(summary["arm"])
+    for arm, g in summary.groupby("arm", sort=True):
+        g = g.sort_values("iteration")
+        x = g["iteration"].to_numpy(float)
+        ax1.plot(x, g["effective_support"].to_numpy(float), color=colors[arm], lw=1.4, label=arm, **_marker(len(x)))
+        ax2.plot(x, g["max_p_rel"].to_numpy(float), color=colors[arm], lw=1.4, label=arm, **_marker(len(x)))
+        if g["clip_effective_support"].notna().any():
+            ax1.plot(x, g["clip_effective_support"].to_numpy(float), color=colors[arm], lw=1.0, ls="--")
+            ax2.plot(x, g["clip_max_p_rel"].to_numpy(float), color=colors[arm], lw=1.0, ls="--")
+    ax1.set_ylim(0, 1.05)
+    ax1.set_ylabel("effective support (1 / Σ p²) / S")
+    ax2.set_ylabel("largest p relative to uniform (max p × S)")
+    ax2.set_ylim(bottom=0)
+    for ax in (ax1, ax2):
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+    ax1.legend(fontsize=7)
+    if summary["clip_effective_support"].notna().any():
+        ax1.set_title("solid: over bins; dashed: over clips (their masses)", fontsize=7)
+    return fig
