@@ -295,7 +295,10 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
         save_figure(out / "sampling_support.png", curve_plots.plot_sampling_support(support_sum, colors=colors))
         figures.append(("sampling_support.png", "Effective support and largest probability relative to uniform of "
                                                 "the sampling distribution over training (mean over seeds)"))
-        md += adaptation_section(support_sum, signals)
+        clip_evals = load_table(runs, "clip_eval")
+        if len(clip_evals):
+            write_csv(out / "clip_eval.csv", clip_evals)
+        md += adaptation_section(support_sum, signals, clip_evals)
 
     sens = tables.sensitivity(runs, overview)
     if len(sens):

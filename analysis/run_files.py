@@ -18,12 +18,14 @@ REQUIRED_COLUMNS = {
     "eval": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
     "sampler": ["iteration", "bin", "probability"],
     "eval_robust": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
+    "clip_eval": ["iteration", "clip", "failed"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""
 
 NEEDED_TABLES = ("train_metrics", "eval")
-"""Tables a run must have to be included; ``sampler`` and ``eval_robust`` (written with
-``eval.robust=true``) are optional (what uses them skips runs without them)."""
+"""Tables a run must have to be included; ``sampler``, ``eval_robust`` (written with
+``eval.robust=true``) and ``clip_eval`` (the clip rollouts of phc and protomotions) are optional (what
+uses them skips runs without them)."""
 
 IGNORED_OVERRIDE_KEYS = {
     "seed", "sweep_name", "run_name", "task_name", "device", "resume", "sweep", "logger",

@@ -46,6 +46,7 @@ TABLES = {
     "sampler": "sampler.parquet",
     "eval": "eval.parquet",
     "eval_robust": "eval_robust.parquet",
+    "clip_eval": "clip_eval.parquet",
 }
 """Training's tables: name -> file name in the run folder."""
 EVAL_DIR = "eval"

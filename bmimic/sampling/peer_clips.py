@@ -2,10 +2,16 @@ r"""The field's evaluation-driven clip samplers (issue 24), and the base of ever
 live on clips or sub-clips. Each YAML in ``conf/sampler/`` cites its source and marks what the source
 leaves open and how bmimic chose it; the formulas are here (EGM and GMT: :mod:`bmimic.sampling.peer_errors`).
 
-**PHCSampler** (``phc``; PHC's ``auto_pmcp_soft``, ZhengyiLuo/PHC ``phc/learning/im_amp.py``). After
-each evaluation, :math:`h_m \mathrel{+}= 1` for every clip m with a failed evaluation episode, and
-:math:`p_m = h_m / \sum h` (uniform over clips while nothing has failed); ``mode: hard``
-(``auto_pmcp``) is uniform over the clips that failed the latest evaluation instead.
+Both learn from one rollout per clip from the clip's first frame after each periodic evaluation
+(:mod:`bmimic.training.clip_rollouts`: the clip failed when that rollout failed before the clip's end,
+or before ``rollout_max_s`` seconds when set), as the sources evaluate each motion from its start.
+
+**PHCSampler** (``phc``; PHC's ``auto_pmcp_soft``, ZhengyiLuo/PHC ``phc/learning/im_amp.py`` and
+``phc/utils/motion_lib_base.py``). After each evaluation, :math:`h_m \mathrel{+}= 1` for every clip m
+whose rollout failed, and :math:`p_m = h_m / \sum h`; when no clip failed that evaluation, p is
+uniform over clips (``update_soft_sampling_weight`` resets to uniform; h is kept for the next
+failure); ``mode: hard`` (``auto_pmcp``) is uniform over the clips that failed the latest evaluation
+instead (uniform over all when none did).
 
 **ProtoMotionsSampler** (``protomotions``; ProtoMotions v3, ``mimic_evaluator._update_motion_sampling_weights``).
 Weights :math:`w_m` start at 1; after each evaluation, K iterations after the previous one,
@@ -91,8 +97,12 @@ class PHCConfig(SamplerConfig):
     name: str = "phc"
     kind: str = "phc"
     mode: str = "soft"
-    """"soft" (auto_pmcp_soft, PHC's default): p_m = h_m / sum(h), h the failed evaluations of clip m;
-    "hard" (auto_pmcp): uniform over the clips that failed the latest evaluation."""
+    """"soft" (auto_pmcp_soft, PHC's default): p_m = h_m / sum(h), h the failed evaluations of clip m,
+    uniform when the latest evaluation failed no clip; "hard" (auto_pmcp): uniform over the clips that
+    failed the latest evaluation."""
+    rollout_max_s: Optional[float] = None
+    """Seconds of each clip's evaluation rollout from its first frame, > 0; null: to the clip's end
+    (PHC evaluates the whole motion)."""
 
 
 @register_sampler("phc", PHCConfig)
@@ -101,10 +111,11 @@ class PHCSampler(GroupSampler):
 
     eval_driven = True
 
-    def __init__(self, num_bins: int, mode: str = "soft", device: Any = "cpu"):
+    def __init__(self, num_bins: int, mode: str = "soft", rollout_max_s: Optional[float] = None, device: Any = "cpu"):
         check_choice("mode", mode, PHC_MODES)
         super().__init__(num_bins, device=device)
         self.mode = mode
+        self.rollout_max_s = None if rollout_max_s is None else float(rollout_max_s)
         self._failures = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
         self._last_failed = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
 
@@ -112,10 +123,12 @@ class PHCSampler(GroupSampler):
     def check_config(cls, cfg: Any) -> None:
         super().check_config(cfg)
         check_choice("mode", cfg.mode, PHC_MODES)
+        if cfg.rollout_max_s is not None:
+            check_positive("rollout_max_s", cfg.rollout_max_s)
 
     @classmethod
     def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "PHCSampler":
-        return cls(num_bins, mode=cfg.mode, device=device)
+        return cls(num_bins, mode=cfg.mode, rollout_max_s=cfg.rollout_max_s, device=device)
 
     def observe_eval(self, clip_failed: torch.Tensor, iterations: int) -> None:
         failed = torch.zeros(self.num_bins, dtype=DTYPE, device=self.device)
@@ -126,15 +139,16 @@ class PHCSampler(GroupSampler):
 
     def _recompute(self) -> None:
         w = self._failures if self.mode == "soft" else self._last_failed
-        # Nothing failed (yet): every clip alike, PHC's reset to uniform.
-        self._spread(torch.where(w.sum() > 0, w, torch.ones_like(w)))
+        # The latest evaluation failed no clip (or none ran yet): every clip alike, PHC's reset to
+        # uniform in both modes; soft keeps h for the next evaluation that fails one.
+        self._spread(torch.where(self._last_failed.sum() > 0, w, torch.ones_like(w)))
 
     def smoothed_failure(self) -> torch.Tensor:
         """Each bin's clip failure count h (soft) or latest outcome (hard)."""
         return (self._failures if self.mode == "soft" else self._last_failed)[self._group].clone()
 
     def hparams(self) -> dict[str, Any]:
-        return {"mode": self.mode}
+        return {"mode": self.mode, "rollout_max_s": self.rollout_max_s}
 
     def _state_tensors(self) -> dict[str, torch.Tensor]:
         return {"failures": self._failures, "last_failed": self._last_failed}
@@ -153,6 +167,9 @@ class ProtoMotionsConfig(SamplerConfig):
     """d_f: a failed clip is divided by d_f^K; 0 resets it to 1 (every shipped experiment), in [0, 1]."""
     min_weight: Optional[float] = None
     """Floor of every weight, > 0; null: 1 / number of clips (ProtoMotions' default)."""
+    rollout_max_s: Optional[float] = 12.0
+    """Seconds of each clip's evaluation rollout from its first frame, > 0 (ProtoMotions' max_eval_steps,
+    600 steps at its 50 Hz G1 control rate); null: to the clip's end."""
 
 
 @register_sampler("protomotions", ProtoMotionsConfig)
@@ -162,10 +179,11 @@ class ProtoMotionsSampler(GroupSampler):
     eval_driven = True
 
     def __init__(self, num_bins: int, success_decay: float = 0.999, failure_decay: float = 0.0,
-                 min_weight: Optional[float] = None, device: Any = "cpu"):
+                 min_weight: Optional[float] = None, rollout_max_s: Optional[float] = 12.0, device: Any = "cpu"):
         super().__init__(num_bins, device=device)
         self.success_decay, self.failure_decay = float(success_decay), float(failure_decay)
         self.min_weight = None if min_weight is None else float(min_weight)
+        self.rollout_max_s = None if rollout_max_s is None else float(rollout_max_s)
         self._weight = torch.ones(num_bins, dtype=DTYPE, device=self.device)
 
     @classmethod
@@ -175,11 +193,13 @@ class ProtoMotionsSampler(GroupSampler):
         check_fraction("failure_decay", cfg.failure_decay, closed_below=True)
         if cfg.min_weight is not None:
             check_positive("min_weight", cfg.min_weight)
+        if cfg.rollout_max_s is not None:
+            check_positive("rollout_max_s", cfg.rollout_max_s)
 
     @classmethod
     def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "ProtoMotionsSampler":
         return cls(num_bins, success_decay=cfg.success_decay, failure_decay=cfg.failure_decay,
-                   min_weight=cfg.min_weight, device=device)
+                   min_weight=cfg.min_weight, rollout_max_s=cfg.rollout_max_s, device=device)
 
     def floor(self) -> float:
         """The weight floor in force (min_weight, or 1 / number of clips)."""
@@ -203,7 +223,7 @@ class ProtoMotionsSampler(GroupSampler):
 
     def hparams(self) -> dict[str, Any]:
         return {"success_decay": self.success_decay, "failure_decay": self.failure_decay,
-                "min_weight": self.min_weight}
+                "min_weight": self.min_weight, "rollout_max_s": self.rollout_max_s}
 
     def _state_tensors(self) -> dict[str, torch.Tensor]:
         return {"weight": self._weight}

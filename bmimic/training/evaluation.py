@@ -350,14 +350,6 @@ def _smoothness(env, prev_joint_vel: torch.Tensor) -> torch.Tensor:
     return torch.stack((action_rate, joint_acc), dim=-1)
 
 
-def clips_failed(per_bin: pd.DataFrame, layout) -> torch.Tensor:
-    """Whether some evaluation episode of each clip failed (BoolTensor [layout.num_clips]): the
-    outcome the evaluation-driven samplers (phc, protomotions) learn from."""
-    clip = layout.bin_clip.cpu()[torch.tensor(per_bin["bin"].to_numpy(), dtype=torch.long)]
-    failures = torch.tensor(per_bin["failures"].to_numpy(), dtype=torch.float64)
-    return torch.zeros(layout.num_clips, dtype=torch.float64).index_add_(0, clip, failures) > 0
-
-
 def summarize(per_bin: pd.DataFrame, prefix: str = "eval") -> dict[str, float]:
     """Overall numbers of one evaluation: the fraction of episodes that failed (each failure is charged
     to exactly one bin, so it is failures / start_episodes summed), the number of episodes whose world

@@ -42,7 +42,8 @@ from bmimic.training.checkpoints import (
     load_checkpoint_file,
     mismatch_detail,
 )
-from bmimic.training.evaluation import clips_failed, summarize
+from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
+from bmimic.training.evaluation import summarize
 from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
 from bmimic.training.resume import key_allowed
@@ -108,6 +109,7 @@ class Trainer:
         self.train_rows: list[dict] = []
         self.sampler_rows: list[pd.DataFrame] = []
         self.eval_rows: list[pd.DataFrame] = []
+        self.clip_eval_rows: list[pd.DataFrame] = []
         self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
 
     # ------------------------------------------------------------------ checkpoints
@@ -200,7 +202,8 @@ class Trainer:
     # ------------------------------------------------------------------ tables
     def _truncate_tables(self, iteration: int) -> None:
         """On resume, keep only rows of iterations the checkpoint had completed."""
-        for name, rows in (("train_metrics", self.train_rows), ("sampler", self.sampler_rows), ("eval", self.eval_rows)):
+        for name, rows in (("train_metrics", self.train_rows), ("sampler", self.sampler_rows), ("eval", self.eval_rows),
+                           ("clip_eval", self.clip_eval_rows)):
             path = table_path(self.run_dir, name)
             if path.exists():
                 try:
@@ -209,7 +212,7 @@ class Trainer:
                     raise CheckpointMismatchError(
                         f"{path}: cannot be read ({type(e).__name__}); move it aside to resume without its "
                         "rows") from None
-                df = df[df["iteration"] <= iteration] if name == "eval" else df[df["iteration"] < iteration]
+                df = df[df["iteration"] <= iteration] if "eval" in name else df[df["iteration"] < iteration]
                 if name == "train_metrics":
                     self.train_rows.extend(df.to_dict("records"))
                 else:
@@ -221,20 +224,16 @@ class Trainer:
             return
         if self.train_rows:
             atomic_write_parquet(table_path(self.run_dir, "train_metrics"), pd.DataFrame(self.train_rows))
-        if self.sampler_rows:
-            atomic_write_parquet(table_path(self.run_dir, "sampler"), pd.concat(self.sampler_rows, ignore_index=True))
-        if self.eval_rows:
-            atomic_write_parquet(table_path(self.run_dir, "eval"), pd.concat(self.eval_rows, ignore_index=True))
+        for name, rows in (("sampler", self.sampler_rows), ("eval", self.eval_rows), ("clip_eval", self.clip_eval_rows)):
+            if rows:
+                atomic_write_parquet(table_path(self.run_dir, name), pd.concat(rows, ignore_index=True))
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict:
         """Evaluate the current policy (eval.parquet row, logged); returns the summary."""
-        policy = self.alg.get_policy()
-        was_training = policy.training
-        policy.eval()
-        per_bin = self.evaluator.evaluate(policy, self.progress.iteration, self.progress.env_steps, self.progress.wall_time_s)
-        if was_training:
-            policy.train()
+        with eval_mode(self.alg.get_policy()) as policy:
+            per_bin = self.evaluator.evaluate(policy, self.progress.iteration, self.progress.env_steps,
+                                              self.progress.wall_time_s)
         self.eval_rows.append(per_bin)
         self.flush_tables()  # evaluations are the expensive rows: never lose them to an interruption
         summary = summarize(per_bin)
@@ -243,19 +242,24 @@ class Trainer:
         return summary
 
     def _eval_to_sampler(self, iterations: int) -> None:
-        """An evaluation-driven sampler (phc, protomotions) learns which clips failed the evaluation
-        just run; under torchrun rank 0 (which evaluates) broadcasts it, so every rank's sampler
-        stays the same."""
-        accounting = self.env.accounting
-        if not accounting.sampler.eval_driven:
+        """An evaluation-driven sampler (phc, protomotions) learns which clips' rollouts from their first frame
+        failed (clip_rollouts, clip_eval.parquet); under torchrun rank 0 runs them and broadcasts the outcome."""
+        sampler, layout = self.env.accounting.sampler, self.env.accounting.layout
+        if not sampler.eval_driven:
             return
-        layout = accounting.layout
         failed = torch.zeros(layout.num_clips, dtype=torch.float32, device=self.env.device)
         if self.is_main:
-            failed.copy_(clips_failed(self.eval_rows[-1], layout))
+            with eval_mode(self.alg.get_policy()) as policy:
+                rows = clip_rollouts(self.evaluator, policy, sampler.rollout_max_s)
+            p = self.progress
+            self.clip_eval_rows.append(rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
+                ["iteration", "env_steps", *CLIP_ROLLOUT_COLUMNS]])
+            self.flush_tables()
+            failed.copy_(clips_failed(rows, layout.num_clips))
+            log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
         if self.runner.is_distributed:
             torch.distributed.broadcast(failed, src=0)
-        accounting.sampler.observe_eval(failed > 0, iterations)
+        sampler.observe_eval(failed > 0, iterations)
 
     def evaluate_robust(self, evaluator) -> dict:
         """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and

@@ -294,3 +294,16 @@ def test_curve_figures_mark_each_status():
     fig = plot_sampling_support(summary)
     assert [len(ax.lines) for ax in fig.axes] == [1, 1]
     np.testing.assert_allclose(fig.axes[1].lines[0].get_ydata(), [1.0, 3.0])
+
+
+def test_clip_rollouts_are_summarised_per_arm(tmp_path):
+    # phc's clip rollouts: at both evaluations every clip failed -> its signal ranks no clip above another
+    clips = ["walk", "walk", "jump", "jump"]
+    for seed in (0, 1):
+        run = write_run(tmp_path / "lib" / "sampler=phc" / f"seed={seed}", sampler="phc", seed=seed,
+                        overrides=["sampler=phc"], mastery=[10.0, 20.0, 30.0, 40.0], clips=clips)
+        pd.DataFrame({"iteration": [5, 5, 10, 10], "env_steps": 0, "clip": [0, 1, 0, 1],
+                      "clip_name": ["walk", "jump"] * 2, "failed": True}).to_parquet(run / "clip_eval.parquet")
+    md = (build_report([tmp_path / "lib"], opts=OPTS) / "report.md").read_text()
+    assert "`sampler=phc` clip rollouts (one from each clip's first frame per evaluation): every clip failed in 4 " \
+           "and no clip in 0 of 4 evaluations" in md

@@ -17,7 +17,7 @@ from bmimic.sampling.base import ERROR_COMPONENTS
 from bmimic.sampling.checks import SamplerConfigError
 from bmimic.sampling.config import load_variant, make_sampler, validate_sampler_config
 from bmimic.sampling.peer_errors import UNSET_SCHEDULE_ITERATIONS
-from bmimic.training.evaluation import clips_failed
+from bmimic.training.clip_rollouts import clips_failed
 from tests.conftest import TINY, train_in_process
 
 CLIPS = torch.tensor([0, 0, 0, 1, 1, 2])  # 3 clips of 3, 2 and 1 bins
@@ -205,10 +205,9 @@ def test_accounting_measures_nothing_for_samplers_without_errors():
     acc.track(None, torch.tensor([0]), torch.tensor([False]))  # returns before reading the state
 
 
-def test_clips_failed_from_an_evaluation_table():
-    layout = SimpleNamespace(num_clips=3, bin_clip=CLIPS)
-    per_bin = pd.DataFrame({"bin": range(6), "failures": [0, 0, 2, 0, 0, 1]})
-    assert clips_failed(per_bin, layout).tolist() == [True, False, True]
+def test_clips_failed_from_the_clip_rollouts():
+    rollouts = pd.DataFrame({"clip": [2, 0, 1], "failed": [True, True, False]})  # one rollout per clip
+    assert clips_failed(rollouts, 3).tolist() == [True, False, True]
 
 
 # ---------------------------------------------------------------------------------------------- config
@@ -274,14 +273,21 @@ def test_an_evaluation_interval_beyond_the_budget_is_flagged_for_eval_driven_sam
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", PEERS)
 def test_two_cpu_iterations_on_the_builtin_library(kind, tmp_path):
+    short = ["sampler.rollout_max_s=0.5"] if kind in ("phc", "protomotions") else []  # the clip rollouts' length
     run = train_in_process(tmp_path / kind, *[o for o in TINY if not o.startswith("motion=")],
-                           "motion=builtin_library", f"sampler={kind}", "eval.every_iters=1", "eval.episodes_per_bin=1")
+                           "motion=builtin_library", f"sampler={kind}", "eval.every_iters=1", "eval.episodes_per_bin=1",
+                           *short)
     table = pd.read_parquet(run / "sampler.parquet")
     assert set(table["clip"]) == {"graded_s0", "graded_s1", "easy_s2"}
     for _, rows in table.groupby("iteration"):
         assert math.isclose(rows["probability"].sum(), 1.0, rel_tol=1e-9) and (rows["probability"] >= 0).all()
     ckpt = torch.load(next((run / "checkpoints").glob("*.pt")), weights_only=True, map_location="cpu")
     assert ckpt["sampler"]["kind"] == kind
+    if short:  # one rollout per clip from its first frame at each of the 2 evaluations, 0.5 s = 25 steps
+        rollouts = pd.read_parquet(run / "clip_eval.parquet")
+        assert rollouts.groupby("iteration")["clip_name"].apply(list).to_dict() == {
+            i: ["graded_s0", "graded_s1", "easy_s2"] for i in (1, 2)}
+        assert (rollouts["steps"] <= 25).all() and (rollouts["steps"][~rollouts["failed"]] == 25).all()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -92,17 +92,18 @@ def test_torchrun_time_limit_stops_every_rank_at_the_same_iteration(tmp_path):
 
 
 def test_torchrun_eval_driven_sampler_learns_rank_zeros_evaluation(tmp_path):
-    """phc under torchrun: rank 0 evaluates, every rank's sampler gets its outcome (a broadcast every
-    rank joins; a rank left out would hang the run), and the checkpoint holds the failure counts."""
+    """phc under torchrun: rank 0 runs the clip rollouts, every rank's sampler gets their outcome (a
+    broadcast every rank joins; a rank left out would hang the run), and the checkpoint holds the
+    failure counts."""
     run = tmp_path / "run"
     overrides = [a for a in TINY if not a.startswith("motion=")]
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={WORLD}",
            "-m", "bmimic.train", *overrides, "motion=builtin_library", "sampler=phc", "eval.every_iters=1",
-           "eval.episodes_per_bin=1", "logger=none", f"hydra.run.dir={run}"]
+           "eval.episodes_per_bin=1", "sampler.rollout_max_s=0.5", "logger=none", f"hydra.run.dir={run}"]
     out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600, env=cli_env())
     assert out.returncode == 0, (out.stdout + out.stderr)[-4000:]
-    evals = pd.read_parquet(run / "eval.parquet")
-    failed_evals = evals.groupby(["iteration", "clip"])["failures"].sum().gt(0).groupby("clip").sum()
+    rollouts = pd.read_parquet(run / "clip_eval.parquet")  # rank 0's clip rollouts
+    failed_evals = rollouts.groupby("clip_name")["failed"].sum()
     ckpt = torch.load(run / "checkpoints" / "latest.pt", weights_only=True, map_location="cpu")
     counts = ckpt["sampler"]["state"]["failures"][:3].tolist()
     # the clips in the library's order; 2 evaluations (iterations 1 and 2) reached the sampler
