@@ -20,6 +20,7 @@ import os
 import sys
 import traceback
 from pathlib import Path
+from typing import Callable
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -42,9 +43,11 @@ from bmimic.training.session import RunContext, commit, record_failure
 log = logging.getLogger("bmimic.train")
 
 
-def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunContext | None = None) -> float:
+def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunContext | None = None,
+          stop_rule: Callable | None = None) -> float:
     """Train in a fresh run folder (`launch_dir`) or continue the run `cfg.resume` names; returns the
-    final evaluated failure rate.
+    final evaluated failure rate. `stop_rule(trainer, summary) -> bool`, if given, is called after each
+    periodic evaluation and ends training when it returns True (bmimic.race).
 
     Nothing is written into any run folder until every check has passed, the checkpoint (if any) is
     loaded into the built trainer and the config is compared with the one it was trained with: a
@@ -96,6 +99,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         trainer = build_trainer(training, evaluator, run_dir, is_main_rank=main_rank, run_config=resolved)
     if plan.state is not None:
         trainer.restore(plan.state, plan.checkpoint, allowed)
+    trainer.after_evaluation = stop_rule
     if main_rank:
         commit(ctx, plan, resolved, device, changes, task.motion)
     try:
@@ -108,7 +112,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
                                    "eval_bins_mastered_frac"), math.nan)
         elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
             final = trainer.evaluate()
-        robust = trainer.evaluate_robust(build_evaluator(task, robust=True)) if (
+        robust = robust_evaluation(trainer, build_evaluator(task, robust=True)) if (
             cfg.eval.robust and main_rank) else {}
         if main_rank:
             trainer.save_checkpoint()
@@ -144,6 +148,24 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
              metrics["wall_time_s"], metrics["final_eval_failure_rate"],
              f"; {broken} broken world-steps were reset" if broken else "", run_dir)
     return float(metrics["final_eval_failure_rate"])
+
+
+def robust_evaluation(trainer, evaluator) -> dict:
+    """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
+    on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
+    from bmimic.run_folder import atomic_write_parquet, table_path
+    from bmimic.training.evaluation import summarize
+
+    policy = trainer.alg.get_policy()
+    policy.eval()
+    p = trainer.progress
+    per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
+    atomic_write_parquet(table_path(trainer.run_dir, "eval_robust"), per_bin)
+    evaluator.env.close()
+    summary = summarize(per_bin, prefix="robust_eval")
+    log.info("robust eval at iteration %d: failure rate %.3f (clean: see eval.parquet)", p.iteration,
+             summary["robust_eval_failure_rate"])
+    return {f"final_{k}": v for k, v in summary.items()}
 
 
 def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: bool, motion, layout,
@@ -188,6 +210,11 @@ def check_config(cfg: DictConfig) -> None:
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float:
+    return launch(cfg)
+
+
+def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
+    """The body of `main` (one job of a run or multirun), also for sibling entry points (bmimic.race)."""
     hc = HydraConfig.get()
     launch_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
@@ -211,7 +238,7 @@ def main(cfg: DictConfig) -> float:
             if resume_request(cfg.resume) is None:
                 cfg.resume = "true"  # an interrupted job continues from its own last checkpoint
             gpu_slots.pin_job_to_gpu()  # joblib workers: one GPU per slot, before anything initialises CUDA
-        result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx)
+        result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx, stop_rule=stop_rule)
         outcome = "done"
         return result
     except user_errors() as e:

@@ -19,6 +19,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import pandas as pd
 import torch
@@ -111,6 +112,11 @@ class Trainer:
         self.eval_rows: list[pd.DataFrame] = []
         self.clip_eval_rows: list[pd.DataFrame] = []
         self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
+        # A stopping rule after each evaluation (its summary -> True: stop; bmimic.race), when learn()
+        # began (time.time()) and the wall time the evaluations took.
+        self.after_evaluation: Callable[[Trainer, dict], bool] | None = None
+        self.learn_started_unix_s: float | None = None
+        self.eval_time_s = 0.0
 
     # ------------------------------------------------------------------ checkpoints
     def meta(self) -> dict:
@@ -231,11 +237,13 @@ class Trainer:
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict:
         """Evaluate the current policy (eval.parquet row, logged); returns the summary."""
+        t0 = time.perf_counter()
         with eval_mode(self.alg.get_policy()) as policy:
             per_bin = self.evaluator.evaluate(policy, self.progress.iteration, self.progress.env_steps,
                                               self.progress.wall_time_s)
         self.eval_rows.append(per_bin)
         self.flush_tables()  # evaluations are the expensive rows: never lose them to an interruption
+        self.eval_time_s += time.perf_counter() - t0
         summary = summarize(per_bin)
         self.progress.last_eval = summary
         self.logger.evaluation(self.progress.iteration, summary)
@@ -261,20 +269,6 @@ class Trainer:
             torch.distributed.broadcast(failed, src=0)
         sampler.observe_eval(failed > 0, iterations)
 
-    def evaluate_robust(self, evaluator) -> dict:
-        """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and
-        pushes on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
-        policy = self.alg.get_policy()
-        policy.eval()
-        p = self.progress
-        per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
-        atomic_write_parquet(table_path(self.run_dir, "eval_robust"), per_bin)
-        evaluator.env.close()
-        summary = summarize(per_bin, prefix="robust_eval")
-        log.info("robust eval at iteration %d: failure rate %.3f (clean: see eval.parquet)", p.iteration,
-                 summary["robust_eval_failure_rate"])
-        return {f"final_{k}": v for k, v in summary.items()}
-
     # ------------------------------------------------------------------ the loop
     def learn(self) -> None:
         """Train from the current iteration to `max_iterations` (or until `time_limit_s` of training)."""
@@ -296,6 +290,9 @@ class Trainer:
                      "(sampler.log_every=null keeps it under about %.0e rows)", env.layout.num_bins, end_it,
                      self._sampler_every, diagnostics.MAX_SAMPLER_ROWS)
         self.logger.start(start_it, end_it)
+        if self.after_evaluation is not None and self.runner.is_distributed:
+            raise BmimicError("a stopping rule after evaluations (bmimic.race) runs in a single process, not under torchrun")
+        self.learn_started_unix_s = time.time()
         for it in range(start_it, end_it):
             t0 = time.perf_counter()
             with torch.inference_mode():
@@ -324,15 +321,18 @@ class Trainer:
             done = self.progress.iteration == end_it or out_of_time
             self._record_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
             every = cfg.eval.every_iters
+            stop = False
             if every and self.progress.iteration % every == 0:
                 if self.is_main:
-                    self.evaluate()
+                    summary = self.evaluate()
+                    stop = self.after_evaluation is not None and bool(self.after_evaluation(self, summary))
                 self._eval_to_sampler(every)
             if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
                 self.save_checkpoint()
                 write_status(self.run_dir, "running", self.progress.iteration)
             if out_of_time:
                 log.info("time limit of %.0f s reached after %d iterations", time_limit_s, self.progress.iteration)
+            if out_of_time or stop:
                 break
         self.logger.end()
 
