@@ -11,6 +11,7 @@ from typing import Any
 
 from bmimic.config import ConfigError, TrainConfig
 from bmimic.envs.config import EnvConfigError, check_env
+from bmimic.run_folder import check_folder_name
 from bmimic.sampling.config import sampler_config
 
 
@@ -139,9 +140,9 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
     if ppo.noise_std_type not in ("scalar", "log"):
         _fail("ppo.noise_std_type", f"must be scalar or log, got {ppo.noise_std_type!r}")
     for key in ("run_name", "sweep_name"):
-        name = str(cfg[key])
-        if not name or "/" in name or "\\" in name or name in (".", "..") or name != name.strip():
-            _fail(key, f"must be a plain folder name (no '/', not empty, '.' or '..'), got {name!r}")
+        problem = check_folder_name(key, cfg[key])
+        if problem:
+            raise ConfigError(problem)
     if cfg.sim.timestep_s <= 0:
         _fail("sim.timestep_s", f"must be > 0, got {cfg.sim.timestep_s}")
     if cfg.sim.decimation < 1:
@@ -180,10 +181,9 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         check_env(cfg.env)
     except EnvConfigError as e:
         raise ConfigError(str(e)) from None
-    if motion_duration_s is not None:
-        if not math.isfinite(motion_duration_s) or motion_duration_s <= 0:
-            _fail("motion", f"has no duration ({motion_duration_s} s)")
-        validate_sampler_config(cfg.sampler, motion_duration_s)
+    if motion_duration_s is not None and (not math.isfinite(motion_duration_s) or motion_duration_s <= 0):
+        _fail("motion", f"has no duration ({motion_duration_s} s)")
+    validate_sampler_config(cfg.sampler, motion_duration_s)  # without a motion: all but the bins' fit
 
 
 def advisories(cfg: Any) -> list[str]:

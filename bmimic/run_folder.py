@@ -5,25 +5,36 @@ schemas); training writes through these functions, and `bmimic.eval`, `play`, `e
 the sweep tools and `analysis` read through them. This module is torch-free (analysis imports it on
 machines without torch): checkpoints are found here by name, read by `bmimic.training.checkpoints`.
 
-Every file bmimic writes goes through `atomic_write` (a temp file in the same folder, fsynced, then
-renamed over the target, then the folder fsynced), so an interrupted run never leaves a half-written
-checkpoint, table or status file behind, and files get the permissions the umask asks for (0644 under
-umask 022), so a team can read each other's runs.
+Every file bmimic writes goes through `atomic_write` (bmimic.atomic_io, re-exported here: a temp file
+in the same folder, fsynced, then renamed over the target), so an interrupted run never leaves a
+half-written checkpoint, table or status file behind, and files get the permissions the umask asks
+for (0644 under umask 022), so a team can read each other's runs.
 """
 
 from __future__ import annotations
 
-import contextlib
 import datetime as _dt
 import fcntl
 import json
 import os
 import re
-import tempfile
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from bmimic import BmimicError
+from bmimic.atomic_io import (  # noqa: F401  (the writer of every run-folder file, re-exported)
+    WriteError,
+    atomic_append_text,
+    atomic_write,
+    atomic_write_bytes,
+    atomic_write_csv,
+    atomic_write_json,
+    atomic_write_parquet,
+    atomic_write_text,
+    current_umask,
+    folder_lock,
+    rewrite_in_place,
+)
 
 # --------------------------------------------------------------------------------------------- layout
 HYDRA_DIR = ".hydra"
@@ -137,122 +148,6 @@ def is_run_folder(path: str | os.PathLike) -> bool:
     return any((path / name).is_file() for name in (STATUS, RESOLVED_CONFIG, f"{HYDRA_DIR}/config.yaml"))
 
 
-# --------------------------------------------------------------------------------------------- atomic I/O
-def current_umask() -> int:
-    """The process umask, read without changing it where Linux allows (os.umask is not thread-safe)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def _fsync_path(path: str | os.PathLike, directory: bool = False) -> None:
-    flags = os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0)
-    try:
-        fd = os.open(path, flags)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # some filesystems cannot fsync a folder; the rename is still atomic
-        pass
-    finally:
-        os.close(fd)
-
-
-def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
-    """Call `write(tmp_path)`, fsync, and rename the result onto `path`; the one writer of the project.
-
-    The temp file `.<name>.tmp-<random><ext>` lies in the target's folder (so the rename is atomic) and
-    ends in the target's own extension, so writers that pick a format by suffix (ffmpeg, np.savez,
-    matplotlib) behave as for the real name. Its permissions are those a plain open() would give
-    (0666 & ~umask), not mkstemp's 0600. On any failure the temp file is removed and the old file, if
-    any, is left as it was.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        os.chmod(tmp, 0o666 & ~current_umask())
-        write(tmp)
-        _fsync_path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    _fsync_path(path.parent, directory=True)
-    return path
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write `data` to `path` atomically."""
-    def _w(tmp: str) -> None:
-        with open(tmp, "wb") as f:
-            f.write(data)
-
-    return atomic_write(path, _w)
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write `text` (UTF-8) to `path` atomically."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write `obj` as indented, key-sorted JSON to `path` atomically."""
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
-
-
-def atomic_write_parquet(path: str | os.PathLike, df) -> Path:
-    """Write a pandas frame (no index) to `path` atomically."""
-    return atomic_write(path, lambda tmp: df.to_parquet(tmp, index=False))
-
-
-def atomic_write_csv(path: str | os.PathLike, df) -> Path:
-    """Write a pandas frame as CSV (no index) to `path` atomically."""
-    return atomic_write(path, lambda tmp: df.to_csv(tmp, index=False))
-
-
-@contextlib.contextmanager
-def folder_lock(folder: str | os.PathLike) -> Iterator[None]:
-    """Serialise read-modify-write of files in `folder` between processes (flock on the folder).
-
-    Where the filesystem cannot lock a folder (some network filesystems) it goes on unlocked: the
-    atomic rename still keeps every file whole.
-    """
-    fd = None
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-        fcntl.flock(fd, fcntl.LOCK_EX)
-    except OSError:
-        pass
-    try:
-        yield
-    finally:
-        if fd is not None:
-            os.close(fd)  # closing drops the lock
-
-
-def atomic_append_text(path: str | os.PathLike, text: str) -> Path:
-    """Append `text` to a log file as one atomic replace, serialised against other appenders."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with folder_lock(path.parent):
-        try:
-            old = path.read_bytes()
-        except FileNotFoundError:
-            old = b""
-        return atomic_write_bytes(path, old + text.encode("utf-8"))
-
-
 def read_json(path: str | os.PathLike, default: Any = None) -> Any:
     """The parsed JSON at `path`, or `default` when it is absent or unreadable."""
     try:
@@ -284,9 +179,18 @@ def now() -> str:
 
 
 def write_status(run_dir: str | os.PathLike, status: str, iteration: int = 0, error: str | None = None) -> None:
-    """status.json: `running`, `done` or `failed` (with the error's one-line message)."""
-    atomic_write_json(Path(run_dir) / STATUS,
-                      {"status": status, "iteration": int(iteration), "error": error, "updated": now()})
+    """status.json: `running`, `done` or `failed` (with the error's one-line message).
+
+    On a full disk the atomic write (a new file) fails; the status is then rewritten in place, in the
+    blocks the file already holds, so that a run stopped by a full disk is never left `running`."""
+    path = Path(run_dir) / STATUS
+    record = {"status": status, "iteration": int(iteration), "error": error, "updated": now()}
+    try:
+        atomic_write_json(path, record)
+    except WriteError:
+        if not path.is_file():
+            raise
+        rewrite_in_place(path, (json.dumps(record, indent=2, sort_keys=True, default=str) + "\n").encode("utf-8"))
 
 
 def read_status(run_dir: str | os.PathLike) -> dict:
@@ -369,15 +273,45 @@ class RunLockedError(BmimicError):
 def lock_run(run_dir: str | os.PathLike):
     """Take the exclusive lock of a run folder; returns the open lock file (the lock lives while it is
     open and dies with the process, so a killed run never leaves a stale lock), or None when another
-    process holds it."""
+    process holds it.
+
+    The lock is the flock of the file `.bmimic.lock` *now at that path*: a file unlinked (or replaced)
+    while it was being locked is not the run's lock, so the lock is taken again on the file the path
+    names; a lock file is only ever removed by the process holding it (bmimic.run_claim)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    f = open(run_dir / LOCK, "a")
+    path = run_dir / LOCK
+    for _ in range(100):
+        f = open(path, "a")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.close()
+            return None
+        except OSError:  # a filesystem without locks: cannot tell, so do not block the run
+            return f
+        if _same_file(f, path):
+            return f
+        f.close()  # removed or replaced while we locked it: lock the file the path names now
+    raise RunLockedError(f"{path}: the lock file keeps being replaced; is another process removing it?")
+
+
+def holds_lock(f, run_dir: str | os.PathLike) -> bool:
+    """Whether the open lock file `f` (from lock_run) is still the run folder's lock file."""
+    return f is not None and not f.closed and _same_file(f, Path(run_dir) / LOCK)
+
+
+def _same_file(f, path: Path) -> bool:
     try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        f.close()
-        return None
-    except OSError:  # a filesystem without locks: cannot tell, so do not block the run
-        return f
-    return f
+        a, b = os.fstat(f.fileno()), os.stat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def check_folder_name(key: str, name: object) -> str | None:
+    """Why `name` (run_name, sweep_name) is not a plain folder name, or None when it is one."""
+    text = str(name)
+    if not text or "/" in text or "\\" in text or text in (".", "..") or text != text.strip() or "\0" in text:
+        return f"{key}: must be a plain folder name (no '/', not empty, '.' or '..'), got {text!r}"
+    return None

@@ -74,11 +74,13 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             log.warning(note)
     smoke = not device.startswith("cuda") and smoke_defaults
     main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
-    plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint))
-    if plan.note:
-        log.warning(plan.note)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     allowed = list(cfg.resume_allow_changes or [])
+    plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint),
+                    pinned=ctx.claim is not None and ctx.claim.pinned, config=resolved, allowed=allowed,
+                    fill_defaults=with_schema_defaults)
+    if plan.note:
+        log.warning(plan.note)
     changes = check_resume_changes(plan, resolved, allowed, fill_defaults=with_schema_defaults)
     if plan.continues:
         refuse_finished(plan, cfg.max_iterations)
@@ -110,17 +112,20 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         if not main_rank:
             final = dict.fromkeys(("eval_failure_rate", "eval_success_rate", "eval_mpkpe_mm",
                                    "eval_bins_mastered_frac"), math.nan)
-        elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].iloc[0]) != trainer.progress.iteration:
+        elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].max()) != trainer.progress.iteration:
+            # (a resume of a run that reached max_iterations already holds its final evaluation)
             final = trainer.evaluate()
         robust = robust_evaluation(trainer, build_evaluator(task, robust=True)) if (
             cfg.eval.robust and main_rank) else {}
         if main_rank:
             trainer.save_checkpoint()
     finally:
-        trainer.close()
-        env.close()
-        if world > 1:
-            torch.distributed.destroy_process_group()
+        try:
+            trainer.close()
+        finally:
+            env.close()
+            if world > 1:
+                torch.distributed.destroy_process_group()
     metrics = {
         "final_eval_failure_rate": final["eval_failure_rate"],
         "final_eval_success_rate": final["eval_success_rate"],

@@ -14,7 +14,7 @@ from typing import Sequence
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from bmimic import CONF_DIR
+from bmimic import CONF_DIR, BmimicError
 from bmimic.run_folder import read_status
 
 SWEEPS_DIR = CONF_DIR / "sweep"
@@ -36,7 +36,7 @@ class Job:
     """Last iteration recorded in status.json (None for new jobs)."""
 
 
-class SweepListError(Exception):
+class SweepListError(BmimicError):
     """The overrides do not describe a sweep that can be listed (one-line message)."""
 
 
@@ -62,12 +62,18 @@ def _config_loader(config_dir: str | os.PathLike, config_name: str):
 def _expand(loader, config_name: str, overrides: Sequence[str]) -> tuple[DictConfig, list[list[str]]]:
     """(master config, each job's overrides) as `-m` would make them: the sweeper params crossed
     with the command line, where a command-line key replaces the params' entry (BasicSweeper)."""
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.types import RunMode
 
     overrides = [o for o in overrides if o not in ("-m", "--multirun")]
     master = loader.load_configuration(config_name, overrides, run_mode=RunMode.MULTIRUN)
+    return master, _batch(loader, master)
+
+
+def _batch(loader, master: DictConfig) -> list[list[str]]:
+    """Each job's overrides of the multirun whose master config is `master`."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
     sweeper = master.hydra.sweeper
     if not str(sweeper.get("_target_", "")).endswith("BasicSweeper"):
         raise SweepListError(f"the dry run expands Hydra's basic sweeper only, not {sweeper._target_}")
@@ -75,7 +81,7 @@ def _expand(loader, config_name: str, overrides: Sequence[str]) -> tuple[DictCon
     arguments = [f"{k}={v}" for k, v in params.items()] + list(master.hydra.overrides.task)
     parsed = OverridesParser.create(config_loader=loader).parse_overrides(arguments)
     (batch,) = BasicSweeper.split_arguments(parsed, None)
-    return master, batch
+    return batch
 
 
 def sweep_overrides(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
@@ -90,29 +96,77 @@ def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR
               config_name: str = "train") -> tuple[Path, list[Job]]:
     """(sweep folder, jobs) of `python -m bmimic.train -m <overrides>`, without running anything.
 
-    Builds every job's config with Hydra's sweep loader, as the launcher does (about a second per
-    job), so the folders are resolved exactly and a job that would not compose fails here.
+    Builds and checks every job's config with Hydra's sweep loader, as the sweep itself does before
+    its first job (bmimic.launch_guard), so what is listed is what the sweep runs: a job that would be
+    refused, or two jobs sharing a folder, fail here with the same line.
     """
+    with _config_loader(config_dir, config_name) as loader:
+        master, _ = _expand(loader, config_name, overrides)
+        jobs = expand_jobs(loader, master)
+        check_jobs(jobs)
+        return Path(str(master.hydra.sweep.dir)), jobs
+
+
+def expand_jobs(loader, master: DictConfig) -> list[Job]:
+    """Every job of the multirun whose master config is `master`: composed, its folder resolved and
+    its config checked as the job itself would check it before training (check_job); raises
+    SweepListError (one line naming the job) for the first job that would be refused."""
     from hydra.core.hydra_config import HydraConfig
 
-    from bmimic.config_checks import check_composed
-
-    with _config_loader(config_dir, config_name) as loader:
-        master, batch = _expand(loader, config_name, overrides)
-        jobs = []
+    batch = _batch(loader, master)
+    saved = HydraConfig.instance().cfg
+    jobs = []
+    try:
         for num, job_overrides in enumerate(batch):
-            cfg = loader.load_sweep_config(master, list(job_overrides))
-            with open_dict(cfg):
-                cfg.hydra.job.num = num
-                cfg.hydra.job.id = f"{cfg.hydra.job.name}_{num}"
-            HydraConfig.instance().set_config(cfg)  # as the launcher does: subdir may use ${hydra:...}
-            check_composed(cfg, cfg.hydra.runtime.choices)  # what the job would refuse, refused here
-            run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
+            try:
+                cfg = loader.load_sweep_config(master, list(job_overrides))
+                with open_dict(cfg):
+                    cfg.hydra.job.num = num
+                    cfg.hydra.job.id = f"{cfg.hydra.job.name}_{num}"
+                HydraConfig.instance().set_config(cfg)  # as the launcher does: subdir may use ${hydra:...}
+                check_job(cfg)
+                run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
+            except Exception as e:  # noqa: BLE001 - Hydra, OmegaConf and bmimic errors alike: one line
+                text = str(e).strip()
+                msg = text.splitlines()[0] if text else type(e).__name__
+                raise SweepListError(f"job {num} ({' '.join(job_overrides)}): {msg}") from None
             status = read_status(run_dir)
             state = status.get("status")
             jobs.append(Job(num, tuple(job_overrides), run_dir, "new" if state == "missing" else state,
                             status.get("iteration")))
-        return Path(str(master.hydra.sweep.dir)), jobs
+    finally:
+        if saved is not None:
+            HydraConfig.instance().cfg = saved
+    return jobs
+
+
+def check_job(cfg: DictConfig) -> None:
+    """What a sweep job checks before it trains, without a device or a motion: the composed config
+    (unknown keys, NaN, the sampler group) and its meaning (ranges, terms), resolved as on a CPU."""
+    from bmimic.config import resolve_runtime
+    from bmimic.config_checks import check_composed, validate
+
+    check_composed(cfg, cfg.hydra.runtime.choices)
+    task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    device = str(task.device) if str(task.device).startswith("cuda") else "cpu"
+    resolve_runtime(task, device)
+    validate(task)
+
+
+def check_jobs(jobs: Sequence[Job]) -> None:
+    """Refuse a multirun in which two jobs map to one folder: the second would be skipped as done or
+    locked and the sweep would report success for an arm it never trained."""
+    seen: dict[Path, Job] = {}
+    for job in jobs:
+        key = job.run_dir.resolve()
+        if key in seen:
+            first = seen[key]
+            differ = sorted({o.split("=", 1)[0] for o in set(first.overrides) ^ set(job.overrides)})
+            raise SweepListError(
+                f"jobs {first.num} and {job.num} map to one folder ({job.run_dir}): they differ only in "
+                f"{', '.join(differ) or 'nothing'}, which job folder names leave out (budget and logistics keys); "
+                "sweep over such keys in separate sweeps (sweep_name=...)")
+        seen[key] = job
 
 
 def format_jobs(sweep_dir: Path, jobs: Sequence[Job]) -> str:

@@ -106,13 +106,17 @@ class RunPlan:
     """What the planner had to do that the user must hear (e.g. passed over a damaged latest.pt)."""
 
 
-def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool = False) -> RunPlan:
+def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool = False, pinned: bool = False,
+             config: dict | None = None, allowed: list[str] | tuple[str, ...] = (),
+             fill_defaults: Callable[[dict], dict] | None = None) -> RunPlan:
     """Decide where to train and from which checkpoint, reading but never writing.
 
     - no resume: a fresh run in launch_dir;
-    - resume=true: a sweep job continues its own folder; a single run continues launch_dir when it
-      already holds checkpoints (hydra.run.dir pinned), else the newest run of the same run_name
-      (launch_dir's siblings); with none, a fresh run;
+    - resume=true: a sweep job, and a single run whose folder was pinned (hydra.run.dir), continue
+      their own folder, or start fresh there when it holds no checkpoint; another single run
+      continues the newest run of the same run_name (launch_dir's siblings) whose config matches
+      `config` (the launch's resolved config) up to the budget and logistics keys and `allowed`
+      (ResumeRefusedError listing the candidates when none does); with no run at all, a fresh run;
     - resume=RUN_FOLDER or a checkpoint in one: continues that run from its newest intact checkpoint;
       an older checkpoint of a run starts a new run in launch_dir from it (a branch), and so does a
       checkpoint outside any run folder.
@@ -125,7 +129,7 @@ def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool
     if request is None:
         return RunPlan(launch_dir, launch_dir)
     if request == "latest":
-        if sweep_job or checkpoint_files(checkpoints_dir(launch_dir)):
+        if sweep_job or pinned or checkpoint_files(checkpoints_dir(launch_dir)):
             target = launch_dir
         else:
             parent = launch_dir.parent
@@ -135,9 +139,10 @@ def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool
             if not siblings:
                 return RunPlan(launch_dir, launch_dir, note=f"resume=true: no run with a checkpoint under "
                                                              f"{parent}; starting a fresh run")
-            target = siblings[-1]
+            target = siblings[-1] if config is None else matching_run(siblings, config, allowed, fill_defaults)
         if not checkpoint_files(checkpoints_dir(target)):
-            return RunPlan(launch_dir, launch_dir)  # a sweep job that never reached a checkpoint
+            note = "" if sweep_job else f"resume=true: {target} holds no checkpoint; starting a fresh run there"
+            return RunPlan(launch_dir, launch_dir, note=note)  # (a sweep job that never reached a checkpoint)
         path, state, note = load_newest_intact(checkpoints_dir(target), trust)
         return RunPlan(target, launch_dir, path, state, True, note)
 
@@ -167,6 +172,30 @@ def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool
             f"resume: {checkpoint.name} is older than {run}'s newest checkpoint (model_{newest}.pt); continuing "
             "that run from it would discard its later iterations; resume into a new folder instead")
     return RunPlan(launch_dir, launch_dir, checkpoint, state, False, note)
+
+
+def matching_run(runs: list[Path], config: dict, allowed: list[str] | tuple[str, ...] = (),
+                 fill_defaults: Callable[[dict], dict] | None = None) -> Path:
+    """The newest of `runs` (sorted oldest first) whose resolved config differs from `config` only in
+    keys a resume may change (RESUME_FREE_KEYS, `allowed`); ResumeRefusedError naming the candidates
+    and their differences when none does."""
+    reasons = []
+    for run in reversed(runs):
+        old = read_resolved_config(run)
+        if old is None:
+            reasons.append(f"{run.name} (no readable resolved_config.json)")
+            continue
+        if fill_defaults is not None:
+            old = fill_defaults(old)
+        refused = refused_changes(config_changes(old, config), allowed)
+        if not refused:
+            return run
+        reasons.append(f"{run.name} ({', '.join(refused[:3])}{', ...' if len(refused) > 3 else ''})")
+    shown = "; ".join(reasons[:5]) + (f"; and {len(reasons) - 5} more" if len(reasons) > 5 else "")
+    raise ResumeRefusedError(
+        f"resume=true: none of the {len(runs)} run(s) with a checkpoint under {runs[0].parent} was trained with "
+        f"this config (candidates, differing keys: {shown}); name one with resume=<folder> (with "
+        "resume_allow_changes=[...] for a deliberate change), or drop resume=true to start a new run")
 
 
 def previous_config(plan: RunPlan) -> dict | None:

@@ -158,11 +158,12 @@ class Trainer:
 
         it = self.progress.iteration
         path = checkpoint_path(self.run_dir, it)
-        # Tables first: a checkpoint must never be ahead of the rows a resume keeps.
+        # Tables first: a checkpoint must never be ahead of the rows a resume keeps. latest.pt before
+        # model_<it>.pt: if a write fails (full disk), latest.pt is never older than a numbered one.
         self.flush_tables()
         state = self.checkpoint_state()
-        atomic_torch_save(path, state)
         atomic_torch_save(latest_checkpoint(self.run_dir), state)
+        atomic_torch_save(path, state)
         try:  # policy_<it>.onnx and the BeyondMimic-compatible motion_policy_<it>.onnx
             export_checkpoint_onnx(self.alg.get_policy(), self.env, checkpoints_dir(self.run_dir), it)
         except Exception as e:  # export must never cost a training run
@@ -384,10 +385,13 @@ class Trainer:
         return row
 
     def close(self) -> None:
-        """Write the tables, release the CUDA graphs, close the logger."""
-        self.flush_tables()
-        self.alg.release_graphs()  # before destroy_process_group: graphs may hold NCCL calls
-        self.logger.close()
+        """Write the tables, release the CUDA graphs, close the logger (the last two even when the
+        tables cannot be written)."""
+        try:
+            self.flush_tables()
+        finally:
+            self.alg.release_graphs()  # before destroy_process_group: graphs may hold NCCL calls
+            self.logger.close()
 
 
 def _count(value) -> float:

@@ -2,8 +2,9 @@
 
 A launch writes nothing until every check has passed (`RunContext` holds the run locks meanwhile);
 `commit` then makes its first writes; `record_failure` records a failed attempt where it cannot
-damage anything; the folder Hydra made for a launch that continued another run (or was refused) is
-removed (`discard_launch_dir`), its log carried over (`move_file_logs`).
+damage anything; what the launch created for a run that it then continued elsewhere (or that was
+refused) is removed (`RunContext.discard`, after bmimic.run_claim's record of what it created), its
+own log lines carried over (`move_file_logs`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ import logging
 import os
 from pathlib import Path
 
+from bmimic.run_claim import RunClaim
+from bmimic.run_claim import current as current_claim
 from bmimic.run_folder import (
     LOCK,
     RESOLVED_CONFIG,
@@ -48,6 +51,8 @@ class RunContext:
         """The run folder this launch writes; None until committed."""
         self.hydra_record: dict[str, str] | None = None
         """This launch's .hydra files (written at commit into a new run)."""
+        self.claim: RunClaim | None = current_claim(launch_dir)
+        """What the launch found and created at launch_dir (bmimic.run_claim; None for a sweep job)."""
         self._locks: dict[Path, object] = {}
 
     def holds(self, run_dir: Path) -> bool:
@@ -67,14 +72,20 @@ class RunContext:
         for key in [k for k in self._locks if run_dir is None or k == Path(run_dir).resolve()]:
             self._locks.pop(key).close()
 
+    def discard(self) -> None:
+        """Remove what this launch created at launch_dir (its log lines, the lock file it created and
+        holds, the folders it created), then release its lock there; without a claim, nothing."""
+        if self.claim is not None:
+            self.claim.release(self._locks.get(self.launch_dir.resolve()))
+        self.release(self.launch_dir)
+
 
 def commit(ctx: RunContext, plan: RunPlan, resolved: dict, device: str, changes: dict, motion) -> None:
     """The first writes of a launch, once every check has passed."""
     run_dir = plan.run_dir
     if run_dir.resolve() != ctx.launch_dir.resolve():
-        move_file_logs(ctx.launch_dir, run_dir)  # a resumed run logs into its own folder
-        ctx.release(ctx.launch_dir)
-        discard_launch_dir(ctx.launch_dir)  # no empty timestamped folder is left behind
+        move_file_logs(ctx.launch_dir, run_dir, ctx.claim)  # a resumed run logs into its own folder
+        ctx.discard()  # no empty timestamped folder is left behind
     ctx.run_dir = run_dir
     entry = {"checkpoint": str(plan.checkpoint), "iteration": int((plan.state or {}).get("iter", 0)),
              "changes": {k: list(v) for k, v in changes.items()}, "note": plan.note or None}
@@ -112,53 +123,34 @@ def note_previous_attempt(run_dir: str | os.PathLike, status: dict) -> None:
 
 def record_failure(ctx: RunContext, multirun: bool, message: str, details: str = "") -> None:
     """Record a failed attempt where it cannot damage anything: in the run once committed; before
-    that only in a sweep job folder without checkpoints that is not done; a single run's unused
-    launch folder is removed."""
-    if ctx.run_dir is not None:
-        write_status(ctx.run_dir, "failed", read_status(ctx.run_dir).get("iteration", 0) or 0, error=message)
-        append_error_log(ctx.run_dir, f"attempt failed: {message}", details)
-    elif multirun:
-        # A sweep job that holds no checkpoint and is not done has nothing to damage: keep its history.
-        previous = read_status(ctx.launch_dir)
-        if previous.get("status") != "done" and not checkpoint_files(checkpoints_dir(ctx.launch_dir)):
-            note_previous_attempt(ctx.launch_dir, previous)
-            write_status(ctx.launch_dir, "failed", error=message)
-            append_error_log(ctx.launch_dir, f"attempt failed: {message}", details)
-    elif int(os.environ.get("RANK", "0")) == 0:  # under torchrun, rank 0 owns the folder
-        ctx.release()
-        discard_launch_dir(ctx.launch_dir)
-
-
-def discard_launch_dir(launch_dir: Path) -> bool:
-    """Remove a launch folder holding nothing but Hydra's log and bmimic's lock (a launch that
-    continued another run, or was refused); returns whether it was removed."""
-    launch_dir = Path(launch_dir)
+    that only in a sweep job folder without checkpoints that is not done; a single run's launch
+    removes what it created. Never raises for a write the disk refuses (the failure being recorded
+    may be that very disk being full): status.json is rewritten in place, the error log is skipped."""
     try:
-        entries = list(launch_dir.iterdir())
-    except OSError:
-        return False
-    if any(not (p.is_file() and (p.suffix == ".log" or p.name == LOCK)) for p in entries):
-        return False
-    for p in entries:
-        with contextlib.suppress(OSError):
-            p.unlink()
-    with contextlib.suppress(OSError):
-        launch_dir.rmdir()
-    # Folders Hydra made on the way (outputs/runs/<run_name>/) go too when now empty, up to the cwd.
-    cwd = Path.cwd().resolve()
-    parent = launch_dir.resolve().parent
-    while parent != cwd and parent.is_relative_to(cwd):
-        try:
-            parent.rmdir()  # only succeeds when empty
-        except OSError:
-            break
-        parent = parent.parent
-    return not launch_dir.exists()
+        if ctx.run_dir is not None:
+            write_status(ctx.run_dir, "failed", read_status(ctx.run_dir).get("iteration", 0) or 0, error=message)
+            with contextlib.suppress(OSError):  # the status says it; the log is a convenience
+                append_error_log(ctx.run_dir, f"attempt failed: {message}", details)
+        elif multirun:
+            # A sweep job that holds no checkpoint and is not done has nothing to damage: keep its history.
+            previous = read_status(ctx.launch_dir)
+            if previous.get("status") != "done" and not checkpoint_files(checkpoints_dir(ctx.launch_dir)):
+                with contextlib.suppress(OSError):
+                    note_previous_attempt(ctx.launch_dir, previous)
+                write_status(ctx.launch_dir, "failed", error=message)
+                with contextlib.suppress(OSError):
+                    append_error_log(ctx.launch_dir, f"attempt failed: {message}", details)
+        elif int(os.environ.get("RANK", "0")) == 0:  # under torchrun, rank 0 owns the folder
+            ctx.discard()
+            ctx.release()
+    except OSError as e:
+        log.warning("could not record the failure: %s", e)
 
 
-def move_file_logs(src_dir: Path, dst_dir: Path) -> None:
+def move_file_logs(src_dir: Path, dst_dir: Path, claim: RunClaim | None = None) -> None:
     """Point the logging file handlers writing into `src_dir` at the same file names in `dst_dir`
-    (appended), carrying over what was logged so far: a resumed run logs into its own folder."""
+    (appended), carrying over the lines this launch logged so far (`claim`: only those; a log that
+    was in `src_dir` before the launch stays there): a resumed run logs into its own folder."""
     src_dir, dst_dir = Path(src_dir).resolve(), Path(dst_dir)
     root = logging.getLogger()
     for handler in list(root.handlers):
@@ -175,9 +167,14 @@ def move_file_logs(src_dir: Path, dst_dir: Path) -> None:
         new.setFormatter(handler.formatter)
         for f in handler.filters:
             new.addFilter(f)
-        try:
-            earlier = old.read_text()
-        except OSError:
+        if claim is not None and claim.log_path == old:
+            earlier = claim.own_log()
+        elif claim is None:
+            try:
+                earlier = old.read_text()
+            except OSError:
+                earlier = ""
+        else:
             earlier = ""
         if earlier:
             new.stream.write(earlier)

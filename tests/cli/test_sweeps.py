@@ -370,8 +370,9 @@ def test_rerun_leaves_done_jobs_byte_identical_and_failures_exit_non_zero(tmp_pa
     assert tree_hash(job, skip=("train.log",)) == before  # skipped: not even its .hydra/ is rewritten
     refused = run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1", "resume=true", rc=1)
     assert "done at iteration 1" in refused.stderr and tree_hash(job, skip=("train.log",)) == before
-    bad = run_sweep(sweep, "sampler=uniform", "seed=0,1", "max_iterations=1", "+sampler.gama=0.5", rc=1)
-    assert "2 job(s) failed or were refused" in bad.stderr and "sampler.gama" in bad.stderr
+    # A sweep whose jobs would be refused is refused whole, before any job runs (issue 36).
+    bad = run_sweep(sweep, "sampler=uniform", "seed=0,1", "max_iterations=1", "+sampler.gama=0.5", rc=2)
+    assert "error: job 0" in bad.stderr and "sampler.gama" in bad.stderr
     assert tree_hash(job, skip=("train.log",)) == before
 
 

@@ -1,0 +1,170 @@
+"""Atomic writes: the one writer of the project (every file bmimic writes goes through `atomic_write`).
+
+A temp file in the target's folder is written, fsynced and renamed over the target, then the folder is
+fsynced: an interrupted run never leaves a half-written checkpoint, table or status file behind, and
+files get the permissions the umask asks for (0644 under umask 022). A write the operating system
+refuses (a full disk, a quota, a read-only or immutable folder) is a `WriteError`: one line naming
+the file. Torch-free; bmimic.run_folder re-exports these names.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from bmimic import BmimicError
+
+
+class WriteError(BmimicError, OSError):
+    """The operating system refused a write (disk full, quota, read-only or immutable folder,
+    permissions): one line naming the file; still an OSError with the original errno."""
+
+    @classmethod
+    def of(cls, path: str | os.PathLike, e: OSError) -> "WriteError":
+        err = cls(f"{path}: cannot write: {e.strerror or e}")
+        err.errno, err.strerror, err.filename = e.errno, e.strerror, str(path)
+        return err
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else "cannot write"
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where Linux allows (os.umask is not thread-safe)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _fsync_path(path: str | os.PathLike, directory: bool = False) -> None:
+    flags = os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # some filesystems cannot fsync a folder; the rename is still atomic
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
+    """Call `write(tmp_path)`, fsync, and rename the result onto `path`; the one writer of the project.
+
+    The temp file `.<name>.tmp-<random><ext>` lies in the target's folder (so the rename is atomic) and
+    ends in the target's own extension, so writers that pick a format by suffix (ffmpeg, np.savez,
+    matplotlib) behave as for the real name. Its permissions are those a plain open() would give
+    (0666 & ~umask), not mkstemp's 0600. On any failure the temp file is removed and the old file, if
+    any, is left as it was.
+    """
+    path = Path(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", suffix=path.suffix, dir=path.parent)
+        os.close(fd)
+        os.chmod(tmp, 0o666 & ~current_umask())
+        write(tmp)
+        _fsync_path(tmp)
+        os.replace(tmp, path)
+    except BaseException as e:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if isinstance(e, OSError) and not isinstance(e, WriteError):
+            raise WriteError.of(path, e) from None
+        raise
+    _fsync_path(path.parent, directory=True)
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write `data` to `path` atomically."""
+    def _w(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            f.write(data)
+
+    return atomic_write(path, _w)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` (UTF-8) to `path` atomically."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write `obj` as indented, key-sorted JSON to `path` atomically."""
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
+
+
+def atomic_write_parquet(path: str | os.PathLike, df) -> Path:
+    """Write a pandas frame (no index) to `path` atomically."""
+    return atomic_write(path, lambda tmp: df.to_parquet(tmp, index=False))
+
+
+def atomic_write_csv(path: str | os.PathLike, df) -> Path:
+    """Write a pandas frame as CSV (no index) to `path` atomically."""
+    return atomic_write(path, lambda tmp: df.to_csv(tmp, index=False))
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike) -> Iterator[None]:
+    """Serialise read-modify-write of files in `folder` between processes (flock on the folder).
+
+    Where the filesystem cannot lock a folder (some network filesystems) it goes on unlocked: the
+    atomic rename still keeps every file whole.
+    """
+    fd = None
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError:
+        pass
+    try:
+        yield
+    finally:
+        if fd is not None:
+            os.close(fd)  # closing drops the lock
+
+
+def atomic_append_text(path: str | os.PathLike, text: str) -> Path:
+    """Append `text` to a log file as one atomic replace, serialised against other appenders."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(path.parent):
+        try:
+            old = path.read_bytes()
+        except FileNotFoundError:
+            old = b""
+        return atomic_write_bytes(path, old + text.encode("utf-8"))
+
+
+def rewrite_in_place(path: str | os.PathLike, data: bytes) -> None:
+    """Overwrite an existing small file in the blocks it already holds (not atomic): the fallback of
+    a record that must be written when no new file can be created (a full disk)."""
+    try:
+        fd = os.open(path, os.O_WRONLY)
+    except OSError as e:
+        raise WriteError.of(path, e) from None
+    try:
+        os.write(fd, data)
+        os.ftruncate(fd, len(data))
+        os.fsync(fd)
+    except OSError as e:
+        raise WriteError.of(path, e) from None
+    finally:
+        os.close(fd)

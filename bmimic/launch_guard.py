@@ -1,0 +1,93 @@
+"""`LaunchGuard`: the Hydra callback (conf/train.yaml, listed first) that checks a launch before Hydra
+creates or writes anything.
+
+- A single run (`on_run_start`): the folder names are plain names, the run folder is claimed
+  (bmimic.run_claim: a fresh folder per launch, a pinned folder holding a run refused without
+  resume), and a study's sweep parameters given without `-m` are said to be ignored.
+- A multirun (`on_multirun_start`): `sweep_name` is a plain name (the sweep folder stays under
+  outputs/sweeps/), and every job is expanded, composed and checked as `python -m bmimic.launch list`
+  does (bmimic.sweeping.jobs.check_jobs): a job that would be refused, or two jobs that map to one
+  folder, stop the sweep before any job runs.
+
+A refusal is one `error:` line and exit status 2; nothing has been written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf, read_write
+
+from bmimic import BmimicError
+
+
+def _refuse(e: BaseException) -> None:
+    from bmimic.cli_common import first_line
+
+    print(f"error: {first_line(e)}", file=sys.stderr)
+    sys.exit(2)
+
+
+def _folder_name(config: DictConfig, key: str) -> None:
+    from bmimic.run_folder import check_folder_name
+
+    try:
+        value = config[key]
+    except Exception:  # noqa: BLE001 - an unresolvable value: the config checks report it in their words
+        return
+    problem = check_folder_name(key, value)
+    if problem:
+        raise BmimicError(problem)
+
+
+class LaunchGuard(Callback):
+    """Checks and claims before Hydra writes (module doc)."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from bmimic.run_claim import claim, observe
+        from bmimic.training.resume import resume_request
+
+        template = str(OmegaConf.to_container(config.hydra.run, resolve=False).get("dir", ""))
+        pinned = "${now:" not in template
+        if int(os.environ.get("RANK", "0")) != 0:
+            with contextlib.suppress(Exception):  # under torchrun rank 0 owns the (pinned) folder
+                observe(str(config.hydra.run.dir), pinned)
+            return
+        try:
+            if not pinned:
+                _folder_name(config, "run_name")
+            try:
+                run_dir = str(config.hydra.run.dir)
+                resume = resume_request(config.get("resume")) is not None
+            except Exception as e:  # noqa: BLE001 - an interpolation that does not resolve
+                raise BmimicError(f"hydra.run.dir: cannot be resolved: {str(e).splitlines()[0]}") from None
+            job_logging = config.hydra.get("job_logging") or {}
+            log_name = f"{config.hydra.job.name}.log" if "file" in (job_logging.get("handlers") or {}) else None
+            claimed = claim(run_dir, pinned, resume, log_name)
+        except BmimicError as e:
+            _refuse(e)
+            return
+        if str(claimed.run_dir) != os.path.abspath(run_dir):
+            with read_write(config.hydra.run):
+                config.hydra.run.dir = str(claimed.run_dir)
+        params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+        if len(params):
+            study = OmegaConf.select(config, "hydra.runtime.choices.sweep") or "the study"
+            print(f"warning: +sweep={study} sets sweep parameters ({', '.join(map(str, params))}) that only a "
+                  f"multirun expands; this single run ignores them (run the study with -m)", file=sys.stderr)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from hydra.core.global_hydra import GlobalHydra
+
+        from bmimic.sweeping.jobs import check_jobs, expand_jobs
+
+        try:
+            _folder_name(config, "sweep_name")
+            jobs = expand_jobs(GlobalHydra.instance().config_loader(), config)
+            check_jobs(jobs)
+        except BmimicError as e:
+            _refuse(e)

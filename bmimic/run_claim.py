@@ -1,0 +1,187 @@
+"""A launch's claim on its run folder, made before Hydra creates or writes anything in it.
+
+Hydra makes a single run's folder (`hydra.run.dir`) and opens its log there before any of bmimic's
+code runs, so `bmimic.launch_guard.LaunchGuard` (a Hydra callback) claims the folder first:
+
+- a generated folder (the default `outputs/runs/<run_name>/<timestamp>`) is created here, exclusively:
+  a second launch in the same second gets `<timestamp>_1`, and so on, never the first one's folder;
+- a folder the user pinned (`hydra.run.dir=...`) that holds a run (started, failed or finished) is
+  refused without `resume`, and so is one that another process is training;
+- what the launch created (folders, its log file, the lock file) is recorded in a `RunClaim`, so that
+  a refused launch removes exactly that and nothing else, and a launch that continues another run
+  carries over only the log lines it wrote itself.
+
+Torch-free; nothing here writes into a folder the launch did not create, except its own log lines.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bmimic import BmimicError
+from bmimic.run_folder import (
+    LOCK,
+    checkpoint_files,
+    checkpoints_dir,
+    holds_lock,
+    is_run_folder,
+    lock_run,
+    read_status,
+)
+
+MAX_SUFFIX = 1000
+"""Most `_<n>` suffixes tried for a generated folder taken in the same second."""
+
+
+class ClaimError(BmimicError):
+    """The launch cannot have the run folder it names (one line; nothing was written)."""
+
+
+@dataclass
+class RunClaim:
+    """What a launch found and created at its run folder before Hydra wrote anything."""
+
+    run_dir: Path
+    """The launch's folder (absolute)."""
+    pinned: bool
+    """The user named the folder (hydra.run.dir without a ${now:} timestamp)."""
+    created: list[Path] = field(default_factory=list)
+    """Folders this launch created, outermost first."""
+    log_path: Path | None = None
+    """Hydra's log file of the launch in run_dir (`<job name>.log`)."""
+    log_offset: int | None = None
+    """Bytes the log held before this launch (None: the launch created it)."""
+    lock_existed: bool = True
+    """run_dir held a lock file before this launch."""
+
+    def own_log(self) -> str:
+        """The lines this launch wrote to its log so far."""
+        if self.log_path is None:
+            return ""
+        try:
+            with open(self.log_path, "rb") as f:
+                f.seek(self.log_offset or 0)
+                return f.read().decode("utf-8", errors="replace")
+        except OSError:
+            return ""
+
+    def release(self, lock_file=None) -> bool:
+        """Remove what this launch created in its folder, and nothing else: its log lines (the file,
+        when the launch created it), the lock file when the launch created it and still holds it
+        (`lock_file`), the folders it created when they are then empty. Returns whether run_dir is gone."""
+        if self.log_path is not None:
+            with contextlib.suppress(OSError):
+                if self.log_offset is None:
+                    self.log_path.unlink()
+                elif self.log_path.stat().st_size > self.log_offset:
+                    os.truncate(self.log_path, self.log_offset)
+        if not self.lock_existed and holds_lock(lock_file, self.run_dir):
+            with contextlib.suppress(OSError):
+                (self.run_dir / LOCK).unlink()  # still holding it: no other process can have taken it
+        for folder in reversed(self.created):
+            try:
+                folder.rmdir()  # only when empty
+            except OSError:
+                break
+        return not self.run_dir.exists()
+
+
+_CURRENT: RunClaim | None = None
+
+
+def current(run_dir: str | os.PathLike) -> RunClaim | None:
+    """The claim this process made for `run_dir` (None: none, e.g. a sweep job)."""
+    if _CURRENT is not None and _CURRENT.run_dir == Path(run_dir).resolve():
+        return _CURRENT
+    return None
+
+
+def _mkdirs(path: Path, exist_ok: bool) -> list[Path]:
+    """Create `path` and its missing parents; returns the folders created, outermost first."""
+    if not exist_ok and path.exists():
+        raise FileExistsError(path)
+    missing = []
+    p = path
+    while not p.exists():
+        missing.append(p)
+        if p.parent == p:
+            break
+        p = p.parent
+    created = []
+    for folder in reversed(missing):
+        try:
+            folder.mkdir()
+        except FileExistsError:
+            if folder == path and not exist_ok:
+                raise
+            continue
+        created.append(folder)
+    if not path.is_dir():
+        raise NotADirectoryError(f"{path}: not a folder")
+    return created
+
+
+def claim(run_dir: str | os.PathLike, pinned: bool, resume: bool, log_name: str | None) -> RunClaim:
+    """Claim the launch's folder (see the module doc); raises ClaimError with one line."""
+    global _CURRENT
+    path = Path(os.path.abspath(run_dir))
+    if pinned:
+        if path.exists() and not path.is_dir():
+            raise ClaimError(f"hydra.run.dir={run_dir}: is a file, not a folder")
+        if path.is_dir() and not resume:
+            held = holds_run(path)
+            if held:
+                raise ClaimError(f"hydra.run.dir={run_dir}: already holds a run ({held}); add resume=true to "
+                                 "continue it, or choose another folder")
+        if path.is_dir():
+            probe = lock_run(path) if (path / LOCK).exists() else True
+            if probe is None:
+                raise ClaimError(f"hydra.run.dir={run_dir}: is being trained by another process (its {LOCK} is "
+                                 "held); wait for it or stop it first")
+            if probe is not True:
+                probe.close()
+        try:
+            created = _mkdirs(path, exist_ok=True)
+        except OSError as e:
+            raise ClaimError(f"hydra.run.dir={run_dir}: cannot create the folder: {e.strerror or e}") from None
+    else:
+        created = []
+        for n in range(MAX_SUFFIX):
+            candidate = path if n == 0 else path.with_name(f"{path.name}_{n}")
+            try:
+                created = _mkdirs(candidate, exist_ok=False)
+            except FileExistsError:
+                continue  # another launch took it (same second): the next suffix
+            except OSError as e:
+                raise ClaimError(f"hydra.run.dir={candidate}: cannot create the folder: {e.strerror or e}") from None
+            path = candidate
+            break
+        else:
+            raise ClaimError(f"hydra.run.dir={path}: {MAX_SUFFIX} launches in the same second; wait a second")
+    log_path = path / log_name if log_name else None
+    offset = log_path.stat().st_size if log_path is not None and log_path.is_file() else None
+    _CURRENT = RunClaim(path, pinned, created, log_path, offset, (path / LOCK).exists())
+    return _CURRENT
+
+
+def observe(run_dir: str | os.PathLike, pinned: bool) -> RunClaim:
+    """Record the folder of a launch that does not own it (a torchrun rank other than 0): it created
+    nothing, so a refusal removes nothing."""
+    global _CURRENT
+    _CURRENT = RunClaim(Path(os.path.abspath(run_dir)), pinned)
+    return _CURRENT
+
+
+def holds_run(path: Path) -> str:
+    """What makes `path` a run (its status and checkpoints), or '' when it holds none."""
+    ckpts = checkpoint_files(checkpoints_dir(path))
+    if not is_run_folder(path) and not ckpts:
+        return ""
+    status = read_status(path)
+    what = f"status {status.get('status')}"
+    if status.get("iteration") is not None:
+        what += f" at iteration {status.get('iteration')}"
+    return what + (f", {len(ckpts)} checkpoint file(s)" if ckpts else "")

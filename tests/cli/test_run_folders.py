@@ -1,0 +1,296 @@
+"""Run folders are never shared, overwritten or emptied by a launch that does not own them (issue 36):
+a pinned folder holding a run, launches in the same second, refused launches in folders they did not
+create, resume edge cases, a full disk. Each test is a reproducer of a finding of the adversarial
+pass; the training ones run the real command line in this process at tiny sizes (slow)."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from tests.conftest import run_train
+
+TINY = ["device=cpu", "num_envs=2", "ppo.num_steps_per_env=4", "ppo.num_mini_batches=2", "motion=easy_only",
+        "motion.duration_s=7", "eval.horizon_s=0.2", "eval.every_iters=0", "progress_bar=false", "logger=none"]
+
+
+def tree(folder: Path) -> dict[str, str]:
+    """{relative path: sha256} of every file under `folder` (hidden ones too)."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def one_error(out: str) -> str:
+    errors = [x for x in out.splitlines() if x.startswith("error:")]
+    assert len(errors) == 1 and "Traceback" not in out, out[-3000:]
+    return errors[0]
+
+
+def train_ok(cwd: Path, *args: str) -> str:
+    code, out = run_train(*TINY, *args, cwd=cwd)
+    assert code == 0, out[-3000:]
+    return out
+
+
+# --------------------------------------------------------------------------------------------- fast
+def test_claim_gives_a_same_second_launch_its_own_folder(tmp_path) -> None:
+    from bmimic.run_claim import claim
+
+    first = claim(tmp_path / "runs" / "stamp", pinned=False, resume=False, log_name="train.log")
+    second = claim(tmp_path / "runs" / "stamp", pinned=False, resume=False, log_name="train.log")
+    assert first.run_dir.name == "stamp" and second.run_dir.name == "stamp_1"
+    assert first.created == [tmp_path / "runs", tmp_path / "runs" / "stamp"]
+    assert second.created == [tmp_path / "runs" / "stamp_1"]
+    # a refusal removes the folders it created, never the other launch's
+    (first.run_dir / "train.log").write_text("first\n")
+    assert second.release() and first.run_dir.is_dir() and (tmp_path / "runs").is_dir()
+
+
+def test_claim_refuses_a_pinned_folder_holding_a_run_without_resume(tmp_path) -> None:
+    from bmimic.run_claim import ClaimError, claim
+    from bmimic.run_folder import write_status
+
+    run = tmp_path / "run"
+    write_status(run, "done", 3)
+    with pytest.raises(ClaimError, match="already holds a run .status done at iteration 3"):
+        claim(run, pinned=True, resume=False, log_name="train.log")
+    assert claim(run, pinned=True, resume=True, log_name="train.log").created == []
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert claim(empty, pinned=True, resume=False, log_name=None).created == []
+    with pytest.raises(ClaimError, match="cannot create the folder"):
+        claim("/proc/x", pinned=True, resume=False, log_name=None)
+
+
+def test_release_keeps_what_the_folder_held_before_the_launch(tmp_path) -> None:
+    from bmimic.run_claim import claim
+    from bmimic.run_folder import LOCK, lock_run
+
+    (tmp_path / "train.log").write_text("earlier lines\n")
+    (tmp_path / "notes.log").write_text("mine\n")
+    c = claim(tmp_path, pinned=True, resume=False, log_name="train.log")
+    with open(tmp_path / "train.log", "a") as f:
+        f.write("this launch\n")
+    held = lock_run(tmp_path)
+    assert c.own_log() == "this launch\n"
+    assert not c.release(held)
+    assert (tmp_path / "train.log").read_text() == "earlier lines\n" and (tmp_path / "notes.log").exists()
+    assert not (tmp_path / LOCK).exists()  # created and held by this launch: removed
+    held.close()
+
+
+def test_a_lock_is_never_removed_by_a_process_that_does_not_hold_it(tmp_path) -> None:
+    from bmimic.run_claim import claim
+    from bmimic.run_folder import LOCK, holds_lock, lock_run
+
+    c = claim(tmp_path / "run", pinned=False, resume=False, log_name=None)
+    winner = lock_run(c.run_dir)  # another launch took the lock meanwhile
+    inode = (c.run_dir / LOCK).stat().st_ino
+    c.release(None)  # this launch does not hold it
+    assert (c.run_dir / LOCK).stat().st_ino == inode and holds_lock(winner, c.run_dir)
+    assert lock_run(c.run_dir) is None
+    winner.close()
+
+
+def test_lock_run_relocks_a_lock_file_replaced_while_locking(tmp_path, monkeypatch) -> None:
+    """A lock taken on a file that was unlinked meanwhile is not the run's lock: lock_run locks the
+    file the path names now, so two processes can never both believe they hold the run."""
+    import fcntl
+
+    from bmimic import run_folder
+
+    real = fcntl.flock
+    calls = {"n": 0}
+
+    def flock(f, op):
+        calls["n"] += 1
+        if calls["n"] == 1:  # the file is replaced between open() and flock()
+            os.unlink(tmp_path / run_folder.LOCK)
+            (tmp_path / run_folder.LOCK).touch()
+        return real(f, op)
+
+    monkeypatch.setattr(run_folder.fcntl, "flock", flock)
+    f = run_folder.lock_run(tmp_path)
+    assert calls["n"] == 2 and run_folder.holds_lock(f, tmp_path)
+    f.close()
+
+
+def test_resume_true_takes_the_newest_run_with_a_matching_config(tmp_path) -> None:
+    """Issue 35, 5: `sampler=uniform seed=3 resume=true` must not continue an adaptive run."""
+    from bmimic.run_folder import write_resolved_config
+    from bmimic.training.resume import ResumeRefusedError, matching_run
+
+    base = {"seed": 0, "sampler": {"name": "adaptive", "gamma": 0.9}, "max_iterations": 10, "device": "cpu"}
+    runs = []
+    for name, changes in (("2026-01-01_00-00-00", {}), ("2026-01-02_00-00-00", {"seed": 3}),
+                          ("2026-01-03_00-00-00", {"sampler": {"name": "uniform", "gamma": 0.9}})):
+        run = tmp_path / name
+        write_resolved_config(run, base | changes)
+        runs.append(run)
+    assert matching_run(runs, base | {"max_iterations": 99, "device": "cuda"}) == runs[0]  # budget keys aside
+    assert matching_run(runs, base | {"seed": 3}) == runs[1]
+    assert matching_run(runs, base | {"sampler": {"name": "adaptive", "gamma": 0.5}},
+                        allowed=["sampler.gamma"]) == runs[0]
+    with pytest.raises(ResumeRefusedError) as e:
+        matching_run(runs, base | {"seed": 7})
+    text = str(e.value)
+    assert "\n" not in text and all(r.name in text for r in runs) and "seed" in text and "sampler.name" in text
+
+
+def test_status_is_rewritten_in_place_when_the_disk_is_full(tmp_path, monkeypatch) -> None:
+    from bmimic import atomic_io, run_folder
+
+    run_folder.write_status(tmp_path, "running", 5)
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic_io.tempfile, "mkstemp", full)
+    with pytest.raises(run_folder.WriteError, match="No space left"):
+        run_folder.atomic_write_text(tmp_path / "x.txt", "x")
+    run_folder.write_status(tmp_path, "failed", 5, error="disk full")
+    assert run_folder.read_status(tmp_path)["status"] == "failed"
+
+
+# --------------------------------------------------------------------------------------------- end to end
+@pytest.mark.slow
+def test_a_pinned_folder_holding_a_run_is_refused_without_resume(tmp_path) -> None:
+    train_ok(tmp_path, "max_iterations=1", "hydra.run.dir=pinned")
+    before = tree(tmp_path / "pinned")
+    code, out = run_train(*TINY, "max_iterations=1", "hydra.run.dir=pinned", cwd=tmp_path)
+    assert code == 2 and "resume=true" in one_error(out)
+    assert tree(tmp_path / "pinned") == before
+
+
+@pytest.mark.slow
+def test_same_second_launches_get_their_own_folders(tmp_path) -> None:
+    """A fixed timestamp pattern plays two launches in the same second: the second gets its own
+    folder, and when it is refused it takes nothing of the first's (train.log, the lock)."""
+    stamp = "hydra.run.dir=outputs/runs/x/${now:%Y}"
+    train_ok(tmp_path, "max_iterations=1", stamp)
+    (first,) = (tmp_path / "outputs" / "runs" / "x").iterdir()
+    before = tree(first)
+    assert "train.log" in before and ".bmimic.lock" in before
+    code, out = run_train(*TINY, "max_iterations=1", stamp, "sampler.gamma=0", cwd=tmp_path)
+    assert code == 2 and "sampler.gamma" in one_error(out)
+    assert tree(first) == before and [p.name for p in first.parent.iterdir()] == [first.name]
+    train_ok(tmp_path, "max_iterations=1", stamp)
+    assert sorted(p.name for p in first.parent.iterdir()) == [first.name, f"{first.name}_1"]
+    assert tree(first) == before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("where", ["folder", "cwd"])
+def test_a_refused_launch_removes_only_what_it_created(tmp_path, where) -> None:
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "notes.log").write_text("my notes\n")
+    (folder / "train.log").write_text("an earlier log\n")
+    before = tree(folder)
+    target = "hydra.run.dir=." if where == "cwd" else f"hydra.run.dir={folder}"
+    code, out = run_train(*TINY, "max_iterations=1", target, "ppo.gamma=1.5", cwd=folder)
+    assert code == 2 and "ppo.gamma" in one_error(out)
+    assert folder.is_dir() and tree(folder) == before
+
+
+@pytest.mark.slow
+def test_resume_true_in_a_pinned_folder_without_checkpoint_never_continues_a_sibling(tmp_path) -> None:
+    train_ok(tmp_path, "max_iterations=1", "hydra.run.dir=runs/sibling")
+    before = tree(tmp_path / "runs" / "sibling")
+    out = train_ok(tmp_path, "max_iterations=1", "hydra.run.dir=runs/pinned", "resume=true")
+    assert "holds no checkpoint" in out
+    assert tree(tmp_path / "runs" / "sibling") == before
+    assert json.loads((tmp_path / "runs" / "pinned" / "status.json").read_text())["status"] == "done"
+
+
+@pytest.mark.slow
+def test_resume_true_continues_the_run_with_this_config_and_lists_candidates_otherwise(tmp_path) -> None:
+    train_ok(tmp_path, "max_iterations=1", "run_name=r", "seed=0")
+    train_ok(tmp_path, "max_iterations=1", "run_name=r", "seed=1")  # newer, another seed
+    older, newer = sorted((tmp_path / "outputs" / "runs" / "r").iterdir())
+    newer_before = tree(newer)
+    train_ok(tmp_path, "max_iterations=2", "run_name=r", "seed=0", "resume=true")
+    assert json.loads((older / "status.json").read_text())["iteration"] == 2
+    assert tree(newer) == newer_before
+    code, out = run_train(*TINY, "max_iterations=3", "run_name=r", "seed=5", "resume=true", cwd=tmp_path)
+    line = one_error(out)
+    assert code == 2 and older.name in line and newer.name in line and "seed" in line
+    assert len(list(older.parent.iterdir())) == 2
+
+
+@pytest.mark.slow
+def test_resume_of_a_run_at_max_iterations_adds_no_second_final_evaluation(tmp_path) -> None:
+    """Killed after its last checkpoint, before the status write: the resume finishes the run
+    without evaluating the final iteration again."""
+    from bmimic.run_folder import write_status
+
+    run = tmp_path / "run"
+    train_ok(tmp_path, "max_iterations=2", "eval.every_iters=1", f"hydra.run.dir={run}")
+    rows = pd.read_parquet(run / "eval.parquet")
+    write_status(run, "running", 2)
+    train_ok(tmp_path, "max_iterations=2", "eval.every_iters=1", f"hydra.run.dir={run}", "resume=true")
+    again = pd.read_parquet(run / "eval.parquet")
+    assert len(again) == len(rows) and sorted(again["iteration"].unique()) == [1, 2]
+
+
+@pytest.mark.slow
+def test_resume_into_another_folder_does_not_copy_that_folders_log(tmp_path) -> None:
+    """`resume=A hydra.run.dir=B`: A's log gets this launch's lines, not B's earlier log; B keeps it."""
+    run_a = tmp_path / "a"
+    train_ok(tmp_path, "max_iterations=1", f"hydra.run.dir={run_a}")
+    other = tmp_path / "b"
+    other.mkdir()
+    (other / "train.log").write_text("B's own earlier log\n")
+    train_ok(tmp_path, "max_iterations=2", f"resume={run_a}", f"hydra.run.dir={other}")
+    log_a = (run_a / "train.log").read_text()
+    assert "B's own earlier log" not in log_a and "resumed from" in log_a
+    assert (other / "train.log").read_text() == "B's own earlier log\n"
+
+
+def _full_disk_after(monkeypatch, name_part: str, nth: int = 1) -> None:
+    """From the `nth` atomic write of a file whose name contains `name_part` on, no new file can be
+    created (ENOSPC), as on a full disk; files already there can still be rewritten in place."""
+    from bmimic import atomic_io
+
+    real = atomic_io.tempfile.mkstemp
+    state = {"seen": 0}
+
+    def mkstemp(*a, prefix="", **k):
+        state["seen"] += name_part in prefix and state["seen"] < nth
+        if state["seen"] >= nth:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*a, prefix=prefix, **k)
+
+    monkeypatch.setattr(atomic_io.tempfile, "mkstemp", mkstemp)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("when", ["model_", "latest.pt"])
+def test_a_full_disk_during_training_ends_in_one_line_and_a_consistent_run(tmp_path, monkeypatch, when) -> None:
+    """The disk fills while the second checkpoint is written, at either of its two files."""
+    import torch
+
+    run = tmp_path / "run"
+    _full_disk_after(monkeypatch, when, nth=2)
+    code, out = run_train(*TINY, "max_iterations=4", "ppo.save_interval=1", f"hydra.run.dir={run}", cwd=tmp_path)
+    assert code != 0 and "No space left" in one_error(out)
+    assert json.loads((run / "status.json").read_text())["status"] == "failed"
+    latest = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)["iter"]
+    numbered = [int(p.stem.split("_")[1]) for p in (run / "checkpoints").glob("model_*.pt")]
+    assert numbered and latest >= max(numbered)
+
+
+@pytest.mark.slow
+def test_a_full_disk_during_a_resume_ends_in_one_line(tmp_path, monkeypatch) -> None:
+    run = tmp_path / "run"
+    train_ok(tmp_path, "max_iterations=1", f"hydra.run.dir={run}")
+    _full_disk_after(monkeypatch, "")
+    code, out = run_train(*TINY, "max_iterations=2", f"hydra.run.dir={run}", "resume=true", cwd=tmp_path)
+    assert code != 0 and "No space left" in one_error(out)
+    assert json.loads((run / "status.json").read_text())["status"] != "running"
