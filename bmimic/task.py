@@ -65,6 +65,7 @@ def build_task(cfg, device: str) -> Task:
     motion = load_any(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir,
                          control_fps=1.0 / (cfg.sim.timestep_s * cfg.sim.decimation))
     validate(cfg, motion.duration_s)
+    check_motion_speeds(motion, cfg.sim.max_abs_qvel)
     layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device, clip_starts=motion.clip_starts,
                         clip_names=clip_names(cfg.motion, motion))
     return Task(cfg, device, mjm, robot, motion, layout)
@@ -121,6 +122,18 @@ def build_trainer(training: Training, evaluator, run_dir: str | Path, is_main_ra
                        progress_bar=cfg.progress_bar and is_main_rank, enabled=is_main_rank)
     return Trainer(training.env, evaluator, training.sampler, cfg, run_dir, training.task.device, logger,
                    is_main_rank=is_main_rank, run_config=run_config)
+
+
+def check_motion_speeds(motion, max_abs_qvel: float) -> None:
+    """Refuse a motion whose velocities exceed sim.max_abs_qvel: every world started on it (reference
+    state initialisation) would break at once and the run would train on nothing."""
+    import numpy as np
+
+    for name in ("joint_vel", "body_lin_vel_w", "body_ang_vel_w"):
+        top = float(np.nanmax(np.abs(getattr(motion, name)))) if getattr(motion, name).size else 0.0
+        if not top <= max_abs_qvel:
+            raise ConfigError(f"motion: its {name} reaches {top:.3g}, above sim.max_abs_qvel={max_abs_qvel:g}: every "
+                              "world started on it would break (a non-physical motion, or a unit error)")
 
 
 # --------------------------------------------------------------------------------------------- memory

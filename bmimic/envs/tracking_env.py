@@ -166,7 +166,8 @@ class TrackingEnv(VecEnv):
         """Terminations, rewards, sampler and resets: everything between physics and kinematics."""
         self.episode_length_buf += 1
         # Worlds that blew up (non-finite, or finite but beyond physical bounds) are reset, truncated
-        # (never charged to the sampler as failures) and counted, all on the device.
+        # for PPO (no bootstrap from a blown-up state), counted, and charged to the sampler and the
+        # iteration's failure rate as failures, all on the device.
         nonfinite, out_of_bounds, overflowed = self.sim.reset_broken_worlds()
         self.state = compute_state(self.sim, self.reference, self.bodies, self.time_steps)
         flags = self.terminations.compute(self)
@@ -184,7 +185,7 @@ class TrackingEnv(VecEnv):
         dones = terminated | truncated
         if self.mode == "train":
             self.accounting.track(self.state, self.time_steps, broken)  # no-op unless the sampler uses errors
-            self.stats.end_episodes(dones, terminated, self.episode_length_buf)
+            self.stats.end_episodes(dones, terminated | broken, self.episode_length_buf)
             self.rewards.end_episodes(dones)
             # What ends now, counted in one pass: finished episodes (at this frame) and, for
             # attribution=failure, continuing episodes whose clip ends on the next frame.

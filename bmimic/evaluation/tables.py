@@ -52,6 +52,7 @@ def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: 
         "success": ~failed,
         "terminated": raw["terminated"].to_numpy().astype(bool),
         "error_failed": raw["error_failed"].to_numpy().astype(bool),
+        "broken": raw["broken"].to_numpy().astype(bool) if "broken" in raw else np.zeros(len(raw), dtype=bool),
         "failure_frame": failure_frame,
         "failure_bin": np.where(failed, fail_bin, -1),
         "horizon_truncated": raw["horizon_truncated"].to_numpy().astype(bool),

@@ -20,8 +20,10 @@ The environment owns the reference state (frames, clip ends, resets); it calls o
    never fail), or (``failure="short"``) it ended by a termination while its length was below
    ``failure_threshold`` x the max episode length. The length is the environment's episode-length
    counter, which ``init_at_random_ep_len`` starts at a random value in each env's first episode,
-   so a first episode's "length" includes that offset; a time-out is never a failure. Worlds reset
-   because their state became non-finite are not counted.
+   so a first episode's "length" includes that offset; a time-out is never a failure. A world that
+   broke (non-finite state, |qvel| or the root beyond the simulator's bounds, a reward overflow) is
+   a failure whatever its length, charged where it broke: a policy (or motion) that blows up the
+   simulation must look hard to the sampler, never mastered.
 3. ``record(counts)`` in the step, after the resets were drawn: with ``update_every="step"`` the
    sampler is updated now (all-reduced first under torchrun), as in the released code; with
    ``update_every="iteration"`` the counts are added to a pending total and the sampling
@@ -32,7 +34,8 @@ The environment owns the reference state (frames, clip ends, resets); it calls o
 
 For samplers that learn from tracking errors (``sampler.tracking_error``, e.g. ``egm`` and
 ``gmt``), ``track(state, frames, broken)`` in every step adds each env's errors
-(:data:`bmimic.sampling.base.ERROR_COMPONENTS`) to the bin of its current reference frame, and
+(:data:`bmimic.sampling.base.ERROR_COMPONENTS`; a broken world's are BROKEN_ERRORS) to the bin of
+its current reference frame, and
 ``end_rollout`` hands the iteration's sums to ``sampler.update_errors`` (all-reduced first under
 torchrun), whatever ``update_every`` is. Other samplers skip it: the step pays nothing.
 
@@ -43,6 +46,7 @@ clears) the counts the sampler was fed during the iteration, summed, for the dia
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -55,6 +59,10 @@ from bmimic.sampling.bins import Layout, attribute, check_attribution, check_fai
 from bmimic.sampling.checks import check_choice
 
 UPDATE_EVERY = ("iteration", "step")
+BROKEN_ERRORS = (1.0, math.pi, 10.0, 1.0)
+"""The per-step errors (ERROR_COMPONENTS: m, rad, m/s, m) a broken world is charged: tracking lost
+entirely (a termination fires at 0.25 m), beyond any tracked world's, so an error-driven sampler
+(EGM, GMT) reads a broken world as the hardest failure, as the count-driven ones read a failure."""
 
 
 @dataclass
@@ -124,6 +132,7 @@ class EpisodeAccounting:
         # Rows: the ERROR_COMPONENTS sums, then the env-steps counted; float64 so that a long
         # rollout's sums of small errors lose nothing.
         self._errors = torch.zeros(len(ERROR_COMPONENTS) + 1, s, dtype=torch.float64, device=dev)
+        self._broken_errors = torch.tensor([*BROKEN_ERRORS, 1.0], device=dev)[:, None]  # (+ the step count)
 
     @classmethod
     def from_config(cls, cfg: AccountingConfig, sampler: Any, layout: Layout, num_envs: int, max_episode_length: int,
@@ -145,36 +154,35 @@ class EpisodeAccounting:
         end_frames: torch.Tensor,
         segment_start: torch.Tensor,
         terminated: torch.Tensor,
-        nonfinite: torch.Tensor,
+        broken: torch.Tensor,
         episode_length: torch.Tensor,
     ) -> torch.Tensor:
         """Per-bin (episodes, failures) of what ends now, float64 [2, S]; every env is passed
         (fixed shapes) and the masks select.
 
         Args:
-            dones: episodes that end now; clip_end: continuing episodes whose reference segment
-                ends now (only used by attribution="failure").
+            dones: episodes that end now (broken worlds included); clip_end: continuing episodes
+                whose reference segment ends now (only used by attribution="failure").
             end_frames: last frame of each ending segment; segment_start: its first frame.
-            terminated: ended by a termination (not a time-out); nonfinite: reset because the
-                state became non-finite (never counted).
+            terminated: ended by a termination (not a time-out); broken: reset because the world
+                broke (a failure, whatever the failure rule says of its length).
             episode_length: the episode-length counter, in control steps.
         """
         failed = failed_mask(terminated, episode_length, self.max_episode_length, self.failure,
-                             self.failure_threshold)
+                             self.failure_threshold) | broken
         s = self.layout.num_bins
         if self.attribution == "start":
-            counted = dones & ~nonfinite
-            episodes = bin_counts(self.start_bin, s, counted.long())
-            failures = bin_counts(self.start_bin, s, (failed & counted).long())
+            episodes = bin_counts(self.start_bin, s, dones.long())
+            failures = bin_counts(self.start_bin, s, (failed & dones).long())
         else:
             episodes, failures = attribute(segment_start, end_frames, failed, self.layout, "failure",
-                                           counted=(dones | clip_end) & ~nonfinite)
+                                           counted=dones | clip_end)
         return torch.stack((episodes, failures)).to(torch.float64)
 
     def track(self, state: Any, frames: torch.Tensor, broken: torch.Tensor) -> None:
         """Add every env's tracking errors of this step to the bin of its reference frame (only when
         the sampler uses them). ``state``: the step's TrackingState; ``frames``: the reference frame
-        of each env; ``broken``: envs reset as broken this step (not counted)."""
+        of each env; ``broken``: envs reset as broken this step, charged BROKEN_ERRORS."""
         if not self.tracks_errors:
             return
         pos = (state.ref_body_pos_relative - state.robot_body_pos).norm(dim=-1)  # [N, bodies] m
@@ -185,7 +193,8 @@ class EpisodeAccounting:
             pos.amax(-1),
             torch.ones_like(pos[:, 0]),
         ))  # [components + 1, N]
-        per_env = torch.where(broken, 0.0, per_env)  # where, not a product: a broken world's NaN stays out
+        # where, not a product: a broken world's NaN stays out; it is charged a lost track instead
+        per_env = torch.where(broken, self._broken_errors.to(per_env.dtype), per_env)
         bins = self.layout.bins_of(frames)
         self._errors.index_add_(1, bins, per_env.to(torch.float64))
 

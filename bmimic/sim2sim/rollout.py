@@ -233,17 +233,25 @@ class Rollout:
         return self.session.run(["actions"], {"obs": self.observation(), "time_step": self._time})[0][0]
 
     def physics(self, actions: np.ndarray) -> bool:
-        """Hold the PD targets of `actions` for one control step; False if MuJoCo had to reset (diverged)."""
+        """Hold the PD targets of `actions` for one control step; False if the world broke: the actions
+        were not finite, MuJoCo had to reset the state, or the state is non-finite or beyond training's
+        bounds (|qvel| above sim_max_abs_qvel, the root beyond sim_max_root_distance_m), as the
+        training simulator's broken worlds."""
         import mujoco
 
         self.actions = np.asarray(actions, dtype=np.float64).copy()
+        if not np.isfinite(self.actions).all():
+            return False  # MuJoCo would zero a non-finite ctrl and carry on; the policy itself broke
         self.d.ctrl[:] = self.spec.default_joint_pos + self.spec.action_scale * self.actions
         bad = self.d.warning[self._bad].number
         for _ in range(self.spec.decimation):
             mujoco.mj_step(self.m, self.d)
         mujoco.mj_kinematics(self.m, self.d)  # body poses of the new state
         self._version += 1
-        return self.d.warning[self._bad].number == bad and bool(np.isfinite(self.d.qpos).all())
+        qvel, root = self.d.qvel, self.d.qpos[self.free_q:self.free_q + 3]
+        return (self.d.warning[self._bad].number == bad and bool(np.isfinite(self.d.qpos).all())
+                and bool(np.isfinite(qvel).all()) and float(np.abs(qvel).max(initial=0.0)) <= self.spec.max_abs_qvel
+                and float(np.linalg.norm(root)) <= self.spec.max_root_distance_m)
 
     def advance(self) -> bool:
         """Next reference frame (held at the clip's last one); True once that last frame is reached."""
@@ -256,7 +264,7 @@ class Episode(NamedTuple):
 
     row: dict
     """bmimic.training.evaluation.EPISODE_COLUMNS, `error_failed`, the mean of each MEASURED entry over
-    the alive steps, `diverged` and `wall_s`."""
+    the alive steps, `broken` (= `diverged`: the world broke, a failure) and `wall_s`."""
     frames: np.ndarray
     """[steps] the reference frame each step was judged at."""
     errors: np.ndarray
@@ -273,8 +281,9 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
     (`end_frame` is then that frame) or at the horizon; `horizon_truncated` when the clip ends before the
     horizon. With `max_mpkpe_rel_mm`, an episode that did not terminate but whose mean anchor-relative
     MPKPE exceeds it fails, charged at its worst step's frame (the first, on ties). A step after which
-    MuJoCo had to reset the state (divergence) terminates the episode at that step's frame, and its
-    errors (of a state that no longer exists) are not counted.
+    the world broke (Rollout.physics: MuJoCo reset it, or its state or the actions left their bounds)
+    ends the episode as a failure at that step's frame (`broken`, and `diverged` for the tables of
+    earlier versions), and its errors (of a state that no longer exists) are not counted.
     """
     rollout.reset(start_frame)
     start = rollout.frame
@@ -291,7 +300,7 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
         last_actions, last_joint_vel = rollout.actions.copy(), rollout.d.qvel[rollout.vadr].copy()
         action = rollout.policy_action()
         if not rollout.physics(action):
-            terminated = diverged = True
+            diverged = True
             break
         stop = rollout.terminated()
         clip_end = rollout.advance()
@@ -307,18 +316,19 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
             break
     err = np.asarray(errors, dtype=np.float64).reshape(len(frames), len(MEASURED))
     means = err.sum(axis=0) / max(len(frames), 1)
-    error_failed = bool(max_mpkpe_rel_mm is not None and not terminated and means[REL_MPKPE] > max_mpkpe_rel_mm)
-    if terminated:
+    error_failed = bool(max_mpkpe_rel_mm is not None and not (terminated or diverged)
+                        and means[REL_MPKPE] > max_mpkpe_rel_mm)
+    if terminated or diverged:
         failure_frame = end_frame
     elif error_failed:
         failure_frame = frames[int(np.argmax(err[:, REL_MPKPE]))]
     else:
         failure_frame = -1
     row = {
-        "start_frame": int(start), "end_frame": int(end_frame), "failed": terminated or error_failed,
+        "start_frame": int(start), "end_frame": int(end_frame), "failed": terminated or diverged or error_failed,
         "failure_frame": int(failure_frame), "terminated": terminated, "error_failed": error_failed,
         "steps": len(frames), "horizon_truncated": bool(truncated), **dict(zip(MEASURED, means.tolist())),
-        "diverged": diverged, "wall_s": time.perf_counter() - t0,
+        "broken": diverged, "diverged": diverged, "wall_s": time.perf_counter() - t0,
     }
     return Episode(row, np.asarray(frames, dtype=np.int64), err)
 

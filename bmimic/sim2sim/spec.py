@@ -99,6 +99,10 @@ class PolicySpec:
     """Kind of the run's bins: "time" (bin_size_s wide) or "released" (BeyondMimic's layout)."""
     bin_size_s: float
     """Time-bin width of the run's sampler and evaluation (the mean bin length for the released layout)."""
+    max_abs_qvel: float
+    """|qvel| beyond which a world is broken (training's sim.max_abs_qvel)."""
+    max_root_distance_m: float
+    """Root distance from the origin beyond which a world is broken (sim.max_root_distance_m)."""
     iteration: int | None
     """Training iteration of the checkpoint, when recorded."""
 
@@ -214,6 +218,9 @@ def read_policy(path: str | Path) -> PolicySpec:
         segments=segments(),
         bin_layout=meta.get("bin_layout", "time"),  # files exported before the released layout existed
         bin_size_s=scalar("bin_size_s"),
+        # files exported before these keys: training's defaults (bmimic.sim.config.SimConfig)
+        max_abs_qvel=scalar("sim_max_abs_qvel") if "sim_max_abs_qvel" in meta else 1000.0,
+        max_root_distance_m=scalar("sim_max_root_distance_m") if "sim_max_root_distance_m" in meta else 1000.0,
         iteration=int(meta["iteration"]) if meta.get("iteration", "").lstrip("-").isdigit() else None,
     )
     _check_spec(spec)

@@ -96,6 +96,8 @@ def policy_metadata(env, iteration: int | None = None, run_path: str = "") -> di
         "sim_cone": str(sim.cone),
         "sim_iterations": str(int(sim.iterations)),
         "sim_ls_iterations": str(int(sim.ls_iterations)),
+        "sim_max_abs_qvel": repr(float(sim.max_abs_qvel)),  # beyond these a world is broken (a failure)
+        "sim_max_root_distance_m": repr(float(sim.max_root_distance_m)),
         "motion_fps": repr(float(motion.fps)),
         "motion_num_frames": str(int(motion.num_frames)),
         "motion_clip_starts": ",".join(str(int(s)) for s in np.asarray(motion.clip_starts).reshape(-1)),

@@ -1,12 +1,12 @@
 """The PPO training loop: rsl-rl-lib's PPO (as `GraphPPO`, see ppo.py), this project's tables,
 evaluation and checkpoints; TensorBoard / W&B / console output goes through one RunLogger (logger.py).
 
-rsl-rl's `OnPolicyRunner` builds the algorithm (models, storage, optimiser, multi-GPU set-up); the
-loop itself is written here so that each iteration can (a) read the environment's statistics with a
-single host transfer instead of rsl-rl's per-step `.cpu()` bookkeeping, (b) update the sampler once
-after the rollout (`env.end_rollout()`, for `sampler.accounting.update_every=iteration`) and log its per-bin
-state, (c) run the sampler-independent evaluation and (d) write atomic checkpoints that also hold
-the sampler and RNG states, so `resume` reproduces iteration count, learning rate and sampler state.
+rsl-rl's `OnPolicyRunner` builds the algorithm (models, storage, optimiser, multi-GPU set-up); the loop
+itself is written here so that each iteration can (a) read the environment's statistics with a single
+host transfer instead of rsl-rl's per-step `.cpu()` bookkeeping, (b) update the sampler once after the
+rollout (`env.end_rollout()`, for `sampler.accounting.update_every=iteration`) and log its per-bin state,
+(c) run the sampler-independent evaluation and (d) write atomic checkpoints that also hold the sampler
+and RNG states, so `resume` reproduces iteration count, learning rate and sampler state.
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from bmimic.training.checkpoints import (
 )
 from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
 from bmimic.training.evaluation import summarize
+from bmimic.training.health import Health
 from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
 from bmimic.training.resume import key_allowed
@@ -82,11 +83,9 @@ _SOFT_META = {"num_envs": "num_envs", "motion_frames": "motion", "motion_fps": "
 
 
 class Trainer:
-    """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables.
-
-    Nothing is written into the run folder until `learn` (or `evaluate`, `save_checkpoint`) runs, so
-    a resume refused by `restore` leaves the folder as it was.
-    """
+    """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables. Nothing is written
+    into the run folder until `learn` (or `evaluate`, `save_checkpoint`) runs, so a resume refused by
+    `restore` leaves the folder as it was."""
 
     def __init__(self, env, evaluator, sampler, cfg, run_dir: str | os.PathLike, device: str, logger: RunLogger,
                  is_main_rank: bool = True, run_config: dict | None = None) -> None:
@@ -117,6 +116,7 @@ class Trainer:
         self.after_evaluation: Callable[[Trainer, dict], bool] | None = None
         self.learn_started_unix_s: float | None = None
         self.eval_time_s = 0.0
+        self.health = Health(env.num_envs * self.ppo_cfg.num_steps_per_env)
 
     # ------------------------------------------------------------------ checkpoints
     def meta(self) -> dict:
@@ -158,8 +158,7 @@ class Trainer:
 
         it = self.progress.iteration
         path = checkpoint_path(self.run_dir, it)
-        # Tables first: a checkpoint must never be ahead of the rows a resume keeps. latest.pt before
-        # model_<it>.pt: if a write fails (full disk), latest.pt is never older than a numbered one.
+        # Tables first (never behind a checkpoint), latest.pt first (never older than a model_<it>.pt).
         self.flush_tables()
         state = self.checkpoint_state()
         atomic_torch_save(latest_checkpoint(self.run_dir), state)
@@ -175,11 +174,10 @@ class Trainer:
         self.restore(load_checkpoint_file(path, "cpu", trust), path)
 
     def restore(self, state: dict, path: str | os.PathLike = "checkpoint", allowed: tuple | list = ()) -> None:
-        """Load networks, optimiser, counters, sampler and RNG states; reads the run's tables but
-        writes nothing. Raises CheckpointMismatchError (one line) when the checkpoint does not fit.
-
-        `allowed` (resume_allow_changes) may accept another num_envs or motion; observation and
-        action sizes, sampler kind and bins must match (the networks and sampler state depend on them)."""
+        """Load networks, optimiser, counters, sampler and RNG states; reads the run's tables but writes
+        nothing; CheckpointMismatchError (one line) when it does not fit. `allowed` (resume_allow_changes)
+        may accept another num_envs or motion; observation and action sizes, sampler kind and bins must
+        match (the networks and sampler state depend on them)."""
         saved = state.get("meta")
         if isinstance(saved, dict):
             own = self.meta()
@@ -374,6 +372,7 @@ class Trainer:
         for key in self.total_resets:
             self.total_resets[key] += int(stats[key])
         self.train_rows.append(row)
+        self.health.check(it, row, self.ppo_cfg.learning_rate, self.runner.is_distributed, self.device)
         sampler_table = it % self._sampler_every == 0 or last
         if sampler_table:
             self.sampler_rows.append(
@@ -385,8 +384,7 @@ class Trainer:
         return row
 
     def close(self) -> None:
-        """Write the tables, release the CUDA graphs, close the logger (the last two even when the
-        tables cannot be written)."""
+        """Write the tables, then (even when that fails) release the CUDA graphs and close the logger."""
         try:
             self.flush_tables()
         finally:
@@ -397,8 +395,7 @@ class Trainer:
 def _count(value) -> float:
     """A counter from a table row (absent or NaN in rows written before the column existed: 0)."""
     try:
-        value = float(value)
+        return 0.0 if math.isnan(value := float(value)) else value
     except (TypeError, ValueError):
         return 0.0
-    return 0.0 if math.isnan(value) else value
 

@@ -165,11 +165,11 @@ def test_an_episode_across_a_clip_end_is_charged_to_the_right_clip_and_bin(attri
     acc.start_episodes(torch.tensor([True, True]), torch.tensor([1, 0]))  # env 0 starts at frame 60, bin 1
     # step k: env 0 reaches clip a's last frame (124) and is resampled into clip b, the episode goes on
     at_clip_end = acc.count(dones=no, clip_end=torch.tensor([True, False]), end_frames=torch.tensor([124, 0]),
-                            segment_start=torch.tensor([60, 0]), terminated=no, nonfinite=no,
+                            segment_start=torch.tensor([60, 0]), terminated=no, broken=no,
                             episode_length=torch.tensor([65, 65]))
     # later: env 0 falls at frame 182 (bin 4, clip b) after 70 steps, a short episode: a failure
     at_fall = acc.count(dones=torch.tensor([True, False]), clip_end=no, end_frames=torch.tensor([182, 0]),
-                        segment_start=torch.tensor([180, 0]), terminated=torch.tensor([True, False]), nonfinite=no,
+                        segment_start=torch.tensor([180, 0]), terminated=torch.tensor([True, False]), broken=no,
                         episode_length=torch.tensor([70, 70]))
     total = at_clip_end + at_fall
     if attribution == "start":  # one episode, charged to its start bin (clip a) through the resample

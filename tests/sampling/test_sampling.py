@@ -565,9 +565,12 @@ def test_accounting_start_attribution_and_failure_rules():
     acc.failure = "terminated"  # any termination fails: env 1 too
     counts = acc.count(dones, _b(F, F, F, F), frames, frames, terminated, _b(F, F, F, F), length)
     assert counts[1].tolist() == [0, 1, 0, 0, 0, 0, 0, 0, 0, 1]
-    # A world reset for a non-finite state is never counted.
-    counts = acc.count(dones, _b(F, F, F, F), frames, frames, terminated, _b(T, F, F, F), length)
-    assert counts[0].tolist() == [0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
+    # A world that broke (here env 1, 90 steps: not short) is a failure whatever the rule says of its
+    # length (issue 36: it was never counted, so a bin that blew the simulation up looked mastered).
+    acc.failure = "short"
+    counts = acc.count(dones, _b(F, F, F, F), frames, frames, _b(F, F, F, F), _b(F, T, F, F), length)
+    assert counts[0].tolist() == [0, 1, 0, 0, 1, 0, 0, 0, 0, 1]
+    assert counts[1].tolist() == [0, 0, 0, 0, 0, 0, 0, 0, 0, 1]
 
 
 def test_accounting_failure_attribution_counts_segments():
@@ -579,6 +582,11 @@ def test_accounting_failure_attribution_counts_segments():
                        _l(5, 100, 50, 5))
     assert counts[0].tolist() == [1, 1, 2, 0, 0, 0, 0, 0, 1, 1]
     assert counts[1].tolist() == [0, 0, 1, 0, 0, 0, 0, 0, 0, 0]
+    # env 1's world broke instead of timing out: a failure where it broke (bin 2)
+    counts = acc.count(_b(T, T, F, F), _b(F, F, T, F), end, seg_start, _b(T, F, F, F), _b(F, T, F, F),
+                       _l(5, 100, 50, 5))
+    assert counts[0].tolist() == [1, 1, 2, 0, 0, 0, 0, 0, 1, 1]
+    assert counts[1].tolist() == [0, 0, 2, 0, 0, 0, 0, 0, 0, 0]
 
 
 @pytest.mark.parametrize("update_every", ["iteration", "step"])
