@@ -13,11 +13,13 @@ or lacks a table is kept in the runs frame with ``included=False`` and a ``probl
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pandas as pd
 
 from analysis import AnalysisError
+from analysis.inputs import MIXED_FLAG, check_comparable, mark_copies
 from analysis.run_files import (
     NEEDED_TABLES,
     REQUIRED_COLUMNS,
@@ -31,6 +33,8 @@ from analysis.run_files import (
     table_problem,
 )
 from bmimic.run_folder import MOTION_SEGMENTS, STATUS, TABLES, table_path
+
+log = logging.getLogger("analysis")
 
 RUN_COLUMNS = [
     "run_dir", "sweep_dir", "arm", "seed", "status", "error", "iteration", "sampler",
@@ -165,7 +169,7 @@ def short_arm_labels(arms) -> tuple[dict[str, str], list[str]]:
     return labels, shared
 
 
-def load_runs(paths) -> pd.DataFrame:
+def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
     """Find and describe every run under ``paths`` (sweep folders, run folders, or parents of runs).
 
     Returns one row per job with columns:
@@ -184,7 +188,9 @@ def load_runs(paths) -> pd.DataFrame:
       is a config value there (so an arm that kept a default still gets it), else the override's
       value (e.g. a config-group choice such as ``param.sampler``), else missing.
 
-    Raises AnalysisError when a path does not exist or no run folder is found under any path.
+    Raises AnalysisError when a path does not exist or no run folder is found under any path, and
+    (analysis.inputs) when included runs differ in motion or bin layout unless ``allow_mixed``; a run
+    whose tables are byte-identical to another's is left out (``problem`` says so).
     """
     if isinstance(paths, str | Path):
         paths = [paths]
@@ -200,6 +206,9 @@ def load_runs(paths) -> pd.DataFrame:
             rows.append(_read_run(run_dir, root if root != run_dir else run_dir.parent.parent))
     if not rows:
         raise AnalysisError(f"no run folders (with status.json or .hydra/config.yaml) under {list(map(str, paths))}")
+    mark_copies(rows)
+    for note in check_comparable(rows, allow_mixed):
+        log.warning("%s (%s)", note, MIXED_FLAG)
     _single_run_arms(rows)
     rows += _missing_jobs(rows)
 

@@ -29,6 +29,7 @@ from analysis.adaptation import at_evaluations, sampling_support, signal_summary
 from analysis.curve_text import adaptation_section, curve_view, iso_text, speedup_curve_text
 from analysis.definitions import definitions
 from analysis.files import save_figure, write_csv, write_text
+from analysis.inputs import MIXED_FLAG, check_options
 from analysis.load import load_runs, load_segments, load_table, short_arm_labels
 from analysis.machines import kinds_text, machine_kinds, wall_time_comparable
 from analysis.markdown import (
@@ -59,6 +60,7 @@ from analysis.metrics import (
 from analysis.speedup_curve import iso_failure, speedup_curve
 from analysis.stats import MIN_SEEDS_IQM, bootstrap_coverage
 from analysis.tables import ReportOptions
+from bmimic import BmimicError
 
 TRACKING_HEADLINE = ("mpkpe_rel_mm", "joint_vel_err_radps")
 """Tracking errors the Tracking quality section compares between arms in words (position and velocity
@@ -88,12 +90,16 @@ def _sensitivity_figure(sens: pd.DataFrame, key: str, reference: dict, per_run: 
     return fig
 
 
-def build_report(paths, out: str | Path | None = None, opts: ReportOptions | None = None) -> Path:
-    """Load the runs under ``paths``, write every figure, table and report.md to ``out``; return ``out``."""
+def build_report(paths, out: str | Path | None = None, opts: ReportOptions | None = None,
+                 allow_mixed: bool = False) -> Path:
+    """Load the runs under ``paths``, write every figure, table and report.md to ``out``; return ``out``.
+    ``allow_mixed``: compare runs of different motions or bin layouts (else refused)."""
     opts = opts or ReportOptions()
     paths = [Path(p) for p in ([paths] if isinstance(paths, str | Path) else paths)]
     out = Path(out) if out is not None else default_out(paths)
-    runs = load_runs(paths)
+    if out.exists() and not out.is_dir():
+        raise AnalysisError(f"--out {out}: is a file, not a folder")
+    runs = load_runs(paths, allow_mixed=allow_mixed)
     for col in ("run_dir", "sweep_dir"):  # the tables travel (docs/, other machines): no absolute paths from here
         runs[col] = runs[col].map(_portable_path)
     labels, shared = short_arm_labels(runs["arm"])
@@ -338,16 +344,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--success-threshold", type=float, default=0.9, help="overall success for time to threshold")
     parser.add_argument("--baseline", default=None, help="baseline arm (default: the arm whose sampler is uniform)")
     parser.add_argument("--resamples", type=int, default=tables.DEFAULT_RESAMPLES, help="bootstrap resamples")
+    parser.add_argument(MIXED_FLAG, action="store_true",
+                        help="compare runs trained on different motions or bin layouts (refused without it: "
+                             "per-bin tables match bins by number)")
     args = parser.parse_args(argv)
-    if args.mastery_persist < 1:
-        print(f"error: --mastery-persist must be >= 1, got {args.mastery_persist}", file=sys.stderr)
-        return 2
-    opts = ReportOptions(mastery_threshold=args.mastery_threshold, mastery_persist=args.mastery_persist,
-                         success_threshold=args.success_threshold, baseline=args.baseline, n_resamples=args.resamples)
     try:
-        out = build_report(args.paths, args.out, opts)
-    except AnalysisError as e:
-        print(f"error: {e}", file=sys.stderr)
+        check_options(args.mastery_threshold, args.success_threshold, args.resamples, args.mastery_persist)
+        opts = ReportOptions(mastery_threshold=args.mastery_threshold, mastery_persist=args.mastery_persist,
+                             success_threshold=args.success_threshold, baseline=args.baseline,
+                             n_resamples=args.resamples)
+        out = build_report(args.paths, args.out, opts, allow_mixed=args.allow_mixed)
+    except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.atomic_io)
+        print(f"error: {str(e).strip().splitlines()[0]}", file=sys.stderr)
         return 2
     print(f"report written to {out / 'report.md'}")
     return 0

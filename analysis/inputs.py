@@ -1,0 +1,100 @@
+"""Checks on a report's inputs before anything is computed: the runs compared as arms share one motion
+and one bin layout (or the user says otherwise), a run copied byte for byte is counted once, and the
+report's options are in range. Each refusal is an AnalysisError with one line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+
+from analysis import AnalysisError
+from analysis.run_files import NEEDED_TABLES, config_value
+from bmimic.run_folder import table_path
+
+BIN_KEYS = ("sampler.bins", "sampler.bin_size_seconds")
+"""Config keys that define a run's time bins (with its motion)."""
+MIXED_FLAG = "--allow-mixed"
+
+
+def _flat(tree, prefix: str = "") -> dict:
+    if isinstance(tree, dict):
+        out = {}
+        for k, v in tree.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: tree}
+
+
+def check_comparable(rows: list[dict], allow_mixed: bool = False) -> list[str]:
+    """Refuse included runs trained on different motions or bin layouts: their per-bin tables would
+    be compared bin number by bin number, and their failure rates measure different tasks. With
+    `allow_mixed` the differences are returned as notes instead."""
+    used = [r for r in rows if r.get("included") and r.get("_cfg")]
+    if len(used) < 2:
+        return []
+    first = used[0]
+    notes = []
+    for what, keys in (("motion", None), ("bin layout", BIN_KEYS)):
+        def signature(r, _keys=keys):
+            cfg = r["_cfg"]
+            if _keys is None:
+                return _flat(cfg.get("motion") or {}, "motion.")
+            return {k: config_value(cfg, k) for k in _keys}
+        base = signature(first)
+        for r in used[1:]:
+            other = signature(r)
+            differ = sorted(k for k in set(base) | set(other) if base.get(k) != other.get(k))
+            if differ:
+                k = differ[0]
+                line = (f"{_name(first)} and {_name(r)} were trained on different {what}s ({k}: "
+                        f"{base.get(k)!r} vs {other.get(k)!r})")
+                if not allow_mixed:
+                    raise AnalysisError(f"{line}; a report compares arms on one motion and one bin layout (per-bin "
+                                        f"tables match bins by number); pass {MIXED_FLAG} to compare them anyway")
+                notes.append(line)
+                break
+    return notes
+
+
+def _name(row: dict) -> str:
+    """A run's folder with its parent (`<arm>/seed=<s>`, `<run_name>/<stamp>`)."""
+    path = Path(row["run_dir"])
+    return f"{path.parent.name}/{path.name}"
+
+
+def mark_copies(rows: list[dict]) -> None:
+    """A run whose config, overrides and tables are byte-identical to another's (a copied folder) is counted once:
+    the later one (by path) is left out with a problem naming the first."""
+    seen: dict[str, str] = {}
+    for r in sorted(rows, key=lambda r: r["run_dir"]):
+        if not r.get("included"):
+            continue
+        h = hashlib.sha256(repr((sorted(_flat(r.get("_cfg") or {}).items()),
+                                 sorted((r.get("_overrides") or {}).items()))).encode())
+        for name in NEEDED_TABLES:
+            h.update(table_path(r["run_dir"], name).read_bytes())
+        key = h.hexdigest()
+        if key in seen:
+            r["included"] = False
+            r["problem"] = f"its tables are byte-identical to {seen[key]}'s (a copy): counted once"
+        else:
+            seen[key] = r["run_dir"]
+
+
+def check_options(mastery_threshold: float, success_threshold: float, resamples: int, mastery_persist: int) -> None:
+    """The report's options: thresholds are rates in (0, 1], resamples a count a bootstrap can use."""
+    for flag, value in (("--mastery-threshold", mastery_threshold), ("--success-threshold", success_threshold)):
+        if not (math.isfinite(value) and 0 < value <= 1):
+            raise AnalysisError(f"{flag} must be a rate in (0, 1], got {value}")
+    if not MIN_RESAMPLES <= resamples <= MAX_RESAMPLES:
+        raise AnalysisError(f"--resamples must be in [{MIN_RESAMPLES}, {MAX_RESAMPLES}], got {resamples}")
+    if mastery_persist < 1:
+        raise AnalysisError(f"--mastery-persist must be >= 1, got {mastery_persist}")
+
+
+MIN_RESAMPLES = 20
+"""Fewer bootstrap resamples leave a 95% interval's ends to chance (0 or fewer: nothing to draw)."""
+MAX_RESAMPLES = 1_000_000
+"""More only costs time (the default is 2,000)."""
