@@ -168,3 +168,16 @@ def rewrite_in_place(path: str | os.PathLike, data: bytes) -> None:
         raise WriteError.of(path, e) from None
     finally:
         os.close(fd)
+
+
+def make_folder(path: str | os.PathLike) -> Path:
+    """Create the output folder `path` (and its parents): a file in its place, or a folder the system
+    will not create, is one line naming it (BmimicError, WriteError)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise BmimicError(f"{path}: is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise WriteError.of(path, e) from None
+    return path

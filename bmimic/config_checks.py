@@ -13,6 +13,10 @@ from bmimic.config import ConfigError, TrainConfig
 from bmimic.envs.config import EnvConfigError, check_env
 from bmimic.run_folder import check_folder_name
 from bmimic.sampling.config import sampler_config
+from bmimic.training.checkpoints import MAX_ITERATION
+
+MAX_SEED = 2**31 - 1
+"""Largest seed: every random stream (python, numpy, torch, warp) takes it, and so does seed + rank."""
 
 
 def _fail(key: str, problem: str) -> None:
@@ -23,10 +27,46 @@ def check_composed(cfg, choices=None) -> None:
     """The checks a composed config gets before anything runs (train and the sweep dry run): unknown
     keys (also `+` ones), NaN or infinity anywhere, the sampler group against sampler.name,
     resume_allow_changes names. `choices`: Hydra's runtime.choices (group -> option)."""
+    check_present(cfg)
+    check_resolvable(cfg)
     check_known_keys(cfg)
     check_finite(cfg)
     check_sampler_choice(cfg, choices)
     check_resume_allow_changes(cfg)
+
+
+def check_resolvable(cfg, prefix: str = "") -> None:
+    """Every value resolves (interpolations such as `${oc.env:UNSET}` included) and fits its type
+    (`max_iterations=${oc.env:HOME}` is a path, not an integer)."""
+    from omegaconf import DictConfig, ListConfig
+    from omegaconf.errors import OmegaConfBaseException
+
+    keys = [k for k in cfg if not (k == "hydra" and not prefix)] if isinstance(cfg, DictConfig) else \
+        range(len(cfg)) if isinstance(cfg, ListConfig) else []
+    for key in keys:
+        name = f"{prefix}{key}" if isinstance(key, str) else f"{prefix[:-1]}[{key}]"
+        try:
+            value = cfg[key]
+        except OmegaConfBaseException as e:
+            _fail(name, f"cannot be resolved: {_omegaconf_message(e)}")
+        if isinstance(value, (DictConfig, ListConfig)):
+            check_resolvable(value, f"{name}.")
+
+
+def _omegaconf_message(e: BaseException) -> str:
+    msg = getattr(e, "msg", None) or str(e)
+    return msg.strip().splitlines()[0] if msg.strip() else type(e).__name__
+
+
+def check_present(cfg) -> None:
+    """Every key of the schema is there: `~seed` or `~sampler` deletes a key no run can do without."""
+    from dataclasses import fields
+
+    from omegaconf import OmegaConf
+
+    for f in fields(TrainConfig):
+        if f.name != "defaults" and (f.name not in cfg or OmegaConf.is_missing(cfg, f.name)):
+            _fail(f.name, f"is missing from the config (deleted with ~{f.name}?); every run needs it")
 
 
 def check_known_keys(cfg) -> None:
@@ -93,12 +133,16 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
     """Check the meaning of a composed, runtime-resolved config; raise ConfigError naming the key."""
     from bmimic.sampling.config import validate_sampler_config
 
+    check_present(cfg)
+    check_resolvable(cfg)
     check_known_keys(cfg)
     check_finite(cfg)
+    if isinstance(cfg.seed, bool) or not 0 <= cfg.seed <= MAX_SEED:
+        _fail("seed", f"must be an integer in [0, {MAX_SEED}], got {cfg.seed}")
     if cfg.num_envs is None or cfg.num_envs < 1:
         _fail("num_envs", f"must be >= 1, got {cfg.num_envs}")
-    if cfg.max_iterations is None or cfg.max_iterations < 0:
-        _fail("max_iterations", f"must be >= 0, got {cfg.max_iterations}")
+    if cfg.max_iterations is None or not 0 <= cfg.max_iterations <= MAX_ITERATION:
+        _fail("max_iterations", f"must be in [0, {MAX_ITERATION}], got {cfg.max_iterations}")
     ppo = cfg.ppo
     if ppo.num_steps_per_env < 1:
         _fail("ppo.num_steps_per_env", f"must be >= 1, got {ppo.num_steps_per_env}")
@@ -133,8 +177,8 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
             _fail(f"ppo.{key}", f"must be >= 0, got {getattr(ppo, key)}")
     for key in ("actor_hidden_dims", "critic_hidden_dims"):
         dims = list(getattr(ppo, key))
-        if any(d < 1 for d in dims):
-            _fail(f"ppo.{key}", f"layer sizes must be >= 1, got {dims}")
+        if not dims or any(d < 1 for d in dims):
+            _fail(f"ppo.{key}", f"needs at least one layer, each of size >= 1, got {dims}")
     if ppo.activation not in _ACTIVATIONS:
         _fail("ppo.activation", f"must be one of {', '.join(_ACTIVATIONS)}, got {ppo.activation!r}")
     if ppo.noise_std_type not in ("scalar", "log"):

@@ -37,7 +37,7 @@ from typing import Sequence
 from bmimic.cli_common import add_trust_flag, first_line, user_errors
 from bmimic.console import quiet_warp
 from bmimic.evaluation.report import format_report
-from bmimic.evaluation.saved_run import LoadedRun, checkpoint_label, load_run
+from bmimic.evaluation.saved_run import LoadedRun, checkpoint_label, load_run, load_run_checkpoint
 from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table, write_tables
 from bmimic.run_folder import EVAL_DIR, EVAL_TABLES
 
@@ -48,13 +48,12 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
     """Run the sampler-independent evaluation of `run.checkpoint` and build the tables."""
     from bmimic.runtime import seed_everything
     from bmimic.task import build_evaluator
-    from bmimic.training.checkpoints import load_checkpoint_file
     from bmimic.training.evaluation import summarize
     from bmimic.training.policy import build_policy
 
     task = run.task
     cfg, device, motion, layout = task.cfg, task.device, task.motion, task.layout
-    state = load_checkpoint_file(run.checkpoint, device, trust)
+    state = load_run_checkpoint(run, trust)
     seed_everything(cfg.seed)
     evaluator = build_evaluator(task)
     env = evaluator.env

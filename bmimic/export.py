@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Sequence
 
 from bmimic.cli_common import add_trust_flag, first_line, user_errors
-from bmimic.run_folder import checkpoints_dir
+from bmimic.run_folder import checkpoints_dir, make_folder
 
 log = logging.getLogger("bmimic.export")
 
@@ -28,15 +28,16 @@ log = logging.getLogger("bmimic.export")
 def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False) -> list[Path]:
     """Export the run's latest checkpoint (or the given one); returns the written files. `trust`
     (--trust-checkpoint) also reads a format-1 checkpoint (still weights-only), as bmimic.eval does."""
-    from bmimic.evaluation.saved_run import load_run
+    from bmimic.evaluation.saved_run import load_run, load_run_checkpoint
     from bmimic.task import build_evaluator
-    from bmimic.training.checkpoints import load_checkpoint_file
     from bmimic.training.export import export_checkpoint_onnx
     from bmimic.training.policy import build_policy
 
+    if out_dir is not None:
+        make_folder(out_dir)
     run = load_run(path, ["device=cpu", "eval.max_envs=1"], trust=trust)
     task = run.task
-    state = load_checkpoint_file(run.checkpoint, task.device, trust=trust)
+    state = load_run_checkpoint(run, trust=trust)
     env = build_evaluator(task).env
     policy = build_policy(state, env, task.cfg.ppo, task.device, run.checkpoint)
     iteration = int(state.get("iter", -1))

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -101,21 +102,37 @@ def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequ
     return images, falls
 
 
+def check_video_fits(seconds: float, fps: float, width: int, height: int) -> None:
+    """Refuse a video whose frames, all held in memory until it is written, would not fit (or whose
+    length or rate is not a positive number) before any rollout: `--seconds 1e9` must not run for days."""
+    from bmimic.render import RenderError
+    from bmimic.task import free_memory_bytes
+
+    for flag, value in (("--seconds", seconds), ("--fps", fps), ("--width", width), ("--height", height)):
+        if not (math.isfinite(value) and value > 0):
+            raise RenderError(f"{flag} must be > 0 and finite, got {value}")
+    frames = seconds * fps
+    need = max(frames, 1.0) * width * height * 3
+    free = free_memory_bytes("cpu")
+    if free is not None and need > free / 2:
+        raise RenderError(f"--seconds {seconds:g} x --fps {fps:g} = {frames:.3g} frames of --width {width} x --height "
+                          f"{height} need about {need / 2**30:.3g} GiB held in memory, more than half of the "
+                          f"{free / 2**30:.1f} GiB free; make the video shorter, slower or smaller")
+
+
 def play(args: argparse.Namespace) -> Path:
     """Build the run's single-world eval environment and policy, render, write the video."""
-    from bmimic.evaluation.saved_run import checkpoint_label, load_run
+    from bmimic.evaluation.saved_run import checkpoint_label, load_run, load_run_checkpoint
     from bmimic.render import RenderError, TrackingRenderer, video_path, write_video
     from bmimic.task import build_evaluator
-    from bmimic.training.checkpoints import load_checkpoint_file
     from bmimic.training.policy import build_policy
 
-    if args.seconds <= 0 or args.fps <= 0:
-        raise RenderError(f"--seconds ({args.seconds}) and --fps ({args.fps}) must be > 0")
+    check_video_fits(args.seconds, args.fps, args.width, args.height)
     # eval.max_envs=1: build_evaluator then makes exactly one world.
     overrides = [*args.overrides, "eval.max_envs=1", *([f"device={args.device}"] if args.device else [])]
     run = load_run(args.path, overrides, trust=args.trust_checkpoint)
     task = run.task
-    state = load_checkpoint_file(run.checkpoint, task.device, args.trust_checkpoint)
+    state = load_run_checkpoint(run, args.trust_checkpoint)
     motion = task.motion
     if not 0 <= args.start_s < motion.duration_s:
         raise RenderError(f"--start-s {args.start_s}: must be in [0, {motion.duration_s:g}) s, the motion's length")

@@ -33,6 +33,7 @@ from bmimic.atomic_io import (  # noqa: F401  (the writer of every run-folder fi
     atomic_write_text,
     current_umask,
     folder_lock,
+    make_folder,
     rewrite_in_place,
 )
 

@@ -82,6 +82,7 @@ def build_training(cfg, device: str, task: Task | None = None) -> Training:
 
     task = task if task is not None else build_task(cfg, device)
     check_num_envs_fit(cfg, task.mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
+    check_networks_fit(cfg, task.mjm, device)
     sampler = make_sampler(cfg.sampler, task.layout.num_bins, device, layout=task.layout,
                            clip_weights=clip_weights(cfg.motion))
     accounting = EpisodeAccounting.from_config(cfg.sampler.accounting, sampler, task.layout, cfg.num_envs,
@@ -99,6 +100,7 @@ def build_evaluator(task: Task, robust: bool = False):
     from bmimic.training.evaluation import Evaluator
 
     cfg, device, layout = task.cfg, task.device, task.layout
+    check_evaluation_fits(layout.num_bins, cfg.eval.episodes_per_bin)
     total = layout.num_bins * cfg.eval.episodes_per_bin
     n = max(1, min(total, cfg.eval.max_envs))
     mjm = load_mjmodel(cfg=cfg.robot)
@@ -157,6 +159,39 @@ def check_num_envs_fit(cfg, mjm, device: str, num_worlds: int, rollout_steps: in
             f"num_envs: {num_worlds} worlds need about {_gib(need)} ({per_world / 1024:.0f} KiB per world: "
             f"physics {physics / 1024:.0f} KiB, rollout {rollout / 1024:.0f} KiB, temporaries), but "
             f"{device} has {_gib(free)} free; about {max(int(free // per_world), 0)} fit")
+
+
+def check_networks_fit(cfg, mjm, device: str) -> None:
+    """Refuse actor and critic layer sizes whose parameters would not fit in the device's free memory,
+    before building them: weights, gradients and Adam's two moments (4 floats per parameter) plus a
+    mini-batch's activations, inputs taken as 16 floats per degree of freedom (as check_num_envs_fit)."""
+    inputs, outputs = 16 * mjm.nv, mjm.nu
+    batch = cfg.num_envs * cfg.ppo.num_steps_per_env // max(cfg.ppo.num_mini_batches, 1)
+    need, worst = 0, ""
+    for key, out in (("actor_hidden_dims", outputs), ("critic_hidden_dims", 1)):
+        sizes = [inputs, *[int(d) for d in cfg.ppo[key]], out]
+        params = sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:]))
+        need_here = 16 * params + 3 * 4 * batch * sum(sizes)
+        need += need_here
+        worst = key if need_here * 2 >= need else worst
+    free = free_memory_bytes(device)
+    if free is not None and need > free:
+        raise ConfigError(f"ppo.{worst}: the actor and critic networks need about {_gib(need)} (parameters, "
+                          f"gradients, Adam moments and activations), but {device} has {_gib(free)} free; "
+                          f"choose smaller layers (ppo.actor_hidden_dims={list(cfg.ppo.actor_hidden_dims)}, "
+                          f"ppo.critic_hidden_dims={list(cfg.ppo.critic_hidden_dims)})")
+
+
+def check_evaluation_fits(num_bins: int, episodes_per_bin: int, key: str = "eval.episodes_per_bin") -> None:
+    """Refuse an evaluation whose episode table (one row of about 40 numbers per episode, plus its
+    start frames) would not fit in host memory: `--episodes-per-bin 100000000` must not run for days."""
+    episodes = num_bins * episodes_per_bin
+    need = episodes * 48 * 8
+    free = free_memory_bytes("cpu")
+    if free is not None and need > free // 2:
+        raise ConfigError(f"{key}: {num_bins} bins x {episodes_per_bin} episodes = {episodes} "
+                          f"episodes need about {_gib(need)} for their rows alone, more than half of the "
+                          f"{_gib(free)} free; about {max(int(free // 2 // (48 * 8 * num_bins)), 1)} per bin fit")
 
 
 def _gib(n: float) -> str:

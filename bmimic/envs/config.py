@@ -157,10 +157,26 @@ def check_env(cfg: Any) -> None:
                 fn = resolve_term(kind, term.func)
             except LookupError as e:
                 _fail(f"env.{group}.{name}.func", str(e))
+            _check_signature(f"env.{group}.{name}", term, fn, kind)
             if kind == "events":
                 _check_event(f"env.events.{name}", term, fn)
     if not cfg.policy_observations:
         _fail("env.policy_observations", "is empty; the policy needs at least one observation term")
+
+
+def _check_signature(key: str, term: Any, fn: Any, kind: str) -> None:
+    """The term's function takes the environment (and, for events, the envs), then its params."""
+    import inspect
+
+    params = dict(getattr(term, "params", None) or {})
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):  # a builtin without a signature: cannot tell
+        return
+    try:
+        signature.bind(None, *((None,) if kind == "events" else ()), **params)
+    except TypeError as e:
+        _fail(f"{key}.params", f"{term.func} cannot be called with the environment and params {sorted(params)}: {e}")
 
 
 def _check_event(key: str, term: Any, fn: Any) -> None:

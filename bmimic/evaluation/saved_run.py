@@ -4,6 +4,7 @@ task rebuilt (robot, motion, bins) as training built it. Used by eval, play and 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
@@ -14,8 +15,11 @@ from bmimic.run_folder import (
     CHECKPOINTS_DIR,
     HYDRA_DIR,
     LATEST_CHECKPOINT,
+    RESUMES,
     has_hydra_record,
     newest_checkpoint,
+    read_json,
+    read_resolved_config,
 )
 from bmimic.run_folder import (
     checkpoint_label as run_checkpoint_label,
@@ -54,10 +58,18 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
     from omegaconf.errors import OmegaConfBaseException
 
     from bmimic.config import TrainConfig
+    from bmimic.config_checks import check_resolvable
+    from bmimic.training.resume import flatten_config
 
     path = run_dir / HYDRA_DIR / "config.yaml"
     try:
-        cfg = OmegaConf.merge(OmegaConf.structured(TrainConfig), OmegaConf.load(path))
+        loaded = OmegaConf.load(path)
+        reads_env = [k for k, v in flatten_config(OmegaConf.to_container(loaded, resolve=False)).items()
+                     if isinstance(v, str) and "${oc.env:" in v and k not in READER_ENV_KEYS]
+        if reads_env:
+            raise RunLoadError(f"{path}: {reads_env[0]} interpolates an environment variable of whoever reads "
+                               "the run (${oc.env:...}); a shared run's config must hold values: edit the file")
+        cfg = OmegaConf.merge(OmegaConf.structured(TrainConfig), loaded)
     except (OmegaConfBaseException, OSError, ValueError, yaml.YAMLError) as e:
         raise RunLoadError(f"{path}: cannot be read as a bmimic config: {first_line(e)}") from None
     OmegaConf.set_struct(cfg, True)  # an override of a key that does not exist is an error, as in Hydra
@@ -69,6 +81,10 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
             cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
         except OmegaConfBaseException as e:
             raise RunLoadError(f"override {item!r}: {first_line(e)}") from None
+    try:
+        check_resolvable(cfg)
+    except BmimicError as e:
+        raise RunLoadError(f"{path} with overrides {list(overrides)}: {first_line(e)}") from None
     return cfg
 
 
@@ -88,6 +104,14 @@ def anchor_relative_paths(cfg, run_dir: Path) -> None:
                 cfg[group][key] = str(launch_dir / value)
 
 
+READER_ENV_KEYS = ("data.lafan_dir",)
+"""Keys whose ${oc.env:...} is meant to be the reader's (the LAFAN1 folder on this machine)."""
+TASK_KEYS = ("robot", "motion", "env", "sim.timestep_s", "sim.decimation", "sampler.bins", "sampler.bin_size_seconds",
+             "ppo.actor_hidden_dims", "ppo.critic_hidden_dims", "ppo.activation")
+"""Config keys (and prefixes) a checkpoint must share with the run it is evaluated in: the robot, its
+motion, the MDP, the control rate, the bins and the networks."""
+
+
 @dataclass
 class LoadedRun:
     """A run's config resolved for this machine, with its task rebuilt from it."""
@@ -98,6 +122,8 @@ class LoadedRun:
     """The checkpoint file to use."""
     task: Task
     """The run's config (composed, runtime-resolved, overrides applied), device, robot, motion and bins."""
+    overrides: tuple[str, ...] = ()
+    """The dotted overrides given on the command line."""
 
 
 def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = False) -> LoadedRun:
@@ -119,7 +145,44 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     anchor_relative_paths(cfg, run_dir)
     device = resolve_device(cfg.device)
     resolve_runtime(cfg, device)
-    return LoadedRun(run_dir, checkpoint, build_task(cfg, device))
+    return LoadedRun(run_dir, checkpoint, build_task(cfg, device), tuple(overrides))
+
+
+def load_run_checkpoint(run: LoadedRun, trust: bool = False) -> dict:
+    """The run's checkpoint (weights-only), checked to belong to the run: its own config and meta
+    (bmimic checkpoint format 2) must agree with the run's on the TASK_KEYS and the motion, except
+    where a command-line override names the key. A checkpoint copied from another run would otherwise
+    be evaluated on this run's motion without a word."""
+    from bmimic.training.checkpoints import load_checkpoint_file, motion_meta
+    from bmimic.training.resume import config_changes, key_allowed
+
+    state = load_checkpoint_file(run.checkpoint, run.task.device, trust)
+    named = [o.partition("=")[0] for o in run.overrides]
+    allowed = [*named, *accepted_changes(run.run_dir)]
+    differ = []
+    try:
+        own = json.loads(state["config"]) if isinstance(state.get("config"), str) else None
+    except ValueError:
+        own = None
+    ours = read_resolved_config(run.run_dir)
+    if isinstance(own, dict) and ours is not None:
+        differ += [f"{k} ({a} -> {b})" for k, (a, b) in config_changes(own, ours).items()
+                   if key_allowed(k, TASK_KEYS) and not key_allowed(k, allowed)]
+    meta = state.get("meta")
+    if isinstance(meta, dict) and not any(k == "motion" or k.startswith("motion.") for k in named):
+        current = {**motion_meta(run.task.motion), "num_bins": int(run.task.layout.num_bins)}
+        differ += [f"meta {k} ({meta[k]} -> {v})" for k, v in current.items() if k in meta and meta[k] != v]
+    if differ:
+        raise RunLoadError(f"{run.checkpoint}: was trained with another task than the run {run.run_dir}: "
+                           f"{'; '.join(differ[:4])}{'; ...' if len(differ) > 4 else ''}; evaluate it in its own "
+                           "run folder (or name those keys as overrides to evaluate it on this run's settings)")
+    return state
+
+
+def accepted_changes(run_dir: Path) -> list[str]:
+    """Config keys a resume of the run accepted (resumes.json): its older checkpoints differ in them."""
+    history = read_json(Path(run_dir) / RESUMES, default=[])
+    return [k for entry in history if isinstance(entry, dict) for k in (entry.get("changes") or {})]
 
 
 def checkpoint_label(checkpoint: Path, state: dict) -> str:

@@ -11,7 +11,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bmimic.run_folder import EVAL_TABLES, atomic_write_csv, atomic_write_json, atomic_write_parquet
+from bmimic.run_folder import (
+    EVAL_TABLES,
+    atomic_write_csv,
+    atomic_write_json,
+    atomic_write_parquet,
+    make_folder,
+)
 
 
 def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
@@ -122,7 +128,7 @@ def write_tables(result: EvalResult, out_dir: Path) -> Path:
     """Write the four tables (run_folder.EVAL_TABLES) atomically; the summary last, so its presence
     means a complete set."""
     episodes, bins, segments, summary = EVAL_TABLES
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_folder(out_dir)
     atomic_write_parquet(out_dir / episodes, result.episodes)
     atomic_write_parquet(out_dir / bins, result.bins)
     atomic_write_csv(out_dir / segments, result.segments)

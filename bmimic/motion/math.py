@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bmimic.motion.segments import MotionDataError
+
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
@@ -124,9 +126,19 @@ def yaw_quat(yaw: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(0.5 * yaw), zeros, zeros, np.sin(0.5 * yaw)], axis=-1)
 
 
+MAX_FRAMES = 10**7
+"""Most frames a resampled motion may have (55 h at 50 Hz, tens of GB): more means a frame rate is wrong."""
+
+
 def output_times(num_in: int, fps_in: float, fps_out: float) -> np.ndarray:
-    """t = 0, 1/fps_out, ... strictly below the input duration (N-1)/fps_in, as BeyondMimic's script."""
+    """t = 0, 1/fps_out, ... strictly below the input duration (N-1)/fps_in, as BeyondMimic's script.
+    Raises MotionDataError (one line) when that is more than MAX_FRAMES frames (a rate of 1e-300 Hz)."""
     duration = (num_in - 1) / fps_in
     # Count k with k / fps_out < duration; the epsilon keeps an exact multiple from sneaking in.
-    num_out = int(np.ceil(duration * fps_out - 1e-9))
+    count = duration * fps_out - 1e-9
+    if not count <= MAX_FRAMES:  # also NaN and infinity
+        raise MotionDataError(f"{num_in} frames at {fps_in:g} fps resampled to {fps_out:g} Hz would make "
+                              f"{count:.3g} frames ({duration:.3g} s), more than {MAX_FRAMES}: check the frame rates "
+                              "(motion.fps_in, the file's fps, sim.timestep_s x sim.decimation)")
+    num_out = int(np.ceil(count))
     return np.arange(max(num_out, 0)) / fps_out

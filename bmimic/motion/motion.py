@@ -144,11 +144,12 @@ class Motion:
         """Frames in [start_s, end_s) (rounded to frames); segments are clipped and shifted to start at 0."""
         start_s = 0.0 if start_s is None else float(start_s)
         end_s = self.duration_s if end_s is None else float(end_s)
-        first = int(round(start_s * self.fps))
-        stop = int(round(end_s * self.fps))
+        inside = all(math.isfinite(t) and -1.0 <= t * self.fps <= self.num_frames + 1 for t in (start_s, end_s))
+        first = int(round(start_s * self.fps)) if inside else -1  # (1e308 * fps overflows int())
+        stop = int(round(end_s * self.fps)) if inside else -1
         if first < 0 or stop > self.num_frames or stop - first < 2:
             raise MotionDataError(
-                f"window [{start_s}, {end_s}] s is not inside the motion's [0, {self.duration_s:.3f}] s "
+                f"window start_s={start_s:g}, end_s={end_s:g} is not inside the motion's [0, {self.duration_s:.3f}] s "
                 "or is shorter than two frames"
             )
         t0, t1 = first / self.fps, stop / self.fps

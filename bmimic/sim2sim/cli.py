@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from bmimic.cli_common import user_errors
-from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR, atomic_write_csv
+from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR, atomic_write_csv, make_folder
 from bmimic.sim2sim.evaluation import evaluate, locate
 from bmimic.sim2sim.gap import GAP_FILE, format_gap
 from bmimic.sim2sim.model import build_model, model_label
@@ -111,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _write(result, gap, out_dir: Path) -> None:
     from bmimic.evaluation.tables import write_tables
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_folder(out_dir)
     if gap is not None:
         atomic_write_csv(out_dir / GAP_FILE, gap)
     write_tables(result, out_dir)  # the summary last: its presence means a complete set

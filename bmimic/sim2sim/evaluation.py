@@ -72,6 +72,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
     Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like."""
     from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table
     from bmimic.sampling.layouts import make_layout
+    from bmimic.task import check_evaluation_fits
     from bmimic.training.evaluation import stratified_start_frames, summarize
 
     spec = read_policy(policy_path)
@@ -82,6 +83,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
     ref = read_reference(policy_session(policy_path), spec)
     mjm, model_note = build_model(spec, model, run_dir, joint_dynamics)
     layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s, clip_starts=spec.clip_starts)
+    check_evaluation_fits(layout.num_bins, per_bin, "--episodes-per-bin")
     frames = stratified_start_frames(layout.bin_first_frame.numpy(), layout.bin_num_frames.numpy(), per_bin)
     horizon_steps = max(1, int(round(settings["horizon_s"] / spec.control_dt_s)))
     log.info("sim2sim %s on %s: %d bins x %d episodes, horizon %g s, %d workers", policy_path.name, model_note,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -46,30 +47,47 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     folder = run_dir / EVAL_DIR / label
     summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
     if summary_file.is_file() and bins_file.is_file():
-        s = json.loads(summary_file.read_text())
-        bins = pd.read_parquet(bins_file)
+        with _readable(summary_file):
+            s = json.loads(summary_file.read_text())
+            success, mpkpe = float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"])
+        with _readable(bins_file):
+            bins = pd.read_parquet(bins_file)
         if "visits" in bins:
-            return WarpEval(str(folder), bins[columns], float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"]),
-                            {k: s[k] for k in SETTINGS if k in s})
+            with _readable(bins_file):
+                return WarpEval(str(folder), bins[columns], success, mpkpe, {k: s[k] for k in SETTINGS if k in s})
         log.warning("%s: tables of the old start-bin accounting, not compared (evaluate again with python -m "
                     "bmimic.eval)", folder)
     table = table_path(run_dir, "eval")
     if iteration is None or not table.is_file():
         return None
-    rows = pd.read_parquet(table)
-    rows = rows[rows["iteration"] == iteration].reset_index(drop=True)
+    with _readable(table):
+        rows = pd.read_parquet(table)
+        rows = rows[rows["iteration"] == iteration].reset_index(drop=True)
     if rows.empty:
         return None
     if "visits" not in rows:
         log.warning("%s: rows of the old start-bin accounting, not compared (run python -m bmimic.eval %s)",
                     table, run_dir)
         return None
-    overall = summarize(rows)
-    settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
-    config = _run_eval_config(run_dir)
-    settings |= {k: config[k] for k in SETTINGS[1:] if k in config}
-    return WarpEval(f"{table} (iteration {iteration})", rows.assign(success_rate=1.0 - rows["failure_rate"])[columns],
-                    overall["eval_success_rate"], overall["eval_mpkpe_rel_mm"], settings)
+    with _readable(table):
+        overall = summarize(rows)
+        settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
+        config = _run_eval_config(run_dir)
+        settings |= {k: config[k] for k in SETTINGS[1:] if k in config}
+        return WarpEval(f"{table} (iteration {iteration})", rows.assign(success_rate=1.0 - rows["failure_rate"])[columns],
+                        overall["eval_success_rate"], overall["eval_mpkpe_rel_mm"], settings)
+
+
+@contextlib.contextmanager
+def _readable(path: Path):
+    """A file of the MuJoCo-Warp evaluation that cannot be read (damaged, or lacking a column) is one
+    line naming it, not a traceback from the reader."""
+    try:
+        yield
+    except Exception as e:  # noqa: BLE001 - JSON, pyarrow and pandas raise many types for a damaged file
+        text = str(e).strip()
+        raise Sim2SimError(f"{path}: cannot be read ({type(e).__name__}: {text.splitlines()[0][:120] if text else ''}); "
+                           "move it aside, or evaluate the checkpoint again with python -m bmimic.eval") from None
 
 
 def _run_eval_config(run_dir: Path | None) -> dict:
@@ -88,10 +106,13 @@ def eval_settings(run_dir: Path | None, warp: WarpEval | None, episodes_per_bin:
     known |= {k: config[k] for k in SETTINGS if k in config and (config[k] is not None or k == "max_mpkpe_rel_mm")}
     known |= warp.settings if warp is not None else {}
     out = {k: given[k] if given[k] is not None else known[k] for k in SETTINGS}
-    if out["episodes_per_bin"] < 1 or not out["horizon_s"] > 0 or not (out["max_mpkpe_rel_mm"] is None
-                                                                      or out["max_mpkpe_rel_mm"] > 0):
+    def positive(x) -> bool:
+        return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+    if out["episodes_per_bin"] < 1 or not positive(out["horizon_s"]) or not (out["max_mpkpe_rel_mm"] is None
+                                                                            or positive(out["max_mpkpe_rel_mm"])):
         raise Sim2SimError(f"--episodes-per-bin {out['episodes_per_bin']} / --horizon-s {out['horizon_s']} / "
-                           f"--max-mpkpe-rel-mm {out['max_mpkpe_rel_mm']}: need >= 1, > 0 and > 0")
+                           f"--max-mpkpe-rel-mm {out['max_mpkpe_rel_mm']}: need >= 1, finite > 0 and finite > 0")
     return {"episodes_per_bin": int(out["episodes_per_bin"]), "horizon_s": float(out["horizon_s"]),
             "max_mpkpe_rel_mm": None if out["max_mpkpe_rel_mm"] is None else float(out["max_mpkpe_rel_mm"])}
 

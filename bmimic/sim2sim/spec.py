@@ -248,12 +248,23 @@ def _check_spec(spec: PolicySpec) -> None:
         if func not in TERMINATIONS:
             raise policy_error(path, f"termination {name!r}: function {func!r} has no numpy version in "
                                       f"bmimic.sim2sim (known: {sorted(TERMINATIONS)})")
-        if set(params) != {TERMINATIONS[func]} or not all(isinstance(v, (int, float)) for v in params.values()):
+        if set(params) != {TERMINATIONS[func]} or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+                for v in params.values()):
             raise policy_error(path, f"termination {name!r} ({func}): params {params} must be "
-                                      f"{{{TERMINATIONS[func]!r}: number}}")
+                                      f"{{{TERMINATIONS[func]!r}: a finite threshold > 0}}")
     if not math.isclose(spec.physics_dt_s * spec.decimation, spec.control_dt_s, rel_tol=1e-6):
         raise policy_error(path, f"physics_dt_s x decimation = {spec.physics_dt_s * spec.decimation:g} s, "
                                   f"but control_dt_s = {spec.control_dt_s:g} s")
+    if not math.isclose(spec.fps * spec.control_dt_s, 1.0, rel_tol=1e-6):
+        raise policy_error(path, f"metadata motion_fps={spec.fps:g} is not the control rate "
+                                  f"1 / control_dt_s = {1.0 / spec.control_dt_s:g} Hz (one reference frame per "
+                                  "control step): the bins and horizon would be counted in the wrong frames")
+    frame_bytes = 4 * (2 * nj + 13 * nb)  # the baked reference: float32 joints and body poses/velocities
+    if spec.num_frames * frame_bytes > path.stat().st_size:
+        raise policy_error(path, f"metadata motion_num_frames={spec.num_frames} cannot be right: that many frames "
+                                  f"of the baked motion need {spec.num_frames * frame_bytes / 2**20:.0f} MiB, the "
+                                  f"file has {path.stat().st_size / 2**20:.1f} MiB")
 
 
 

@@ -18,6 +18,8 @@ from bmimic.run_folder import LATEST_CHECKPOINT, atomic_write, checkpoint_files
 
 CHECKPOINT_FORMAT = "bmimic-checkpoint-2"
 """Tensors and plain values only: readable with torch.load(weights_only=True)."""
+MAX_ITERATION = 10**9
+"""Largest iteration a checkpoint may name (it becomes file and folder names: model_<it>)."""
 LEGACY_CHECKPOINT_FORMATS = ("bmimic-checkpoint-1",)
 """Written by earlier bmimic versions with pickled numpy RNG states: they load only when trusted."""
 LEGACY_GLOBALS = ("numpy.dtype", "numpy.ndarray", "numpy._core.multiarray._reconstruct",
@@ -68,6 +70,10 @@ def load_checkpoint_file(path: str | os.PathLike, map_location: str = "cpu", tru
         raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(e)})") from None
     if not isinstance(state, dict) or "actor_state_dict" not in state:
         raise CheckpointError(f"{path}: not an rsl-rl/bmimic checkpoint (no actor_state_dict)")
+    it = state.get("iter", 0)
+    if isinstance(it, bool) or not isinstance(it, int) or not 0 <= it <= MAX_ITERATION:
+        raise CheckpointError(f"{path}: its iteration 'iter' must be an integer in [0, {MAX_ITERATION}], "
+                              f"got {str(it)[:40]!r}")
     return state
 
 
@@ -127,6 +133,17 @@ def load_newest_intact(ckpt_dir: Path, trust: bool = False) -> tuple[Path, dict,
 def is_latest(path: Path) -> bool:
     """`path` is a run's latest.pt (a copy of its newest model_<it>.pt), not a numbered checkpoint."""
     return Path(path).name == LATEST_CHECKPOINT
+
+
+def motion_meta(motion) -> dict:
+    """What a checkpoint records of the motion it was trained on (its `meta`): frames, rate and a
+    digest of the joint and body positions."""
+    import hashlib
+
+    digest = hashlib.sha256(motion.joint_pos.tobytes())
+    digest.update(motion.body_pos_w.tobytes())
+    return {"motion_frames": int(motion.num_frames), "motion_fps": float(motion.fps),
+            "motion_sha256": digest.hexdigest()[:16]}
 
 
 class CheckpointMismatchError(BmimicError):

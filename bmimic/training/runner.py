@@ -11,7 +11,6 @@ and RNG states, so `resume` reproduces iteration count, learning rate and sample
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -42,6 +41,7 @@ from bmimic.training.checkpoints import (
     atomic_torch_save,
     load_checkpoint_file,
     mismatch_detail,
+    motion_meta,
 )
 from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
 from bmimic.training.evaluation import summarize
@@ -122,18 +122,13 @@ class Trainer:
     def meta(self) -> dict:
         """What a checkpoint must match to be loaded into this trainer (plain values)."""
         obs = self.env.get_observations()
-        motion = self.env.reference.motion
-        digest = hashlib.sha256(motion.joint_pos.tobytes())
-        digest.update(motion.body_pos_w.tobytes())
         return {
             "num_envs": int(self.env.num_envs),
             "num_actions": int(self.env.num_actions),
             "obs_dims": {k: int(v.shape[-1]) for k, v in obs.items()},
             "sampler_kind": str(self.sampler.state_dict().get("kind")),
             "num_bins": int(self.env.layout.num_bins),
-            "motion_frames": int(motion.num_frames),
-            "motion_fps": float(motion.fps),
-            "motion_sha256": digest.hexdigest()[:16],
+            **motion_meta(self.env.reference.motion),
         }
 
     def checkpoint_state(self) -> dict:
@@ -217,6 +212,9 @@ class Trainer:
                     raise CheckpointMismatchError(
                         f"{path}: cannot be read ({type(e).__name__}); move it aside to resume without its "
                         "rows") from None
+                if "iteration" not in df:
+                    raise CheckpointMismatchError(f"{path}: has no iteration column; move it aside to resume "
+                                                  "without its rows")
                 df = df[df["iteration"] <= iteration] if "eval" in name else df[df["iteration"] < iteration]
                 if name == "train_metrics":
                     self.train_rows.extend(df.to_dict("records"))

@@ -1,7 +1,8 @@
 """Adversarial inputs, table-driven: every case runs the real command in-process and is classified.
 
 Each case is one bad or unusual input to `bmimic.train`, `bmimic.eval`, `bmimic.play`,
-`bmimic.motion.convert` or `bmimic.launch list`, with what must happen: a clean refusal (exit code
+`bmimic.motion.convert`, `bmimic.launch list`, `bmimic.export`, `bmimic.sim2sim` or `analysis.report`
+(tests/cli/test_bad_inputs_36.py holds the cases of issue 36), with what must happen: a clean refusal (exit code
 not 0, no traceback, an error line naming the key or file, no folder left behind) or a correct
 acceptance (exit code 0 and a check of the result). Around every case the harness watches what the
 issue counts: a traceback, a silent wrong result (accepted what must be refused, or accepted with a
@@ -112,6 +113,18 @@ def run_tool(tool: str, args: list[str]) -> Result:
         from bmimic import launch
 
         return _run(lambda: launch.main(["list", *args]))
+    if tool == "export":
+        from bmimic import export
+
+        return _run(lambda: export.main(args))
+    if tool == "sim2sim":
+        from bmimic.sim2sim import cli
+
+        return _run(lambda: cli.main([*args, "--workers", "1"]))
+    if tool == "report":
+        from analysis import report
+
+        return _run(lambda: report.main(args))
     raise ValueError(tool)
 
 
@@ -250,7 +263,8 @@ class Case:
     slow: bool = False
     patch: Callable[[Workspace], contextlib.AbstractContextManager] | None = None
     leaves_launch_dir: bool = False
-    """An accepted run writes a new folder under outputs/runs (its own)."""
+    """The command writes a new folder under outputs/runs (its own): an accepted run, or one stopped
+    after it started training (its folder records the failure)."""
 
 
 def _m(change):  # an npz variant as motion.path overrides
@@ -762,7 +776,7 @@ def classify(ws: Workspace, case: Case) -> tuple[str, str]:
         said = " ".join(errors) if errors else " ".join(lines)
         if case.match and case.match.lower() not in said.lower():
             return "silent wrong", f"refused without naming {case.match!r}: {said[-400:]}"
-        if after - before:
+        if after - before and not case.leaves_launch_dir:
             return "refusal left files", str(sorted(after - before))
         return "clean refusal", detail
     if res.rc != 0:
