@@ -107,7 +107,10 @@ def build_evaluator(task: Task, robust: bool = False):
     check_num_envs_fit(cfg, mjm, device, n, 0)
     env = TrackingEnv(cfg.env, cfg.sim, mjm, task.robot, task.reference(), n, device, mode="eval", robust=robust,
                       layout=layout)
-    return Evaluator(env, layout, task.motion.segments, cfg.eval.episodes_per_bin, cfg.eval.horizon_s,
+    # No episode outlives its clip, so a longer horizon only adds steps in which nothing is alive
+    # (eval.horizon_s=1e300 would loop for ever): the loop stops at the motion's length.
+    horizon_s = min(float(cfg.eval.horizon_s), task.motion.duration_s + env.step_dt)
+    return Evaluator(env, layout, task.motion.segments, cfg.eval.episodes_per_bin, horizon_s,
                      max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
 
 

@@ -29,6 +29,8 @@ BASE = ["device=cpu", "num_envs=2", "ppo.num_steps_per_env=4", "ppo.num_mini_bat
         "motion.duration_s=7", "eval.horizon_s=0.2", "progress_bar=false", "logger=none", "max_iterations=1"]
 FAST = settings(derandomize=True, database=None, deadline=None, max_examples=40,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+CHEAP = settings(FAST, max_examples=150)
+"""For properties whose example costs milliseconds (motion files, CSVs)."""
 MORE = settings(FAST, max_examples=300)
 CASES: dict[str, int] = {}
 """Examples run per property (test_zz_report prints them: the harness's case count)."""
@@ -239,7 +241,7 @@ def _motion_property(arrays: dict, mutations: list, folder: Path) -> None:
     np.testing.assert_allclose(np.linalg.norm(motion.body_quat_w, axis=-1), 1.0, atol=1e-3)
 
 
-@FAST
+@CHEAP
 @given(mutations=st.lists(mutation(), min_size=1, max_size=3))
 def test_generated_motion_files_are_refused_in_one_line_or_load_valid(mutations, motion_arrays, tmp_path_factory):
     _motion_property(motion_arrays, mutations, tmp_path_factory.mktemp("npz"))
@@ -307,7 +309,7 @@ def _convert_property(example, folder: Path) -> None:
         assert (out.read_bytes() == b"keep me") if exists else not out.exists()
 
 
-@FAST
+@CHEAP
 @given(example=csv_and_flags())
 def test_generated_csv_files_and_convert_flags(example, tmp_path_factory):
     _convert_property(example, tmp_path_factory.mktemp("csv"))
@@ -321,10 +323,76 @@ def test_more_generated_csv_files_and_convert_flags(example, tmp_path_factory):
 
 
 # --------------------------------------------------------------------------------------------- eval, play, report flags
+def _cli(main, argv: list[str]) -> tuple[int, str]:
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+        try:
+            rc = main(argv)
+        except SystemExit as e:  # argparse: its own usage line, status 2
+            rc = e.code
+    return rc, buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory) -> Path:
+    """A real run folder with a checkpoint (no training: max_iterations=0), for eval's flags."""
+    from tests.conftest import train_in_process
+
+    folder = tmp_path_factory.mktemp("trained")
+    return train_in_process(folder / "run", *BASE[:-1], "max_iterations=0", "eval.every_iters=0", cwd=folder)
+
+
+EVAL_FLAGS = {"--episodes-per-bin": ["0", "-3", "1", "100000000", "x"],
+              "--horizon-s": ["nan", "inf", "-1", "0.2", "1e300"],
+              "--num-envs": ["0", "-1", "2", "99999999999"], "--device": ["cpu", "gpu", "cuda:x", ""]}
+BAD_EVAL = {"--episodes-per-bin": {"0", "-3", "100000000", "x"}, "--horizon-s": {"nan", "inf", "-1"},
+            "--num-envs": {"0", "-1"}, "--device": {"gpu", "cuda:x", ""}}
+"""The values of each flag that must be refused, naming the flag (or its config key)."""
+EVAL_OVERRIDES = [f"{k}={v}" for k, kind in KEYS if k.startswith(("eval.", "seed", "env.episode_length"))
+                  for v in ({"number": ["nan", "-1", "1e300"], "bool": ["maybe"], "list": ["[]"], "text": ["''"]}[kind])]
+
+
+@st.composite
+def eval_args(draw):
+    flags = []
+    for flag in draw(st.lists(st.sampled_from(sorted(EVAL_FLAGS)), max_size=3, unique=True)):
+        flags += [flag, draw(st.sampled_from(EVAL_FLAGS[flag]))]
+    return flags + draw(st.lists(st.sampled_from(EVAL_OVERRIDES), max_size=1))
+
+
+def _names(flag: str) -> tuple[str, ...]:
+    return flag, flag.lstrip("-").replace("-", "_"), {"--num-envs": "max_envs"}.get(flag, flag)
+
+
+@FAST
+@given(args=eval_args())
+def test_generated_eval_flags_and_overrides(trained_run, args):
+    """A bad flag value is refused naming it; anything else evaluates (at most one short episode per
+    bin here) and writes its tables, or is refused in one line, writing nothing."""
+    import shutil
+
+    from bmimic import eval as bm_eval
+
+    count("eval flags and overrides")
+    shutil.rmtree(trained_run / "eval", ignore_errors=True)
+    flags = [a for a in args if "=" not in a]
+    bad = [f for f, v in zip(flags[::2], flags[1::2]) if v in BAD_EVAL[f]]
+    overridden = len(flags) < len(args)  # a bad override may then be the one named
+    rc, said = _cli(bm_eval.main, [str(trained_run), *args])
+    assert "Traceback" not in said, said[-2000:]
+    if rc == 0:
+        assert not bad, f"accepted {bad}: {said[-500:]}"
+        assert len(list((trained_run / "eval").glob("*/eval_summary.json"))) == 1
+        return
+    errors = [x for x in said.splitlines() if x.startswith("error:") or ": error:" in x]
+    assert rc == 2 and len(errors) == 1 and not (trained_run / "eval").exists(), said[-2000:]
+    assert not bad or overridden or any(n in errors[0] for f in bad for n in _names(f)), (bad, errors[0])
+
+
 @pytest.fixture(scope="module")
 def saved_run(tmp_path_factory) -> Path:
-    """A run folder as eval, play and export reopen it, with an unreadable checkpoint: every flag and
-    override is checked before the checkpoint is read, so an accepted input ends at that one line."""
+    """A run folder as play reopens it, with an unreadable checkpoint: play checks its flags before
+    reading anything, so an accepted set of flags ends at that one line (no OpenGL needed)."""
     from omegaconf import OmegaConf
 
     from tests.conftest import compose
@@ -337,55 +405,10 @@ def saved_run(tmp_path_factory) -> Path:
     return run
 
 
-EVAL_FLAGS = {"--episodes-per-bin": ["0", "-3", "1", "100000000", "x"], "--horizon-s": ["nan", "inf", "-1", "0.2"],
-              "--num-envs": ["0", "-1", "2", "99999999999"], "--device": ["cpu", "gpu", "cuda:x", ""]}
-EVAL_OVERRIDES = [f"{k}={v}" for k, kind in KEYS if not k.startswith("hydra") for v in
-                  ({"number": ["nan", "-1", "1e300"], "bool": ["maybe"], "list": ["[]"], "text": ["''"]}[kind])]
-
-
-@st.composite
-def eval_args(draw):
-    flags = []
-    for flag in draw(st.lists(st.sampled_from(sorted(EVAL_FLAGS)), max_size=3, unique=True)):
-        flags += [flag, draw(st.sampled_from(EVAL_FLAGS[flag]))]
-    return flags + draw(st.lists(st.sampled_from(EVAL_OVERRIDES), max_size=2))
-
-
-def _eval_property(run: Path, args: list[str], tool: str) -> None:
-    count(f"{tool} flags and overrides")
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-        try:
-            if tool == "eval":
-                from bmimic import eval as tool_main
-
-                rc = tool_main.main([str(run), *args])
-            else:
-                from bmimic import play as tool_main
-                from bmimic import render
-
-                saved, render.select_gl_backend = render.select_gl_backend, lambda *a, **k: "egl"
-                try:
-                    rc = tool_main.main([str(run), *args])
-                finally:
-                    render.select_gl_backend = saved
-        except SystemExit as e:
-            rc = e.code
-    said = buf.getvalue()
-    assert "Traceback" not in said and rc == 2, said[-2000:]
-    errors = [x for x in said.splitlines() if x.startswith("error:") or ": error:" in x]
-    assert len(errors) == 1, said[-2000:]
-    assert not (run / "eval").exists() and not (run / "videos").exists()
-
-
-@FAST
-@given(args=eval_args())
-def test_generated_eval_flags_and_overrides(saved_run, args):
-    _eval_property(saved_run, args, "eval")
-
-
 PLAY_FLAGS = {"--seconds": ["nan", "0", "-1", "1e9", "inf", "2"], "--fps": ["nan", "0", "1e9", "50"],
               "--width": ["0", "-5", "100000", "64"], "--height": ["0", "100000", "48"], "--start-s": ["nan", "-1", "999"]}
+BAD_PLAY = {"--seconds": {"nan", "0", "-1", "1e9", "inf"}, "--fps": {"nan", "0", "1e9"},
+            "--width": {"0", "-5", "100000"}, "--height": {"0", "100000"}}
 
 
 @st.composite
@@ -399,7 +422,24 @@ def play_args(draw):
 @FAST
 @given(args=play_args())
 def test_generated_play_flags(saved_run, args):
-    _eval_property(saved_run, args, "play")
+    """A bad --seconds, --fps, --width or --height (not finite > 0, or frames that cannot fit in memory)
+    is refused naming a flag before anything is read; the rest ends at the unreadable checkpoint."""
+    from bmimic import play as bm_play
+    from bmimic import render
+
+    count("play flags")
+    values = dict(zip(args[::2], args[1::2]))
+    bad = [f for f, v in values.items() if v in BAD_PLAY.get(f, ())]
+    saved, render.select_gl_backend = render.select_gl_backend, lambda *a, **k: "egl"
+    try:
+        rc, said = _cli(bm_play.main, [str(saved_run), *args])
+    finally:
+        render.select_gl_backend = saved
+    errors = [x for x in said.splitlines() if x.startswith("error:")]
+    assert rc == 2 and "Traceback" not in said and len(errors) == 1, said[-2000:]
+    named = any(f in errors[0] for f in ("--seconds", "--fps", "--width", "--height"))
+    assert named if bad else "latest.pt" in errors[0], (bad, errors[0])
+    assert not (saved_run / "videos").exists()
 
 
 REPORT_FLAGS = {"--resamples": ["0", "-5", "1", "20", "10000000", "x"], "--mastery-threshold": ["nan", "0", "2", "0.1"],
