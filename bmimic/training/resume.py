@@ -190,6 +190,7 @@ def matching_run(runs: list[Path], config: dict, allowed: list[str] | tuple[str,
         refused = refused_changes(config_changes(old, config), allowed)
         if not refused:
             return run
+        refused.sort(key=lambda k: (not k.endswith((".name", ".kind")) and k != "seed", k))  # what tells runs apart
         reasons.append(f"{run.name} ({', '.join(refused[:3])}{', ...' if len(refused) > 3 else ''})")
     shown = "; ".join(reasons[:5]) + (f"; and {len(reasons) - 5} more" if len(reasons) > 5 else "")
     raise ResumeRefusedError(
