@@ -205,7 +205,8 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
     if cfg.env.episode_length_s < step_dt:
         _fail("env.episode_length_s", f"is shorter than one control step ({step_dt} s)")
     if cfg.env.episode_length_s / step_dt > MAX_ITERATION:
-        _fail("env.episode_length_s", f"is more than {MAX_ITERATION:.0e} control steps of {step_dt} s")
+        _fail("env.episode_length_s", f"{cfg.env.episode_length_s:g} s is more than {MAX_ITERATION:.0e} control steps "
+              f"of sim.timestep_s x sim.decimation = {step_dt:g} s")
     if cfg.eval.every_iters < 0:
         _fail("eval.every_iters", f"must be >= 0, got {cfg.eval.every_iters}")
     if cfg.eval.every_iters == 0 and _eval_driven(getattr(cfg.sampler, "kind", None)):
