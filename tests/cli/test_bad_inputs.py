@@ -960,12 +960,12 @@ def test_kill_9_mid_run_then_resume_loses_at_most_one_checkpoint_interval(tmp_pa
 
 
 # --------------------------------------------------------------------------------------------- the survey
-def survey(root: Path, include_slow: bool = True) -> dict[str, int]:
-    """Run every case, print one line per case and the counts per class."""
+def survey(root: Path, include_slow: bool = True, cases: list[Case] | None = None) -> dict[str, int]:
+    """Run every case (of `cases`, default this table), print one line per case and the counts per class."""
     ws = Workspace(root)
     counts = {k: 0 for k in CLASSES}
     t0 = time.time()
-    for case in ALL:
+    for case in ALL if cases is None else cases:
         if case.slow and not include_slow:
             continue
         kind, detail = classify(ws, case)

@@ -18,7 +18,6 @@ import json
 import os
 import shutil
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +33,7 @@ from tests.cli.test_bad_inputs import (
     Workspace,
     _train,
     classify,
+    survey,
 )
 
 UNSET = "BMIMIC_TEST_UNSET_VARIABLE"
@@ -378,24 +378,6 @@ def test_cases_are_distinct() -> None:
     assert len({c.id for c in ALL}) == len(ALL) >= 60
 
 
-def survey(root: Path, include_slow: bool = True) -> dict[str, int]:
-    """Run every case of this table, print one line per case and the counts per class."""
-    ws = Workspace(root)
-    counts = {k: 0 for k in CLASSES}
-    t0 = time.time()
-    for case in ALL:
-        if case.slow and not include_slow:
-            continue
-        kind, detail = classify(ws, case)
-        counts[kind] += 1
-        flag = "" if kind == EXPECTED[case.expect] else "  <-- "
-        print(f"{kind:20s} {case.tool:8s} {case.id}{flag}{'' if not flag else detail[:300]}", flush=True)
-    print(f"\n{sum(counts.values())} cases in {time.time() - t0:.0f} s:")
-    for k, n in counts.items():
-        print(f"  {k:20s} {n}")
-    return counts
-
-
 if __name__ == "__main__":
     import argparse
     import tempfile
@@ -403,6 +385,6 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser(description="Run every case of issue 36 and count the outcomes.")
     p.add_argument("--fast", action="store_true", help="skip the cases that train")
     a = p.parse_args()
-    result = survey(Path(tempfile.mkdtemp(prefix="bmimic-bad-inputs-36-")), include_slow=not a.fast)
+    result = survey(Path(tempfile.mkdtemp(prefix="bmimic-bad-inputs-36-")), include_slow=not a.fast, cases=ALL)
     bad = sum(result[k] for k in CLASSES if k not in EXPECTED.values())
     sys.exit(1 if bad else 0)
