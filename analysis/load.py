@@ -228,8 +228,12 @@ def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
     return df.sort_values(["arm", "seed", "run_dir"], na_position="last").reset_index(drop=True)
 
 
-def load_table(runs: pd.DataFrame, name: str) -> pd.DataFrame:
+def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) -> pd.DataFrame:
     """One table of every included run, stacked: ``run_dir, arm, seed`` then the table's columns.
+
+    ``max_iteration`` (ReportOptions.max_iteration) keeps the rows of a run that had trained at most that
+    many iterations: evaluation rows (``iteration`` = iterations done) up to it, training and sampler rows
+    (``iteration`` = the iteration's 0-based index) below it.
 
     ``name`` is a key of bmimic.run_folder.TABLES (schemas in docs/architecture.md). Runs without the file are skipped
     (only possible for the optional tables); a file
@@ -252,6 +256,9 @@ def load_table(runs: pd.DataFrame, name: str) -> pd.DataFrame:
         missing = [c for c in REQUIRED_COLUMNS[name] if c not in table.columns]
         if missing:
             raise AnalysisError(f"{path}: missing columns {missing}")
+        if max_iteration is not None and "iteration" in table.columns:
+            done = table["iteration"] if "eval" in name else table["iteration"] + 1
+            table = table[done <= max_iteration]
         table = table.drop(columns=[c for c in ("run_dir", "arm", "seed") if c in table.columns])
         table.insert(0, "seed", run.seed)
         table.insert(0, "arm", run.arm)

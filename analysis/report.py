@@ -100,6 +100,8 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     if out.exists() and not out.is_dir():
         raise AnalysisError(f"--out {out}: is a file, not a folder")
     runs = load_runs(paths, allow_mixed=allow_mixed)
+    if opts.max_iteration is not None:  # a common budget: longer runs are read as if they had stopped there
+        runs["iteration"] = runs["iteration"].clip(upper=opts.max_iteration)
     for col in ("run_dir", "sweep_dir"):  # the tables travel (docs/, other machines): no absolute paths from here
         runs[col] = runs[col].map(_portable_path)
     labels, shared = short_arm_labels(runs["arm"])
@@ -123,6 +125,9 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
              "simulated on normal data)" if coverage else "")
           + f"; differences: two-sided permutation tests of the difference of means, claimed at p < {opts.alpha:g}, "
           "uncorrected unless marked Holm.", ""]
+    if opts.max_iteration is not None:
+        md[-1:-1] = [f"Budget: every run is read up to iteration {opts.max_iteration} (`--max-iteration`), as if it "
+                     "had stopped there; its later rows are left out of every number and figure.  "]
     if shared:
         md += [f"Arms are named by the overrides that differ between them; all share `{','.join(shared)}`.", ""]
     md += runs_section(runs)
@@ -132,8 +137,8 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
         return out
 
     baseline, baseline_note = tables.choose_baseline(runs, opts.baseline)
-    train, eval_df, sampler_df, robust_df = (load_table(runs, n) for n in ("train_metrics", "eval", "sampler",
-                                                                          "eval_robust"))
+    train, eval_df, sampler_df, robust_df = (load_table(runs, n, opts.max_iteration)
+                                             for n in ("train_metrics", "eval", "sampler", "eval_robust"))
     segments = load_segments(runs)
     bins = bin_table(eval_df, segments)
     colors = plots.arm_colors(runs["arm"].dropna())
@@ -301,7 +306,7 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
         save_figure(out / "sampling_support.png", curve_plots.plot_sampling_support(support_sum, colors=colors))
         figures.append(("sampling_support.png", "Effective support and largest probability relative to uniform of "
                                                 "the sampling distribution over training (mean over seeds)"))
-        clip_evals = load_table(runs, "clip_eval")
+        clip_evals = load_table(runs, "clip_eval", opts.max_iteration)
         if len(clip_evals):
             write_csv(out / "clip_eval.csv", clip_evals)
         md += adaptation_section(support_sum, signals, clip_evals)
@@ -344,15 +349,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--success-threshold", type=float, default=0.9, help="overall success for time to threshold")
     parser.add_argument("--baseline", default=None, help="baseline arm (default: the arm whose sampler is uniform)")
     parser.add_argument("--resamples", type=int, default=tables.DEFAULT_RESAMPLES, help="bootstrap resamples")
+    parser.add_argument("--max-iteration", type=int, default=None,
+                        help="read every run only up to this many iterations (a common budget for runs that went "
+                             "further)")
     parser.add_argument(MIXED_FLAG, action="store_true",
                         help="compare runs trained on different motions or bin layouts (refused without it: "
                              "per-bin tables match bins by number)")
     args = parser.parse_args(argv)
     try:
         check_options(args.mastery_threshold, args.success_threshold, args.resamples, args.mastery_persist)
+        if args.max_iteration is not None and args.max_iteration < 1:
+            raise AnalysisError(f"--max-iteration must be >= 1, got {args.max_iteration}")
         opts = ReportOptions(mastery_threshold=args.mastery_threshold, mastery_persist=args.mastery_persist,
                              success_threshold=args.success_threshold, baseline=args.baseline,
-                             n_resamples=args.resamples)
+                             n_resamples=args.resamples, max_iteration=args.max_iteration)
         out = build_report(args.paths, args.out, opts, allow_mixed=args.allow_mixed)
     except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.atomic_io)
         print(f"error: {str(e).strip().splitlines()[0]}", file=sys.stderr)

@@ -66,6 +66,11 @@ class ReportOptions:
     """The report warns when the runs compared completed iteration counts differing by more than this
     fraction of the largest."""
 
+    max_iteration: int | None = None
+    """Read every run only up to this many iterations (a common budget): evaluations at iterations <= it,
+    training and sampler rows of the iterations before it, so a longer run is read as if it had stopped
+    there. None: every run to its end."""
+
     max_curve_points: int = 200
     """Training curves are drawn at most at this many evenly spaced iterations (plus the last)."""
 
