@@ -247,9 +247,10 @@ def advisories(cfg: Any) -> list[str]:
 
 def _eval_driven(kind: Any) -> bool:
     """Whether the registered sampler `kind` learns from the periodic evaluation (phc, protomotions)."""
-    from bmimic.sampling.registry import SAMPLERS
+    from bmimic.sampling.config import sampler_class
+    from bmimic.sampling.registry import SCHEMAS
 
-    return kind in SAMPLERS and bool(SAMPLERS[kind].cls.eval_driven)
+    return kind in SCHEMAS and bool(getattr(sampler_class(kind), "eval_driven", False))
 
 
 _ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish",

@@ -5,49 +5,79 @@ per-bin counts.
 See :mod:`bmimic.sampling.samplers` for the formulas, :mod:`bmimic.sampling.registry` for how a
 sampler is registered, :mod:`bmimic.sampling.bins` for the bin layouts,
 :mod:`bmimic.sampling.accounting` for episode attribution and update timing,
-:mod:`bmimic.sampling.config` for the options and the named variants. Importing the package
-registers the built-in samplers.
+:mod:`bmimic.sampling.config` for the options and the named variants.
+
+Importing the package registers the built-in schemas (:mod:`bmimic.sampling.schemas`, torch-free, so
+that composing a config needs no torch); the first use of any other name loads the rest (torch), and
+so registers the built-in sampler classes (bmimic.sampling.config also loads them when it first needs
+a class).
 """
 
-from bmimic.sampling.accounting import AccountingConfig, EpisodeAccounting
-from bmimic.sampling.base import BinSampler, bin_counts
-from bmimic.sampling.bins import (
-    BinLayout,
-    ReleasedBinLayout,
-    attribute,
-    bin_edges_s,
-    bins_of_time,
-    failed_mask,
-    num_bins,
-    visits_histogram,
-)
+from bmimic.sampling import schemas as _schemas  # noqa: F401  (registers the built-in schemas)
 from bmimic.sampling.checks import SamplerConfigError
-from bmimic.sampling.clips import ClipLayout
-from bmimic.sampling.config import (
-    SamplerConfig,
-    layout_for,
-    load_variant,
-    make_sampler,
-    sampler_config,
-    validate_sampler_config,
-    variant_names,
-)
-from bmimic.sampling.diagnostics import bin_table, sampling_entropy, summary
-from bmimic.sampling.layouts import make_layout
-from bmimic.sampling.peer_clips import PHCSampler, ProtoMotionsSampler
-from bmimic.sampling.peer_errors import EGMSampler, GMTSampler
-from bmimic.sampling.registry import SAMPLERS, register_sampler
-from bmimic.sampling.samplers import (
-    AdaptiveConfig,
-    AdaptiveSampler,
-    BeyondMimicConfig,
-    BeyondMimicSampler,
-    UniformConfig,
-    UniformSampler,
-)
+from bmimic.sampling.registry import register_sampler
+from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, SamplerConfig, UniformConfig
+
+_LAZY = {
+    "AccountingConfig": "schemas",
+    "EpisodeAccounting": "accounting",
+    "BinSampler": "base",
+    "bin_counts": "base",
+    "BinLayout": "bins",
+    "ReleasedBinLayout": "bins",
+    "attribute": "bins",
+    "bin_edges_s": "bins",
+    "bins_of_time": "bins",
+    "failed_mask": "bins",
+    "num_bins": "bins",
+    "visits_histogram": "bins",
+    "ClipLayout": "clips",
+    "layout_for": "config",
+    "load_variant": "config",
+    "make_sampler": "config",
+    "sampler_config": "config",
+    "validate_sampler_config": "config",
+    "variant_names": "config",
+    "bin_table": "diagnostics",
+    "sampling_entropy": "diagnostics",
+    "summary": "diagnostics",
+    "make_layout": "layouts",
+    "PHCSampler": "peer_clips",
+    "ProtoMotionsSampler": "peer_clips",
+    "EGMSampler": "peer_errors",
+    "GMTSampler": "peer_errors",
+    "AdaptiveSampler": "samplers",
+    "BeyondMimicSampler": "samplers",
+    "UniformSampler": "samplers",
+}
+"""Public names imported on first use: name -> module of this package."""
+
+
+def __getattr__(name: str):
+    if name != "SAMPLERS" and name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    # The first use loads the whole package (torch), and so registers every built-in class.
+    from bmimic.sampling import (
+        accounting,
+        base,
+        bins,
+        clips,
+        config,
+        diagnostics,
+        layouts,
+        peer_clips,
+        peer_errors,
+        registry,
+        samplers,
+        schemas,
+    )
+
+    modules = {m.__name__.rpartition(".")[2]: m for m in (accounting, base, bins, clips, config, diagnostics, layouts,
+                                                          peer_clips, peer_errors, registry, samplers, schemas)}
+    return registry.SAMPLERS if name == "SAMPLERS" else getattr(modules[_LAZY[name]], name)
+
 
 __all__ = [
-    "SAMPLERS",
     "AccountingConfig",
     "AdaptiveConfig",
     "AdaptiveSampler",
@@ -55,12 +85,14 @@ __all__ = [
     "BeyondMimicSampler",
     "BinLayout",
     "BinSampler",
+    "ClipLayout",
     "EGMSampler",
     "EpisodeAccounting",
     "GMTSampler",
     "PHCSampler",
     "ProtoMotionsSampler",
     "ReleasedBinLayout",
+    "SAMPLERS",
     "SamplerConfig",
     "SamplerConfigError",
     "UniformConfig",
@@ -73,7 +105,6 @@ __all__ = [
     "failed_mask",
     "layout_for",
     "load_variant",
-    "ClipLayout",
     "make_layout",
     "make_sampler",
     "num_bins",

@@ -47,7 +47,6 @@ clears) the counts the sampler was fed during the iteration, summed, for the dia
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -57,33 +56,13 @@ from bmimic.envs.quat import quat_error_magnitude
 from bmimic.sampling.base import ERROR_COMPONENTS, bin_counts
 from bmimic.sampling.bins import Layout, attribute, check_attribution, check_failure, failed_mask
 from bmimic.sampling.checks import check_choice
+from bmimic.sampling.schemas import AccountingConfig
 
 UPDATE_EVERY = ("iteration", "step")
 BROKEN_ERRORS = (1.0, math.pi, 10.0, 1.0)
 """The per-step errors (ERROR_COMPONENTS: m, rad, m/s, m) a broken world is charged: tracking lost
 entirely (a termination fires at 0.25 m), beyond any tracked world's, so an error-driven sampler
 (EGM, GMT) reads a broken world as the hardest failure, as the count-driven ones read a failure."""
-
-
-@dataclass
-class AccountingConfig:
-    """`sampler.accounting`: which bin a finished episode counts for, what counts as a failure and
-    when the sampler sees the counts. Every sampler variant has it (the uniform one too: its per-bin
-    counts are the diagnostics); the defaults are the design's."""
-
-    attribution: str = "start"
-    """Which bin a finished episode counts for: "start" = the bin it started in (kept through
-    clip-end resamples); "failure" = every bin its reference segment passed through counts a visit
-    and a failure counts in the bin where it ended (rate = failures per visit)."""
-    failure: str = "short"
-    """What counts as a failed episode: "short" = ended by a termination before failure_threshold x
-    the max episode length; "terminated" = any termination (time-outs never fail)."""
-    failure_threshold: float = 0.8
-    """For failure="short": fraction of the max episode length below which a termination is a
-    failure, in (0, 1]."""
-    update_every: str = "iteration"
-    """"iteration": one sampler update per PPO iteration, after the rollout, from every episode that
-    finished during it; "step": one update per control step (the released code)."""
 
 
 def check_accounting(cfg: Any) -> None:

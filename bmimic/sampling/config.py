@@ -38,43 +38,25 @@ into today's layout, so they can still be evaluated and resumed.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Optional
+from dataclasses import asdict, fields
+from typing import TYPE_CHECKING, Any
 
-from bmimic.sampling.accounting import AccountingConfig, check_accounting
-from bmimic.sampling.bins import LAYOUTS, Layout, check_bin_size
 from bmimic.sampling.checks import SamplerConfigError, check_choice, fail
-from bmimic.sampling.layouts import make_layout
-from bmimic.sampling.registry import SAMPLERS, sampler_entry
+from bmimic.sampling.registry import SCHEMAS, sampler_entry, schema_of
+from bmimic.sampling.schemas import AccountingConfig, SamplerConfig
+
+if TYPE_CHECKING:
+    from bmimic.sampling.bins import Layout
+
+# The sampler classes (torch) are imported where a class is needed, not with this module: composing a
+# config and checking its keys need only the schemas (bmimic.sampling.schemas).
 
 
-@dataclass
-class SamplerConfig:
-    """The keys every variant of ``conf/sampler/`` has; each sampler's schema subclasses it."""
+def sampler_class(kind: Any) -> type:
+    """The sampler class registered for `kind`, the built-in classes registered first."""
+    from bmimic.sampling import peer_clips, peer_errors, samplers  # noqa: F401  (they register their classes)
 
-    name: str = ""
-    """The variant: equals the YAML's file name (adaptive, adaptive_hybrid, beyondmimic, egm, gmt, phc,
-    protomotions, uniform)."""
-    kind: str = ""
-    """The registered sampler class the variant configures (its schema's default; not set in a YAML)."""
-    enabled: bool = True
-    """false: draw start bins uniformly (the design's switch back to uniform sampling)."""
-    bins: str = "time"
-    """Bin layout: "time" = bins of bin_size_seconds; "released" = the released code's
-    B = T // 50 + 1 bins over T frames at 50 Hz (bin_size_seconds does not apply)."""
-    bin_size_seconds: Optional[float] = 1.0
-    """Time bins: length of one bin of the reference motion in seconds (the last may be shorter);
-    null with bins=released."""
-    clip_balance: str = "bins"
-    """With a motion library: "bins" = P over all bins as the sampler computes it (under uniform
-    sampling every bin is equal, so long clips get more starts); "clips" = every clip gets the same
-    total probability, the sampler's proportions kept within each clip (one clip: no effect)."""
-    accounting: AccountingConfig = field(default_factory=AccountingConfig)
-    """The episode accounting: attribution, failure rule and update timing (sampler.accounting.*)."""
-    log_every: Optional[int] = None
-    """sampler.parquet gets one row per bin every this many iterations and at the last one; null:
-    1, or thinned to stay under about a million rows when there are more than 1,000 bins."""
-
+    return sampler_entry(kind).cls
 
 _LEGACY_KINDS = {"adaptive": "adaptive", "adaptive_hybrid": "adaptive", "beyondmimic": "beyondmimic",
                  "uniform": "uniform"}
@@ -86,7 +68,7 @@ def _upgrade(plain: dict) -> dict:
     if "kind" in plain or "accounting" in plain or plain.get("name") not in _LEGACY_KINDS:
         return plain
     kind = _LEGACY_KINDS[plain["name"]]
-    keep = {f.name for f in fields(sampler_entry(kind).config)}
+    keep = {f.name for f in fields(schema_of(kind))}
     accounting = {k: plain[k] for k in (f.name for f in fields(AccountingConfig)) if k in plain}
     return {**{k: v for k, v in plain.items() if k in keep}, "kind": kind, "accounting": accounting}
 
@@ -107,7 +89,7 @@ def sampler_config(cfg: Any) -> SamplerConfig:
     plain = _upgrade(plain)
     kind = plain.get("kind")
     try:
-        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(sampler_entry(kind).config), plain))
+        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema_of(kind)), plain))
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", "") or "?"
         raise SamplerConfigError(f"sampler.{key}: does not fit the {kind} sampler's schema "
@@ -122,6 +104,9 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
 
     Raises :class:`SamplerConfigError` with a one-line message naming the first bad key.
     """
+    from bmimic.sampling.accounting import check_accounting
+    from bmimic.sampling.bins import LAYOUTS, check_bin_size
+
     cfg = sampler_config(cfg)
     if not (isinstance(cfg.name, str) and cfg.name):
         fail("name", "the variant's name (its file name in conf/sampler/)", cfg.name)
@@ -131,7 +116,7 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
     check_choice("clip_balance", cfg.clip_balance, CLIP_BALANCES)
     if cfg.bins == "time" or cfg.bin_size_seconds is not None:
         check_bin_size(cfg.bin_size_seconds, motion_duration_s if cfg.bins == "time" else None)
-    sampler_entry(cfg.kind).cls.check_config(cfg)
+    sampler_class(cfg.kind).check_config(cfg)
     check_accounting(cfg.accounting)
     if cfg.log_every is not None and not (isinstance(cfg.log_every, int) and not isinstance(cfg.log_every, bool)
                                           and cfg.log_every >= 1):
@@ -143,7 +128,7 @@ def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu", layout: Any = Non
     ``cfg.enabled`` is false); given the ``layout`` of a library (several clips), the sampler knows its
     clips (look-ahead stops at clip ends; ``cfg.clip_balance`` with ``clip_weights``)."""
     cfg = sampler_config(cfg)
-    cls = sampler_entry(cfg.kind).cls if cfg.enabled is not False else sampler_entry("uniform").cls
+    cls = sampler_class(cfg.kind if cfg.enabled is not False else "uniform")
     sampler = cls.from_config(cfg, num_bins, device)
     if layout is not None and layout.num_clips > 1:
         sampler.set_clips(layout.bin_clip, layout.bin_last_in_clip, layout.num_clips, cfg.clip_balance, clip_weights)
@@ -154,6 +139,8 @@ def layout_for(cfg: Any, num_frames: int, fps: float, device: Any = "cpu", clip_
                clip_names: Any = None) -> Layout:
     """The bin layout ``cfg.bins`` of a motion of ``num_frames`` frames at ``fps`` (of a library when
     ``clip_starts`` has several clips; ``clip_names`` label them)."""
+    from bmimic.sampling.layouts import make_layout
+
     return make_layout(cfg.bins, num_frames, fps, cfg.bin_size_seconds, device=device, clip_starts=clip_starts,
                        clip_names=clip_names)
 
@@ -201,10 +188,10 @@ def load_variant(name: str) -> SamplerConfig:
     check_choice("name", name, variant_names())
     node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml"))
     schemas = [d for d in node.pop("defaults", []) if isinstance(d, str) and d.endswith("_schema")]
-    kinds = [k for k in SAMPLERS if f"{k}_schema" in schemas]
+    kinds = [k for k in SCHEMAS if f"{k}_schema" in schemas]
     if len(kinds) != 1:
         raise SamplerConfigError(f"conf/sampler/{name}.yaml: its defaults must name one sampler schema "
-                                 f"(<kind>_schema, kinds: {', '.join(sorted(SAMPLERS))})")
+                                 f"(<kind>_schema, kinds: {', '.join(sorted(SCHEMAS))})")
     return sampler_config({**node, "kind": kinds[0]})
 
 
@@ -223,6 +210,7 @@ __all__ = [
     "load_variant",
     "make_sampler",
     "min_motion_bin_s",
+    "sampler_class",
     "sampler_config",
     "validate_sampler_config",
     "variant_names",

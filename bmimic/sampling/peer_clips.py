@@ -27,15 +27,14 @@ used, so every state tensor has a fixed shape whatever the motion library.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Optional
 
 import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, check_positive, fail
-from bmimic.sampling.config import SamplerConfig
 from bmimic.sampling.registry import register_sampler
+from bmimic.sampling.schemas import PHCConfig, ProtoMotionsConfig
 
 
 class GroupSampler(BinSampler):
@@ -90,21 +89,6 @@ class GroupSampler(BinSampler):
 PHC_MODES = ("soft", "hard")
 
 
-@dataclass
-class PHCConfig(SamplerConfig):
-    """`sampler=phc`: PHC's evaluation-driven hard-negative mining over clips."""
-
-    name: str = "phc"
-    kind: str = "phc"
-    mode: str = "soft"
-    """"soft" (auto_pmcp_soft, PHC's default): p_m = h_m / sum(h), h the failed evaluations of clip m,
-    uniform when the latest evaluation failed no clip; "hard" (auto_pmcp): uniform over the clips that
-    failed the latest evaluation."""
-    rollout_max_s: Optional[float] = None
-    """Seconds of each clip's evaluation rollout from its first frame, > 0; null: to the clip's end
-    (PHC evaluates the whole motion)."""
-
-
 @register_sampler("phc", PHCConfig)
 class PHCSampler(GroupSampler):
     """Clip weights from evaluation failures (module doc)."""
@@ -155,23 +139,6 @@ class PHCSampler(GroupSampler):
 
 
 # ---------------------------------------------------------------------------------------- ProtoMotions
-@dataclass
-class ProtoMotionsConfig(SamplerConfig):
-    """`sampler=protomotions`: ProtoMotions v3's evaluation-driven multiplicative clip weights."""
-
-    name: str = "protomotions"
-    kind: str = "protomotions"
-    success_decay: float = 0.999
-    """d_s: a clip that succeeded an evaluation is multiplied by d_s^K (K iterations since the last), in (0, 1]."""
-    failure_decay: float = 0.0
-    """d_f: a failed clip is divided by d_f^K; 0 resets it to 1 (every shipped experiment), in [0, 1]."""
-    min_weight: Optional[float] = None
-    """Floor of every weight, > 0; null: 1 / number of clips (ProtoMotions' default)."""
-    rollout_max_s: Optional[float] = 12.0
-    """Seconds of each clip's evaluation rollout from its first frame, > 0 (ProtoMotions' max_eval_steps,
-    600 steps at its 50 Hz G1 control rate); null: to the clip's end."""
-
-
 @register_sampler("protomotions", ProtoMotionsConfig)
 class ProtoMotionsSampler(GroupSampler):
     """Multiplicative clip weights from evaluations with a floor (module doc)."""

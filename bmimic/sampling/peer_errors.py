@@ -29,51 +29,21 @@ spread evenly over the sub-clip's |i| bins (uniform while every s is 0).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any
 
 import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import check_fraction, check_int_at_least, check_nonnegative, check_positive, fail
-from bmimic.sampling.config import SamplerConfig
 from bmimic.sampling.peer_clips import GroupSampler
 from bmimic.sampling.registry import register_sampler
+from bmimic.sampling.schemas import EGMConfig, GMTConfig
 
 UNSET_SCHEDULE_ITERATIONS = 1000
 """EGM's schedule length where no run's max_iterations fills a null ``schedule_iterations``."""
 
 
 # ------------------------------------------------------------------------------------------------ EGM
-@dataclass
-class EGMConfig(SamplerConfig):
-    """`sampler=egm`: EGM's bin-based adaptive sampling from an EMA of a composite tracking error."""
-
-    name: str = "egm"
-    kind: str = "egm"
-    ema: float = 0.1
-    """EMA weight beta of an iteration's mean error in a bin, in (0, 1]."""
-    weight_body_pos: float = 1.0
-    """Weight of the mean body position error (m) in the composite error, >= 0."""
-    weight_body_ori: float = 0.1
-    """Weight of the mean body orientation error (rad), >= 0."""
-    weight_body_lin_vel: float = 0.1
-    """Weight of the mean body linear-velocity error (m/s), >= 0."""
-    power_start: float = 0.5
-    """Exponent tau of the normalised error at iteration 0 (the paper's "smoothing temperature";
-    low = flat), > 0."""
-    power_end: float = 2.0
-    """Exponent tau after schedule_iterations (high = sharp), > 0."""
-    uniform_start: float = 0.5
-    """Uniform ratio u at iteration 0, in [0, 1]."""
-    uniform_end: float = 0.1
-    """Uniform ratio u after schedule_iterations, in [0, 1]."""
-    schedule_iterations: Optional[int] = None
-    """Iterations over which tau and u move linearly from start to end (>= 1); null: the run's
-    max_iterations (the paper's schedule spans training; filled by bmimic.config.resolve_runtime),
-    or UNSET_SCHEDULE_ITERATIONS where no run exists (benchmarks, unit tests)."""
-
-
 @register_sampler("egm", EGMConfig)
 class EGMSampler(BinSampler):
     """EMA of a composite tracking error per bin, normalised, raised to a scheduled power, mixed with
@@ -156,26 +126,6 @@ class EGMSampler(BinSampler):
 
 
 # ------------------------------------------------------------------------------------------------ GMT
-@dataclass
-class GMTConfig(SamplerConfig):
-    """`sampler=gmt`: GMT's completion-level sampling of sub-clips."""
-
-    name: str = "gmt"
-    kind: str = "gmt"
-    subclip_bins: int = 10
-    """Longest sub-clip, in bins (10 = GMT's 10 s at 1 s bins); clips are cut from their start."""
-    initial_level: float = 10.0
-    """Completion level c of a sub-clip never completed, >= min_level."""
-    completion_decay: float = 0.99
-    """c is multiplied by this at each completion, in (0, 1]."""
-    min_level: float = 1.0
-    """Floor of c (a sub-clip at the floor is sampled by its error), > 0."""
-    error_scale_m: float = 0.15
-    """At the floor, s = min(E / error_scale_m, 1) ^ error_power, E in m; > 0."""
-    error_power: float = 5.0
-    """See error_scale_m; > 0."""
-
-
 @register_sampler("gmt", GMTConfig)
 class GMTSampler(GroupSampler):
     """Completion levels per sub-clip, then the largest body error once mastered (module doc)."""

@@ -10,6 +10,10 @@ the registered name)::
 Registering stores the schema in Hydra's ConfigStore as `sampler/<kind>_schema`, which a variant's
 YAML (conf/sampler/<name>.yaml) lists first in its defaults. `make_sampler` and the validation look
 the class up here; nothing else names the sampler classes.
+
+Schemas and classes are two tables: composing a config needs only the schemas, which
+:mod:`bmimic.sampling.schemas` registers without torch (`register_schema`); the built-in classes
+register when :mod:`bmimic.sampling.config` first needs one (`sampler_class`).
 """
 
 from __future__ import annotations
@@ -33,27 +37,44 @@ class SamplerEntry:
 SAMPLERS: dict[str, SamplerEntry] = {}
 """Registered samplers by kind."""
 
+SCHEMAS: dict[str, type] = {}
+"""Registered config schemas by kind (a registered sampler's included)."""
+
 
 def schema_name(kind: str) -> str:
     """The ConfigStore name of a kind's schema in the `sampler` group."""
     return f"{kind}_schema"
 
 
+def register_schema(kind: str, config: type) -> None:
+    """Register `config` as the schema of `kind` (also in Hydra's ConfigStore); the class may follow."""
+    default = getattr(config(), "kind", None)
+    if default != kind:
+        raise ValueError(f"{config.__name__}.kind must default to {kind!r}, got {default!r}")
+    if kind in SCHEMAS and SCHEMAS[kind].__qualname__ != config.__qualname__:
+        raise ValueError(f"sampler kind {kind!r} is already registered with the schema {SCHEMAS[kind].__name__}")
+    SCHEMAS[kind] = config
+    ConfigStore.instance().store(group="sampler", name=schema_name(kind), node=config)
+
+
 def register_sampler(kind: str, config: type):
     """Class decorator: register a sampler class under `kind` with its config schema."""
 
     def register(cls: type) -> type:
-        default = getattr(config(), "kind", None)
-        if default != kind:
-            raise ValueError(f"{config.__name__}.kind must default to {kind!r}, got {default!r}")
         if kind in SAMPLERS and SAMPLERS[kind].cls.__qualname__ != cls.__qualname__:
             raise ValueError(f"sampler kind {kind!r} is already registered by {SAMPLERS[kind].cls.__name__}")
+        register_schema(kind, config)
         cls.kind = kind
         SAMPLERS[kind] = SamplerEntry(cls, config)
-        ConfigStore.instance().store(group="sampler", name=schema_name(kind), node=config)
         return cls
 
     return register
+
+
+def schema_of(kind: Any) -> type:
+    """The registered config schema of `kind` (SamplerConfigError naming the known kinds)."""
+    check_choice("kind", kind, tuple(sorted(SCHEMAS)))
+    return SCHEMAS[kind]
 
 
 def sampler_entry(kind: Any) -> SamplerEntry:
@@ -62,4 +83,5 @@ def sampler_entry(kind: Any) -> SamplerEntry:
     return SAMPLERS[kind]
 
 
-__all__ = ["SAMPLERS", "SamplerEntry", "register_sampler", "sampler_entry", "schema_name"]
+__all__ = ["SAMPLERS", "SCHEMAS", "SamplerEntry", "register_sampler", "register_schema", "sampler_entry", "schema_name",
+           "schema_of"]

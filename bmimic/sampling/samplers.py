@@ -21,10 +21,11 @@ Look-ahead kernel (shared by both adaptive samplers). With kernel length K and d
 A bin is boosted by failures in the K-1 bins after it, so episodes start shortly *before* the
 hard part; the right end is padded by repeating the last bin.
 
-Each class registers itself with its config schema beside it (`register_sampler`); its
+Each class registers itself with its config schema (`register_sampler`; the schemas are in
+:mod:`bmimic.sampling.schemas`, torch-free, so that composing a config needs no torch); its
 `check_config` holds the range checks of the schema's keys and `from_config` builds it. Adding a
-sampler is a class with its schema here (or in a module imported by ``bmimic/sampling/__init__.py``)
-and a YAML in ``conf/sampler/`` (docs/architecture.md lists the steps).
+sampler is a schema, a class here (or in a module that ``config.sampler_class`` imports) and a YAML in
+``conf/sampler/`` (docs/architecture.md lists the steps).
 
 **UniformSampler**: :math:`P_s = 1/S`; updates are ignored.
 
@@ -73,15 +74,14 @@ accumulate no visible rounding error; the cost is negligible at S <= 10^4.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any
 
 import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import check_choice, check_fraction, check_int_at_least, check_positive
-from bmimic.sampling.config import SamplerConfig
 from bmimic.sampling.registry import register_sampler
+from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, UniformConfig
 
 EMPTY_BINS = ("decay", "hold")
 
@@ -101,14 +101,6 @@ def lookahead_index(num_bins: int, K: int, device: Any = "cpu", last: torch.Tens
     if last is None:
         return (s + u).clamp_(max=num_bins - 1)
     return torch.minimum(s + u, torch.as_tensor(last, device=device).long()[:, None])
-
-
-@dataclass
-class UniformConfig(SamplerConfig):
-    """`sampler=uniform`: no parameters of its own."""
-
-    name: str = "uniform"
-    kind: str = "uniform"
 
 
 @register_sampler("uniform", UniformConfig)
@@ -159,25 +151,6 @@ class _LookaheadSampler(BinSampler):
         if self.empty_bins == "hold":
             target = torch.where(episodes > 0, target, state)
         state.lerp_(target, weight)
-
-
-@dataclass
-class AdaptiveConfig(SamplerConfig):
-    """Schema of the adaptive sampler's variants; the defaults are the design's (`sampler=adaptive`)."""
-
-    name: str = "adaptive"
-    kind: str = "adaptive"
-    gamma: float = 0.9
-    """Decay of the look-ahead kernel gamma^u, u = 0..K-1, in (0, 1]."""
-    lambda_uniform: float = 0.1
-    """Share of probability mass spread uniformly, in [0, 1]; P_s >= lambda_uniform/S."""
-    K: int = 5
-    """Length of the look-ahead kernel in bins (1 = no smoothing across bins)."""
-    alpha_smooth: float = 0.1
-    """EMA weight of a new failure-rate observation, in (0, 1]."""
-    empty_bins: str = "decay"
-    """"decay": every update moves every bin (a bin without finished episodes decays towards 0, the
-    design's formula); "hold": bins without finished episodes keep their value."""
 
 
 @register_sampler("adaptive", AdaptiveConfig)
@@ -245,27 +218,6 @@ class AdaptiveSampler(_LookaheadSampler):
 
     def _state_tensors(self) -> dict[str, torch.Tensor]:
         return {"rate": self._rate}
-
-
-@dataclass
-class BeyondMimicConfig(SamplerConfig):
-    """Schema of the released code's sampler; the defaults are the released code's."""
-
-    name: str = "beyondmimic"
-    kind: str = "beyondmimic"
-    bins: str = "released"
-    bin_size_seconds: Optional[float] = None
-    gamma: float = 0.8
-    """Decay of the look-ahead kernel gamma^u, u = 0..K-1, in (0, 1]."""
-    K: int = 1
-    """Length of the look-ahead kernel in bins (1 = no smoothing across bins)."""
-    alpha: float = 0.001
-    """EMA weight of each update's failure histogram, in (0, 1]."""
-    uniform_ratio: float = 0.1
-    """uniform_ratio/S is added to the EMA counts before smoothing (> 0)."""
-    empty_bins: str = "decay"
-    """"decay": every update decays every bin (the released code); "hold": bins without finished
-    episodes keep their value."""
 
 
 @register_sampler("beyondmimic", BeyondMimicConfig)

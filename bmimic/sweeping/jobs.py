@@ -116,6 +116,7 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
     batch = _batch(loader, master)
     saved = HydraConfig.instance().cfg
     jobs = []
+    checked = set()
     try:
         for num, job_overrides in enumerate(batch):
             try:
@@ -124,7 +125,10 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
                     cfg.hydra.job.num = num
                     cfg.hydra.job.id = f"{cfg.hydra.job.name}_{num}"
                 HydraConfig.instance().set_config(cfg)  # as the launcher does: subdir may use ${hydra:...}
-                check_job(cfg)
+                arm = tuple(o for o in job_overrides if not o.startswith("seed="))
+                if arm not in checked:  # the seeds of an arm differ by an integer: one check holds for all
+                    check_job(cfg)
+                    checked.add(arm)
                 run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
             except Exception as e:  # noqa: BLE001 - Hydra, OmegaConf and bmimic errors alike: one line
                 text = str(e).strip()

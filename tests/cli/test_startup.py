@@ -1,0 +1,75 @@
+"""The command line answers before the heavy libraries load: composing a config, `--help`, `--cfg job`
+and the sweep dry run import neither torch nor Warp (nor MuJoCo-Warp). Their start-up times are a
+benchmark (docs/benchmarks.md), not a test; what a test can hold is that the slow imports stay out."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import REPO
+
+HEAVY = ("torch", "warp", "mujoco_warp")
+
+
+def _run(code: str, cwd) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=300)
+
+
+def _loaded(out: subprocess.CompletedProcess) -> list[str]:
+    assert out.returncode == 0, out.stderr[-3000:]
+    return [line.split(" ", 1)[1] for line in out.stdout.splitlines() if line.startswith("LOADED ")]
+
+
+REPORT = f"import sys; print(*('LOADED ' + m for m in {HEAVY!r} if m in sys.modules), sep='\\n')"
+
+
+@pytest.mark.parametrize("sampler", ["adaptive", "egm", "phc", "uniform"])
+def test_composing_a_config_imports_neither_torch_nor_warp(tmp_path, sampler):
+    code = f"""
+from hydra import compose, initialize_config_dir
+import bmimic, bmimic.config
+from bmimic.config_checks import check_composed
+with initialize_config_dir(config_dir=str(bmimic.CONF_DIR), version_base="1.3"):
+    cfg = compose("train", overrides=["sampler={sampler}", "sampler.bin_size_seconds=0.5"])
+check_composed(cfg)
+assert cfg.sampler.kind == "{sampler}" and cfg.sampler.bin_size_seconds == 0.5
+{REPORT}
+"""
+    assert _loaded(_run(code, tmp_path)) == []
+
+
+@pytest.mark.parametrize("argv", [["bmimic.train", "--help"], ["bmimic.train", "--cfg", "job", "sampler=gmt"],
+                                  ["bmimic.train", "-m", "+sweep=sampler_ablation", "--cfg", "job"],
+                                  ["bmimic.launch", "list", "+sweep=gamma"]])
+def test_help_cfg_and_the_dry_run_import_neither_torch_nor_warp(tmp_path, argv):
+    # The command runs as `python -m` would run it; what it imported is read at interpreter exit.
+    code = f"""
+import atexit, runpy, sys
+atexit.register(lambda: print(*('LOADED ' + m for m in {HEAVY!r} if m in sys.modules), sep='\\n'))
+sys.argv = {argv!r}
+runpy.run_module("{argv[0]}", run_name="__main__", alter_sys=True)
+"""
+    out = _run(code, tmp_path)
+    assert "sampler" in out.stdout or "jobs" in out.stdout, out.stdout[-2000:]
+    assert _loaded(out) == []
+    assert not (tmp_path / "outputs").exists()  # nothing written by a look at the config
+
+
+def test_the_sampler_classes_still_register_on_first_use(tmp_path):
+    code = f"""
+import bmimic.sampling as s
+{REPORT}
+from bmimic.sampling.config import make_sampler, load_variant
+sampler = make_sampler(load_variant("egm"), 4)
+assert type(sampler).__name__ == "EGMSampler", type(sampler)
+assert set(s.SAMPLERS) >= {{"uniform", "adaptive", "beyondmimic", "egm", "gmt", "phc", "protomotions"}}
+print("BUILT", type(s.AdaptiveSampler(3)).__name__)
+"""
+    out = _run(code, tmp_path)
+    assert _loaded(out) == [] and "BUILT AdaptiveSampler" in out.stdout
