@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from analysis.plots import _axes, _marker, arm_colors
+from analysis.plots import IntegerTicks, _axes, _marker, arm_colors
 
 CURVE_MARKERS = {"estimate": "o", "lower_bound": "^", "upper_bound": "v"}
 """Marker of each speedup status on the curve figures (not estimable: not drawn)."""
@@ -100,6 +100,7 @@ def plot_sampling_support(summary: pd.DataFrame, colors: dict | None = None) -> 
     ax2.set_ylim(bottom=0)
     for ax in (ax1, ax2):
         ax.set_xlabel("iteration")
+        ax.xaxis.set_major_locator(IntegerTicks())
         ax.grid(alpha=0.3)
     ax1.legend(fontsize=7)
     if summary["clip_effective_support"].notna().any():

@@ -214,8 +214,9 @@ def mastery_speedup_line(per_bin: pd.DataFrame, arm: str, opts: ReportOptions) -
             + (f" (median ratio ×{fmt(float(np.median(est['ratio'])))})" if len(est) else ""))
     for status, word in (("lower_bound", "lower bound"), ("upper_bound", "upper bound"),
                          ("not_estimable", "not estimable")):
-        if counts.get(status, 0):
-            text += f", {plural(int(counts[status]), word)}"
+        if counts.get(status, 0):  # "not estimable" is an adjective: never pluralised
+            n = int(counts[status])
+            text += f", {n} not estimable" if status == "not_estimable" else f", {plural(n, word)}"
     sig = b[b["p_value"] < opts.alpha]
     faster, slower = int((sig["ratio"] > 1).sum()), int((sig["ratio"] < 1).sum())
     text += (f"; p < {opts.alpha:g} in {plural(len(sig), 'bin')} of {len(b)} "

@@ -7,9 +7,13 @@ saved), so importing this module never changes the caller's backend. Inputs are 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
+from matplotlib import rcParams
 from matplotlib.figure import Figure
+from matplotlib.font_manager import FontProperties
 from matplotlib.ticker import MaxNLocator
 
 FIGSIZE = (6.0, 3.6)
@@ -21,6 +25,32 @@ SENSITIVITY_LABELS = {
     "time_iteration": "iterations to success threshold (median)",
 }
 """Axis labels of the arm-summary metrics drawn by plot_sensitivity."""
+
+
+MAX_PANEL_COLUMNS = 4
+"""plot_bin_heatmaps wraps its panels into rows of at most this many (7 arms: 4 + 3)."""
+
+
+class IntegerTicks(MaxNLocator):
+    """Integer ticks (bins, iterations), only as many as the axis has room for at the width of its
+    longest label: MaxNLocator's "auto" allows a tick per three font sizes whatever the labels, so on
+    a narrow panel 200 bins read "0 80160240320"; one integer in view still gets its tick."""
+
+    def __init__(self) -> None:
+        super().__init__(nbins="auto", integer=True, min_n_ticks=1)
+
+    def __call__(self):
+        axis, ax = self.axis, self.axis.axes
+        vmin, vmax = axis.get_view_interval()
+        horizontal = axis is ax.xaxis
+        size = FontProperties(size=rcParams["xtick.labelsize" if horizontal else "ytick.labelsize"]).get_size_in_points()
+        chars = max(len(str(int(round(v)))) for v in (vmin, vmax) if math.isfinite(v)) if (
+            math.isfinite(vmin) or math.isfinite(vmax)) else 1
+        # A label's width (digits ~0.6 em) plus a gap of about 1.5 em; vertically a line and a gap.
+        room_pt = (ax.bbox.width if horizontal else ax.bbox.height) / ax.figure.dpi * 72.0
+        per_tick_pt = size * (0.6 * chars + 1.5) if horizontal else size * 2.5
+        self.set_params(nbins=max(1, int(room_pt // per_tick_pt) - 1))
+        return super().__call__()
 
 
 def arm_colors(arms) -> dict[str, tuple]:
@@ -38,11 +68,13 @@ def _axes(ax, figsize=FIGSIZE):
     return fig, fig.add_subplot()
 
 
-def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: bool = False) -> None:
+def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: bool = False,
+                   names: bool = True) -> None:
     """Label the bin axis with segment names: boundaries as thin lines, names on the opposite side
-    (horizontal where every name fits its span, else rotated; long names shortened); hatch the
-    horizon-truncated bins (over the cells of a heatmap with ``hatch_above``, else behind the lines)."""
-    (ax.xaxis if axis == "x" else ax.yaxis).set_major_locator(MaxNLocator(integer=True))
+    (horizontal where every name fits its span, else rotated; long names shortened; none with
+    ``names=False``, for panels below another); hatch the horizon-truncated bins (over the cells of a
+    heatmap with ``hatch_above``, else behind the lines)."""
+    (ax.xaxis if axis == "x" else ax.yaxis).set_major_locator(IntegerTicks())
     if bins is None or not len(bins):
         return
     bins = bins.sort_values("bin").reset_index(drop=True)
@@ -58,6 +90,8 @@ def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: 
     line = ax.axvline if axis == "x" else ax.axhline
     for first in spans["first"].iloc[1:]:
         line(first - 0.5, color="0.3", lw=0.6, ls=":")
+    if not names:
+        return
     centres = ((spans["first"] + spans["last"]) / 2.0).to_list()
     names = [n if len(n) <= 18 else n[:17] + "…" for n in spans["name"].astype(str)]
     twin = ax.secondary_xaxis("top") if axis == "x" else ax.secondary_yaxis("right")
@@ -80,12 +114,17 @@ def _seed_values(per_seed) -> np.ndarray:
     return np.array([float(v) for v in str(per_seed).split(";") if v and not v.startswith(">")], dtype=float)
 
 
-def _edges(centres: np.ndarray) -> np.ndarray:
-    """Cell edges halfway between sorted centres, extended by half a step at both ends."""
+def _edges(centres: np.ndarray, floor: float | None = None) -> np.ndarray:
+    """Cell edges halfway between sorted centres, extended by half a step at both ends (the first
+    edge not below ``floor``: iteration 0's cell does not reach negative iterations)."""
     if len(centres) == 1:
-        return np.array([centres[0] - 0.5, centres[0] + 0.5])
-    mid = (centres[1:] + centres[:-1]) / 2.0
-    return np.r_[2 * centres[0] - mid[0], mid, 2 * centres[-1] - mid[-1]]
+        edges = np.array([centres[0] - 0.5, centres[0] + 0.5])
+    else:
+        mid = (centres[1:] + centres[:-1]) / 2.0
+        edges = np.r_[2 * centres[0] - mid[0], mid, 2 * centres[-1] - mid[-1]]
+    if floor is not None and centres[0] >= floor + 0.5:
+        edges[0] = max(edges[0], floor)
+    return edges
 
 
 def plot_learning_curve(
@@ -110,7 +149,7 @@ def plot_learning_curve(
         ax.plot(x, c["point"].to_numpy(dtype=float), color=colors[arm], lw=1.6, label=arm, **_marker(len(x)))
         ax.fill_between(x, c["ci_low"].to_numpy(dtype=float), c["ci_high"].to_numpy(dtype=float),
                         color=colors[arm], alpha=0.2, lw=0)
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.xaxis.set_major_locator(IntegerTicks())
     ax.set_xlabel("iteration")
     ax.set_ylabel(ylabel)
     if title:
@@ -131,48 +170,77 @@ def plot_bin_heatmap(
     cmap: str = "magma_r",
     colorbar: bool = True,
     max_rows: int = 400,
+    segment_names: bool = True,
 ) -> Figure:
     """Heatmap of ``value`` over iterations (rows, increasing upwards) x bins (columns) for one arm.
 
     ``df`` has ``iteration, bin, value`` (e.g. the seed-mean failure of one arm); ``bins`` (from
-    metrics.bin_table) adds the segment names on top. Each cell spans from halfway to the previous
-    iteration to halfway to the next, so uneven evaluation spacing is drawn to scale.
+    metrics.bin_table) adds the segment boundaries and, with ``segment_names``, their names on top.
+    Each cell spans from halfway to the previous iteration to halfway to the next, so uneven evaluation
+    spacing is drawn to scale. The colour bar says when cells above ``vmax`` saturate.
     """
     fig, ax = _axes(ax)
     grid = df.pivot_table(index="iteration", columns="bin", values=value, aggfunc="mean").sort_index()
     if len(grid) > max_rows:  # more rows than pixels: keep every k-th iteration (and the last)
         keep = np.unique(np.r_[np.arange(0, len(grid), int(np.ceil(len(grid) / max_rows))), len(grid) - 1])
         grid = grid.iloc[keep]
-    image = ax.pcolormesh(_edges(grid.columns.to_numpy(float)), _edges(grid.index.to_numpy(float)),
-                          grid.to_numpy(dtype=float), cmap=cmap, vmin=vmin, vmax=vmax, shading="flat")
+    cells = grid.to_numpy(dtype=float)
+    image = ax.pcolormesh(_edges(grid.columns.to_numpy(float)), _edges(grid.index.to_numpy(float), floor=-0.5),
+                          cells, cmap=cmap, vmin=vmin, vmax=vmax, shading="flat")
     ax.set_xlabel("bin")
     ax.set_ylabel("iteration")
-    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    if len(grid) <= 8:  # few evaluations (a smoke run): a tick on each row
+        ax.set_yticks(grid.index.to_numpy(float), labels=[f"{i:g}" for i in grid.index])
+    else:
+        ax.yaxis.set_major_locator(IntegerTicks())
     if title:
         ax.set_title(title, fontsize=8)
-    _mark_segments(ax, bins, hatch_above=True)
+    _mark_segments(ax, bins, hatch_above=True, names=segment_names)
     if colorbar:
-        fig.colorbar(image, ax=ax, label=value.replace("_", " "), shrink=0.9)
+        fig.colorbar(image, ax=ax, label=value.replace("_", " "), shrink=0.9, extend=_extend(cells, vmax))
     return fig
+
+
+def _extend(cells: np.ndarray, vmax: float | None) -> str:
+    """``max`` (a pointed colour bar) when some cells lie above the scale and saturate."""
+    return "max" if vmax is not None and np.nanmax(cells, initial=-np.inf) > vmax else "neither"
 
 
 def plot_bin_heatmaps(
     df: pd.DataFrame, value: str = "failure_rate", bins: pd.DataFrame | None = None,
-    vmax: float | None = None, cmap: str = "magma_r",
+    vmax: float | None = None, cmap: str = "magma_r", scale: str = "shared",
 ) -> Figure:
-    """plot_bin_heatmap for every arm in ``df`` side by side, on one shared colour scale."""
+    """plot_bin_heatmap for every arm in ``df``, in rows of at most MAX_PANEL_COLUMNS panels (segment
+    names above the top row only). ``scale="shared"``: one colour scale from 0 to ``vmax`` (default:
+    the largest value), for values every arm measures alike (failure rates); ``"per_panel"``: each
+    panel from 0 to its own largest value with its own colour bar, for distributions whose peaks
+    differ by orders of magnitude between arms (sampling probabilities: one arm's bright bin would
+    leave the others dark)."""
+    if scale not in ("shared", "per_panel"):
+        raise ValueError(f"scale must be 'shared' or 'per_panel', got {scale!r}")
     arms = sorted(df["arm"].unique())
-    vmax = float(df[value].max()) if vmax is None else vmax
-    fig = Figure(figsize=(min(3.2 * len(arms), 12.0) + 0.8, 3.4), layout="constrained")
-    axes = fig.subplots(1, len(arms), squeeze=False, sharey=True)[0]
+    ncols = min(len(arms), MAX_PANEL_COLUMNS)
+    nrows = math.ceil(len(arms) / ncols)
+    shared = scale == "shared"
+    vmax = (float(df[value].max()) if vmax is None else vmax) if shared else None
+    fig = Figure(figsize=(3.4 * ncols + 0.8, 2.6 * nrows + 1.0), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False, sharex=True, sharey=True).ravel()
     image = None
-    for ax, arm in zip(axes, arms, strict=True):
-        plot_bin_heatmap(df[df["arm"] == arm], value, ax=ax, bins=bins, vmax=vmax, title=arm, cmap=cmap,
-                         colorbar=False)
-        image = ax.collections[-1]
-    for ax in axes[1:]:
-        ax.set_ylabel("")
-    fig.colorbar(image, ax=list(axes), label=value.replace("_", " "), shrink=0.9)
+    for i, (ax, arm) in enumerate(zip(axes, arms, strict=False)):
+        cells = df[df["arm"] == arm]
+        plot_bin_heatmap(cells, value, ax=ax, bins=bins, vmax=vmax if shared else float(cells[value].max()),
+                         title=arm, cmap=cmap, colorbar=not shared, segment_names=i < ncols)
+        image = ax.collections[0]
+        if i % ncols:
+            ax.set_ylabel("")
+        bottom = i + ncols >= len(arms)  # no panel below: its bin axis is labelled
+        ax.xaxis.set_tick_params(labelbottom=bottom)
+        ax.set_xlabel("bin" if bottom else "")
+    for ax in axes[len(arms):]:
+        ax.set_visible(False)
+    if shared:
+        fig.colorbar(image, ax=list(axes[:len(arms)]), label=value.replace("_", " "), shrink=0.9,
+                     extend=_extend(df[value].to_numpy(float), vmax))
     return fig
 
 
@@ -233,7 +301,7 @@ def plot_mastery(
                        lw=0.8)
     ax.set_xlabel("bin")
     ax.set_ylabel("mastery iteration")
-    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.yaxis.set_major_locator(IntegerTicks())
     if threshold is not None:
         ax.set_title(f"median over seeds of the first sustained failure < {threshold:g}\n"
                      "dots: seeds; x: seed not there by its last evaluation; open ^: median not reached", fontsize=7)
@@ -322,7 +390,7 @@ def plot_sensitivity(
     ax.set_xlabel(key)
     ax.set_ylabel(SENSITIVITY_LABELS.get(metric, metric.replace("_", " ")))
     if metric in ("bins_mastered", "time_iteration"):
-        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.yaxis.set_major_locator(IntegerTicks())
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     return fig

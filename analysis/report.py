@@ -195,8 +195,10 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     if len(samp):
         write_csv(out / "sampling.csv", samp)
         save_figure(out / "sampling_distribution.png",
-                    plots.plot_bin_heatmaps(samp, "probability", bins=bins, cmap="viridis"))
-        figures.append(("sampling_distribution.png", "Sampling distribution over training, adaptive arms (mean over seeds)"))
+                    plots.plot_bin_heatmaps(samp, "probability", bins=bins, cmap="viridis",
+                                            scale="per_panel"))
+        figures.append(("sampling_distribution.png", "Sampling distribution over training, adaptive arms (mean over seeds; each panel on its own colour "
+                        "scale, from 0 to its largest probability)"))
 
     write_csv(out / "mastery_per_seed.csv", mastery_seed_df)
     write_csv(out / "mastery.csv", mastery_df)

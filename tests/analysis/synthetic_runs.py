@@ -93,6 +93,7 @@ def write_run(
     clips: list[str] | None = None,
     sampler_episodes: list[int] | None = None,
     machine: str = "Test GPU",
+    segments: list[dict] | None = None,
 ) -> Path:
     """Write one complete run folder whose bin ``b`` is mastered at ``mastery[b]`` (None: never).
 
@@ -101,7 +102,8 @@ def write_run(
     tracked through them, so they never count as mastered. ``clips`` names each bin's clip (a motion
     library: eval.parquet and sampler.parquet get a `clip` column); ``sampler_episodes`` replaces the 25
     training starts per bin in sampler.parquet (and sets the sampling probabilities in proportion).
-    ``machine`` is the GPU name provenance.json records.
+    ``machine`` is the GPU name provenance.json records. The run has ``len(mastery)`` bins (``NUM_BINS``
+    in the planted sweeps); ``segments`` replaces ``SEGMENTS`` (they must cover every bin).
     """
     run_dir = Path(run_dir)
     (run_dir / ".hydra").mkdir(parents=True, exist_ok=True)
@@ -114,7 +116,9 @@ def write_run(
     ))
     (run_dir / "provenance.json").write_text(json.dumps({"git_commit": "0123abc", "git_dirty": False,
                                                          "gpu": {"name": machine, "count": 1}}))
-    (run_dir / "motion_segments.json").write_text(json.dumps(SEGMENTS))
+    segments = SEGMENTS if segments is None else segments
+    num_bins = len(mastery)
+    (run_dir / "motion_segments.json").write_text(json.dumps(segments))
     if not write_tables:
         return run_dir
 
@@ -127,8 +131,8 @@ def write_run(
         "mean_reward": 0.1 * iterations,
         "episodes": 100,
         "failure_rate": [float(_failure(mastery, seed, int(i)).mean()) for i in iterations],
-        "sampling_entropy": np.log(NUM_BINS),
-        "top1_prob": 1.0 / NUM_BINS,
+        "sampling_entropy": np.log(num_bins),
+        "top1_prob": 1.0 / num_bins,
         "top1_bin": 0,
         "reward/motion_body_pos": 0.5,
         "termination/anchor_pos": 0.1,
@@ -138,15 +142,15 @@ def write_run(
     eval_rows, sampler_rows = [], []
     for it in iterations:
         fail = _failure(mastery, seed, int(it))
-        prob = np.full(NUM_BINS, 1.0 / NUM_BINS) if sampler == "uniform" else fail / fail.sum()
+        prob = np.full(num_bins, 1.0 / num_bins) if sampler == "uniform" else fail / fail.sum()
         if sampler_episodes is not None:
             prob = np.asarray(sampler_episodes, dtype=float) / sum(sampler_episodes)
-        for b in range(NUM_BINS):
+        for b in range(num_bins):
             start, end = b * BIN_SIZE_S, (b + 1) * BIN_SIZE_S
             starts = 25 if sampler_episodes is None else sampler_episodes[b]
             sampler_rows.append((int(it), b, start, end, starts, int(starts * fail[b]), fail[b], fail[b], prob[b]))
             if it % eval_every == 0 or it == last_iteration:
-                segment = next(s["name"] for s in SEGMENTS if s["start_s"] <= start < s["end_s"])
+                segment = next(s["name"] for s in segments if s["start_s"] <= start < s["end_s"])
                 visits = EPISODES_PER_BIN
                 truncated = b in truncated_bins
                 eval_rows.append((
@@ -183,7 +187,7 @@ def write_run(
         "wall_time_s": last_iteration * seconds_per_iteration,
         "mean_episode_length": float(10 + last_iteration + seed),
         "max_episode_length": 500,
-        "num_bins": NUM_BINS,
+        "num_bins": num_bins,
     }))
     return run_dir
 
@@ -227,4 +231,39 @@ def make_speedup_sweep(root: str | Path, n_seeds: int = 10, ratio: float = 2.0, 
             mastery = [float(EVAL_EVERY * np.ceil(20.0 * (b + 1) * scale * f / EVAL_EVERY)) for b in range(NUM_BINS)]
             write_run(sweep / f"sampler={sampler}" / f"seed={seed}", sampler=sampler, seed=seed,
                       overrides=[f"sampler={sampler}"], mastery=mastery, last_iteration=150)
+    return sweep
+
+
+WIDE_ARMS = ("uniform", "adaptive", "adaptive_hybrid", "beyondmimic", "egm", "gmt", "phc")
+"""The arms of the wide study: as many as the peer-sampler study has."""
+
+
+def make_wide_study(root: str | Path, num_bins: int = 200, seeds: int = 2, last_iteration: int = 60,
+                    eval_every: int = EVAL_EVERY, spike: float = 0.9, never: int = 10,
+                    name: str = "wide") -> Path:
+    """A study the size of a real one, for the figures: ``len(WIDE_ARMS)`` arms of ``seeds`` seeds on
+    ``num_bins`` bins (ten named segments), bin b mastered at an iteration that grows with b (arm by arm
+    a little sooner). In the ``beyondmimic`` arm one bin (the middle one) draws ``spike`` of the
+    sampling probability at every logged iteration, as a spiky sampler does, so that one bright bin
+    would set a shared colour scale. The last ``never`` bins are never mastered by ``uniform`` (the
+    baseline) and ``phc``: their per-bin speedups are lower bounds for the other arms and not estimable
+    for ``phc``. With ``last_iteration`` 3 and ``eval_every`` 100 it is a smoke study: four
+    iterations, evaluated at 0 and 3."""
+    sweep = Path(root) / name
+    length = num_bins * BIN_SIZE_S
+    segments = [{"name": f"segment_{k}_of_the_motion", "start_s": length * k / 10, "end_s": length * (k + 1) / 10,
+                 "difficulty": k / 10} for k in range(10)]
+    segments[-1]["end_s"] = length + 1.0  # the last bin's start lies inside
+    for a, arm in enumerate(WIDE_ARMS):
+        for seed in range(seeds):
+            mastery = [None if arm in ("uniform", "phc") and b >= num_bins - never else
+                       float(max(1, last_iteration * (b + 1) / (num_bins + 1) * (1 - 0.05 * a))) for b in range(num_bins)]
+            run = write_run(sweep / f"sampler={arm}" / f"seed={seed}", sampler=arm, seed=seed,
+                            overrides=[f"sampler={arm}"], mastery=mastery, last_iteration=last_iteration,
+                            eval_every=eval_every, segments=segments)
+            if arm == "beyondmimic":
+                samp = pd.read_parquet(run / "sampler.parquet")
+                mid = samp["bin"] == num_bins // 2
+                samp["probability"] = np.where(mid, spike, (1 - spike) / (num_bins - 1))
+                samp.to_parquet(run / "sampler.parquet", index=False)
     return sweep

@@ -268,6 +268,8 @@ def test_a_two_fold_speedup_is_recovered_with_ten_seeds(speedup_report):
     summary = pd.read_csv(speedup_report / "summary.csv")
     assert set(summary["ci_method"]) <= {"bootstrap_bca", "bootstrap_percentile"}  # 10 seeds: bootstrap
     assert (summary.loc[summary["n_seeds"] >= 4, "iqm"].notna()).all()
+    md = (speedup_report / "report.md").read_text()
+    assert "against the baseline" in md and "for the 1 test " in md and "1 tests" not in md  # one arm, one test
 
 
 # --------------------------------------------------------------------------------------------- planted sweep
@@ -366,6 +368,7 @@ def test_censoring_statuses_through_the_report(tmp_path):
     assert speed.loc[("sampler=beyondmimic", "iteration"), "status"] == "not_estimable"
     md = (out / "report.md").read_text()
     assert "≥ ×3 (a lower bound" in md and "not estimable" in md
+    assert "1 not estimable" in md and "not estimables" not in md  # an adjective, never pluralised
 
 
 def _png_size(path: Path) -> tuple[int, int]:

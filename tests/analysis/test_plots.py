@@ -135,3 +135,87 @@ def test_sensitivity_one_line_per_series_with_reference(tmp_path):
     assert ax.get_xlabel() == "sampler.gamma" and ax.get_ylabel() == "final overall failure"
     assert _dots(ax) == 3
     _png(fig, tmp_path, "sensitivity.png")
+
+
+# ------------------------------------------------------------------------- a study the size of a real one
+def _report_figures(study, tmp_path, monkeypatch) -> tuple[dict, str]:
+    """Build the report of ``study``, keeping every figure it saves (name -> Figure) and its text."""
+    from analysis import report
+    from analysis.tables import ReportOptions
+
+    figures = {}
+
+    def keep(path, fig):
+        figures[path.name] = fig
+        return save_figure(path, fig)
+
+    monkeypatch.setattr(report, "save_figure", keep)
+    out = report.build_report([study], tmp_path / "report", ReportOptions(n_resamples=20))
+    return figures, (out / "report.md").read_text()
+
+
+def _tick_labels(axis) -> list:
+    """The tick labels drawn on ``axis`` (in view, non-empty), after a draw."""
+    lo, hi = sorted(axis.get_view_interval())
+    return [t for t in axis.get_ticklabels() if t.get_visible() and t.get_text() and lo <= t.get_position()[
+        0 if axis.axis_name == "x" else 1] <= hi]
+
+
+def _check_ticks(fig, name: str) -> None:
+    """Every bin and iteration axis: at least one label, integer values, no two labels overlapping."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig).draw()
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_label_text() not in ("bin", "iteration", "mastery iteration"):
+                continue
+            labels = _tick_labels(axis)
+            assert labels, f"{name}: {axis.get_label_text()} axis has no tick label"
+            values = [float(t.get_text().replace("−", "-")) for t in labels]
+            assert all(v == int(v) for v in values), f"{name}: fractional ticks {values}"
+            boxes = sorted((t.get_window_extent(renderer) for t in labels), key=lambda b: (b.x0, b.y0))
+            for a, b in zip(boxes, boxes[1:], strict=False):
+                assert not a.overlaps(b), f"{name}: tick labels {values} overlap on the {axis.axis_name} axis"
+
+
+def _panels(fig) -> dict[str, QuadMesh]:
+    return {ax.get_title(): next(c for c in ax.collections if isinstance(c, QuadMesh))
+            for ax in fig.axes if ax.get_title()}
+
+
+def test_a_200_bin_7_arm_study_has_readable_figures(tmp_path, monkeypatch):
+    from tests.analysis.synthetic_runs import WIDE_ARMS, make_wide_study
+
+    figures, md = _report_figures(make_wide_study(tmp_path, num_bins=200), tmp_path, monkeypatch)
+    for name, fig in figures.items():
+        _check_ticks(fig, name)
+        fig.savefig(tmp_path / f"check_{name}", dpi=100)  # what a reader sees (the report's dpi)
+    fail = _panels(figures["bin_failure_heatmap.png"])
+    assert sorted(fail) == [f"sampler={a}" for a in sorted(WIDE_ARMS)]
+    assert len({m.get_clim() for m in fail.values()}) == 1  # failure rates: one scale for every arm
+    # Sampling: each panel on its own scale, so one arm's bright bin (0.9) leaves the others readable.
+    samp = _panels(figures["sampling_distribution.png"])
+    assert samp["sampler=beyondmimic"].get_clim() == (0.0, pytest.approx(0.9))
+    for arm, mesh in samp.items():
+        cells = np.asarray(mesh.get_array(), dtype=float)
+        assert mesh.get_clim()[1] == pytest.approx(np.nanmax(cells)), arm
+        if arm != "sampler=beyondmimic":
+            assert mesh.get_clim()[1] < 0.2, arm
+    # 7 panels in rows of at most 4; segment names above the top row only.
+    heat = figures["bin_failure_heatmap.png"]
+    assert {round(ax.get_position().y0, 2) for ax in heat.axes if ax.get_title()}.__len__() == 2
+    assert "10 not estimable" in md and "not estimables" not in md and "10 lower bounds" in md
+
+
+def test_a_smoke_study_gets_integer_iteration_ticks(tmp_path, monkeypatch):
+    from tests.analysis.synthetic_runs import make_wide_study
+
+    study = make_wide_study(tmp_path, num_bins=30, last_iteration=3, eval_every=100, never=0, name="smoke")
+    figures, _ = _report_figures(study, tmp_path, monkeypatch)
+    for name, fig in figures.items():
+        _check_ticks(fig, name)
+    heat = figures["bin_failure_heatmap.png"].axes[0]
+    assert [t.get_text() for t in _tick_labels(heat.yaxis)] == ["0", "3"]  # the evaluated iterations
+    assert heat.get_ylim()[0] == -0.5  # iteration 0's cell does not reach negative iterations
