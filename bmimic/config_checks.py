@@ -11,6 +11,7 @@ from typing import Any
 
 from bmimic.config import ConfigError, TrainConfig
 from bmimic.envs.config import EnvConfigError, check_env
+from bmimic.extras import require_extra
 from bmimic.run_folder import check_folder_name
 from bmimic.sampling.config import sampler_config
 from bmimic.training.checkpoints import MAX_ITERATION
@@ -26,13 +27,16 @@ def _fail(key: str, problem: str) -> None:
 def check_composed(cfg, choices=None) -> None:
     """The checks a composed config gets before anything runs (train and the sweep dry run): unknown
     keys (also `+` ones), NaN or infinity anywhere, the sampler group against sampler.name,
-    resume_allow_changes names. `choices`: Hydra's runtime.choices (group -> option)."""
+    resume_allow_changes names, the extra that logger=wandb needs. `choices`: Hydra's runtime.choices
+    (group -> option)."""
     check_present(cfg)
     check_resolvable(cfg)
     check_known_keys(cfg)
     check_finite(cfg)
     check_sampler_choice(cfg, choices)
     check_resume_allow_changes(cfg)
+    if cfg.get("logger") == "wandb":
+        require_extra("wandb", "logger=wandb")
 
 
 def check_resolvable(cfg, prefix: str = "") -> None:

@@ -10,7 +10,6 @@ Videos are MP4 (H.264) when imageio and imageio-ffmpeg are installed, otherwise 
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import os
 import subprocess
@@ -211,7 +210,9 @@ def annotate(image: np.ndarray, lines: Sequence[str], alert: bool = False) -> np
 # --------------------------------------------------------------------------------------------- video
 def mp4_available() -> bool:
     """imageio with its ffmpeg plugin is installed."""
-    return importlib.util.find_spec("imageio") is not None and importlib.util.find_spec("imageio_ffmpeg") is not None
+    from bmimic.extras import missing_packages
+
+    return not missing_packages("video")
 
 
 def video_path(path: Path) -> Path:
@@ -220,8 +221,10 @@ def video_path(path: Path) -> Path:
     if suffix not in (".mp4", ".gif"):
         raise RenderError(f"--out {path}: the video must end in .mp4 or .gif")
     if suffix == ".mp4" and not mp4_available():
-        log.warning("imageio/imageio-ffmpeg are not installed: writing a GIF instead (%s); "
-                    "pip install imageio imageio-ffmpeg for MP4", path.with_suffix(".gif").name)
+        from bmimic.extras import install_command, missing_packages
+
+        log.warning("MP4 needs the video extra (%s not installed): writing a GIF instead (%s); for MP4: %s",
+                    ", ".join(missing_packages("video")), path.with_suffix(".gif").name, install_command("video"))
         return path.with_suffix(".gif")
     return path
 

@@ -32,6 +32,7 @@ from bmimic.cli_common import first_line, user_errors
 from bmimic.config import resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
+from bmimic.extras import MissingExtraError, check_launcher
 from bmimic.run_folder import RunLockedError, read_metrics, read_status, write_metrics, write_status
 from bmimic.runtime import exit_rank, init_distributed, resolve_device, seed_everything
 from bmimic.sweeping.jobs import sweep_overrides
@@ -289,6 +290,11 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
 
 
 if __name__ == "__main__":
+    try:
+        check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
+    except MissingExtraError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
     sys.argv = inspect_sweep_argv(sys.argv)
     main()
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:

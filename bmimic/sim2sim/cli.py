@@ -12,6 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from bmimic.cli_common import user_errors
+from bmimic.extras import require_extra
 from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR, atomic_write_csv, make_folder
 from bmimic.sim2sim.evaluation import evaluate, locate
 from bmimic.sim2sim.gap import GAP_FILE, format_gap
@@ -75,6 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
+        require_extra("sim2sim", "python -m bmimic.sim2sim")
         if args.video is not None:
             from bmimic.render import select_gl_backend, video_path
 

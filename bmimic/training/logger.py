@@ -13,7 +13,7 @@ import math
 import os
 from pathlib import Path
 
-from bmimic import BmimicError
+from bmimic.extras import require_extra
 from bmimic.run_folder import TENSORBOARD_DIR
 
 log = logging.getLogger(__name__)
@@ -40,11 +40,8 @@ class RunLogger:
 
     def __init__(self, backend: str, run_dir: str | os.PathLike, run_name: str, wandb_project: str = "bmimic",
                  progress_bar: bool = True, enabled: bool = True) -> None:
-        if backend == "wandb":
-            try:
-                import wandb  # noqa: F401  (fail at start-up, not at the first logged scalar)
-            except ImportError:
-                raise BmimicError("logger=wandb needs the wandb package: pip install wandb") from None
+        if backend == "wandb":  # fail at start-up, not at the first logged scalar
+            require_extra("wandb", "logger=wandb")
         self.backend = backend if enabled else "none"
         self.run_dir = Path(run_dir)
         self.run_name = run_name
