@@ -1,8 +1,29 @@
 """bmimic: Hydra-configured ablations of adaptive motion sampling for BeyondMimic-style tracking."""
 
-from pathlib import Path
+import os
+import sys
 
-from bmimic.console import exit_if_mujoco_gl_is_broken
+
+def _drop_working_directory() -> None:
+    """`python -m` puts the working directory first on sys.path, so a run folder (or any folder) holding
+    a planted `yaml.py` or `numpy.py` would be imported, and run, by the command reading it. Every
+    bmimic command runs without it, as the console scripts (`bmimic-train`, ...) always do; in a
+    checkout's root, where bmimic itself lives, it stays. Runs before any other import of the package."""
+    if sys.argv[:1] != ["-m"] or not sys.path:
+        return
+    cwd = os.path.realpath(os.getcwd())
+    if os.path.realpath(sys.path[0] or ".") != cwd:
+        return
+    if os.path.realpath(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) == cwd:
+        return
+    del sys.path[0]
+
+
+_drop_working_directory()
+
+from pathlib import Path  # noqa: E402  (after the working directory left sys.path)
+
+from bmimic.console import exit_if_mujoco_gl_is_broken  # noqa: E402
 
 __version__ = "0.1.0"
 

@@ -28,6 +28,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
+from bmimic import CONF_DIR
 from bmimic.cli_common import first_line, user_errors
 from bmimic.config import resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
@@ -214,7 +215,9 @@ def check_config(cfg: DictConfig) -> None:
     check_composed(cfg, HydraConfig.get().runtime.choices if HydraConfig.initialized() else None)
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="train")
+# An absolute config path: the console script imports this module, for which Hydra would otherwise look for
+# a `bmimic.conf` Python package (conf/ is a data folder in a wheel, with no __init__.py).
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
 def main(cfg: DictConfig) -> float:
     return launch(cfg)
 
@@ -289,7 +292,8 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
     return [argv[0], *rest, *jobs[0]]
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """`bmimic-train` and `python -m bmimic.train`: the Hydra app with bmimic's checks around it."""
     try:
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
     except MissingExtraError as e:
@@ -299,3 +303,7 @@ if __name__ == "__main__":
     main()
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         exit_rank(0)  # a torchrun rank whose run is written: no interpreter teardown (runtime.exit_rank)
+
+
+if __name__ == "__main__":
+    cli()

@@ -11,8 +11,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
-SHARED_MOTIONS = REPO.parent / "shared" / "motions"
-"""The development copy of three LAFAN1 G1 clips (not shipped: CC BY-NC-ND); tests using it skip without it."""
+SHARED_MOTIONS = Path(os.environ.get("BMIMIC_LAFAN_DIR") or REPO.parent / "shared" / "motions")
+"""LAFAN1 G1 clips (not shipped: CC BY-NC-ND): $BMIMIC_LAFAN_DIR, else the development machine's copy of
+three; tests using them skip without them."""
 if SHARED_MOTIONS.is_dir():  # data.lafan_dir defaults to $BMIMIC_LAFAN_DIR; subprocesses inherit it
     os.environ.setdefault("BMIMIC_LAFAN_DIR", str(SHARED_MOTIONS))
 

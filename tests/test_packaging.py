@@ -84,3 +84,18 @@ def test_a_sweep_composes_from_any_directory(installed):
     assert out.startswith("# -m: 10 jobs")
     cfg = OmegaConf.create(out)
     assert cfg.sweep_name == "sampler_ablation" and cfg.max_iterations == 10000 and cfg.sampler.name == "uniform"
+
+
+def test_console_scripts_are_installed_and_not_shadowed_by_the_working_directory(installed):
+    """pip's launchers import their target with the script's folder, not the working directory, first
+    on sys.path (`python -I` runs the same way); a user's `analysis/` folder there shadows nothing."""
+    (installed[1] / "analysis").mkdir(exist_ok=True)
+    (installed[1] / "analysis" / "__init__.py").write_text("raise SystemExit('the user folder was imported')\n")
+    names = run(installed, "-I", "-c", "from importlib.metadata import entry_points; "
+                "print(*sorted(e.name for e in entry_points(group='console_scripts') if e.name.startswith('bmimic-')))")
+    assert {"bmimic-train", "bmimic-report", "bmimic-eval", "bmimic-launch"} <= set(names.stdout.split())
+    for argv in (["bmimic-train", "--cfg", "job", "sampler=uniform"], ["bmimic-report", "--help"]):
+        code = ("import sys; from importlib.metadata import entry_points; "
+                f"ep = entry_points(group='console_scripts')[{argv[0]!r}]; sys.argv = {argv!r}; sys.exit(ep.load()())")
+        out = run(installed, "-I", "-c", code)
+        assert ("name: uniform" in out.stdout) if argv[0] == "bmimic-train" else ("usage:" in out.stdout)

@@ -110,7 +110,7 @@ def test_train_without_the_data_says_what_to_do(tmp_path):
 def test_lafan_windows_fit_the_real_clips(option):
     clip, start_s, end_s = OPTIONS[option]
     if not (SHARED_MOTIONS / f"{clip}.csv").is_file():
-        pytest.skip(f"real LAFAN1 clip {clip}.csv is absent from {SHARED_MOTIONS} (not shipped: CC BY-NC-ND)")
+        pytest.skip(f"LAFAN1 clip {clip}.csv is absent (not shipped: CC BY-NC-ND); set BMIMIC_LAFAN_DIR to run this")
     path = lafan_clip_path(clip, SHARED_MOTIONS)
     with path.open() as f:
         length_s = sum(1 for _ in f) / 30.0

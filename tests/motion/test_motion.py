@@ -35,7 +35,7 @@ NEUTRAL = {"hip_pitch": -0.312, "knee": 0.669, "ankle_pitch": -0.363}
 def _need(path: Path) -> Path:
     if not path.is_file():
         pytest.skip(
-            f"real LAFAN1 clip {path} is absent (not shipped: CC BY-NC-ND); see shared/motions/README.md"
+            f"LAFAN1 clip {path.name} is absent (not shipped: CC BY-NC-ND); set BMIMIC_LAFAN_DIR to run this"
         )
     return path
 
