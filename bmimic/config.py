@@ -64,6 +64,10 @@ class TrainConfig:
     """Single runs go to outputs/runs/<run_name>/<timestamp>/."""
     sweep_name: str = "default"
     """Multirun jobs go to outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/."""
+    max_cpu_hours: Optional[float] = 1.0
+    """On a CPU, refuse to start a run or sweep whose estimated training time (bmimic.budget: env steps
+    at a measured CPU rate, sweep jobs summed) is over this many hours; null: no limit. GPUs are not
+    limited."""
     time_limit_s: Optional[float] = None
     """Stop after the iteration during which this much training wall time has passed (then the
     final evaluation and checkpoint run as usual); null: no limit. For fixed-time budgets and queues."""

@@ -29,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic import CONF_DIR
+from bmimic.budget import BudgetError, check_cpu_budget, check_sweep, cpu_training_s, describe_sizes
 from bmimic.cli_common import first_line, user_errors
 from bmimic.config import resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
@@ -86,6 +87,9 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     changes = check_resume_changes(plan, resolved, allowed, fill_defaults=with_schema_defaults)
     if plan.continues:
         refuse_finished(plan, cfg.max_iterations)
+    if device == "cpu" and not sweep_job:  # a sweep's jobs were estimated together when it started (cli)
+        done = int(plan.state.get("iter", 0)) if plan.state else 0
+        check_cpu_budget([cpu_training_s(cfg, done)], cfg.max_cpu_hours, describe_sizes([cfg]))
     if main_rank and not ctx.holds(plan.run_dir):
         ctx.lock(plan.run_dir)
     seed_everything(cfg.seed)
@@ -292,11 +296,25 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
     return [argv[0], *rest, *jobs[0]]
 
 
+def multirun_overrides(argv: list[str]) -> list[str] | None:
+    """The overrides of a `-m` launch that will run jobs (not --cfg, --help or --info), else None."""
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args = get_args_parser().parse_args(argv[1:])
+    except SystemExit:  # Hydra reports a malformed command line in its own words
+        return None
+    return list(args.overrides) if args.multirun and not (args.cfg or args.help or args.info) else None
+
+
 def cli() -> None:
     """`bmimic-train` and `python -m bmimic.train`: the Hydra app with bmimic's checks around it."""
     try:
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
-    except MissingExtraError as e:
+        sweep = multirun_overrides(sys.argv)
+        if sweep is not None:
+            check_sweep(sweep)  # a sweep that would train for days on this CPU is refused before any job
+    except (MissingExtraError, BudgetError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     sys.argv = inspect_sweep_argv(sys.argv)

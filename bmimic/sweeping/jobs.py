@@ -92,6 +92,14 @@ def sweep_overrides(overrides: Sequence[str], config_dir: str | os.PathLike = CO
         return _expand(loader, config_name, overrides)[1]
 
 
+def composed_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
+                  config_name: str = "train") -> list[DictConfig]:
+    """Each job's config of `python -m bmimic.train -m <overrides>`, composed as the launcher will."""
+    with _config_loader(config_dir, config_name) as loader:
+        master, batch = _expand(loader, config_name, overrides)
+        return [loader.load_sweep_config(master, list(job_overrides)) for job_overrides in batch]
+
+
 def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
               config_name: str = "train") -> tuple[Path, list[Job]]:
     """(sweep folder, jobs) of `python -m bmimic.train -m <overrides>`, without running anything.

@@ -26,7 +26,7 @@ from bmimic.run_folder import (
 )
 from bmimic.training.checkpoints import is_latest, load_checkpoint_file, load_newest_intact
 
-RESUME_FREE_KEYS = ("resume", "resume_allow_changes", "trust_checkpoint", "device", "progress_bar", "logger",
+RESUME_FREE_KEYS = ("resume", "resume_allow_changes", "trust_checkpoint", "device", "progress_bar", "logger", "max_cpu_hours",
                     "wandb_project", "max_iterations", "time_limit_s", "run_name", "sweep_name", "ppo.save_interval",
                     "eval.every_iters")
 """Keys a resume may change without naming them in resume_allow_changes: where and how long to run
