@@ -25,7 +25,7 @@ from analysis import AnalysisError
 from analysis.files import write_csv
 from analysis.load import load_runs
 from analysis.run_files import find_run_dirs
-from bmimic.run_folder import read_metrics, read_provenance
+from bmimic.run_folder import lock_held, read_metrics, read_provenance
 
 log = logging.getLogger("analysis.index")
 
@@ -62,10 +62,12 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
         metrics = read_metrics(run_dir)  # {} when absent or broken: the run's status says why
         provenance = read_provenance(run_dir)
         git = provenance.get("git") if isinstance(provenance.get("git"), dict) else {}
+        dead = run.status == "running" and not lock_held(run_dir)  # killed: no process holds its lock
         rows.append({
             "job": run_dir.relative_to(sweep_dir).as_posix() if run_dir != sweep_dir else ".",
             **{c: getattr(run, c) for c in ("arm", "seed", "status", "error", "iteration", "sampler",
                                              "overrides", "included", "problem")},
+            **({"status": "dead"} if dead else {}),
             **{k: metrics.get(k) for k in METRIC_KEYS},
             "git_commit": provenance.get("git_commit", git.get("commit")),
             "git_dirty": provenance.get("git_dirty", git.get("dirty")),

@@ -88,7 +88,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
 
     if row["status"] == "failed":
         problems.append(f"failed: {row['error']}" if row["error"] else "failed")
-    elif row["status"] not in ("done", "running") and row["status"] != "unknown":
+    elif row["status"] not in ("done", "running", "interrupted") and row["status"] != "unknown":
         problems.append(f"status {row['status']!r}")
     problems += [p for p in (table_problem(run_dir, t) for t in NEEDED_TABLES) if p]
     row["problem"] = "; ".join(problems) if problems else None

@@ -280,9 +280,9 @@ def runs_section(runs: pd.DataFrame) -> list[str]:
     """The runs per arm and status, the running ones included and the ones left out, with why."""
     counts = runs.groupby(["arm", "status"]).size().unstack(fill_value=0).reset_index()
     lines = ["## Runs", "", md_table(counts), ""]
-    running = runs[runs["included"] & (runs["status"] == "running")]
+    running = runs[runs["included"] & runs["status"].isin(["running", "interrupted"])]
     if len(running):
-        lines += ["Still running, included with their partial tables (marked `running`):", ""]
+        lines += ["Still running or interrupted (to be resumed), included with their partial tables:", ""]
         lines += [f"- `{r.arm}` seed {r.seed}: up to iteration {r.iteration} (`{r.run_dir}`)" for r in running.itertuples()]
         lines.append("")
     excluded = runs[~runs["included"]]

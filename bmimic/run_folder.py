@@ -180,7 +180,8 @@ def now() -> str:
 
 
 def write_status(run_dir: str | os.PathLike, status: str, iteration: int = 0, error: str | None = None) -> None:
-    """status.json: `running`, `done` or `failed` (with the error's one-line message).
+    """status.json: `running`, `done`, `interrupted` (stopped by a signal after `iteration`, with a
+    checkpoint there) or `failed` (with the error's one-line message).
 
     On a full disk the atomic write (a new file) fails; the status is then rewritten in place, in the
     blocks the file already holds, so that a run stopped by a full disk is never left `running`."""
@@ -308,6 +309,19 @@ def _same_file(f, path: Path) -> bool:
     except OSError:
         return False
     return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def lock_held(run_dir: str | os.PathLike) -> bool:
+    """A live process holds the run's lock (trains it); probed with a shared lock, released at once. No
+    lock file, or a filesystem without locks: not held."""
+    try:
+        with open(Path(run_dir) / LOCK) as f:
+            fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)  # closing the file releases it
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    return False
 
 
 def check_folder_name(key: str, name: object) -> str | None:

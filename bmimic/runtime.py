@@ -66,6 +66,19 @@ def init_distributed() -> tuple[int, int]:
     return torch.distributed.get_rank(), world
 
 
+def any_rank(flag: bool, device: Any) -> bool:
+    """`flag` on any rank: one scalar all-reduce under torchrun, so that every rank stops after the same
+    iteration (ranks' clocks and signals differ; a rank that went on alone would wait forever)."""
+    import torch
+
+    if not (torch.distributed.is_available() and torch.distributed.is_initialized()
+            and torch.distributed.get_world_size() > 1):
+        return flag
+    t = torch.tensor(float(flag), device=device)
+    torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
+    return bool(t.item())
+
+
 def exit_rank(code: int) -> None:
     """End a torchrun rank whose work is written and whose process group is destroyed: flush and
     exit without the interpreter's teardown. C++ static destructors (gloo, Warp) run at a normal exit

@@ -40,17 +40,20 @@ from bmimic.runtime import exit_rank, init_distributed, resolve_device, seed_eve
 from bmimic.sweeping.jobs import sweep_overrides
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import build_evaluator, build_task, build_trainer, build_training
+from bmimic.training.interrupts import StopSignals, TrainingInterrupted
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
-from bmimic.training.session import RunContext, commit, record_failure
+from bmimic.training.session import RunContext, commit, discard_launch_dir, record_failure
 
 log = logging.getLogger("bmimic.train")
 
 
 def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunContext | None = None,
-          stop_rule: Callable | None = None) -> float:
+          stop_rule: Callable | None = None, stop: StopSignals | None = None) -> float:
     """Train in a fresh run folder (`launch_dir`) or continue the run `cfg.resume` names; returns the
     final evaluated failure rate. `stop_rule(trainer, summary) -> bool`, if given, is called after each
-    periodic evaluation and ends training when it returns True (bmimic.race).
+    periodic evaluation and ends training when it returns True (bmimic.race). A signal (`stop`) ends the
+    current iteration: the run gets a checkpoint, its tables and status `interrupted`, and
+    TrainingInterrupted is raised.
 
     Nothing is written into any run folder until every check has passed, the checkpoint (if any) is
     loaded into the built trainer and the config is compared with the one it was trained with: a
@@ -108,10 +111,17 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     if plan.state is not None:
         trainer.restore(plan.state, plan.checkpoint, allowed)
     trainer.after_evaluation = stop_rule
-    if main_rank:
-        commit(ctx, plan, resolved, device, changes, task.motion)
     try:
-        trainer.learn()
+        if stop is not None and stop.requested:  # during the build (a first start compiles for minutes)
+            raise TrainingInterrupted(stop, None, run_dir)
+        if main_rank:
+            commit(ctx, plan, resolved, device, changes, task.motion)
+        trainer.learn(signals=stop)
+        if trainer.interrupted:
+            if main_rank:
+                trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
+                write_status(run_dir, "interrupted", trainer.progress.iteration)
+            raise TrainingInterrupted(stop, trainer.progress.iteration, run_dir)
         final = trainer.progress.last_eval
         # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
         # their graphs and leave the process group meanwhile, and return NaN.
@@ -234,7 +244,9 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
     ctx = RunContext(launch_dir)
     ctx.hydra_record = hydra_record(cfg)
     outcome, message = "failed", None
+    stop = StopSignals()
     try:
+        stop.__enter__()  # from here a signal ends the current iteration, not the process (interrupts.py)
         check_config(cfg)
         if multirun:
             previous = read_status(launch_dir)
@@ -251,9 +263,18 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
             if resume_request(cfg.resume) is None:
                 cfg.resume = "true"  # an interrupted job continues from its own last checkpoint
             gpu_slots.pin_job_to_gpu()  # joblib workers: one GPU per slot, before anything initialises CUDA
-        result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx, stop_rule=stop_rule)
+        result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx, stop_rule=stop_rule, stop=stop)
         outcome = "done"
         return result
+    except TrainingInterrupted as e:  # the run has its checkpoint, tables and status; a sweep stops here too
+        outcome, message = "interrupted", str(e)
+        if e.iteration is None and not multirun and int(os.environ.get("RANK", "0")) == 0:
+            ctx.release()
+            discard_launch_dir(ctx.launch_dir)
+        if int(os.environ.get("RANK", "0")) == 0:
+            print(message, file=sys.stderr)
+        stop.chain()  # a launcher's handler of this signal (submitit: requeue the job, then exit)
+        sys.exit(e.exit_code)
     except user_errors() as e:
         message = first_line(e)
         record_failure(ctx, multirun, message)
@@ -269,6 +290,7 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
             return math.nan
         raise
     finally:
+        stop.__exit__()
         ctx.release()
         if multirun:  # analysis.index.SweepIndexCallback then rebuilds the sweep's index.csv
             record_job_outcome(launch_dir, outcome, message)

@@ -15,7 +15,7 @@ from typing import Sequence
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bmimic import CONF_DIR, BmimicError
-from bmimic.run_folder import read_status
+from bmimic.run_folder import lock_held, read_status
 
 SWEEPS_DIR = CONF_DIR / "sweep"
 
@@ -144,6 +144,8 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
                 raise SweepListError(f"job {num} ({' '.join(job_overrides)}): {msg}") from None
             status = read_status(run_dir)
             state = status.get("status")
+            if state == "running" and not lock_held(run_dir):
+                state = "dead"  # its status says running, but no process holds its lock: killed
             jobs.append(Job(num, tuple(job_overrides), run_dir, "new" if state == "missing" else state,
                             status.get("iteration")))
     finally:

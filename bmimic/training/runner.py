@@ -33,7 +33,7 @@ from bmimic.run_folder import (
     table_path,
     write_status,
 )
-from bmimic.runtime import rng_state, set_rng_state
+from bmimic.runtime import any_rank, rng_state, set_rng_state
 from bmimic.sampling import diagnostics
 from bmimic.training.checkpoints import (
     CHECKPOINT_FORMAT,
@@ -117,6 +117,7 @@ class Trainer:
         self.learn_started_unix_s: float | None = None
         self.eval_time_s = 0.0
         self.health = Health(env.num_envs * self.ppo_cfg.num_steps_per_env)
+        self.interrupted = False  # learn() stopped early on a signal (bmimic.training.interrupts)
 
     # ------------------------------------------------------------------ checkpoints
     def meta(self) -> dict:
@@ -267,8 +268,9 @@ class Trainer:
         sampler.observe_eval(failed > 0, iterations)
 
     # ------------------------------------------------------------------ the loop
-    def learn(self) -> None:
-        """Train from the current iteration to `max_iterations` (or until `time_limit_s` of training)."""
+    def learn(self, signals=None) -> None:
+        """Train from the current iteration to `max_iterations` (or until `time_limit_s` of training, or
+        until a stop was requested of `signals` (training.interrupts.StopSignals): `interrupted` is then True)."""
         env, alg, cfg = self.env, self.alg, self.cfg
         time_limit_s = cfg.time_limit_s
         if self.ppo_cfg.init_at_random_ep_len and self.progress.iteration == 0:
@@ -308,13 +310,7 @@ class Trainer:
             self.progress.iteration = it + 1
             self.progress.env_steps += steps_per_it
             self.progress.wall_time_s += t2 - t0
-            out_of_time = time_limit_s is not None and self.progress.wall_time_s >= time_limit_s
-            if self.runner.is_distributed and time_limit_s is not None:
-                # Every rank stops after the same iteration (ranks' clocks differ; a rank that went
-                # on alone would wait forever in the next collective).
-                flag = torch.tensor(float(out_of_time), device=self.device)
-                torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
-                out_of_time = bool(flag.item())
+            out_of_time = time_limit_s is not None and any_rank(self.progress.wall_time_s >= time_limit_s, self.device)
             done = self.progress.iteration == end_it or out_of_time
             self._record_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
             every = cfg.eval.every_iters
@@ -330,6 +326,9 @@ class Trainer:
             if out_of_time:
                 log.info("time limit of %.0f s reached after %d iterations", time_limit_s, self.progress.iteration)
             if out_of_time or stop:
+                break
+            if not done and signals is not None and any_rank(signals.requested, self.device):
+                self.interrupted = True
                 break
         self.logger.end()
 

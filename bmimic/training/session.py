@@ -119,6 +119,9 @@ def note_previous_attempt(run_dir: str | os.PathLike, status: dict) -> None:
     elif state == "running":
         append_error_log(run_dir, f"previous attempt stopped while running (iteration {status.get('iteration')}, "
                                   f"updated {status.get('updated')}): killed, preempted or timed out; resuming")
+    elif state == "interrupted":
+        append_error_log(run_dir, f"previous attempt interrupted by a signal after iteration {status.get('iteration')} "
+                                  f"(updated {status.get('updated')}), with a checkpoint there; resuming")
 
 
 def record_failure(ctx: RunContext, multirun: bool, message: str, details: str = "") -> None:

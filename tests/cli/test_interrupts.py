@@ -1,0 +1,217 @@
+"""Ctrl-C and SIGTERM end the current iteration: the run gets a checkpoint, its tables and status
+`interrupted`, one line is printed and the exit status is 130 / 143; a resume loses no completed
+iteration. A launcher's own signal (submitit's SIGUSR2: requeue) runs after that checkpoint. The dry
+run and the sweep index tell a dead job (status running, no lock holder) from a running one."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pandas as pd
+import pytest
+
+from bmimic.run_folder import lock_held, lock_run, write_status
+from bmimic.training.interrupts import StopSignals
+from tests.cli.test_sweeps import hydra_config_restored  # noqa: F401  (a fixture)
+from tests.conftest import REPO, TINY, cli_env, run_train, wait_for
+
+
+def _status(run) -> dict:
+    return json.loads((run / "status.json").read_text())
+
+
+def _iterations(run) -> list[int]:
+    return pd.read_parquet(run / "train_metrics.parquet")["iteration"].tolist()
+
+
+# ----------------------------------------------------------------------------------------- the handlers
+def test_the_first_signal_asks_to_stop_and_the_second_stops():
+    with StopSignals() as stop:
+        assert not stop.requested
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.01)  # the handler runs in this (the main) thread at the next bytecode
+        assert stop.requested and stop.name == "SIGTERM" and stop.exit_code == 143
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)  # a second signal: SIGINT's default, at once
+            time.sleep(1)
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # restored
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_launchers_handler_runs_after_the_stop():
+    calls = []
+    previous = signal.signal(signal.SIGUSR2, lambda signum, frame: calls.append(signum))
+    try:
+        with StopSignals() as stop:
+            os.kill(os.getpid(), signal.SIGUSR2)
+            time.sleep(0.01)
+            assert stop.requested and calls == []  # held back until the checkpoint is written
+            stop.chain()
+        assert calls == [signal.SIGUSR2] and stop.exit_code == 128 + signal.SIGUSR2
+    finally:
+        signal.signal(signal.SIGUSR2, previous)
+
+
+# ------------------------------------------------------------------------------- training, in this process
+def test_sigterm_mid_run_checkpoints_the_iteration_and_a_resume_loses_nothing(tmp_path, monkeypatch):
+    from bmimic.training.runner import Trainer
+
+    record = Trainer._record_iteration
+
+    def record_then_signal(self, it, *args, **kwargs):
+        row = record(self, it, *args, **kwargs)
+        if it == 2:  # SLURM's SIGTERM arrives during iteration 3 (index 2) of 8
+            os.kill(os.getpid(), signal.SIGTERM)
+        return row
+
+    monkeypatch.setattr(Trainer, "_record_iteration", record_then_signal)
+    run = tmp_path / "run"
+    overrides = [*TINY, "max_iterations=8", "ppo.save_interval=1000", "logger=none", f"hydra.run.dir={run}"]
+    code, out = run_train(*overrides)
+    assert code == 143, out[-3000:]
+    assert out.strip().splitlines()[-1].startswith("interrupted by SIGTERM after iteration 3: checkpoint")
+    assert "Traceback" not in out
+    assert _status(run)["status"] == "interrupted" and _status(run)["iteration"] == 3
+    assert (run / "checkpoints" / "model_3.pt").exists() and not (run / "metrics.json").exists()
+    before = pd.read_parquet(run / "train_metrics.parquet")
+    assert before["iteration"].tolist() == [0, 1, 2]  # every completed iteration's row was written
+
+    monkeypatch.setattr(Trainer, "_record_iteration", record)
+    code, out = run_train(*TINY, "max_iterations=8", "logger=none", f"resume={run}", f"hydra.run.dir={tmp_path / 'x'}")
+    assert code == 0, out[-3000:]
+    assert _status(run)["status"] == "done" and _iterations(run) == list(range(8))
+    after = pd.read_parquet(run / "train_metrics.parquet")
+    pd.testing.assert_frame_equal(after.iloc[:3].reset_index(drop=True), before)  # kept as they were
+
+
+# --------------------------------------------------------------------------------------- dead or running
+def test_a_lock_is_held_only_while_a_process_holds_it(tmp_path):
+    assert not lock_held(tmp_path)  # no lock file
+    write_status(tmp_path, "running", 5)
+    held = lock_run(tmp_path)  # what a live trainer holds
+    try:
+        assert lock_held(tmp_path)
+    finally:
+        held.close()
+    assert not lock_held(tmp_path)  # a dead trainer's lock died with it
+    again = lock_run(tmp_path)
+    assert again is not None  # the probe left nothing held behind
+    again.close()
+
+
+def test_the_dry_run_and_the_index_say_dead(tmp_path, hydra_config_restored):  # noqa: F811
+    from analysis.index import build_index
+    from bmimic.sweeping.jobs import list_jobs
+    from tests.analysis.synthetic_runs import write_run
+
+    sweep = tmp_path / "sweep"
+    overrides = ["+sweep=sampler_ablation", "seed=0", f"hydra.sweep.dir={sweep}"]
+    _, jobs = list_jobs(overrides)
+    runs = {j.overrides: j.run_dir for j in jobs}
+    for (job_overrides, run), state in zip(sorted(runs.items()), ("running", "running"), strict=True):
+        write_run(run, sampler="uniform", seed=0, overrides=list(job_overrides), mastery=[10, 20, 30, 40],
+                  status=state)
+    live_run = sorted(runs.values())[0]
+    held = lock_run(live_run)
+    try:
+        _, jobs = list_jobs(overrides)
+        assert {j.run_dir: j.status for j in jobs} == {r: "running" if r == live_run else "dead" for r in runs.values()}
+        index = build_index(sweep).set_index("job")["status"].to_dict()
+        assert sorted(index.values()) == ["dead", "running"]
+    finally:
+        held.close()
+
+
+# ---------------------------------------------------------------------------------- real signals (slow)
+def _train_proc(tmp_path, *overrides):
+    return subprocess.Popen([sys.executable, "-m", "bmimic.train", *TINY, "logger=none", *overrides],
+                            cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_cpu_run_killed_mid_way_resumes_and_loses_no_completed_iteration(tmp_path, sig, code):
+    run = tmp_path / "run"
+    proc = _train_proc(tmp_path, "max_iterations=400", "ppo.save_interval=1000", f"hydra.run.dir={run}")
+    try:
+        wait_for(proc, lambda: _status(run)["status"] == "running", "the run started")
+        time.sleep(3.0)  # a few iterations in
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code, err[-3000:]
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith(f"interrupted by {sig.name} after")
+    done = _status(run)["iteration"]
+    assert _status(run)["status"] == "interrupted" and 0 < done < 400
+    assert _iterations(run) == list(range(done)) and (run / "checkpoints" / f"model_{done}.pt").exists()
+    resumed = subprocess.run([sys.executable, "-m", "bmimic.train", *TINY, "logger=none", f"resume={run}",
+                              f"max_iterations={done + 2}"], cwd=tmp_path, env=cli_env(), capture_output=True,
+                             text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert _status(run)["status"] == "done" and _iterations(run) == list(range(done + 2))
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below `pid` (Linux /proc)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            children = [int(c) for t in os.listdir(f"/proc/{p}/task")
+                        for c in open(f"/proc/{p}/task/{t}/children").read().split()]
+        except OSError:
+            continue
+        out += children
+        todo += children
+    return out
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return open(f"/proc/{pid}/cmdline").read().replace("\0", " ")
+    except OSError:
+        return ""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the job's process in /proc")
+def test_a_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_path):
+    """submitit's local launcher plays SLURM: SIGUSR2 to the job (what SLURM sends before a time limit or
+    on preemption) makes bmimic checkpoint the iteration, then submitit requeues the job, which resumes."""
+    sweep = tmp_path / "sweep"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bmimic.train", "-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=20",
+         *TINY, "logger=none", "sampler=uniform", "max_iterations=60", "ppo.save_interval=1000",
+         f"hydra.sweep.dir={sweep}"], cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, start_new_session=True)
+    job = None
+    try:
+        def started() -> bool:
+            nonlocal job
+            found = [p for p in sweep.rglob("status.json")]
+            job = found[0].parent if found else None
+            return job is not None and _status(job)["status"] == "running"
+
+        wait_for(proc, started, "the submitit job started training")
+        time.sleep(3.0)
+        tasks = [p for p in _descendants(proc.pid) if "submitit.core._submit" in _cmdline(p)]
+        assert len(tasks) == 1, [_cmdline(p) for p in _descendants(proc.pid)]
+        os.kill(tasks[0], signal.SIGUSR2)
+        out, err = proc.communicate(timeout=900)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, err[-3000:]
+    assert _status(job)["status"] == "done" and _iterations(job) == list(range(60))
+    log = (job / "errors.log").read_text()
+    assert "interrupted by a signal after iteration" in log  # the requeued attempt found the checkpoint
+    resumes = json.loads((job / "resumes.json").read_text())
+    stopped_at = resumes[-1]["iteration"]
+    assert 0 < stopped_at < 60 and (job / "checkpoints" / f"model_{stopped_at}.pt").exists()
