@@ -120,7 +120,8 @@ class SweepIndexCallback(Callback):
             return
         try:
             path = write_index(sweep_dir)
-            print(f"sweep index: {path}{_status_summary(path)}")
+            # One closing line per multirun is bmimic.sweeping.outcomes' (with the report command).
+            log.debug("sweep index: %s%s", path, _status_summary(path))
         except Exception as e:  # noqa: BLE001 - rebuildable with python -m analysis.index; never fail the sweep
             log.warning("could not write the sweep index of %s: %s", sweep_dir, e)
 

@@ -87,7 +87,8 @@ class TrainConfig:
     wandb_project: str = "bmimic"
     """W&B project when logger=wandb."""
     progress_bar: bool = True
-    """Show a tqdm progress bar with ETA (off in non-interactive logs if you prefer)."""
+    """On a terminal, a tqdm progress bar with ETA; elsewhere (SLURM logs, pipes), or when false, a
+    console line every few iterations (at most about 50 per run)."""
     verbose: bool = False
     """Also show Warp's start-up and kernel-module lines and rsl-rl's model printouts."""
     data: DataConfig = field(default_factory=DataConfig)

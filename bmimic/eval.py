@@ -13,7 +13,8 @@ start at stratified frames of every bin and run for `horizon_s`; an episode that
 then (or, with eval.max_mpkpe_rel_mm, tracks worse than that on average) is a failure, charged to the
 bin where it happened (bmimic.training.evaluation). Tables go to RUN_DIR/eval/<checkpoint>/
 (latest.pt is named after its iteration, model_<it>, so re-evaluating after more training never
-overwrites an older result):
+overwrites an older result; evaluating the same checkpoint again replaces its folder with a warning,
+and is refused when sim2sim compared a gap against it, unless --force or --out says where):
 
     eval_episodes.parquet  one row per episode (start, end and failure frame and bin, errors)
     eval_bins.parquet      one row per time bin: visits, failures, failure_rate, start counts, errors
@@ -34,12 +35,13 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+from bmimic import BmimicError
 from bmimic.cli_common import add_trust_flag, first_line, user_errors
 from bmimic.console import quiet_warp
 from bmimic.evaluation.report import format_report
 from bmimic.evaluation.saved_run import LoadedRun, checkpoint_label, load_run, load_run_checkpoint
 from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table, write_tables
-from bmimic.run_folder import EVAL_DIR, EVAL_TABLES
+from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR
 
 log = logging.getLogger("bmimic.eval")
 
@@ -95,6 +97,24 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
     return EvalResult(episodes, bins, segments, summary)
 
 
+class EarlierEvaluationError(BmimicError):
+    """An evaluation would replace one that sim2sim compared against."""
+
+
+def keep_earlier(out_dir: Path, run_dir: Path, force: bool) -> None:
+    """An earlier evaluation in `out_dir` is replaced with a warning; one that a sim2sim result of the
+    same checkpoint compared its gap against only with `force` (EarlierEvaluationError otherwise)."""
+    if not (out_dir / EVAL_SUMMARY).exists():
+        return
+    compared = sorted(p.parent for p in (run_dir / SIM2SIM_DIR).glob(f"*/{out_dir.name}/{EVAL_SUMMARY}"))
+    if compared and not force:
+        raise EarlierEvaluationError(
+            f"{out_dir}: holds an earlier evaluation that sim2sim's gap in {compared[0]} was computed against; "
+            "write this one elsewhere with --out DIR, or replace it with --force")
+    log.warning("replacing the earlier evaluation in %s%s", out_dir,
+                f" (the sim2sim gap in {', '.join(map(str, compared))} was computed against it)" if compared else "")
+
+
 def flag_overrides(args: argparse.Namespace) -> list[str]:
     """The convenience flags as dotted overrides (applied after the positional ones, so they win)."""
     out = []
@@ -122,6 +142,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--num-envs", type=int, help="most simultaneous evaluation worlds (eval.max_envs)")
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
     p.add_argument("--out", type=Path, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an earlier evaluation of this checkpoint even when sim2sim compared against it")
     add_trust_flag(p)
     return p
 
@@ -133,8 +155,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     overrides = [*args.overrides, *flag_overrides(args)]
     try:
         run = load_run(args.path, overrides, trust=args.trust_checkpoint)
+        if args.out is None:  # RUN/eval/<checkpoint>: checked before the evaluation's minutes
+            from bmimic.training.checkpoints import load_checkpoint_file
+
+            state = load_checkpoint_file(run.checkpoint, "cpu", args.trust_checkpoint)
+            out_dir = run.run_dir / EVAL_DIR / checkpoint_label(run.checkpoint, state)
+        else:
+            out_dir = args.out
+        keep_earlier(out_dir.resolve(), run.run_dir, args.force)
         result = evaluate(run, overrides, trust=args.trust_checkpoint)
-        out_dir = args.out if args.out is not None else run.run_dir / EVAL_DIR / result.summary["label"]
         write_tables(result, out_dir.resolve())
     except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)

@@ -35,7 +35,14 @@ from bmimic.config import resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.extras import MissingExtraError, check_launcher
-from bmimic.run_folder import RunLockedError, read_metrics, read_status, write_metrics, write_status
+from bmimic.run_folder import (
+    TENSORBOARD_DIR,
+    RunLockedError,
+    read_metrics,
+    read_status,
+    write_metrics,
+    write_status,
+)
 from bmimic.runtime import exit_rank, init_distributed, resolve_device, seed_everything
 from bmimic.sweeping.jobs import sweep_overrides
 from bmimic.sweeping.outcomes import record_job_outcome
@@ -69,6 +76,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     quiet_warp(cfg.verbose)
     device = resolve_device(requested)
     rank, world = init_distributed()
+    if rank != 0 and not cfg.verbose:  # under torchrun rank 0 speaks for the run; the others only warn
+        logging.getLogger().setLevel(logging.WARNING)
     if world > 1:
         if torch.distributed.get_backend() == "nccl":
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
@@ -168,6 +177,9 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s -> %s", metrics["iterations"],
              metrics["wall_time_s"], metrics["final_eval_failure_rate"],
              f"; {broken} broken world-steps were reset" if broken else "", run_dir)
+    if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
+        log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", run_dir, run_dir,
+                 f", tensorboard --logdir {run_dir / TENSORBOARD_DIR} (curves)" if cfg.logger == "tensorboard" else "")
     return float(metrics["final_eval_failure_rate"])
 
 
@@ -278,7 +290,8 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
     except user_errors() as e:
         message = first_line(e)
         record_failure(ctx, multirun, message)
-        print(f"error: {message}", file=sys.stderr)
+        if int(os.environ.get("RANK", "0")) == 0:  # under torchrun every rank refuses alike: one line
+            print(f"error: {message}", file=sys.stderr)
         if multirun:
             return math.nan
         sys.exit(2)

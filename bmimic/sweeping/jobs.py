@@ -197,5 +197,6 @@ def format_jobs(sweep_dir: Path, jobs: Sequence[Job]) -> str:
         counts[job.status] = counts.get(job.status, 0) + 1
     done = counts.get("done", 0)
     summary = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-    lines.append(f"{len(jobs)} jobs ({summary}); a run would train {len(jobs) - done} and skip {done} done")
+    lines.append(f"{len(jobs)} job{'' if len(jobs) == 1 else 's'} ({summary}); a run would train {len(jobs) - done} "
+                 f"and skip {done} done")
     return "\n".join(lines)

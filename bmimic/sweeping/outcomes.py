@@ -60,7 +60,7 @@ def outcome_summary(outcomes: Sequence[dict], sweep_dir: Path) -> tuple[str, lis
     counts: dict[str, int] = {}
     for o in outcomes:
         counts[o["outcome"]] = counts.get(o["outcome"], 0) + 1
-    line = f"{len(outcomes)} jobs: " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+    line = f"{len(outcomes)} job{'' if len(outcomes) == 1 else 's'}: " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
     failed = []
     for o in outcomes:
         if o["outcome"] in FAILED_OUTCOMES:
@@ -99,7 +99,7 @@ class SweepOutcomesCallback(Callback):
         if not outcomes:
             return
         line, failed = outcome_summary(outcomes, sweep_dir)
-        print(line)
+        print(f"{line} -> {sweep_dir}; next: bmimic-report {sweep_dir}")  # the one closing line of a multirun
         if failed:
             print(f"{len(failed)} job(s) failed or were refused:", *failed, sep="\n", file=sys.stderr)
             sys.exit(1)

@@ -1,5 +1,6 @@
-"""Where a run's numbers go besides its tables: TensorBoard or W&B scalars, the progress bar (or a
-console line every 10 iterations) and the warnings about broken worlds.
+"""Where a run's numbers go besides its tables: TensorBoard or W&B scalars, the progress bar on a
+terminal (else a console line every `line_every` iterations, so that SLURM logs and train.log get
+lines, not carriage-return frames) and the warnings about broken worlds.
 
 The Trainer's loop calls one `RunLogger`; the back-end is opened on the first write (`open`), so a
 launch refused before training writes nothing. Under torchrun only rank 0 logs (`enabled`); the
@@ -11,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import sys
 from pathlib import Path
 
 from bmimic.extras import require_extra
@@ -35,6 +37,19 @@ _PREFIXES = {"loss": "Loss", "reward": "Episode_Reward", "termination": "Episode
 """Tag group of the `<prefix>/<name>` columns."""
 
 
+LINES_PER_RUN = 50
+"""Without a progress bar, about this many console lines per run at most."""
+
+
+def line_every(iterations: int) -> int:
+    """Iterations between console lines: the smallest of 1, 2, 5, 10, 20, 50, ... giving at most
+    LINES_PER_RUN lines for `iterations`."""
+    step = 1
+    while iterations > LINES_PER_RUN * step:
+        step = step * 5 // 2 if str(step).startswith("2") else step * 2
+    return step
+
+
 class RunLogger:
     """TensorBoard / W&B scalars, the console and the progress bar of one training run."""
 
@@ -46,7 +61,8 @@ class RunLogger:
         self.run_dir = Path(run_dir)
         self.run_name = run_name
         self.wandb_project = wandb_project
-        self.progress_bar = progress_bar and enabled
+        self.progress_bar = progress_bar and enabled and sys.stderr.isatty()  # tqdm redraws a terminal line
+        self._line_every, self._end_it = 10, 0
         self.enabled = enabled
         self.writer = None
         self._opened = False
@@ -70,6 +86,7 @@ class RunLogger:
     def start(self, start_it: int, end_it: int) -> None:
         """The training loop begins (a progress bar from `start_it` to `end_it`)."""
         self.open()
+        self._line_every, self._end_it = line_every(end_it - start_it), end_it
         if self.progress_bar and end_it > start_it:
             from tqdm import tqdm
 
@@ -98,10 +115,10 @@ class RunLogger:
             self._bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
                                   fps=f"{row['fps']:.0f}", **({"broken_worlds": int(broken_so_far)}
                                                               if broken_so_far else {}))
-        elif not self.progress_bar and self.enabled and it % 10 == 0:
-            log.info("it %d: episode length %.1f, reward %.3f, failure rate %.3f, lr %.1e, %.0f steps/s", it,
-                     row["mean_episode_length"], row["mean_reward"], row["failure_rate"], row["learning_rate"],
-                     row["fps"])
+        elif self.enabled and ((it + 1) % self._line_every == 0 or it + 1 == self._end_it):
+            log.info("iteration %d/%d: episode length %.1f, reward %.3f, failure rate %.3f, lr %.1e, %.0f steps/s",
+                     it + 1, self._end_it, row["mean_episode_length"], row["mean_reward"], row["failure_rate"],
+                     row["learning_rate"], row["fps"])
 
     def evaluation(self, iteration: int, summary: dict) -> None:
         """One evaluation's summary (bmimic.training.evaluation.summarize)."""

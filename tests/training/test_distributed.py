@@ -77,7 +77,7 @@ def test_torchrun_time_limit_stops_every_rank_at_the_same_iteration(tmp_path):
     overrides = [a for a in TINY if not a.startswith("max_iterations")]
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={WORLD}",
            "-m", "bmimic.train", *overrides, "max_iterations=1000", "time_limit_s=2", "logger=none",
-           f"hydra.run.dir={run}"]
+           "verbose=true", f"hydra.run.dir={run}"]  # verbose: every rank logs, so each says where it stopped
     out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600, env=cli_env())
     log = out.stdout + out.stderr
     assert out.returncode == 0, log[-4000:]
@@ -101,7 +101,11 @@ def test_torchrun_eval_driven_sampler_learns_rank_zeros_evaluation(tmp_path):
            "-m", "bmimic.train", *overrides, "motion=builtin_library", "sampler=phc", "eval.every_iters=1",
            "eval.episodes_per_bin=1", "sampler.rollout_max_s=0.5", "logger=none", f"hydra.run.dir={run}"]
     out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600, env=cli_env())
-    assert out.returncode == 0, (out.stdout + out.stderr)[-4000:]
+    log = out.stdout + out.stderr
+    assert out.returncode == 0, log[-4000:]
+    # Only rank 0 prints: one start-up block, one sampler line, one closing line and its next steps.
+    assert log.count("run folder") == 1 and log.count("sampler phc (PHCSampler)") == 1, log[-4000:]
+    assert log.count("done: ") == 1 and log.count("next: bmimic-eval") == 1 and "rank 1 done" not in log
     rollouts = pd.read_parquet(run / "clip_eval.parquet")  # rank 0's clip rollouts
     failed_evals = rollouts.groupby("clip_name")["failed"].sum()
     ckpt = torch.load(run / "checkpoints" / "latest.pt", weights_only=True, map_location="cpu")

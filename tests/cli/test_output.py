@@ -1,0 +1,84 @@
+"""What the commands say: the next steps after a run and after a sweep (one closing line), a log line
+every few iterations where no terminal shows a progress bar, and an evaluation that sim2sim compared
+against is never replaced silently."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+
+import pytest
+from omegaconf import OmegaConf
+
+from bmimic.eval import EarlierEvaluationError, keep_earlier
+from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, SIM2SIM_DIR
+from bmimic.sweeping.outcomes import OUTCOMES_ENV, SweepOutcomesCallback, record_job_outcome
+from bmimic.training.logger import LINES_PER_RUN, RunLogger, line_every
+from tests.conftest import TINY, run_train
+
+
+@pytest.mark.parametrize(("iterations", "every"), [(1, 1), (4, 1), (50, 1), (51, 2), (101, 5), (1000, 20),
+                                                   (3000, 100), (10000, 200)])
+def test_log_lines_are_at_most_50_a_run_at_round_intervals(iterations, every):
+    assert line_every(iterations) == every
+    assert iterations / every <= LINES_PER_RUN and str(every)[0] in "125" and set(str(every)[1:]) <= {"0"}
+
+
+def test_without_a_terminal_the_log_gets_lines_not_a_progress_bar(tmp_path, caplog, capsys):
+    logger = RunLogger("none", tmp_path, "r", progress_bar=True)  # pytest's stderr is no terminal
+    row = {"nonfinite_resets": 0, "out_of_bounds_resets": 0, "overflow_worlds": 0, "mean_episode_length": 10.0,
+           "mean_reward": 0.5, "failure_rate": 0.1, "learning_rate": 1e-3, "fps": 100.0}
+    with caplog.at_level(logging.INFO, logger="bmimic.training.logger"):
+        logger.start(0, 120)
+        for it in range(120):
+            logger.iteration(it, row, 0)
+        logger.close()
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("iteration ")]
+    assert [int(re.match(r"iteration (\d+)/120", m).group(1)) for m in lines] == [*range(5, 121, 5)]
+    assert "\r" not in capsys.readouterr().err  # no tqdm frames
+
+
+def test_a_run_ends_with_the_commands_that_evaluate_and_report_it(tmp_path):
+    run = tmp_path / "run"
+    code, out = run_train(*TINY, "logger=tensorboard", f"hydra.run.dir={run}")
+    assert code == 0, out[-3000:]
+    hint = [line for line in out.splitlines() if line.startswith("next: ")]
+    assert hint == [f"next: bmimic-eval {run} (evaluate), bmimic-report {run} (report), "
+                    f"tensorboard --logdir {run / 'tensorboard'} (curves)"]
+
+
+def test_a_multirun_closes_with_one_line_naming_the_report(tmp_path, monkeypatch, capsys):
+    sweep = tmp_path / "sweep"
+    config = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}})
+    callback = SweepOutcomesCallback()
+    callback.on_multirun_start(config)
+    for n in range(3):
+        record_job_outcome(sweep / f"job{n}", "done" if n else "done before")
+    callback.on_multirun_end(config)
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out == [f"3 jobs: 2 done, 1 done before -> {sweep}; next: bmimic-report {sweep}"]
+    assert OUTCOMES_ENV not in __import__("os").environ
+
+
+def _evaluated(run, label="model_2"):
+    (run / EVAL_DIR / label).mkdir(parents=True)
+    (run / EVAL_DIR / label / EVAL_SUMMARY).write_text(json.dumps({"label": label}))
+    return run / EVAL_DIR / label
+
+
+def test_an_evaluation_sim2sim_compared_against_is_replaced_only_when_forced(tmp_path, caplog):
+    out = _evaluated(tmp_path)
+    keep_earlier(tmp_path / EVAL_DIR / "model_9", tmp_path, force=False)  # nothing there yet: fine
+    with caplog.at_level(logging.WARNING, logger="bmimic.eval"):
+        keep_earlier(out, tmp_path, force=False)  # no sim2sim result: replaced, but said so
+    assert "replacing the earlier evaluation" in caplog.text
+    gap = tmp_path / SIM2SIM_DIR / "project" / "model_2"
+    gap.mkdir(parents=True)
+    (gap / EVAL_SUMMARY).write_text("{}")
+    with pytest.raises(EarlierEvaluationError, match=r"model_2: holds an earlier evaluation that sim2sim.*--out.*--force"):
+        keep_earlier(out, tmp_path, force=False)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="bmimic.eval"):
+        keep_earlier(out, tmp_path, force=True)
+    assert "sim2sim gap in" in caplog.text and "project" in caplog.text
