@@ -46,7 +46,7 @@ from bmimic.run_folder import (
 from bmimic.runtime import exit_rank, init_distributed, resolve_device, seed_everything
 from bmimic.sweeping.jobs import sweep_overrides
 from bmimic.sweeping.outcomes import record_job_outcome
-from bmimic.task import build_evaluator, build_task, build_trainer, build_training
+from bmimic.task import build_evaluator, build_task, build_trainer, build_training, check_num_envs_fit
 from bmimic.training.interrupts import StopSignals, TrainingInterrupted
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
 from bmimic.training.session import RunContext, commit, discard_launch_dir, record_failure
@@ -100,6 +100,10 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     if plan.continues:
         refuse_finished(plan, cfg.max_iterations)
     if device == "cpu" and not sweep_job:  # a sweep's jobs were estimated together when it started (cli)
+        from bmimic.robot import load_mjmodel
+
+        # A size that cannot fit in memory is refused as such first (its training time is moot).
+        check_num_envs_fit(cfg, load_mjmodel(cfg=cfg.robot), device, cfg.num_envs, cfg.ppo.num_steps_per_env)
         done = int(plan.state.get("iter", 0)) if plan.state else 0
         check_cpu_budget([cpu_training_s(cfg, done)], cfg.max_cpu_hours, describe_sizes([cfg]))
     if main_rank and not ctx.holds(plan.run_dir):
@@ -333,11 +337,15 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
 
 def multirun_overrides(argv: list[str]) -> list[str] | None:
     """The overrides of a `-m` launch that will run jobs (not --cfg, --help or --info), else None."""
+    import contextlib
+    import io
+
     from hydra._internal.utils import get_args_parser
 
     try:
-        args = get_args_parser().parse_args(argv[1:])
-    except SystemExit:  # Hydra reports a malformed command line in its own words
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            args = get_args_parser().parse_args(argv[1:])
+    except SystemExit:  # a malformed command line: Hydra reports it below, in its own words, once
         return None
     return list(args.overrides) if args.multirun and not (args.cfg or args.help or args.info) else None
 
