@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import re
 import shlex
-import subprocess
-import sys
 
 import pytest
 
 from bmimic.sampling.config import variant_names
-from tests.conftest import REPO, cli_env, compose
+from tests.conftest import REPO, compose
 
 README = (REPO / "README.md").read_text()
 
@@ -86,14 +84,4 @@ def test_readme_multi_gpu_examples_compose():
         compose([a for a in shlex.split(overrides) if not a.startswith("hydra")])
 
 
-@pytest.mark.slow
-def test_readme_main_command_runs_on_cpu(tmp_path):
-    """The README's first command, exactly, as a smoke-scale run (it says so when it starts)."""
-    command = setup_commands()[0].split("&&")[1].strip()
-    out = subprocess.run(shlex.split(command.replace("python", sys.executable, 1)), cwd=tmp_path,
-                         capture_output=True, text=True, timeout=1200, env=cli_env())
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert "smoke-scale run" in out.stderr + out.stdout
-    runs = list((tmp_path / "outputs" / "runs" / "default").iterdir())
-    assert len(runs) == 1 and (runs[0] / "metrics.json").exists()
-    assert '"done"' in (runs[0] / "status.json").read_text()
+# The README's commands run, the first one exactly as written: tests/test_readme_commands.py (slow).

@@ -1,4 +1,5 @@
-"""Every command in the README's bash blocks runs, so that the README cannot go stale.
+"""Every command in the README's bash blocks runs, so that the README cannot go stale (the README's
+first command, `python -m bmimic.train`, exactly as written).
 
 Each command line (continuations joined, `&&` chains split, console scripts read as their `python -m`
 form) is either run here, in order, in one temporary folder, on the CPU at smoke scale (training
@@ -45,6 +46,12 @@ SKIP = [
 ]
 """(pattern, why) of the README lines that cannot run on a CPU test machine."""
 
+EXPECT = {
+    r"^python -m bmimic\.train$": "smoke-scale run",  # the first one, run exactly as written: it says so
+    r"motion\.clips=\[\{path: a\.csv": "library of 2 clips (a, b)",
+}
+"""What a command's output must say, beyond exit status 0."""
+
 DATA_MOTIONS = re.compile(r"motion=lafan_|dance1_subject1\.csv")
 """Lines that need the LAFAN1 clips (not shipped); run when they are here, else skipped as such."""
 
@@ -57,6 +64,8 @@ class Workspace:
     runs: list[Path] = field(default_factory=list)
     resumes: int = 0
     examples: int = 0
+    exact: bool = False
+    """The README's first command has run exactly as written (no smoke overrides)."""
     ran: list[tuple[str, float]] = field(default_factory=list)
     """(command, seconds) of every command run."""
     skipped: list[tuple[str, str]] = field(default_factory=list)
@@ -157,12 +166,15 @@ def run_line(command: str, ws: Workspace, gl_ok: bool) -> None:
     if args[:3] == ["python", "-m", "bmimic.train"] and "-m" in args[3:]:  # a sweep: Hydra's launchers
         _subprocess(command, [sys.executable, "-m", "bmimic.train", *_smoke_train(args[3:], ws)], ws)
     elif args[:3] == ["python", "-m", "bmimic.train"]:
-        train = _smoke_train(args[3:], ws)
+        train = _smoke_train(args[3:], ws) if ws.exact or args[3:] else []
+        ws.exact = True
         before = set(_runs(ws))
         if "motion=library" in train and not (ws.root / "b.npz").exists():
             _library_files(ws)
         code, out = run_train(*train, cwd=ws.cwd or ws.root)
         assert code == 0, f"{command}\n  ran as: bmimic.train {' '.join(train)}\n{out[-3000:]}"
+        for pattern, text in EXPECT.items():
+            assert not re.search(pattern, command) or text in out, f"{command}: no {text!r} in\n{out[-3000:]}"
         ws.runs += sorted(set(_runs(ws)) - before)
     elif args[0] == "torchrun":
         tail = args[args.index("bmimic.train") + 1:]

@@ -188,7 +188,7 @@ def _panels(fig) -> dict[str, QuadMesh]:
 def test_a_200_bin_7_arm_study_has_readable_figures(tmp_path, monkeypatch):
     from tests.analysis.synthetic_runs import WIDE_ARMS, make_wide_study
 
-    figures, md = _report_figures(make_wide_study(tmp_path, num_bins=200), tmp_path, monkeypatch)
+    figures, md = _report_figures(make_wide_study(tmp_path, num_bins=200, last_iteration=30), tmp_path, monkeypatch)
     for name, fig in figures.items():
         _check_ticks(fig, name)
         fig.savefig(tmp_path / f"check_{name}", dpi=100)  # what a reader sees (the report's dpi)

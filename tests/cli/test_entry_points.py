@@ -40,7 +40,7 @@ def _plant(folder) -> None:
 
 
 @pytest.mark.parametrize("argv", [["bmimic.eval", "."], ["analysis.report", "."], ["bmimic.train", "--cfg", "job"],
-                                  ["bmimic.launch", "list", "+sweep=gamma"]])
+                                  ["bmimic.launch", "list", "+sweep=gamma", "seed=0"]])
 def test_python_m_never_imports_a_module_planted_in_the_working_directory(tmp_path, argv):
     run = tmp_path / "run"
     run.mkdir()

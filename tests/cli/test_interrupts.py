@@ -65,28 +65,33 @@ def test_sigterm_mid_run_checkpoints_the_iteration_and_a_resume_loses_nothing(tm
 
     def record_then_signal(self, it, *args, **kwargs):
         row = record(self, it, *args, **kwargs)
-        if it == 2:  # SLURM's SIGTERM arrives during iteration 3 (index 2) of 8
+        if it == 1:  # SLURM's SIGTERM arrives during iteration 2 (index 1) of 4
             os.kill(os.getpid(), signal.SIGTERM)
         return row
 
     monkeypatch.setattr(Trainer, "_record_iteration", record_then_signal)
     run = tmp_path / "run"
-    overrides = [*TINY, "max_iterations=8", "ppo.save_interval=1000", "logger=none", f"hydra.run.dir={run}"]
+    overrides = [*TINY, "max_iterations=4", "ppo.save_interval=1000", "logger=none", f"hydra.run.dir={run}"]
     code, out = run_train(*overrides)
     assert code == 143, out[-3000:]
-    assert out.strip().splitlines()[-1].startswith("interrupted by SIGTERM after iteration 3: checkpoint")
+    assert out.strip().splitlines()[-1].startswith("interrupted by SIGTERM after iteration 2: checkpoint")
     assert "Traceback" not in out
-    assert _status(run)["status"] == "interrupted" and _status(run)["iteration"] == 3
-    assert (run / "checkpoints" / "model_3.pt").exists() and not (run / "metrics.json").exists()
+    assert _status(run)["status"] == "interrupted" and _status(run)["iteration"] == 2
+    assert (run / "checkpoints" / "model_2.pt").exists() and not (run / "metrics.json").exists()
     before = pd.read_parquet(run / "train_metrics.parquet")
-    assert before["iteration"].tolist() == [0, 1, 2]  # every completed iteration's row was written
+    assert before["iteration"].tolist() == [0, 1]  # every completed iteration's row was written
 
     monkeypatch.setattr(Trainer, "_record_iteration", record)
-    code, out = run_train(*TINY, "max_iterations=8", "logger=none", f"resume={run}", f"hydra.run.dir={tmp_path / 'x'}")
+    code, out = run_train(*TINY, "max_iterations=4", "logger=tensorboard", f"resume={run}",
+                          f"hydra.run.dir={tmp_path / 'x'}")
     assert code == 0, out[-3000:]
-    assert _status(run)["status"] == "done" and _iterations(run) == list(range(8))
+    assert _status(run)["status"] == "done" and _iterations(run) == list(range(4))
     after = pd.read_parquet(run / "train_metrics.parquet")
-    pd.testing.assert_frame_equal(after.iloc[:3].reset_index(drop=True), before)  # kept as they were
+    pd.testing.assert_frame_equal(after.iloc[:2].reset_index(drop=True), before)  # kept as they were
+    # A finished run ends with the commands that evaluate and report it.
+    assert [line for line in out.splitlines() if line.startswith("next: ")] == [
+        f"next: bmimic-eval {run} (evaluate), bmimic-report {run} (report), "
+        f"tensorboard --logdir {run / 'tensorboard'} (curves)"]
 
 
 # --------------------------------------------------------------------------------------- dead or running

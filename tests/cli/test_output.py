@@ -1,4 +1,5 @@
-"""What the commands say: the next steps after a run and after a sweep (one closing line), a log line
+"""What the commands say: the next steps after a sweep (one closing line; after a run:
+tests/cli/test_interrupts.py, whose resumed run ends so), a log line
 every few iterations where no terminal shows a progress bar, and an evaluation that sim2sim compared
 against is never replaced silently."""
 
@@ -15,7 +16,6 @@ from bmimic.eval import EarlierEvaluationError, keep_earlier
 from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, SIM2SIM_DIR
 from bmimic.sweeping.outcomes import OUTCOMES_ENV, SweepOutcomesCallback, record_job_outcome
 from bmimic.training.logger import LINES_PER_RUN, RunLogger, line_every
-from tests.conftest import TINY, run_train
 
 
 @pytest.mark.parametrize(("iterations", "every"), [(1, 1), (4, 1), (50, 1), (51, 2), (101, 5), (1000, 20),
@@ -37,15 +37,6 @@ def test_without_a_terminal_the_log_gets_lines_not_a_progress_bar(tmp_path, capl
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("iteration ")]
     assert [int(re.match(r"iteration (\d+)/120", m).group(1)) for m in lines] == [*range(5, 121, 5)]
     assert "\r" not in capsys.readouterr().err  # no tqdm frames
-
-
-def test_a_run_ends_with_the_commands_that_evaluate_and_report_it(tmp_path):
-    run = tmp_path / "run"
-    code, out = run_train(*TINY, "logger=tensorboard", f"hydra.run.dir={run}")
-    assert code == 0, out[-3000:]
-    hint = [line for line in out.splitlines() if line.startswith("next: ")]
-    assert hint == [f"next: bmimic-eval {run} (evaluate), bmimic-report {run} (report), "
-                    f"tensorboard --logdir {run / 'tensorboard'} (curves)"]
 
 
 def test_a_multirun_closes_with_one_line_naming_the_report(tmp_path, monkeypatch, capsys):

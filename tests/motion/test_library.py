@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import pandas as pd
@@ -14,7 +11,7 @@ from bmimic.motion.builtin import generate_builtin
 from bmimic.motion.library import library_entries, load_library
 from bmimic.motion.segments import MotionDataError
 from bmimic.robot import load_mjmodel
-from tests.conftest import TINY, cli_env, train_in_process
+from tests.conftest import TINY, train_in_process
 from tests.motion.test_motion import _csv_rows, _write_csv
 
 
@@ -80,6 +77,7 @@ def test_a_library_is_its_clips_back_to_back(files, model, tmp_path, monkeypatch
         load_library(bad, model, tmp_path / "cache", None, 50.0)
 
 
+@pytest.mark.slow  # trains through the command line (in this process)
 def test_three_clips_train_and_evaluate_per_clip(files, model, tmp_path, monkeypatch):
     clips = "motion.clips=[{path: sway.csv}, {path: easy.npz}, {path: easy4.npz, weight: 2}]"
     run = train_in_process(tmp_path / "run", *[o for o in TINY if not o.startswith("motion=")], "motion=library",
@@ -99,15 +97,3 @@ def test_three_clips_train_and_evaluate_per_clip(files, model, tmp_path, monkeyp
     last = smp[smp["iteration"] == smp["iteration"].max()]
     share = last.groupby("clip")["probability"].sum()
     assert share.to_dict() == pytest.approx({"sway": 0.25, "easy": 0.25, "easy4": 0.5})
-
-
-@pytest.mark.slow
-def test_the_library_command_line_of_the_readme(files, tmp_path):
-    _write_csv(files / "a.csv", _csv_rows(960))  # 32 s: the command line windows it to 30 s
-    generate_builtin(load_mjmodel(), "easy_only", seed=5, duration_s=7.0).save(files / "b.npz")
-    cmd = [sys.executable, "-m", "bmimic.train", "motion=library", "motion.clips=[{path: a.csv, end_s: 30}, {path: b.npz}]",
-           *[o for o in TINY if not o.startswith("motion=")], f"hydra.run.dir={tmp_path / 'run'}", "eval.every_iters=0"]
-    out = subprocess.run(cmd, cwd=files, env=cli_env(), capture_output=True, text=True, timeout=900)
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
-    assert "library of 2 clips (a, b)" in out.stdout + out.stderr
-    assert Path(tmp_path / "run" / "train_metrics.parquet").is_file()

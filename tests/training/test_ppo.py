@@ -242,6 +242,7 @@ def _assert_params_close(got: dict, want: dict) -> None:
         torch.testing.assert_close(got[k], want[k], rtol=1e-4, atol=1e-5, msg=k)
 
 
+@pytest.mark.slow  # two spawned CPU ranks
 @pytest.mark.parametrize("schedule", list(SCHEDULES))
 def test_two_ranks_update_as_one_rank_with_the_union_of_their_data(ranks_and_one, schedule):
     ranks, one = ranks_and_one
