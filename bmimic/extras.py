@@ -11,7 +11,7 @@ Torch-free: the launcher check runs before Hydra starts.
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 from typing import Sequence
 
 from bmimic import BmimicError
@@ -35,14 +35,17 @@ class MissingExtraError(BmimicError):
 
 
 def _importable(module: str) -> bool:
+    """`module` imports (an installed package whose import fails, e.g. a missing shared library,
+    counts as missing: the command would fail on it the same way)."""
     try:
-        return importlib.util.find_spec(module) is not None
-    except (ImportError, ValueError):  # a parent package missing, or a module without a spec
+        importlib.import_module(module)
+    except ImportError:
         return False
+    return True
 
 
 def missing_packages(extra: str) -> list[str]:
-    """The pip packages of `extra` that are not installed."""
+    """The pip packages of `extra` that cannot be imported."""
     return [package for module, package in EXTRAS[extra] if not _importable(module)]
 
 
@@ -56,7 +59,8 @@ def require_extra(extra: str, what: str) -> None:
     option or command that needs it) cannot run for a missing package."""
     missing = missing_packages(extra)
     if missing:
-        raise MissingExtraError(f"{what} needs the {extra} extra ({', '.join(missing)} not installed): "
+        raise MissingExtraError(f"{what} needs the {extra} extra ({', '.join(missing)} not installed or not "
+                                f"importable): "
                                 f"{install_command(extra)}")
 
 

@@ -91,5 +91,5 @@ def test_logger_wandb_logs_through_wandb_once_installed(monkeypatch, tmp_path):
 def test_require_extra_names_every_missing_package(monkeypatch):
     monkeypatch.setitem(sys.modules, "imageio", None)
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
-    with pytest.raises(MissingExtraError, match=r"play needs the video extra \(imageio, imageio-ffmpeg not installed\)"):
+    with pytest.raises(MissingExtraError, match=r"play needs the video extra \(imageio, imageio-ffmpeg not installed or not importable\)"):
         require_extra("video", "play")
