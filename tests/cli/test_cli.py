@@ -62,7 +62,7 @@ def test_help_lists_options_and_documented_keys():
 
 # --------------------------------------------------------------------------------------------- console
 @pytest.mark.slow
-def test_console_is_one_summary_then_the_progress_bar(tmp_path):
+def test_console_is_one_summary_then_iteration_lines_off_a_terminal(tmp_path):
     args = [a for a in TINY if a != "progress_bar=false"] + ["logger=none"]
     quiet = _run("-m", "bmimic.train", *args, f"hydra.run.dir={tmp_path / 'quiet'}", cwd=tmp_path, merge=True)
     assert quiet.returncode == 0, quiet.stdout[-3000:]
@@ -74,7 +74,9 @@ def test_console_is_one_summary_then_the_progress_bar(tmp_path):
                 "motion      easy_only: built-in easy_only; 10.0 s at 50 Hz", "bins        10 time bins of 1 s over 10 s",
                 "sampler     adaptive", f"run folder  {tmp_path / 'quiet'}"):
         assert f"\n  {row}\n" in text, row
-    assert text.index("run folder") < text.index("train:") < text.index("done: 2 iterations")  # then the bar
+    # Captured output is no terminal: lines, not tqdm's carriage-return frames (test_output: the bar on a tty).
+    assert text.index("run folder") < text.index("iteration 1/2: ") < text.index("iteration 2/2: ")
+    assert text.index("iteration 2/2: ") < text.index("done: 2 iterations") and "\r" not in text
     # train.log keeps the timestamps the console leaves out
     assert re.match(r"\[\d{4}-\d\d-\d\d ", (tmp_path / "quiet" / "train.log").read_text())
 

@@ -73,3 +73,15 @@ def test_an_evaluation_sim2sim_compared_against_is_replaced_only_when_forced(tmp
     with caplog.at_level(logging.WARNING, logger="bmimic.eval"):
         keep_earlier(out, tmp_path, force=True)
     assert "sim2sim gap in" in caplog.text and "project" in caplog.text
+
+
+def test_on_a_terminal_the_progress_bar_shows(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    logger = RunLogger("none", tmp_path, "r", progress_bar=True)
+    assert logger.progress_bar
+    logger.start(0, 3)
+    assert logger._bar is not None  # tqdm's bar, redrawn on the terminal line
+    logger.close()
+    assert not RunLogger("none", tmp_path, "r", progress_bar=False).progress_bar

@@ -137,7 +137,9 @@ def test_two_nodes_meet_at_a_c10d_endpoint_through_the_slurm_script(tmp_path):
     env.update(PATH=os.pathsep.join([str(stubs), str(Path(sys.executable).parent), env.get("PATH", "")]),
                SLURM_JOB_ID="4242", SLURM_JOB_NUM_NODES="2", SLURM_JOB_NODELIST="node[1-2]", GPUS_PER_NODE="1",
                RDZV_PORT=str(free_port()), NODE_LOGS=str(tmp_path))
-    out = subprocess.run(["bash", str(REPO / "sweeps" / "slurm_multinode.sh"), *TINY, "logger=none"], cwd=tmp_path,
+    # verbose: every rank logs (rank 1's closing line is compared below); by default only rank 0 prints.
+    out = subprocess.run(["bash", str(REPO / "sweeps" / "slurm_multinode.sh"), *TINY, "logger=none", "verbose=true"],
+                         cwd=tmp_path,
                          capture_output=True, text=True, timeout=600, env=env)
     logs = [(tmp_path / f"node{n}.log").read_text() if (tmp_path / f"node{n}.log").exists() else "" for n in (0, 1)]
     assert out.returncode == 0, out.stderr[-2000:]
