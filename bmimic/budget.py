@@ -65,34 +65,29 @@ def describe_sizes(cfgs: Sequence[Any]) -> str:
     return f"{largest}{c.max_iterations} iterations x {c.num_envs} envs x {c.ppo.num_steps_per_env} steps"
 
 
-def check_sweep(overrides: Sequence[str]) -> None:
-    """Before `-m` launches anything: the sweep's jobs composed as Hydra will, resolved for this machine,
-    and refused together (BudgetError) when their CPU training would exceed max_cpu_hours."""
-    from hydra.errors import HydraException
-    from omegaconf import open_dict
-    from omegaconf.errors import OmegaConfBaseException
+def check_sweep(jobs: Sequence[Any]) -> None:
+    """A multirun's jobs (bmimic.sweeping.jobs.Job, each with its composed config), resolved for this
+    machine, refused together (BudgetError) when their CPU training would exceed max_cpu_hours; jobs
+    already done are not counted. bmimic.launch_guard calls it before any job runs."""
+    from omegaconf import OmegaConf
 
     from bmimic.config import resolve_runtime
     from bmimic.runtime import resolve_device
-    from bmimic.sweeping.jobs import composed_jobs
 
-    cfgs, limits = [], set()
-    devices: dict[str, str] = {}
-    try:
-        for cfg in composed_jobs(overrides):
-            with open_dict(cfg):
-                cfg.pop("hydra", None)
-            device = devices.setdefault(str(cfg.device), resolve_device(str(cfg.device)))
-            if device != "cpu":
-                continue
+    cfgs, devices = [], {}
+    for job in jobs:
+        if job.config is None or job.status == "done":
+            continue
+        requested = str(job.config.device)
+        device = devices.setdefault(requested, resolve_device(requested))
+        if device == "cpu":
+            cfg = OmegaConf.create(OmegaConf.to_container(job.config, resolve=True))
             resolve_runtime(cfg, device)
-            cfgs.append(cfg)
-            limits.add(cfg.max_cpu_hours)
-    except (HydraException, OmegaConfBaseException, BmimicError):
-        return  # a sweep that does not compose: Hydra, or each job, says why in its own words
+            cfgs.append((cfg, job.iteration if job.status != "new" else 0))
     if cfgs:
-        limit = None if None in limits else min(limits)
-        check_cpu_budget([cpu_training_s(c) for c in cfgs], limit, describe_sizes(cfgs))
+        limits = {c.max_cpu_hours for c, _ in cfgs}
+        check_cpu_budget([cpu_training_s(c, done or 0) for c, done in cfgs], None if None in limits else min(limits),
+                         describe_sizes([c for c, _ in cfgs]))
 
 
 __all__ = ["CPU_S_PER_ENV_STEP", "CPU_S_PER_STEP", "SMOKE_HINT", "BudgetError", "check_cpu_budget", "check_sweep", "cpu_training_s",

@@ -133,6 +133,12 @@ def check_resume_allow_changes(cfg) -> None:
             _fail("resume_allow_changes", f"{name!r} is not a config key")
 
 
+def check_seed(cfg) -> None:
+    """The seed is an integer every random stream takes (the one check a sweep's seeds need apart)."""
+    if isinstance(cfg.seed, bool) or not 0 <= cfg.seed <= MAX_SEED:
+        _fail("seed", f"must be an integer in [0, {MAX_SEED}], got {cfg.seed}")
+
+
 def validate(cfg, motion_duration_s: float | None = None) -> None:
     """Check the meaning of a composed, runtime-resolved config; raise ConfigError naming the key."""
     from bmimic.sampling.config import validate_sampler_config
@@ -141,8 +147,7 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
     check_resolvable(cfg)
     check_known_keys(cfg)
     check_finite(cfg)
-    if isinstance(cfg.seed, bool) or not 0 <= cfg.seed <= MAX_SEED:
-        _fail("seed", f"must be an integer in [0, {MAX_SEED}], got {cfg.seed}")
+    check_seed(cfg)
     if cfg.num_envs is None or cfg.num_envs < 1:
         _fail("num_envs", f"must be >= 1, got {cfg.num_envs}")
     if cfg.max_iterations is None or not 0 <= cfg.max_iterations <= MAX_ITERATION:

@@ -7,7 +7,8 @@ creates or writes anything.
 - A multirun (`on_multirun_start`): `sweep_name` is a plain name (the sweep folder stays under
   outputs/sweeps/), and every job is expanded, composed and checked as `python -m bmimic.launch list`
   does (bmimic.sweeping.jobs.check_jobs): a job that would be refused, or two jobs that map to one
-  folder, stop the sweep before any job runs.
+  folder, stop the sweep before any job runs; so does a sweep whose jobs would train longer on this
+  CPU than max_cpu_hours (bmimic.budget).
 
 A refusal is one `error:` line and exit status 2; nothing has been written.
 """
@@ -83,11 +84,13 @@ class LaunchGuard(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from hydra.core.global_hydra import GlobalHydra
 
+        from bmimic.budget import check_sweep
         from bmimic.sweeping.jobs import check_jobs, expand_jobs
 
         try:
             _folder_name(config, "sweep_name")
             jobs = expand_jobs(GlobalHydra.instance().config_loader(), config)
             check_jobs(jobs)
+            check_sweep(jobs)  # a sweep that would train for a day or more on this CPU
         except BmimicError as e:
             _refuse(e)

@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic import CONF_DIR
-from bmimic.budget import BudgetError, check_cpu_budget, check_sweep, cpu_training_s, describe_sizes
+from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
 from bmimic.cli_common import first_line, user_errors
 from bmimic.config import resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
@@ -49,7 +49,7 @@ from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import build_evaluator, build_task, build_trainer, build_training, check_num_envs_fit
 from bmimic.training.interrupts import StopSignals, TrainingInterrupted
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
-from bmimic.training.session import RunContext, commit, discard_launch_dir, record_failure
+from bmimic.training.session import RunContext, commit, record_failure
 
 log = logging.getLogger("bmimic.train")
 
@@ -285,8 +285,8 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
     except TrainingInterrupted as e:  # the run has its checkpoint, tables and status; a sweep stops here too
         outcome, message = "interrupted", str(e)
         if e.iteration is None and not multirun and int(os.environ.get("RANK", "0")) == 0:
+            ctx.discard()  # nothing was written: the launch removes what it created, as a refusal does
             ctx.release()
-            discard_launch_dir(ctx.launch_dir)
         if int(os.environ.get("RANK", "0")) == 0:
             print(message, file=sys.stderr)
         stop.chain()  # a launcher's handler of this signal (submitit: requeue the job, then exit)
@@ -335,29 +335,11 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
     return [argv[0], *rest, *jobs[0]]
 
 
-def multirun_overrides(argv: list[str]) -> list[str] | None:
-    """The overrides of a `-m` launch that will run jobs (not --cfg, --help or --info), else None."""
-    import contextlib
-    import io
-
-    from hydra._internal.utils import get_args_parser
-
-    try:
-        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
-            args = get_args_parser().parse_args(argv[1:])
-    except SystemExit:  # a malformed command line: Hydra reports it below, in its own words, once
-        return None
-    return list(args.overrides) if args.multirun and not (args.cfg or args.help or args.info) else None
-
-
 def cli() -> None:
     """`bmimic-train` and `python -m bmimic.train`: the Hydra app with bmimic's checks around it."""
     try:
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
-        sweep = multirun_overrides(sys.argv)
-        if sweep is not None:
-            check_sweep(sweep)  # a sweep that would train for days on this CPU is refused before any job
-    except (MissingExtraError, BudgetError) as e:
+    except MissingExtraError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     sys.argv = inspect_sweep_argv(sys.argv)

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -31,9 +31,12 @@ class Job:
     run_dir: Path
     """The job's folder: `<hydra.sweep.dir>/<hydra.sweep.subdir>`."""
     status: str
-    """`new` (no status.json yet), or status.json's `running` / `done` / `failed`."""
+    """`new` (no status.json yet), status.json's `running` / `done` / `interrupted` / `failed`, or `dead`
+    (running, but no process holds its lock)."""
     iteration: int | None
     """Last iteration recorded in status.json (None for new jobs)."""
+    config: Any = field(default=None, compare=False, repr=False)
+    """The job's composed config, without its `hydra` node (bmimic.budget estimates from it)."""
 
 
 class SweepListError(BmimicError):
@@ -92,14 +95,6 @@ def sweep_overrides(overrides: Sequence[str], config_dir: str | os.PathLike = CO
         return _expand(loader, config_name, overrides)[1]
 
 
-def composed_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
-                  config_name: str = "train") -> list[DictConfig]:
-    """Each job's config of `python -m bmimic.train -m <overrides>`, composed as the launcher will."""
-    with _config_loader(config_dir, config_name) as loader:
-        master, batch = _expand(loader, config_name, overrides)
-        return [loader.load_sweep_config(master, list(job_overrides)) for job_overrides in batch]
-
-
 def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR,
               config_name: str = "train") -> tuple[Path, list[Job]]:
     """(sweep folder, jobs) of `python -m bmimic.train -m <overrides>`, without running anything.
@@ -121,10 +116,12 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
     SweepListError (one line naming the job) for the first job that would be refused."""
     from hydra.core.hydra_config import HydraConfig
 
+    from bmimic.config_checks import check_seed
+
     batch = _batch(loader, master)
     saved = HydraConfig.instance().cfg
     jobs = []
-    checked = set()
+    checked: set[tuple[str, ...]] = set()
     try:
         for num, job_overrides in enumerate(batch):
             try:
@@ -134,7 +131,9 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
                     cfg.hydra.job.id = f"{cfg.hydra.job.name}_{num}"
                 HydraConfig.instance().set_config(cfg)  # as the launcher does: subdir may use ${hydra:...}
                 arm = tuple(o for o in job_overrides if not o.startswith("seed="))
-                if arm not in checked:  # the seeds of an arm differ by an integer: one check holds for all
+                if arm in checked:  # an arm's jobs differ only in the seed: the other checks hold for all
+                    check_seed(cfg)
+                else:
                     check_job(cfg)
                     checked.add(arm)
                 run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
@@ -147,7 +146,7 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
             if state == "running" and not lock_held(run_dir):
                 state = "dead"  # its status says running, but no process holds its lock: killed
             jobs.append(Job(num, tuple(job_overrides), run_dir, "new" if state == "missing" else state,
-                            status.get("iteration")))
+                            status.get("iteration"), OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])))
     finally:
         if saved is not None:
             HydraConfig.instance().cfg = saved

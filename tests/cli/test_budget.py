@@ -3,6 +3,7 @@ estimate and the overrides that make it a smoke run or accept it; nothing is wri
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from bmimic.budget import (
     check_sweep,
     cpu_training_s,
 )
+from tests.cli.test_sweeps import hydra_config_restored  # noqa: F401  (a fixture)
 from tests.conftest import REPO, TINY, run_train
 
 
@@ -64,20 +66,29 @@ def test_a_study_on_a_cpu_is_refused_before_anything_is_written(tmp_path, args):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_gpu_sweep_is_not_limited(monkeypatch):
+def _jobs(*overrides):
+    from bmimic.sweeping.jobs import list_jobs
+
+    return list_jobs(["+sweep=sampler_ablation", "seed=0", *overrides])[1]
+
+
+def test_a_gpu_sweep_is_not_limited(monkeypatch, hydra_config_restored):  # noqa: F811
     import bmimic.runtime
 
+    jobs = _jobs()
     monkeypatch.setattr(bmimic.runtime, "resolve_device", lambda device: "cuda:0")
-    check_sweep(["+sweep=sampler_ablation", "seed=0"])  # 2 jobs of 10000 iterations: a GPU study, no refusal
+    check_sweep(jobs)  # 2 jobs of 10000 iterations: a GPU study, no refusal
 
 
-def test_a_sweep_within_the_limit_starts(monkeypatch):
+def test_a_sweep_within_the_limit_starts(monkeypatch, hydra_config_restored):  # noqa: F811
     import bmimic.runtime
 
     monkeypatch.setattr(bmimic.runtime, "resolve_device", lambda device: "cpu")
-    check_sweep(["+sweep=sampler_ablation", "max_iterations=4", "seed=0"])  # the README's CPU smoke sweep
+    check_sweep(_jobs("max_iterations=4"))  # the README's CPU smoke sweep
     with pytest.raises(BudgetError, match="this sweep's 2 jobs"):
-        check_sweep(["+sweep=sampler_ablation", "max_iterations=5000", "seed=0"])  # 2 x 51 min
+        check_sweep(_jobs("max_iterations=5000"))  # 2 x 51 min
+    done = [dataclasses.replace(j, status="done") for j in _jobs("max_iterations=5000")]
+    check_sweep(done)  # jobs already done train nothing
 
 
 def test_a_time_limit_caps_the_estimate_and_the_run_trains(tmp_path):

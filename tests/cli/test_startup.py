@@ -1,5 +1,6 @@
-"""The command line answers before the heavy libraries load: composing a config, `--help`, `--cfg job`
-and the sweep dry run import neither torch nor Warp (nor MuJoCo-Warp). Their start-up times are a
+"""The command line answers before the heavy libraries load: composing a config, `--help` and `--cfg job`
+import neither torch nor Warp (nor MuJoCo-Warp); the sweep dry run, which validates every job's env
+terms as the job will, imports torch but not the simulator. Their start-up times are a
 benchmark (docs/benchmarks.md), not a test; what a test can hold is that the slow imports stay out."""
 
 from __future__ import annotations
@@ -57,7 +58,10 @@ runpy.run_module("{argv[0]}", run_name="__main__", alter_sys=True)
 """
     out = _run(code, tmp_path)
     assert "sampler" in out.stdout or "jobs" in out.stdout, out.stdout[-2000:]
-    assert _loaded(out) == []
+    # The dry run validates every job as the job will, its env terms included (their modules use
+    # torch); the simulator it never needs.
+    allowed = ["torch"] if argv[0] == "bmimic.launch" else []
+    assert [m for m in _loaded(out) if m not in allowed] == []
     assert not (tmp_path / "outputs").exists()  # nothing written by a look at the config
 
 
