@@ -16,7 +16,8 @@ def _drop_working_directory() -> None:
         return
     if os.path.realpath(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) == cwd:
         return
-    del sys.path[0]
+    # Every entry that is the working directory: an empty PYTHONPATH entry ("a:" or ":a") adds it again.
+    sys.path[:] = [p for p in sys.path if os.path.realpath(p or ".") != cwd]
 
 
 _drop_working_directory()
