@@ -1,0 +1,296 @@
+"""One job of a training command line: the checks, the run folder, training and the run's record.
+
+`launch(cfg)` is the body of a Hydra app over conf/train.yaml (a single run or one job of a multirun):
+`python -m bmimic.train` calls it as it is, `python -m bmimic.race` with a stopping rule. `train` builds
+the task through the composition root (bmimic.task), trains, and writes metrics and status; nothing is
+written into a run folder before every check has passed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import traceback
+from pathlib import Path
+from typing import Callable
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
+from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
+from bmimic.cli_common import first_line, user_errors
+from bmimic.config import resolve_runtime, with_schema_defaults
+from bmimic.config_checks import advisories, check_composed, validate
+from bmimic.console import quiet_stdout, quiet_warp, summary_block
+from bmimic.run_folder import (
+    TENSORBOARD_DIR,
+    RunLockedError,
+    read_metrics,
+    read_status,
+    write_metrics,
+    write_status,
+)
+from bmimic.runtime import init_distributed, resolve_device, seed_everything
+from bmimic.sweeping.outcomes import record_job_outcome
+from bmimic.task import build_evaluator, build_task, build_trainer, build_training, check_num_envs_fit
+from bmimic.training.interrupts import StopSignals, TrainingInterrupted
+from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
+from bmimic.training.session import RunContext, commit, record_failure
+
+log = logging.getLogger("bmimic.train")  # the command line's logger, whichever entry point runs the job
+
+
+def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunContext | None = None,
+          stop_rule: Callable | None = None, stop: StopSignals | None = None) -> float:
+    """Train in a fresh run folder (`launch_dir`) or continue the run `cfg.resume` names; returns the
+    final evaluated failure rate. `stop_rule(trainer, summary) -> bool`, if given, is called after each
+    periodic evaluation and ends training when it returns True (bmimic.race). A signal (`stop`) ends the
+    current iteration: the run gets a checkpoint, its tables and status `interrupted`, and
+    TrainingInterrupted is raised.
+
+    Nothing is written into any run folder until every check has passed, the checkpoint (if any) is
+    loaded into the built trainer and the config is compared with the one it was trained with: a
+    refused resume leaves the run it names byte-identical.
+    """
+    import torch
+
+    from bmimic.sampling.config import describe as describe_sampler
+
+    ctx = ctx if ctx is not None else RunContext(launch_dir)
+    requested = cfg.device
+    smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
+    quiet_warp(cfg.verbose)
+    device = resolve_device(requested)
+    rank, world = init_distributed()
+    if rank != 0 and not cfg.verbose:  # under torchrun rank 0 speaks for the run; the others only warn
+        logging.getLogger().setLevel(logging.WARNING)
+    if world > 1:
+        if torch.distributed.get_backend() == "nccl":
+            device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
+    resolve_runtime(cfg, device)
+    validate(cfg)
+    if rank == 0:
+        for note in advisories(cfg):
+            log.warning(note)
+    smoke = not device.startswith("cuda") and smoke_defaults
+    main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    allowed = list(cfg.resume_allow_changes or [])
+    plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint),
+                    pinned=ctx.claim is not None and ctx.claim.pinned, config=resolved, allowed=allowed,
+                    fill_defaults=with_schema_defaults)
+    if plan.note:
+        log.warning(plan.note)
+    changes = check_resume_changes(plan, resolved, allowed, fill_defaults=with_schema_defaults)
+    if plan.continues:
+        refuse_finished(plan, cfg.max_iterations)
+    if device == "cpu" and not sweep_job:  # a sweep's jobs were estimated together when it started (cli)
+        from bmimic.robot import load_mjmodel
+
+        # A size that cannot fit in memory is refused as such first (its training time is moot).
+        check_num_envs_fit(cfg, load_mjmodel(cfg=cfg.robot), device, cfg.num_envs, cfg.ppo.num_steps_per_env)
+        done = int(plan.state.get("iter", 0)) if plan.state else 0
+        check_cpu_budget([cpu_training_s(cfg, done)], cfg.max_cpu_hours, describe_sizes([cfg]))
+    if main_rank and not ctx.holds(plan.run_dir):
+        ctx.lock(plan.run_dir)
+    seed_everything(cfg.seed)
+
+    task = build_task(cfg, device)
+    if main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
+        log.info(start_summary(cfg, requested, world, smoke, task.motion, task.layout, plan.run_dir))
+    training = build_training(cfg, device, task)
+    env, layout = training.env, task.layout
+    for line in describe_sampler(cfg.sampler, layout, training.sampler):
+        log.info("%s", line)
+    evaluator = build_evaluator(task) if main_rank else None  # rank 0 evaluates
+    run_dir = plan.run_dir
+    with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
+        trainer = build_trainer(training, evaluator, run_dir, is_main_rank=main_rank, run_config=resolved)
+    if plan.state is not None:
+        trainer.restore(plan.state, plan.checkpoint, allowed)
+    trainer.after_evaluation = stop_rule
+    try:
+        if stop is not None and stop.requested:  # during the build (a first start compiles for minutes)
+            raise TrainingInterrupted(stop, None, run_dir)
+        if main_rank:
+            commit(ctx, plan, resolved, device, changes, task.motion)
+        trainer.learn(signals=stop)
+        if trainer.interrupted:
+            if main_rank:
+                trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
+                write_status(run_dir, "interrupted", trainer.progress.iteration)
+            raise TrainingInterrupted(stop, trainer.progress.iteration, run_dir)
+        final = trainer.progress.last_eval
+        # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
+        # their graphs and leave the process group meanwhile, and return NaN.
+        if not main_rank:
+            final = dict.fromkeys(("eval_failure_rate", "eval_success_rate", "eval_mpkpe_mm",
+                                   "eval_bins_mastered_frac"), math.nan)
+        elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].max()) != trainer.progress.iteration:
+            # (a resume of a run that reached max_iterations already holds its final evaluation)
+            final = trainer.evaluate()
+        robust = robust_evaluation(trainer, build_evaluator(task, robust=True)) if (
+            cfg.eval.robust and main_rank) else {}
+        if main_rank:
+            trainer.save_checkpoint()
+    finally:
+        try:
+            trainer.close()
+        finally:
+            env.close()
+            if world > 1:
+                torch.distributed.destroy_process_group()
+    metrics = {
+        "final_eval_failure_rate": final["eval_failure_rate"],
+        "final_eval_success_rate": final["eval_success_rate"],
+        "final_eval_mpkpe_mm": final["eval_mpkpe_mm"],
+        "final_eval_bins_mastered_frac": final["eval_bins_mastered_frac"],
+        **robust,
+        "iterations": trainer.progress.iteration,
+        "env_steps": trainer.progress.env_steps,
+        "wall_time_s": trainer.progress.wall_time_s,
+        "mean_episode_length": trainer.train_rows[-1]["mean_episode_length"] if trainer.train_rows else math.nan,
+        "max_episode_length": env.max_episode_length,
+        "num_bins": layout.num_bins,
+        "num_envs": cfg.num_envs,
+        "device": device,
+        **trainer.total_resets,
+    }
+    if not main_rank:
+        log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
+                 rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate, run_dir)
+        return float(metrics["final_eval_failure_rate"])
+    write_metrics(run_dir, metrics)
+    write_status(run_dir, "done", trainer.progress.iteration)
+    broken = sum(trainer.total_resets.values())
+    log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s -> %s", metrics["iterations"],
+             metrics["wall_time_s"], metrics["final_eval_failure_rate"],
+             f"; {broken} broken world-steps were reset" if broken else "", run_dir)
+    if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
+        log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", run_dir, run_dir,
+                 f", tensorboard --logdir {run_dir / TENSORBOARD_DIR} (curves)" if cfg.logger == "tensorboard" else "")
+    return float(metrics["final_eval_failure_rate"])
+
+
+def robust_evaluation(trainer, evaluator) -> dict:
+    """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
+    on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
+    from bmimic.run_folder import atomic_write_parquet, table_path
+    from bmimic.training.evaluation import summarize
+
+    policy = trainer.alg.get_policy()
+    policy.eval()
+    p = trainer.progress
+    per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
+    atomic_write_parquet(table_path(trainer.run_dir, "eval_robust"), per_bin)
+    evaluator.env.close()
+    summary = summarize(per_bin, prefix="robust_eval")
+    log.info("robust eval at iteration %d: failure rate %.3f (clean: see eval.parquet)", p.iteration,
+             summary["robust_eval_failure_rate"])
+    return {f"final_{k}": v for k, v in summary.items()}
+
+
+def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: bool, motion, layout,
+                  run_dir: Path) -> str:
+    """The start-up block: device, envs, motion, bins, sampler variant and run folder."""
+    choices = HydraConfig.get().runtime.choices if HydraConfig.initialized() else {}
+    m = cfg.motion
+    names = getattr(layout, "clip_names", ())
+    library = f"library of {len(names)} clips ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})"
+    source = {"builtin": f"built-in {m.builtin}", "lafan": f"LAFAN1 {m.clip}",
+              "library": library}.get(m.source, str(m.path))
+    if m.start_s is not None or m.end_s is not None:
+        source += f", {m.start_s or 0:g}-{'end' if m.end_s is None else format(m.end_s, 'g')} s"
+    variant = choices.get("sampler") or cfg.sampler.name
+    ranks = f" per rank, {world} ranks" if world > 1 else ""
+    title = ("no GPU: this is a smoke-scale run through the whole pipeline; on a GPU the same command "
+             "trains for real" if smoke else "training")
+    return summary_block(title, [
+        ("device", f"{cfg.device} (requested {requested_device})"),
+        ("envs", f"{cfg.num_envs}{ranks}"),
+        ("iterations", f"{cfg.max_iterations} of {cfg.ppo.num_steps_per_env} steps per env"),
+        ("motion", f"{choices.get('motion') or m.name}: {source}; {motion.duration_s:.1f} s at {motion.fps:g} Hz"),
+        ("bins", layout.describe()),
+        ("sampler", variant if variant == cfg.sampler.name else f"{variant} ({cfg.sampler.name})"),
+        ("run folder", str(run_dir)),
+    ])
+
+
+def hydra_record(cfg: DictConfig) -> dict[str, str] | None:
+    """The .hydra files of this launch, from the config as composed (before runtime resolution)."""
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.instance().cfg
+    return {"config.yaml": OmegaConf.to_yaml(cfg), "hydra.yaml": OmegaConf.to_yaml(hc),
+            "overrides.yaml": OmegaConf.to_yaml(hc.hydra.overrides.task)}
+
+
+def check_config(cfg: DictConfig) -> None:
+    """bmimic.config.check_composed with Hydra's group choices (no device, no motion needed)."""
+    check_composed(cfg, HydraConfig.get().runtime.choices if HydraConfig.initialized() else None)
+
+
+def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
+    """The body of `main` (one job of a run or multirun), also for sibling entry points (bmimic.race)."""
+    hc = HydraConfig.get()
+    launch_dir = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
+    ctx = RunContext(launch_dir)
+    ctx.hydra_record = hydra_record(cfg)
+    outcome, message = "failed", None
+    stop = StopSignals()
+    try:
+        stop.__enter__()  # from here a signal ends the current iteration, not the process (interrupts.py)
+        check_config(cfg)
+        if multirun:
+            previous = read_status(launch_dir)
+            if previous.get("status") == "done" and resume_request(cfg.get("resume")) is None:
+                log.info("skipping %s: already done", launch_dir)
+                outcome = "done before"
+                return float(read_metrics(launch_dir).get("final_eval_failure_rate", math.nan))
+            try:
+                ctx.lock(launch_dir)
+            except RunLockedError as e:
+                outcome, message = "locked", str(e)
+                print(f"skipping {launch_dir}: being trained by another process", file=sys.stderr)
+                return math.nan
+            if resume_request(cfg.resume) is None:
+                cfg.resume = "true"  # an interrupted job continues from its own last checkpoint
+            gpu_slots.pin_job_to_gpu()  # joblib workers: one GPU per slot, before anything initialises CUDA
+        result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx, stop_rule=stop_rule, stop=stop)
+        outcome = "done"
+        return result
+    except TrainingInterrupted as e:  # the run has its checkpoint, tables and status; a sweep stops here too
+        outcome, message = "interrupted", str(e)
+        if e.iteration is None and not multirun and int(os.environ.get("RANK", "0")) == 0:
+            ctx.discard()  # nothing was written: the launch removes what it created, as a refusal does
+            ctx.release()
+        if int(os.environ.get("RANK", "0")) == 0:
+            print(message, file=sys.stderr)
+        stop.chain()  # a launcher's handler of this signal (submitit: requeue the job, then exit)
+        sys.exit(e.exit_code)
+    except user_errors() as e:
+        message = first_line(e)
+        record_failure(ctx, multirun, message)
+        if int(os.environ.get("RANK", "0")) == 0:  # under torchrun every rank refuses alike: one line
+            print(f"error: {message}", file=sys.stderr)
+        if multirun:
+            return math.nan
+        sys.exit(2)
+    except Exception as e:
+        message = f"{type(e).__name__}: {e}"
+        record_failure(ctx, multirun, message, traceback.format_exc())
+        if multirun:  # one broken job must not end the sweep; its error is kept in status.json
+            log.error("job failed:\n%s", traceback.format_exc())
+            return math.nan
+        raise
+    finally:
+        stop.__exit__()
+        ctx.release()
+        if multirun:  # analysis.index.SweepIndexCallback then rebuilds the sweep's index.csv
+            record_job_outcome(launch_dir, outcome, message)
