@@ -43,6 +43,8 @@ SKIP = [
     (r"^sbatch ", "needs SLURM (tests/training/test_distributed.py runs the script with a stub srun)"),
     (r"--model my_g1\.xml", "my_g1.xml stands for the user's own MJCF"),
     (r"^export BMIMIC_LAFAN_DIR=/data/", "a placeholder path: the tests read $BMIMIC_LAFAN_DIR when it is set"),
+    (r"bmimic\.race|bmimic-race", "a race trains until its thresholds (minutes on a GPU); tests/cli/test_race.py runs "
+                                  "a tiny one on the CPU"),
 ]
 """(pattern, why) of the README lines that cannot run on a CPU test machine."""
 

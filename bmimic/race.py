@@ -1,0 +1,277 @@
+"""`python -m bmimic.race [race options] [overrides]`: the time to a finished policy.
+
+Trains one job, alone, exactly as `python -m bmimic.train` would with the same overrides (same run
+folder, tables and checkpoints), and records, against wall time from launch (the process's start:
+imports, Warp's kernel compile and the CUDA-graph capture included) and from the first iteration, the
+iterations and env steps at the first evaluation where
+  - evaluated success >= each of --success (default 0.90, 0.95, 0.98, 0.99), and
+  - root-relative MPKPE <= each of --mpkpe-rel-mm (default 40 and 35 mm)
+held for --sustain evaluations in a row (default 2; the time is that of the first of them). Training
+stops once every threshold is reached, at the first evaluation past --budget-s of wall time from
+launch, or at max_iterations. One line per threshold is printed; RUN/race.json (and --json PATH, e.g.
+under docs/bench/) holds them, every evaluation's times and the machine.
+
+    python -m bmimic.race motion=lafan_dance1_full                            # today's defaults
+    python -m bmimic.race --budget-s 900 motion=lafan_dance1_full env=tracking num_envs=8192
+    python -m bmimic.race --json docs/bench/race.json motion=lafan_dance1_full sampler=uniform seed=1
+
+Evaluation runs every RACE_EVAL_EVERY iterations with RACE_EPISODES_PER_BIN episodes per bin unless
+the overrides set eval.every_iters / eval.episodes_per_bin; its wall time counts in the race and is
+also reported on its own (`eval_overhead`). A race measures one process from its launch: no -m, no
+resume, no torchrun.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+
+def _process_start_unix_s() -> float:
+    """When this process started (Linux: /proc, 10 ms resolution); else now (this module's import)."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/stat") as f:
+            boot = next(int(line.split()[1]) for line in f if line.startswith("btime "))
+        return boot + start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return time.time()
+
+
+LAUNCH_UNIX_S = _process_start_unix_s()
+"""The race's clock starts here, before any heavy import."""
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+RACE_EVAL_EVERY = 50
+"""Iterations between evaluations: ~12 s at 4096 envs on an H100, the race's time resolution."""
+RACE_EPISODES_PER_BIN = 16
+"""Stratified episodes per bin: 2112 episodes on the 132-bin dance, one wave of the eval env."""
+DEFAULT_SUCCESS = (0.90, 0.95, 0.98, 0.99)
+DEFAULT_MPKPE_REL_MM = (40.0, 35.0)
+
+
+@dataclass
+class Threshold:
+    """One finish line: `metric` (eval_success_rate, reached when >=; eval_mpkpe_rel_mm, when <=)."""
+
+    metric: str
+    value: float
+    streak: int = 0
+    """Evaluations in a row that met it, up to the latest."""
+    reached_at: dict | None = None
+    """The evaluation record where the sustained run began (None: not yet)."""
+
+    def met(self, summary: dict) -> bool:
+        x = float(summary.get(self.metric, math.nan))
+        return x >= self.value if self.metric == "eval_success_rate" else x <= self.value
+
+    @property
+    def label(self) -> str:
+        if self.metric == "eval_success_rate":
+            return f"success >= {self.value:g}"
+        return f"root-relative MPKPE <= {self.value:g} mm"
+
+
+@dataclass
+class Race:
+    """The stopping rule and the record: `on_evaluation` is bmimic.train's stop_rule."""
+
+    thresholds: list[Threshold]
+    budget_s: float
+    sustain: int = 2
+    launch_unix_s: float = LAUNCH_UNIX_S
+    evaluations: list[dict] = field(default_factory=list)
+    stopped: str = "max_iterations"
+    run_dir: str | None = None
+    first_iteration_unix_s: float | None = None
+    eval_time_s: float = 0.0
+
+    def on_evaluation(self, trainer, summary: dict, now: float | None = None) -> bool:
+        """Record this evaluation; True once every threshold is reached or the budget is spent."""
+        now = time.time() if now is None else now
+        self.run_dir = str(trainer.run_dir)
+        self.first_iteration_unix_s = trainer.learn_started_unix_s
+        self.eval_time_s = float(trainer.eval_time_s)
+        p = trainer.progress
+        record = {
+            "iteration": int(p.iteration), "env_steps": int(p.env_steps),
+            "wall_from_launch_s": now - self.launch_unix_s,
+            "wall_from_first_iteration_s": now - (self.first_iteration_unix_s or self.launch_unix_s),
+            "training_s": float(p.wall_time_s), "evaluation_s": self.eval_time_s,
+            "success_rate": float(summary.get("eval_success_rate", math.nan)),
+            "mpkpe_rel_mm": float(summary.get("eval_mpkpe_rel_mm", math.nan)),
+        }
+        self.evaluations.append(record)
+        for t in self.thresholds:
+            t.streak = t.streak + 1 if t.met(summary) else 0
+            if t.reached_at is None and t.streak >= self.sustain:
+                t.reached_at = self.evaluations[-self.sustain]
+        if all(t.reached_at is not None for t in self.thresholds):
+            self.stopped = "every threshold reached"
+            return True
+        if record["wall_from_launch_s"] >= self.budget_s:
+            self.stopped = f"wall budget of {self.budget_s:g} s from launch"
+            return True
+        return False
+
+    def lines(self) -> list[str]:
+        """One line per threshold, then where the time went."""
+        last = self.evaluations[-1] if self.evaluations else None
+        out = []
+        for t in self.thresholds:
+            r = t.reached_at
+            if r is not None:
+                out.append(f"race: {t.label} at iteration {r['iteration']} ({r['env_steps']:.3g} env steps): "
+                           f"{r['wall_from_launch_s']:.0f} s from launch, {r['wall_from_first_iteration_s']:.0f} s "
+                           "from the first iteration")
+            elif last is not None:
+                out.append(f"race: {t.label} not reached by iteration {last['iteration']} "
+                           f"({last['wall_from_launch_s']:.0f} s from launch; censored)")
+            else:
+                out.append(f"race: {t.label} not reached (no evaluation ran)")
+        summary = self.summary()
+        if summary["startup_s"] is not None:
+            out.append(f"race: start-up {summary['startup_s']:.0f} s (launch to the first iteration); evaluations "
+                       f"{summary['evaluation_s']:.0f} s, {100 * summary['eval_overhead']:.1f}% of the wall time "
+                       f"after start-up; stopped: {self.stopped}")
+        return out
+
+    def summary(self) -> dict:
+        last = self.evaluations[-1] if self.evaluations else {}
+        after_start = last.get("wall_from_first_iteration_s", math.nan)
+        return {
+            "startup_s": (self.first_iteration_unix_s - self.launch_unix_s) if self.first_iteration_unix_s else None,
+            "evaluation_s": self.eval_time_s,
+            "eval_overhead": self.eval_time_s / after_start if after_start and after_start > 0 else math.nan,
+            "wall_total_s": last.get("wall_from_launch_s", math.nan),
+            "stopped": self.stopped,
+        }
+
+    def to_json(self, config: dict, provenance: dict | None) -> dict:
+        return {
+            "kind": "bmimic-race-1",
+            "run_dir": self.run_dir,
+            "sustain": self.sustain,
+            "budget_s": self.budget_s,
+            "config": config,
+            "machine": provenance,
+            **self.summary(),
+            "thresholds": [{"metric": t.metric, "threshold": t.value,
+                            "status": "reached" if t.reached_at else "censored",
+                            **({k: t.reached_at[k] for k in ("iteration", "env_steps", "wall_from_launch_s",
+                                                              "wall_from_first_iteration_s")}
+                               if t.reached_at else {})} for t in self.thresholds],
+            "evaluations": self.evaluations,
+        }
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected finite comma-separated numbers, got {text!r}")
+    return values
+
+
+def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
+    """Race options, and the rest (Hydra overrides of the train config)."""
+    p = argparse.ArgumentParser(prog="python -m bmimic.race", description=__doc__.split("\n\n")[0],
+                                epilog="Every other argument is a Hydra override of the train config.")
+    p.add_argument("--budget-s", type=float, default=3600.0,
+                   help="stop at the first evaluation this many seconds of wall time after launch (default 3600)")
+    p.add_argument("--success", type=_floats, default=DEFAULT_SUCCESS, help="success thresholds, e.g. 0.9,0.99")
+    p.add_argument("--mpkpe-rel-mm", type=_floats, default=DEFAULT_MPKPE_REL_MM,
+                   help="root-relative MPKPE thresholds in mm (default 40,35)")
+    p.add_argument("--sustain", type=int, default=2, help="evaluations in a row a threshold must hold (default 2)")
+    p.add_argument("--json", type=Path, default=None, help="also write the result here (e.g. docs/bench/...json)")
+    args, rest = p.parse_known_args(argv)
+    problems = []
+    if not (math.isfinite(args.budget_s) and args.budget_s > 0):
+        problems.append(f"--budget-s must be a finite number of seconds > 0, got {args.budget_s}")
+    if not all(0.0 < v <= 1.0 for v in args.success):
+        problems.append(f"--success thresholds must lie in (0, 1], got {','.join(map(str, args.success))}")
+    if not all(v > 0 for v in args.mpkpe_rel_mm):
+        problems.append("--mpkpe-rel-mm thresholds must be > 0 mm")
+    if args.sustain < 1:
+        problems.append(f"--sustain must be >= 1, got {args.sustain}")
+    if args.json is not None and (args.json.is_dir() or not args.json.parent.is_dir()):
+        problems.append(f"--json {args.json}: must name a file in an existing folder")
+    for flag in ("-m", "--multirun"):
+        if flag in rest:
+            problems.append("a race times one job from its launch: run seeds or arms as separate commands, not -m")
+    if any(a.split("=", 1)[0].lstrip("+~") == "resume" for a in rest):
+        problems.append("a race measures a run from its launch: resume is not raced")
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        problems.append("a race runs in a single process (not under torchrun)")
+    if problems:
+        print(f"error: {problems[0]}", file=sys.stderr)
+        raise SystemExit(2)
+    return args, rest
+
+
+def race_overrides(rest: list[str]) -> list[str]:
+    """The race's evaluation schedule and run name, unless the overrides set them."""
+    keys = {a.split("=", 1)[0].lstrip("+") for a in rest if "=" in a}
+    extra = [f"{k}={v}" for k, v in (("eval.every_iters", RACE_EVAL_EVERY),
+                                     ("eval.episodes_per_bin", RACE_EPISODES_PER_BIN),
+                                     ("run_name", "race")) if k not in keys]
+    return [*extra, *rest]
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, rest = parse_args(sys.argv[1:] if argv is None else argv)
+    thresholds = ([Threshold("eval_success_rate", v) for v in args.success]
+                  + [Threshold("eval_mpkpe_rel_mm", v) for v in args.mpkpe_rel_mm])
+    race = Race(thresholds, args.budget_s, args.sustain)
+    result: dict = {}
+
+    import hydra
+    from omegaconf import OmegaConf
+
+    from bmimic import CONF_DIR
+    from bmimic.job import launch
+    from bmimic.run_folder import PROVENANCE, atomic_write_json, read_json
+
+    # An absolute config path: the app runs from this module whether started with -m or imported.
+    @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
+    def app(cfg) -> float:
+        out = launch(cfg, stop_rule=race.on_evaluation)
+        result["config"] = {"overrides": rest, "sampler": cfg.sampler.name, "motion": cfg.motion.name,
+                            "env_action_rate": OmegaConf.select(cfg, "env.rewards.action_rate.weight"),
+                            "num_envs": cfg.num_envs, "seed": cfg.seed, "device": cfg.device,
+                            "eval": OmegaConf.to_container(cfg.eval)}
+        return out
+
+    saved = sys.argv
+    sys.argv = [saved[0], *race_overrides(rest)]
+    try:
+        app()
+    except SystemExit as e:  # launch's one-line refusals (exit 2) end the race the same way
+        if e.code not in (0, None):
+            return int(e.code) if isinstance(e.code, int) else 2
+    finally:
+        sys.argv = saved
+    if any(a in rest for a in ("--cfg", "-c", "--info", "-i", "--hydra-help", "--resolve")):
+        return 0  # Hydra printed what was asked; nothing ran
+    if race.run_dir is None:
+        print("error: the race ran no evaluation (eval.every_iters=0, or max_iterations below it)", file=sys.stderr)
+        return 2
+    record = race.to_json(result.get("config", {}), read_json(Path(race.run_dir) / PROVENANCE))
+    atomic_write_json(Path(race.run_dir) / "race.json", record)
+    if args.json is not None:
+        atomic_write_json(args.json, record)
+    for line in race.lines():
+        print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
