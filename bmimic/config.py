@@ -129,6 +129,45 @@ register_configs()
 
 
 # --------------------------------------------------------------------------------------------- runtime
+_UNSET = object()
+
+
+def hydra_overrides(argv: list[str]) -> list[str]:
+    """The overrides of a Hydra command line (its flags and their values left out)."""
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        return list(get_args_parser().parse_args(argv).overrides)
+    except SystemExit:  # a malformed flag: Hydra reports it when it parses the same line
+        return []
+
+
+def check_additions(overrides: list[str]) -> None:
+    """Refuse, in one line, a `+a.b.c=v` whose parent (`a.b`) is null in the composed config: OmegaConf
+    cannot add under None and fails with a bare AssertionError inside Hydra's composition (a traceback
+    on the command line). Composes the config only when such a dotted addition is present."""
+    adds = [o for o in overrides if o.startswith("+") and "=" in o and "." in o.split("=", 1)[0]]
+    if not adds:
+        return
+    from hydra import compose, initialize_config_dir
+
+    from bmimic import CONF_DIR
+
+    register_configs()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("train", overrides=[o for o in overrides if o not in adds and not o.startswith("hydra")])
+    except Exception:  # noqa: BLE001 - anything else: Hydra reports it in its own words when it composes
+        return
+    for override in adds:
+        parts = override.lstrip("+").split("=", 1)[0].split(".")
+        for i in range(1, len(parts)):
+            parent = ".".join(parts[:i])
+            if OmegaConf.select(cfg, parent, default=_UNSET) is None:
+                raise ConfigError(f"{override}: {parent} is null in the config, so nothing can be added under it; "
+                                  f"set {parent} itself (e.g. {parent}=[...] or {parent}={{...}})")
+
+
 def resolve_runtime(cfg, device: str) -> None:
     """Fill the `auto`/null top-level values in place for this machine; called once before
     bmimic.config_checks.validate."""

@@ -31,10 +31,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from omegaconf.errors import OmegaConfBaseException
 
     from bmimic import BmimicError
+    from bmimic.config import check_additions
     from bmimic.extras import check_launcher
 
     try:
         check_launcher(args.overrides)
+        check_additions(args.overrides)
         sweep_dir, jobs = list_jobs(args.overrides)
     except (SweepListError, HydraException, OmegaConfBaseException, BmimicError) as e:
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__

@@ -228,6 +228,13 @@ def race_overrides(rest: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     args, rest = parse_args(sys.argv[1:] if argv is None else argv)
+    from bmimic.config import ConfigError, check_additions, hydra_overrides
+
+    try:
+        check_additions(hydra_overrides(rest))
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     thresholds = ([Threshold("eval_success_rate", v) for v in args.success]
                   + [Threshold("eval_mpkpe_rel_mm", v) for v in args.mpkpe_rel_mm])
     race = Race(thresholds, args.budget_s, args.sustain)

@@ -22,6 +22,7 @@ from omegaconf import DictConfig
 
 import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver of the launchers)
 from bmimic import CONF_DIR
+from bmimic.config import ConfigError, check_additions, hydra_overrides
 from bmimic.extras import MissingExtraError, check_launcher
 from bmimic.job import launch
 from bmimic.runtime import exit_rank
@@ -61,7 +62,8 @@ def cli() -> None:
     """`bmimic-train` and `python -m bmimic.train`: the Hydra app with bmimic's checks around it."""
     try:
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
-    except MissingExtraError as e:
+        check_additions(hydra_overrides(sys.argv[1:]))  # before OmegaConf's bare assertion can fire
+    except (MissingExtraError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     sys.argv = inspect_sweep_argv(sys.argv)

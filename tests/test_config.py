@@ -152,3 +152,17 @@ def test_reward_terms_are_overridable():
     assert lighter == default
     with pytest.raises(ConfigError, match="env.rewards.alive.func"):
         validate(_resolved(["env.rewards.alive.func=is_alivee"]), motion_duration_s=30.0)
+
+
+def test_adding_a_key_under_a_null_node_is_one_line_not_omegaconfs_assertion():
+    # OmegaConf fails with a bare AssertionError inside Hydra's composition (a traceback on the CLI).
+    from bmimic.config import ConfigError, check_additions
+
+    bad = "+env.events.torso_com.interval_range_s.extra_0=1"
+    with pytest.raises(ConfigError, match=r"env\.events\.torso_com\.interval_range_s is null in the config"):
+        check_additions(["sampler=uniform", bad])
+    check_additions(["sampler=uniform", "+seed_note=1", "env.rewards.action_rate.weight=0"])  # nothing to refuse
+    out = subprocess.run([sys.executable, "-m", "bmimic.train", bad, "--cfg", "job"], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 2 and out.stderr.startswith("error: " + bad) and len(out.stderr.splitlines()) == 1
+    assert "Traceback" not in out.stderr

@@ -137,6 +137,13 @@ def _config_property(overrides: list[str], tmp_path: Path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)  # motion caches, if any, land here
     monkeypatch.delenv("BMIMIC_UNSET_GENERATED", raising=False)
     count("config overrides")
+    from bmimic.config import check_additions
+
+    try:  # the CLI's own check before Hydra composes (bmimic.train.cli)
+        check_additions([*BASE, *overrides])
+    except user_errors() as e:
+        one_line(e)
+        return
     try:
         cfg = composed([*BASE, *overrides])
     except (HydraException, OmegaConfBaseException):
