@@ -424,7 +424,7 @@ def cases() -> list[Case]:
     # ---------------------------------------------------------------- sampler group vs name
     add(Case("sampler=uniform sampler.name=adaptive", "train", _train("sampler=uniform", "sampler.name=adaptive"),
              match="sampler.name"))
-    add(Case("sampler.name=beyondmimic under adaptive", "train", _train("sampler.name=beyondmimic"),
+    add(Case("sampler.name=beyondmimic under the default sampler", "train", _train("sampler.name=beyondmimic"),
              match="sampler.name"))
     add(Case("sampler.name=foo", "train", _train("sampler.name=foo"), match="sampler.name"))
     # ---------------------------------------------------------------- each sampler's own keys
@@ -434,7 +434,7 @@ def cases() -> list[Case]:
              _train("sampler=beyondmimic", "sampler.uniform_ratio=0"), match="uniform_ratio"))
     add(Case("sampler=uniform sampler.gamma=0.5", "train", _train("sampler=uniform", "sampler.gamma=0.5"),
              match="gamma"))
-    add(Case("+sampler.alpha under adaptive", "train", _train("+sampler.alpha=0.5"), match="alpha"))
+    add(Case("+sampler.alpha under the default sampler", "train", _train("+sampler.alpha=0.5"), match="alpha"))
     # the peer samplers (issue 24)
     for args, key in ((("sampler=egm", "sampler.power_end=0"), "power_end"),
                       (("sampler=egm", "sampler.uniform_start=1.5"), "uniform_start"),
