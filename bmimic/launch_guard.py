@@ -9,6 +9,7 @@ creates or writes anything.
   does (bmimic.sweeping.jobs.check_jobs): a job that would be refused, or two jobs that map to one
   folder, stop the sweep before any job runs; so does a sweep whose jobs would train longer on this
   CPU than max_cpu_hours (bmimic.budget).
+- Both: a CUDA_VISIBLE_DEVICES that names a GPU twice (CUDA then sees none) is refused first.
 
 A refusal is one `error:` line and exit status 2; nothing has been written.
 """
@@ -50,6 +51,7 @@ class LaunchGuard(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         from bmimic.run_claim import claim, observe
+        from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.training.resume import resume_request
 
         template = str(OmegaConf.to_container(config.hydra.run, resolve=False).get("dir", ""))
@@ -59,6 +61,7 @@ class LaunchGuard(Callback):
                 observe(str(config.hydra.run.dir), pinned)
             return
         try:
+            check_visible_devices()
             if not pinned:
                 _folder_name(config, "run_name")
             try:
@@ -85,9 +88,11 @@ class LaunchGuard(Callback):
         from hydra.core.global_hydra import GlobalHydra
 
         from bmimic.budget import check_sweep
+        from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.sweeping.jobs import check_jobs, expand_jobs
 
         try:
+            check_visible_devices()  # before the budget check, which would blame the CPU
             _folder_name(config, "sweep_name")
             jobs = expand_jobs(GlobalHydra.instance().config_loader(), config)
             check_jobs(jobs)

@@ -18,9 +18,11 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from omegaconf import OmegaConf
+
+from bmimic import BmimicError
 
 log = logging.getLogger("bmimic.launch")
 
@@ -34,6 +36,27 @@ def parse_visible_devices(value: str) -> list[str]:
             break
         devices.append(item)
     return devices
+
+
+class VisibleDevicesError(BmimicError, ValueError):
+    """A CUDA_VISIBLE_DEVICES value under which CUDA would see no GPU although GPUs are named."""
+
+
+def check_visible_devices(environ: Mapping[str, str] | None = None) -> None:
+    """Refuse a CUDA_VISIBLE_DEVICES that names one GPU twice: CUDA then sees no GPU at all, so
+    `device=auto` falls back to the CPU and a GPU sweep is refused as hours of CPU training (seen with
+    `3,0,1,2,3` meant as "more jobs on GPU 3"). Several jobs per GPU are `hydra.launcher.n_jobs`."""
+    environ = os.environ if environ is None else environ
+    value = environ.get("CUDA_VISIBLE_DEVICES")
+    if value is None:
+        return
+    seen: set[str] = set()
+    for device in parse_visible_devices(value):
+        if device in seen:
+            raise VisibleDevicesError(
+                f"CUDA_VISIBLE_DEVICES={value}: names GPU {device} twice, and CUDA then sees no GPU at all; "
+                "name each GPU once (hydra/launcher=joblib_gpus hydra.launcher.n_jobs=N runs several jobs per GPU)")
+        seen.add(device)
 
 
 def visible_gpus(environ: dict[str, str] | None = None) -> list[str]:

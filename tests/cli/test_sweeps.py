@@ -27,7 +27,14 @@ from bmimic import CONF_DIR, launch
 from bmimic.run_folder import append_error_log
 from bmimic.sweeping import gpu_slots
 from bmimic.sweeping import jobs as sweep_jobs
-from bmimic.sweeping.gpu_slots import claim_slot, parse_visible_devices, slot_gpu, slot_order
+from bmimic.sweeping.gpu_slots import (
+    VisibleDevicesError,
+    check_visible_devices,
+    claim_slot,
+    parse_visible_devices,
+    slot_gpu,
+    slot_order,
+)
 from bmimic.sweeping.jobs import list_jobs, sweep_overrides
 from bmimic.training.session import note_previous_attempt
 from tests.conftest import REPO, wait_for
@@ -149,6 +156,24 @@ def test_slot_arithmetic_known_answers():
         slot_order(0, 0)
     with pytest.raises(ValueError):
         slot_gpu(0, [])
+
+
+def test_a_gpu_named_twice_is_refused_in_one_line():
+    for ok in ({}, {"CUDA_VISIBLE_DEVICES": ""}, {"CUDA_VISIBLE_DEVICES": "0,1,2,3"},
+               {"CUDA_VISIBLE_DEVICES": "0,-1,0"}):  # CUDA stops reading at -1: no repeat it would see
+        check_visible_devices(ok)
+    with pytest.raises(VisibleDevicesError, match=r"^CUDA_VISIBLE_DEVICES=3,0,1,2,3: names GPU 3 twice") as e:
+        check_visible_devices({"CUDA_VISIBLE_DEVICES": "3,0,1,2,3"})
+    assert "\n" not in str(e.value) and "n_jobs" in str(e.value)
+
+
+def test_a_gpu_named_twice_stops_a_sweep_before_anything_is_written(tmp_path):
+    sweep = tmp_path / "dup"
+    proc = subprocess.run(sweep_cmd(sweep, "seed=0"), cwd=REPO, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "CUDA_VISIBLE_DEVICES": "0,0"})
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines()[-1].startswith("error: CUDA_VISIBLE_DEVICES=0,0: names GPU 0 twice")
+    assert not sweep.exists()
 
 
 @given(job=st.integers(0, 10_000), n_gpus=st.integers(1, 16), per_gpu=st.integers(1, 4))
