@@ -46,7 +46,12 @@ from analysis.stats import (
     km_median,
     restricted_km_median,
 )
-from bmimic.evaluation.mastery import counts_as_mastered  # the rule training's summary uses too
+from bmimic.run_schema import (  # training's rule too
+    LABELS,
+    REPORTED_ERRORS,
+    SMOOTHNESS_COLUMNS,
+    counts_as_mastered,
+)
 
 MEASURES = ("iteration", "env_steps", "wall_time_s")
 """How time is measured: training iterations, environment steps, seconds of training."""
@@ -266,21 +271,11 @@ def final_rows(df: pd.DataFrame, by=("run_dir",)) -> pd.DataFrame:
     return df[df["iteration"] == last].reset_index(drop=True)
 
 
-ERROR_METRICS = {
-    "mpkpe_rel_mm": "root-relative MPKPE (mm)",
-    "mpkpe_mm": "global MPKPE (mm)",
-    "joint_pos_err_rad": "joint position error (rad)",
-    "joint_vel_err_radps": "joint velocity error (rad/s)",
-    "body_ori_err_rad": "body orientation error (rad)",
-    "ee_pos_err_mm": "end-effector position error (mm)",
-}
+ERROR_METRICS = {c: LABELS[c] for c in REPORTED_ERRORS}
 """eval.parquet tracking-error column -> label (lower is better), in the order the report shows them."""
 
 
-SMOOTHNESS_METRICS = {
-    "action_rate": "action rate (Σ over joints of (a_t − a_{t−1})², per step)",
-    "joint_acc_radps2": "joint acceleration (rad/s², mean over joints)",
-}
+SMOOTHNESS_METRICS = {c: LABELS[c] for c in SMOOTHNESS_COLUMNS}
 """eval.parquet smoothness column -> label (lower is smoother): the policy's own actions and joint motion,
 not a tracking error (bmimic.training.evaluation.SMOOTHNESS_COLUMNS). Tables written before they were
 recorded lack them: the report says "not recorded"."""

@@ -61,8 +61,9 @@ from analysis.speedup_curve import iso_failure, speedup_curve
 from analysis.stats import MIN_SEEDS_IQM, bootstrap_coverage
 from analysis.tables import ReportOptions
 from bmimic import BmimicError
+from bmimic.run_schema import JOINT_VEL_ERR_RADPS, MPKPE_REL_MM
 
-TRACKING_HEADLINE = ("mpkpe_rel_mm", "joint_vel_err_radps")
+TRACKING_HEADLINE = (MPKPE_REL_MM, JOINT_VEL_ERR_RADPS)
 """Tracking errors the Tracking quality section compares between arms in words (position and velocity
 tracking; the policy's smoothness is SMOOTHNESS_METRICS, compared in its own block)."""
 

@@ -18,6 +18,7 @@ from bmimic.run_folder import (
     atomic_write_parquet,
     make_folder,
 )
+from bmimic.run_schema import ERROR_COLUMNS
 
 
 def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
@@ -34,8 +35,6 @@ def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: 
     """One row per episode: where it started and ended, whether and where it failed, how long it lived,
     and its mean errors (raw: Rollouts.episodes of Evaluator.run_episodes or another evaluator;
     layout: the BinLayout it was run with)."""
-    from bmimic.training.evaluation import ERROR_COLUMNS
-
     edges = layout.edges_s.cpu().numpy()
     start_s = raw["start_frame"].to_numpy() / motion.fps
     segment, difficulty = segment_at(motion.segments, start_s)

@@ -53,7 +53,8 @@ def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int
     and per motion frame the steps judged at it and their error sums."""
     import pandas as pd
 
-    from bmimic.training.evaluation import ERROR_COLUMNS, SMOOTHNESS_COLUMNS, Rollouts
+    from bmimic.run_schema import ERROR_COLUMNS, SMOOTHNESS_COLUMNS
+    from bmimic.training.evaluation import Rollouts
 
     rows = pd.DataFrame([e.row for e in episodes])
     rows.insert(0, "bin", np.asarray(start_bins, dtype=np.int64))

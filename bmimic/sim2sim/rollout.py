@@ -10,17 +10,17 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
 
+from bmimic.run_schema import ERROR_COLUMNS, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
 from bmimic.sim2sim.spec import PolicySpec, policy_session
 
 if TYPE_CHECKING:
     from bmimic.motion.motion import Motion
 
-ERROR_NAMES = ("mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
-               "joint_vel_err_radps", "ee_pos_err_mm")
-"""Per-step tracking errors, named and ordered as bmimic.training.evaluation.ERROR_COLUMNS."""
-REL_MPKPE = ERROR_NAMES.index("mpkpe_rel_mm")
-SMOOTHNESS_NAMES = ("action_rate", "joint_acc_radps2")
-"""The policy's per-step smoothness, as bmimic.training.evaluation.SMOOTHNESS_COLUMNS."""
+ERROR_NAMES = ERROR_COLUMNS
+"""Per-step tracking errors, named and ordered as the run schema's (bmimic.run_schema.ERROR_COLUMNS)."""
+REL_MPKPE = ERROR_NAMES.index(MPKPE_REL_MM)
+SMOOTHNESS_NAMES = SMOOTHNESS_COLUMNS
+"""The policy's per-step smoothness (bmimic.run_schema.SMOOTHNESS_COLUMNS)."""
 MEASURED = (*ERROR_NAMES, *SMOOTHNESS_NAMES)
 
 

@@ -22,11 +22,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-CLIP_ROLLOUT_COLUMNS = ("clip", "clip_name", "start_frame", "end_frame", "steps", "failed", "terminated", "broken",
-                        "reached_end")
-"""clip_eval.parquet's columns after ``iteration, env_steps`` (one row per clip and evaluation):
-``end_frame`` is the last frame the rollout was alive at; ``reached_end`` whether it tracked to the
-clip's last frame (False for one cut by ``max_s`` or failed)."""
+from bmimic.run_schema import CLIP_ROLLOUT_COLUMNS
 
 
 def clip_bounds(layout) -> tuple[np.ndarray, np.ndarray]:
