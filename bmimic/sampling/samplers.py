@@ -80,6 +80,7 @@ import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import check_choice, check_fraction, check_int_at_least, check_positive
+from bmimic.sampling.feedback import EPISODE_OUTCOMES
 from bmimic.sampling.registry import register_sampler
 from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, UniformConfig
 
@@ -116,6 +117,8 @@ class UniformSampler(BinSampler):
 
 class _LookaheadSampler(BinSampler):
     """A sampler whose weights are smoothed with the look-ahead kernel and whose state is an EMA."""
+
+    signals = (EPISODE_OUTCOMES,)
 
     def __init__(self, num_bins: int, gamma: float, K: int, empty_bins: str, device: Any, method: str):
         check_fraction("gamma", gamma)

@@ -87,11 +87,13 @@ class Trainer:
     into the run folder until `learn` (or `evaluate`, `save_checkpoint`) runs, so a resume refused by
     `restore` leaves the folder as it was."""
 
-    def __init__(self, env, evaluator, sampler, cfg, run_dir: str | os.PathLike, device: str, logger: RunLogger,
-                 is_main_rank: bool = True, run_config: dict | None = None) -> None:
+    def __init__(self, env, evaluator, sampler, feedback, cfg, run_dir: str | os.PathLike, device: str,
+                 logger: RunLogger, is_main_rank: bool = True, run_config: dict | None = None) -> None:
         self.env = env
         self.evaluator = evaluator
         self.sampler = sampler
+        self.feedback = feedback
+        """The sampler's feedback (bmimic.sampling.feedback): told after each periodic evaluation."""
         self.cfg = cfg
         """The run's runtime-resolved config: ppo, eval.every_iters, sampler.log_every and the budget."""
         self.ppo_cfg = cfg.ppo
@@ -247,25 +249,17 @@ class Trainer:
         self.logger.evaluation(self.progress.iteration, summary)
         return summary
 
-    def _eval_to_sampler(self, iterations: int) -> None:
-        """An evaluation-driven sampler (phc, protomotions) learns which clips' rollouts from their first frame
-        failed (clip_rollouts, clip_eval.parquet); under torchrun rank 0 runs them and broadcasts the outcome."""
-        sampler, layout = self.env.accounting.sampler, self.env.accounting.layout
-        if not sampler.eval_driven:
-            return
-        failed = torch.zeros(layout.num_clips, dtype=torch.float32, device=self.env.device)
-        if self.is_main:
-            with eval_mode(self.alg.get_policy()) as policy:
-                rows = clip_rollouts(self.evaluator, policy, sampler.rollout_max_s)
-            p = self.progress
-            self.clip_eval_rows.append(rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
-                ["iteration", "env_steps", *CLIP_ROLLOUT_COLUMNS]])
-            self.flush_tables()
-            failed.copy_(clips_failed(rows, layout.num_clips))
-            log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
-        if self.runner.is_distributed:
-            torch.distributed.broadcast(failed, src=0)
-        sampler.observe_eval(failed > 0, iterations)
+    def _clip_outcomes(self, max_s: float | None) -> torch.Tensor:
+        """Rank 0, for a sampler that learns from clip outcomes (phc, protomotions): one rollout per clip
+        from its first frame (clip_rollouts; a row of clip_eval.parquet each); [C] > 0 where one failed."""
+        with eval_mode(self.alg.get_policy()) as policy:
+            rows = clip_rollouts(self.evaluator, policy, max_s)
+        p = self.progress
+        self.clip_eval_rows.append(rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
+            ["iteration", "env_steps", *CLIP_ROLLOUT_COLUMNS]])
+        self.flush_tables()
+        log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
+        return clips_failed(rows, self.env.layout.num_clips)
 
     # ------------------------------------------------------------------ the loop
     def learn(self, signals=None) -> None:
@@ -319,7 +313,7 @@ class Trainer:
                 if self.is_main:
                     summary = self.evaluate()
                     stop = self.after_evaluation is not None and bool(self.after_evaluation(self, summary))
-                self._eval_to_sampler(every)
+                self.feedback.after_evaluation(self._clip_outcomes, every)
             if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
                 self.save_checkpoint()
                 write_status(self.run_dir, "running", self.progress.iteration)
