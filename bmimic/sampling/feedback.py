@@ -17,6 +17,8 @@ signal                        cadence                      delivered as
                                                            of each bin, and their number
 ``CLIP_OUTCOMES``             evaluation                   ``observe_eval(failed [C], iterations)``: whether one
                                                            rollout per clip from its first frame failed
+``EPISODE_RETURNS``           iteration                    ``update_returns(sums [1, S], episodes [S])``: the
+                                                           returns of the finished episodes per start bin
 ============================  ===========================  ======================================================
 
 The environment calls the feedback at four points of its step (1-3) and the runner at two (4-5):
@@ -101,7 +103,10 @@ class Signal:
 EPISODE_OUTCOMES = Signal("episode outcomes", CONFIGURED, "update_counts")
 TRACKING_ERRORS = Signal("tracking errors", ITERATION, "update_errors")
 CLIP_OUTCOMES = Signal("clip outcomes", EVALUATION, "observe_eval")
-SIGNALS = (EPISODE_OUTCOMES, TRACKING_ERRORS, CLIP_OUTCOMES)
+EPISODE_RETURNS = Signal("episode returns", ITERATION, "update_returns")
+"""Per start bin, the summed return of the episodes that finished in the iteration and their number:
+``update_returns(sums [1, S], episodes [S])``."""
+SIGNALS = (EPISODE_OUTCOMES, TRACKING_ERRORS, CLIP_OUTCOMES, EPISODE_RETURNS)
 
 
 def check_accounting(cfg: Any) -> None:
@@ -167,6 +172,8 @@ class SamplerFeedback:
         # rollout's sums of small errors lose nothing.
         self._errors = torch.zeros(len(ERROR_COMPONENTS) + 1, s, dtype=torch.float64, device=dev)
         self._broken_errors = torch.tensor([*BROKEN_ERRORS, 1.0], device=dev)[:, None]  # (+ the step count)
+        self._episode_return = torch.zeros(num_envs, dtype=torch.float64, device=dev)
+        self._returns = torch.zeros(2, s, dtype=torch.float64, device=dev)  # return sums, episodes
 
     @classmethod
     def from_config(cls, cfg: AccountingConfig, sampler: Any, layout: Layout, num_envs: int, max_episode_length: int,
@@ -198,6 +205,11 @@ class SamplerFeedback:
             # where, not a product: a broken world's NaN stays out; it is charged a lost track instead
             per_env = torch.where(broken, self._broken_errors.to(per_env.dtype), per_env)
             self._errors.index_add_(1, self.layout.bins_of(frames), per_env.to(torch.float64))
+        if self.wants(EPISODE_RETURNS):
+            self._episode_return += rewards
+            ended = torch.stack((torch.where(dones, self._episode_return, 0.0), dones.to(torch.float64)))
+            self._returns.index_add_(1, self.start_bin, ended)
+            self._episode_return.masked_fill_(dones, 0.0)
 
     def count(
         self,
@@ -250,6 +262,8 @@ class SamplerFeedback:
         outcomes with update_every="iteration"."""
         if self.wants(TRACKING_ERRORS):
             self._deliver(self._errors, self.sampler.update_errors)
+        if self.wants(EPISODE_RETURNS):
+            self._deliver(self._returns, self.sampler.update_returns)
         if self.update_every != "iteration":
             return
         if self.world_size > 1:
@@ -293,8 +307,10 @@ class SamplerFeedback:
         self._pending.zero_()
         self._iteration.zero_()
         self._errors.zero_()
+        self._returns.zero_()
+        self._episode_return.zero_()
 
 
-__all__ = ["CLIP_OUTCOMES", "CONFIGURED", "EPISODE_OUTCOMES", "EVALUATION", "ITERATION", "SIGNALS", "TRACKING_ERRORS",
+__all__ = ["CLIP_OUTCOMES", "CONFIGURED", "EPISODE_OUTCOMES", "EPISODE_RETURNS", "EVALUATION", "ITERATION", "SIGNALS", "TRACKING_ERRORS",
            "UPDATE_EVERY", "AccountingConfig", "SamplerFeedback", "Signal", "check_accounting", "declared_signals",
            "learns_from_evaluations"]

@@ -707,7 +707,7 @@ def test_adaptive_defaults_are_the_design_from_one_source():
 
 
 def test_the_variants_are_the_yaml_files_of_registered_samplers():
-    assert variant_names() == ("adaptive", "adaptive_hybrid", "beyondmimic", "egm", "gmt", "phc", "protomotions",
+    assert variant_names() == ("adaptive", "adaptive_hybrid", "beyondmimic", "egm", "gmt", "low_return", "phc", "protomotions",
                                "uniform")
     assert {k: (e.cls, e.config) for k, e in SAMPLERS.items() if k in ("adaptive", "beyondmimic", "uniform")} == {
         "adaptive": (AdaptiveSampler, AdaptiveConfig), "beyondmimic": (BeyondMimicSampler, BeyondMimicConfig),
@@ -977,7 +977,7 @@ def test_hot_path_has_no_host_sync():
             for attribution in ("start", "failure"):
                 for update_every in ("iteration", "step"):
                     acc = SamplerFeedback(s, lay, n, 500, attribution=attribution, update_every=update_every,
-                                            device=dev)
+                                          device=dev)
                     torch.cuda.synchronize()
                     torch.cuda.set_sync_debug_mode("error")
                     try:
