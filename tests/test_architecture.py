@@ -9,6 +9,8 @@
 - bmimic.run_folder and the analysis are torch-free (checked by importing them in a fresh process), and
   every bmimic module the analysis reaches (imports, lazy ones included) names no torch import;
 - no string literal spells a measured column of the run schema (bmimic.run_schema) outside it;
+- no import runs back up the layers robot < motion < sim < sampling < envs < training < evaluation
+  (a lower layer never imports a higher one: the env hands the sampler's feedback what it measured);
 - no module is over 400 lines.
 
 Imports inside functions count: a lazy import is still a dependency.
@@ -237,3 +239,22 @@ def test_measured_columns_are_spelled_only_in_the_run_schema():
                      for node in ast.walk(module.tree)
                      if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in SCHEMA_NAMES)
     assert spelled == []
+
+
+LAYERS = ("bmimic.robot", "bmimic.motion", "bmimic.sim", "bmimic.sampling", "bmimic.envs", "bmimic.training",
+          "bmimic.evaluation")
+"""The library's floors, lowest first; the modules above them (task, job, the entry points) compose them."""
+LAYER_EXEMPT = ("bmimic.motion.convert",)
+"""Entry points that live in a floor's package (they are tools on top, not part of the floor)."""
+
+
+def _layer(module: str) -> int | None:
+    if any(module == e or module.startswith(e + ".") for e in LAYER_EXEMPT):
+        return None
+    return next((i for i, p in enumerate(LAYERS) if module == p or module.startswith(p + ".")), None)
+
+
+def test_no_import_runs_back_up_the_layers():
+    up = sorted((a, b) for a, targets in GRAPH.items() for b in targets
+                if _layer(a) is not None and _layer(b) is not None and _layer(b) > _layer(a))
+    assert up == []
