@@ -95,5 +95,5 @@ def test_a_registered_sampler_trains_one_iteration(tmp_path):
     trainer = build_trainer(training, None, tmp_path)
     trainer.learn()
     assert trainer.progress.iteration == 1
-    probs = trainer.sampler_rows[-1]["probability"].to_numpy()
+    probs = trainer.record.rows("sampler")[-1]["probability"].to_numpy()
     assert probs[0] > 0.99 and abs(probs.sum() - 1.0) < 1e-9
