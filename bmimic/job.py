@@ -178,7 +178,7 @@ def robust_evaluation(trainer, evaluator) -> dict:
     """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
     on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
     from bmimic.run_folder import atomic_write_parquet, table_path
-    from bmimic.training.evaluation import summarize
+    from bmimic.training.evaluator import summarize
 
     policy = trainer.alg.get_policy()
     policy.eval()

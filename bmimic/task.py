@@ -99,7 +99,7 @@ def build_evaluator(task: Task, robust: bool = False):
     robust: with domain randomisation, observation noise and pushes, as configured for training)."""
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.robot import load_mjmodel
-    from bmimic.training.evaluation import Evaluator
+    from bmimic.training.evaluator import Evaluator
 
     cfg, device, layout = task.cfg, task.device, task.layout
     check_evaluation_fits(layout.num_bins, cfg.eval.episodes_per_bin)

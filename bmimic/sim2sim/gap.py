@@ -40,7 +40,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     """RUN/eval/<label>/ (bmimic.eval) if present, else the training-time rows of RUN/eval.parquet."""
     import pandas as pd
 
-    from bmimic.training.evaluation import summarize
+    from bmimic.training.evaluator import summarize
 
     if run_dir is None:
         return None

@@ -207,7 +207,7 @@ class Rollout:
 
     # ---------------------------------------------------------------------------------- errors
     def errors(self) -> np.ndarray:
-        """The ERROR_NAMES at the current state and frame (bmimic.training.evaluation's definitions)."""
+        """The ERROR_NAMES at the current state and frame (bmimic.training.evaluator's definitions)."""
         s = self.state()
         a, ee = self.anchor, self.ee
         return np.array((
@@ -263,7 +263,7 @@ class Episode(NamedTuple):
     """One evaluation episode: its tidy row and the errors of each step where they were measured."""
 
     row: dict
-    """bmimic.training.evaluation.EPISODE_COLUMNS, `error_failed`, the mean of each MEASURED entry over
+    """bmimic.training.evaluator.EPISODE_COLUMNS, `error_failed`, the mean of each MEASURED entry over
     the alive steps, `broken` (= `diverged`: the world broke, a failure) and `wall_s`."""
     frames: np.ndarray
     """[steps] the reference frame each step was judged at."""
@@ -273,7 +273,7 @@ class Episode(NamedTuple):
 
 def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkpe_rel_mm: float | None = None,
                 on_step: Callable[[Rollout, bool], None] | None = None) -> Episode:
-    """One evaluation episode, accounted exactly as bmimic.training.evaluation.Evaluator.run_episodes does.
+    """One evaluation episode, accounted exactly as bmimic.training.evaluator.Evaluator.run_episodes does.
 
     Each step is judged at the frame the reference stood at when it began (terminations; the step's
     errors, measured after the reference advanced, are summed at that frame). The episode ends at a

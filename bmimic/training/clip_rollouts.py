@@ -6,7 +6,7 @@ and call it failed when that rollout failed before the motion's end (PHC: the wh
 its first ``max_eval_steps`` steps). bmimic does the same in its evaluation environment: per clip,
 one episode starts at the clip's first frame and runs the deterministic policy to the clip's last
 frame, or for ``max_s`` seconds when that is shorter, under the evaluation's failure rule
-(:class:`bmimic.training.evaluation.Evaluator`: a termination, a broken world, or the optional
+(:class:`bmimic.training.evaluator.Evaluator`: a termination, a broken world, or the optional
 ``eval.max_mpkpe_rel_mm``). A clip failed when its rollout failed.
 
 The rollouts of all clips run side by side in one wave of the evaluation environment; the wave lasts

@@ -73,7 +73,7 @@ def checkpoint_state(trainer: Any) -> dict:
 
 def save_checkpoint(trainer: Any) -> Path:
     """Write model_<it>.pt and latest.pt (tables first) and their ONNX exports."""
-    from bmimic.training.export import export_checkpoint_onnx
+    from bmimic.training.onnx_export import export_checkpoint_onnx
 
     it = trainer.progress.iteration
     path = checkpoint_path(trainer.run_dir, it)

@@ -35,7 +35,7 @@ from bmimic.training.checkpoints import (
     load_checkpoint_file,
 )
 from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
-from bmimic.training.evaluation import summarize
+from bmimic.training.evaluator import summarize
 from bmimic.training.health import Health
 from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
