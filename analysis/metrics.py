@@ -11,7 +11,7 @@ Definitions (used by the report and its text):
   episodes / episodes started in it, each episode charged to the clip (segment) it started in, so
   the overall failure is the start-weighted mean of the clips' failures.
 - a bin's ``failure_rate`` is failures per *visit*, charged to the bin where the failure happened
-  (bmimic.training.evaluation): a different unit, used for bin mastery and the per-bin figures,
+  (bmimic.training.evaluator): a different unit, used for bin mastery and the per-bin figures,
   always labelled "per visit".
 - an evaluation *counts a bin as mastered* when its failure rate is below the threshold and, if the
   bin is ``horizon_truncated`` (its episodes run out of clip before the horizon), at least one
@@ -46,7 +46,12 @@ from analysis.stats import (
     km_median,
     restricted_km_median,
 )
-from bmimic.evaluation.mastery import counts_as_mastered  # the rule training's summary uses too
+from bmimic.run_schema import (  # training's rule too
+    LABELS,
+    REPORTED_ERRORS,
+    SMOOTHNESS_COLUMNS,
+    counts_as_mastered,
+)
 
 MEASURES = ("iteration", "env_steps", "wall_time_s")
 """How time is measured: training iterations, environment steps, seconds of training."""
@@ -63,7 +68,7 @@ def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     to exactly one bin, so it is the sum of ``failures`` over the sum of ``start_episodes`` (``episodes``
     in tables written before per-visit accounting). Starts are stratified, the same number per bin, so
     every part of the motion counts the same. This is the run's own ``eval_failure_rate``
-    (bmimic.training.evaluation.summarize), so report, metrics.json and console agree.
+    (bmimic.training.evaluator.summarize), so report, metrics.json and console agree.
     """
     by = list(by)
     starts = "start_episodes" if "start_episodes" in eval_df.columns else "episodes"
@@ -266,23 +271,13 @@ def final_rows(df: pd.DataFrame, by=("run_dir",)) -> pd.DataFrame:
     return df[df["iteration"] == last].reset_index(drop=True)
 
 
-ERROR_METRICS = {
-    "mpkpe_rel_mm": "root-relative MPKPE (mm)",
-    "mpkpe_mm": "global MPKPE (mm)",
-    "joint_pos_err_rad": "joint position error (rad)",
-    "joint_vel_err_radps": "joint velocity error (rad/s)",
-    "body_ori_err_rad": "body orientation error (rad)",
-    "ee_pos_err_mm": "end-effector position error (mm)",
-}
+ERROR_METRICS = {c: LABELS[c] for c in REPORTED_ERRORS}
 """eval.parquet tracking-error column -> label (lower is better), in the order the report shows them."""
 
 
-SMOOTHNESS_METRICS = {
-    "action_rate": "action rate (Σ over joints of (a_t − a_{t−1})², per step)",
-    "joint_acc_radps2": "joint acceleration (rad/s², mean over joints)",
-}
+SMOOTHNESS_METRICS = {c: LABELS[c] for c in SMOOTHNESS_COLUMNS}
 """eval.parquet smoothness column -> label (lower is smoother): the policy's own actions and joint motion,
-not a tracking error (bmimic.training.evaluation.SMOOTHNESS_COLUMNS). Tables written before they were
+not a tracking error (bmimic.training.evaluator.SMOOTHNESS_COLUMNS). Tables written before they were
 recorded lack them: the report says "not recorded"."""
 
 BROKEN = "broken"
@@ -296,7 +291,7 @@ def tracking_errors(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
 
     Each bin's value is a mean over the steps the evaluation episodes spent at its frames
     (``eval_steps``), so the run's is the ``eval_steps``-weighted mean over bins, the run's own
-    ``eval_<column>`` (bmimic.training.evaluation.summarize). Steps after an episode failed are not
+    ``eval_<column>`` (bmimic.training.evaluator.summarize). Steps after an episode failed are not
     measured: an arm that fails more is measured over fewer steps. A run whose table lacks a column
     (stacked with runs that have it) gets NaN there, never 0. Empty when the table has none.
     """

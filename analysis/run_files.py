@@ -12,6 +12,7 @@ import yaml
 
 from analysis import AnalysisError
 from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
+from bmimic.run_schema import LOGISTICS_KEYS
 
 REQUIRED_COLUMNS = {
     "train_metrics": ["iteration", "env_steps", "wall_time_s", "mean_episode_length", "mean_reward"],
@@ -27,12 +28,9 @@ NEEDED_TABLES = ("train_metrics", "eval")
 ``eval.robust=true``) and ``clip_eval`` (the clip rollouts of phc and protomotions) are optional (what
 uses them skips runs without them)."""
 
-IGNORED_OVERRIDE_KEYS = {
-    "seed", "sweep_name", "run_name", "task_name", "device", "resume", "sweep", "logger",
-    "progress_bar", "max_iterations", "num_envs", "time_limit_s", "eval.every_iters", "ppo.save_interval",
-    "wandb_project", "verbose", "data.lafan_dir",
-}
-"""Override keys that do not define an arm: the ``exclude_keys`` of conf/train.yaml's override_dirname."""
+IGNORED_OVERRIDE_KEYS = {*LOGISTICS_KEYS, "task_name"}
+"""Override keys that do not define an arm: the run schema's logistics keys (conf/train.yaml's
+``exclude_keys``) and ``task_name`` (runs of an earlier bmimic)."""
 
 SKIP_DIRS = {"report", CHECKPOINTS_DIR}
 """Folder names never searched for runs (report output, checkpoints)."""

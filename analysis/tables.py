@@ -29,6 +29,7 @@ from analysis.stats import (
     iqm,
     seed_interval,
 )
+from bmimic.run_schema import MPKPE_REL_MM, summary_key
 
 
 @dataclass(frozen=True)
@@ -145,7 +146,7 @@ def seed_curves(train: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions,
     frames = []
     sources = {"train_metrics": train, "eval": overall.rename(columns={"failure_rate": "eval_failure_rate"}),
                "errors": (errors if errors is not None else pd.DataFrame()).rename(
-                   columns={"mpkpe_rel_mm": "eval_mpkpe_rel_mm"})}
+                   columns={MPKPE_REL_MM: summary_key(MPKPE_REL_MM)})}
     for metric, (source, _) in CURVE_METRICS.items():
         df = sources[source]
         if not len(df) or metric not in df:

@@ -174,13 +174,13 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
     """Milliseconds per environment step spent in each part, each timed alone through its public
     interface (the state, the observation, reward and termination managers, the sampler and its
-    accounting). `resets` starts a new segment in every world (`start_segments`: sampling, reference
+    feedback). `resets` starts a new segment in every world (`start_segments`: sampling, reference
     state, kinematics), the most a step's masked resets can cost."""
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
     from bmimic.envs.state import compute_state
 
-    acc = env.accounting
+    acc = env.feedback
     length = env.episode_length_buf
     obs = env.get_observations()
 

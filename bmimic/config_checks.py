@@ -218,7 +218,7 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
               f"of sim.timestep_s x sim.decimation = {step_dt:g} s")
     if cfg.eval.every_iters < 0:
         _fail("eval.every_iters", f"must be >= 0, got {cfg.eval.every_iters}")
-    if cfg.eval.every_iters == 0 and _eval_driven(getattr(cfg.sampler, "kind", None)):
+    if cfg.eval.every_iters == 0 and _learns_from_evaluations(getattr(cfg.sampler, "kind", None)):
         _fail("eval.every_iters", f"is 0, but sampler={cfg.sampler.name} learns from the periodic evaluation "
               "(set eval.every_iters >= 1)")
     if cfg.eval.horizon_s <= 0:
@@ -247,19 +247,21 @@ def advisories(cfg: Any) -> list[str]:
     measure less than its user likely meant (call after the runtime defaults are resolved)."""
     notes = []
     every, budget = cfg.eval.every_iters, cfg.max_iterations
-    if _eval_driven(getattr(cfg.sampler, "kind", None)) and budget is not None and every >= budget > 0:
+    if _learns_from_evaluations(getattr(cfg.sampler, "kind", None)) and budget is not None and every >= budget > 0:
         notes.append(f"sampler={cfg.sampler.name} learns only from the periodic evaluation, which runs every "
                      f"eval.every_iters={every} iterations: with max_iterations={budget} it starts every "
                      "episode uniformly for the whole run")
     return notes
 
 
-def _eval_driven(kind: Any) -> bool:
-    """Whether the registered sampler `kind` learns from the periodic evaluation (phc, protomotions)."""
+def _learns_from_evaluations(kind: Any) -> bool:
+    """Whether the registered sampler `kind` declares a signal delivered after each periodic evaluation
+    (phc, protomotions: clip outcomes)."""
     from bmimic.sampling.config import sampler_class
+    from bmimic.sampling.feedback import learns_from_evaluations
     from bmimic.sampling.registry import SCHEMAS
 
-    return kind in SCHEMAS and bool(getattr(sampler_class(kind), "eval_driven", False))
+    return kind in SCHEMAS and learns_from_evaluations(sampler_class(kind))
 
 
 _ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish",

@@ -11,7 +11,7 @@ Robot, motion, time bins and the evaluation environment are rebuilt like trainin
 sampler-independent evaluation runs with the deterministic policy: `episodes_per_bin` episodes
 start at stratified frames of every bin and run for `horizon_s`; an episode that terminates before
 then (or, with eval.max_mpkpe_rel_mm, tracks worse than that on average) is a failure, charged to the
-bin where it happened (bmimic.training.evaluation). Tables go to RUN_DIR/eval/<checkpoint>/
+bin where it happened (bmimic.training.evaluator). Tables go to RUN_DIR/eval/<checkpoint>/
 (latest.pt is named after its iteration, model_<it>, so re-evaluating after more training never
 overwrites an older result; evaluating the same checkpoint again replaces its folder with a warning,
 and is refused when sim2sim compared a gap against it, unless --force or --out says where):
@@ -50,7 +50,7 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
     """Run the sampler-independent evaluation of `run.checkpoint` and build the tables."""
     from bmimic.runtime import seed_everything
     from bmimic.task import build_evaluator
-    from bmimic.training.evaluation import summarize
+    from bmimic.training.evaluator import summarize
     from bmimic.training.policy import build_policy
 
     task = run.task

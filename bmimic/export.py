@@ -30,7 +30,7 @@ def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = Fals
     (--trust-checkpoint) also reads a format-1 checkpoint (still weights-only), as bmimic.eval does."""
     from bmimic.evaluation.saved_run import load_run, load_run_checkpoint
     from bmimic.task import build_evaluator
-    from bmimic.training.export import export_checkpoint_onnx
+    from bmimic.training.onnx_export import export_checkpoint_onnx
     from bmimic.training.policy import build_policy
 
     if out_dir is not None:

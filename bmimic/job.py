@@ -34,6 +34,8 @@ from bmimic.run_folder import (
     write_metrics,
     write_status,
 )
+from bmimic.run_record import metrics as run_metrics
+from bmimic.run_schema import FINAL_METRICS
 from bmimic.runtime import init_distributed, resolve_device, seed_everything
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import build_evaluator, build_task, build_trainer, build_training, check_num_envs_fit
@@ -129,9 +131,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
         # their graphs and leave the process group meanwhile, and return NaN.
         if not main_rank:
-            final = dict.fromkeys(("eval_failure_rate", "eval_success_rate", "eval_mpkpe_mm",
-                                   "eval_bins_mastered_frac"), math.nan)
-        elif not trainer.eval_rows or int(trainer.eval_rows[-1]["iteration"].max()) != trainer.progress.iteration:
+            final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
+        elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
             # (a resume of a run that reached max_iterations already holds its final evaluation)
             final = trainer.evaluate()
         robust = robust_evaluation(trainer, build_evaluator(task, robust=True)) if (
@@ -145,22 +146,18 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             env.close()
             if world > 1:
                 torch.distributed.destroy_process_group()
-    metrics = {
-        "final_eval_failure_rate": final["eval_failure_rate"],
-        "final_eval_success_rate": final["eval_success_rate"],
-        "final_eval_mpkpe_mm": final["eval_mpkpe_mm"],
-        "final_eval_bins_mastered_frac": final["eval_bins_mastered_frac"],
-        **robust,
+    train_rows = trainer.record.rows("train_metrics")
+    metrics = run_metrics(final, robust, {
         "iterations": trainer.progress.iteration,
         "env_steps": trainer.progress.env_steps,
         "wall_time_s": trainer.progress.wall_time_s,
-        "mean_episode_length": trainer.train_rows[-1]["mean_episode_length"] if trainer.train_rows else math.nan,
+        "mean_episode_length": train_rows[-1]["mean_episode_length"] if train_rows else math.nan,
         "max_episode_length": env.max_episode_length,
         "num_bins": layout.num_bins,
         "num_envs": cfg.num_envs,
         "device": device,
         **trainer.total_resets,
-    }
+    })
     if not main_rank:
         log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
                  rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate, run_dir)
@@ -181,7 +178,7 @@ def robust_evaluation(trainer, evaluator) -> dict:
     """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
     on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
     from bmimic.run_folder import atomic_write_parquet, table_path
-    from bmimic.training.evaluation import summarize
+    from bmimic.training.evaluator import summarize
 
     policy = trainer.alg.get_policy()
     policy.eval()

@@ -48,6 +48,8 @@ import sys  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+from bmimic.run_schema import MPKPE_REL_MM, summary_key  # noqa: E402
+
 RACE_EVAL_EVERY = 50
 """Iterations between evaluations: ~12 s at 4096 envs on an H100, the race's time resolution."""
 RACE_EPISODES_PER_BIN = 16
@@ -105,7 +107,7 @@ class Race:
             "wall_from_first_iteration_s": now - (self.first_iteration_unix_s or self.launch_unix_s),
             "training_s": float(p.wall_time_s), "evaluation_s": self.eval_time_s,
             "success_rate": float(summary.get("eval_success_rate", math.nan)),
-            "mpkpe_rel_mm": float(summary.get("eval_mpkpe_rel_mm", math.nan)),
+            MPKPE_REL_MM: float(summary.get(summary_key(MPKPE_REL_MM), math.nan)),
         }
         self.evaluations.append(record)
         for t in self.thresholds:

@@ -45,11 +45,13 @@ class Task:
 
 @dataclass
 class Training:
-    """A task with its motion sampler and training environment."""
+    """A task with its motion sampler, the sampler's feedback and the training environment."""
 
     task: Task
     sampler: Any
     """The sampler of `cfg.sampler` over the task's bins."""
+    feedback: Any
+    """bmimic.sampling.feedback.SamplerFeedback: what the sampler hears of the env and of evaluations."""
     env: Any
     """bmimic.envs.TrackingEnv in `mode="train"` with `cfg.num_envs` worlds."""
 
@@ -72,24 +74,24 @@ def build_task(cfg, device: str) -> Task:
 
 
 def build_training(cfg, device: str, task: Task | None = None) -> Training:
-    """The sampler, its episode accounting and the training environment (`task`: build_task's result,
+    """The sampler, its feedback and the training environment (`task`: build_task's result,
     when the caller has it)."""
     from bmimic.envs.config import episode_length_steps
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.motion.library import clip_weights
-    from bmimic.sampling.accounting import EpisodeAccounting
     from bmimic.sampling.config import make_sampler
+    from bmimic.sampling.feedback import SamplerFeedback
 
     task = task if task is not None else build_task(cfg, device)
     check_num_envs_fit(cfg, task.mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
     check_networks_fit(cfg, task.mjm, device)
     sampler = make_sampler(cfg.sampler, task.layout.num_bins, device, layout=task.layout,
                            clip_weights=clip_weights(cfg.motion))
-    accounting = EpisodeAccounting.from_config(cfg.sampler.accounting, sampler, task.layout, cfg.num_envs,
-                                               episode_length_steps(cfg.env, cfg.sim), device=device)
+    feedback = SamplerFeedback.from_config(cfg.sampler.accounting, sampler, task.layout, cfg.num_envs,
+                                           episode_length_steps(cfg.env, cfg.sim), device=device)
     env = TrackingEnv(cfg.env, cfg.sim, task.mjm, task.robot, task.reference(), cfg.num_envs, device,
-                      accounting=accounting)
-    return Training(task, sampler, env)
+                      feedback=feedback)
+    return Training(task, sampler, feedback, env)
 
 
 def build_evaluator(task: Task, robust: bool = False):
@@ -97,7 +99,7 @@ def build_evaluator(task: Task, robust: bool = False):
     robust: with domain randomisation, observation noise and pushes, as configured for training)."""
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.robot import load_mjmodel
-    from bmimic.training.evaluation import Evaluator
+    from bmimic.training.evaluator import Evaluator
 
     cfg, device, layout = task.cfg, task.device, task.layout
     check_evaluation_fits(layout.num_bins, cfg.eval.episodes_per_bin)
@@ -125,8 +127,8 @@ def build_trainer(training: Training, evaluator, run_dir: str | Path, is_main_ra
     cfg = training.task.cfg
     logger = RunLogger(cfg.logger, run_dir, cfg.run_name, cfg.wandb_project,
                        progress_bar=cfg.progress_bar and is_main_rank, enabled=is_main_rank)
-    return Trainer(training.env, evaluator, training.sampler, cfg, run_dir, training.task.device, logger,
-                   is_main_rank=is_main_rank, run_config=run_config)
+    return Trainer(training.env, evaluator, training.sampler, training.feedback, cfg, run_dir, training.task.device,
+                   logger, is_main_rank=is_main_rank, run_config=run_config)
 
 
 def check_motion_speeds(motion, max_abs_qvel: float) -> None:

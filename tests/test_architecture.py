@@ -6,7 +6,11 @@
 - bmimic.task is the one composition root: the only module that constructs the environment, the
   evaluator and the trainer;
 - entry points use public interfaces only (no `obj._private` of other modules' objects);
-- bmimic.run_folder and the analysis are torch-free (checked by importing them in a fresh process);
+- bmimic.run_folder and the analysis are torch-free (checked by importing them in a fresh process), and
+  every bmimic module the analysis reaches (imports, lazy ones included) names no torch import;
+- no string literal spells a measured column of the run schema (bmimic.run_schema) outside it;
+- no import runs back up the layers robot < motion < sim < sampling < envs < training < evaluation
+  (a lower layer never imports a higher one: the env hands the sampler's feedback what it measured);
 - no module is over 400 lines.
 
 Imports inside functions count: a lazy import is still a dependency.
@@ -22,6 +26,7 @@ from pathlib import Path
 
 import pytest
 
+from bmimic import run_schema
 from tests.conftest import REPO
 
 PACKAGES = ("bmimic", "analysis")
@@ -204,3 +209,52 @@ def test_run_folder_and_analysis_are_torch_free(module):
 def test_no_module_over_400_lines():
     over = {name: m.lines for name, m in MODULES.items() if m.lines > MAX_LINES}
     assert over == {}
+
+
+def _imports_torch(module: Module) -> bool:
+    for node in ast.walk(module.tree):
+        names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""] if isinstance(
+            node, ast.ImportFrom) and not node.level else []
+        if any(n == "torch" or n.startswith("torch.") for n in names):
+            return True
+    return False
+
+
+def test_analysis_reaches_only_torch_free_bmimic_modules():
+    reached, todo = set(), [m for m in MODULES if m.startswith("analysis")]
+    while todo:
+        for target in GRAPH[todo.pop()]:
+            if target not in reached:
+                reached.add(target)
+                todo.append(target)
+    assert sorted(m for m in reached if m.startswith("bmimic") and _imports_torch(MODULES[m])) == []
+
+
+SCHEMA_NAMES = {*run_schema.ERROR_COLUMNS, *run_schema.SMOOTHNESS_COLUMNS, run_schema.TRACKED_THROUGH}
+"""The measured columns: spelled in bmimic.run_schema only, used through its names everywhere else."""
+
+
+def test_measured_columns_are_spelled_only_in_the_run_schema():
+    spelled = sorted((name, node.value, node.lineno) for name, module in MODULES.items() if name != "bmimic.run_schema"
+                     for node in ast.walk(module.tree)
+                     if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in SCHEMA_NAMES)
+    assert spelled == []
+
+
+LAYERS = ("bmimic.robot", "bmimic.motion", "bmimic.sim", "bmimic.sampling", "bmimic.envs", "bmimic.training",
+          "bmimic.evaluation")
+"""The library's floors, lowest first; the modules above them (task, job, the entry points) compose them."""
+LAYER_EXEMPT = ("bmimic.motion.convert",)
+"""Entry points that live in a floor's package (they are tools on top, not part of the floor)."""
+
+
+def _layer(module: str) -> int | None:
+    if any(module == e or module.startswith(e + ".") for e in LAYER_EXEMPT):
+        return None
+    return next((i for i, p in enumerate(LAYERS) if module == p or module.startswith(p + ".")), None)
+
+
+def test_no_import_runs_back_up_the_layers():
+    up = sorted((a, b) for a, targets in GRAPH.items() for b in targets
+                if _layer(a) is not None and _layer(b) is not None and _layer(b) > _layer(a))
+    assert up == []

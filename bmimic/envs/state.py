@@ -8,7 +8,14 @@ from dataclasses import dataclass
 import torch
 
 from bmimic.envs.bodies import TrackedBodies
-from bmimic.envs.quat import quat_apply, quat_apply_inverse, quat_conj, quat_mul, yaw_quat
+from bmimic.envs.quat import (
+    quat_apply,
+    quat_apply_inverse,
+    quat_conj,
+    quat_error_magnitude,
+    quat_mul,
+    yaw_quat,
+)
 from bmimic.motion.reference import ReferenceMotion
 from bmimic.sim import Simulator
 
@@ -84,4 +91,17 @@ def compute_state(sim: Simulator, ref: ReferenceMotion, bodies: TrackedBodies, f
     )
 
 
-__all__ = ["TrackingState", "compute_state"]
+def tracking_errors(state: TrackingState) -> torch.Tensor:
+    """Every env's per-step tracking errors [4, N] (bmimic.sampling.base.ERROR_COMPONENTS): the mean over
+    tracked bodies of the position (anchor-relative reference, m), orientation (rad) and linear-velocity
+    (m/s) errors, and the largest body position error (m); what error-driven samplers learn from."""
+    pos = (state.ref_body_pos_relative - state.robot_body_pos).norm(dim=-1)  # [N, bodies] m
+    return torch.stack((
+        pos.mean(-1),
+        quat_error_magnitude(state.ref_body_quat_relative, state.robot_body_quat).mean(-1),
+        (state.ref_body_lin_vel - state.robot_body_lin_vel).norm(dim=-1).mean(-1),
+        pos.amax(-1),
+    ))
+
+
+__all__ = ["TrackingState", "compute_state", "tracking_errors"]

@@ -5,7 +5,7 @@ device, with fixed shapes and no host synchronisation:
   1. actions -> PD targets (`ctrl`), `decimation` physics steps + kinematics (`bmimic.sim`);
   2. broken worlds are reset, the state is computed once (`state.compute_state`), then the
      termination and reward managers (`managers/`) evaluate their terms;
-  3. finished episodes are counted per bin (`bmimic.sampling.accounting`), finished envs restart
+  3. finished episodes are counted per bin (`bmimic.sampling.feedback`), finished envs restart
      at frames the sampler draws (`resets`: reference-state initialisation), every env advances one
      frame and envs past the end of their clip are resampled without ending the episode
      (`segments`); the counts go to the sampler; the event manager runs reset and interval events
@@ -31,12 +31,12 @@ from bmimic.envs.managers import EventManager, ObservationManager, RewardManager
 from bmimic.envs.noise import UniformNoise
 from bmimic.envs.resets import write_reference_state
 from bmimic.envs.segments import ReferenceSegments
-from bmimic.envs.state import compute_state
+from bmimic.envs.state import compute_state, tracking_errors
 from bmimic.envs.stats import IterationStats
 from bmimic.motion.reference import ReferenceMotion
 from bmimic.robot import RobotInfo
-from bmimic.sampling.accounting import EpisodeAccounting
 from bmimic.sampling.bins import Layout
+from bmimic.sampling.feedback import SamplerFeedback
 from bmimic.sim import SimConfig, Simulator
 
 
@@ -44,28 +44,28 @@ class TrackingEnv(VecEnv):
     """BeyondMimic tracking of a reference motion (one clip or a library of clips) by `num_envs` robots.
 
     `mode="train"`: event terms (domain randomisation, pushes), observation noise and automatic
-    resets at frames the sampler of `accounting` draws. `mode="eval"`: none of those; the caller places
+    resets at frames the sampler of `feedback` draws. `mode="eval"`: none of those; the caller places
     envs with `reset_to_frames` and reads terminations, and the reference stops at the end of each
     clip. `robust=True` (eval only) turns events and observation noise back on, as in training.
     `layout` (eval only) is recorded for the exported metadata.
     """
 
     def __init__(self, env_cfg: EnvConfig, sim_cfg: SimConfig, mjm: mujoco.MjModel, robot: RobotInfo,
-                 reference: ReferenceMotion, num_envs: int, device: str, accounting: EpisodeAccounting | None = None,
+                 reference: ReferenceMotion, num_envs: int, device: str, feedback: SamplerFeedback | None = None,
                  mode: str = "train", robust: bool = False, layout: Layout | None = None) -> None:
         if mode not in ("train", "eval"):
             raise ValueError(f"mode must be train or eval, got {mode!r}")
-        if (mode == "train") != (accounting is not None):
-            raise ValueError("a training environment needs the episode accounting; an evaluation one takes none")
+        if (mode == "train") != (feedback is not None):
+            raise ValueError("a training environment needs the sampler's feedback; an evaluation one takes none")
         # Plain dataclasses, not OmegaConf nodes: the step reads config fields every call, and plain
         # attribute access is cheaper and can be traced by torch.compile.
         self.cfg = cfg = OmegaConf.to_object(env_cfg) if isinstance(env_cfg, DictConfig) else env_cfg
         self.mode, self.num_envs, self.device = mode, num_envs, torch.device(device)
         self.robust = robust and mode == "eval"
         perturbed = mode == "train" or self.robust
-        self.accounting, self.reference, self.robot = accounting, reference, robot
-        self.layout = accounting.layout if accounting is not None else layout
-        """The bin layout (training: the accounting's; evaluation: for the exported metadata only)."""
+        self.feedback, self.reference, self.robot = feedback, reference, robot
+        self.layout = feedback.layout if feedback is not None else layout
+        """The bin layout (training: the feedback's; evaluation: for the exported metadata only)."""
         self.segments = seg = ReferenceSegments(reference, sim_cfg, num_envs, self.device)
         self.bodies = TrackedBodies(mjm, robot, self.device)
         if reference.body_names != [robot.body_names[int(i) - 1] for i in robot.tracked_body_ids]:
@@ -113,16 +113,16 @@ class TrackingEnv(VecEnv):
             self._actions_in.zero_()
             self._graphs = StepGraphs((self._pre_physics, self._post_physics, self._observe), self.sim,
                                       self.sim.cfg.compile_env_step)
-            self.accounting.discard()  # the warm-up steps' counts and statistics
+            self.feedback.discard()  # the warm-up steps' counts and statistics
             self.pop_iteration_stats()
 
     # ----------------------------------------------------------------------------------- resets
     def start_segments(self, mask: torch.Tensor, new_episode: torch.Tensor) -> None:
         """Masked envs start a reference segment at a frame the sampler draws, with RSI noise; those
         also in `new_episode` start an episode there (a clip-end resample keeps the episode's start bin)."""
-        bins = self.accounting.sampler.sample(self.num_envs)
-        frames = self.segments.start(mask, self.accounting.layout.sample_frames(bins))
-        self.accounting.start_episodes(mask & new_episode, bins)
+        bins = self.feedback.sampler.sample(self.num_envs)
+        frames = self.segments.start(mask, self.layout.sample_frames(bins))
+        self.feedback.start_episodes(mask & new_episode, bins)
         write_reference_state(self.sim, self.reference, mask, frames, self.cfg.reset, self.uniform,
                               self.soft_joint_limits)
 
@@ -184,13 +184,14 @@ class TrackingEnv(VecEnv):
         self.stats.step(self.state)
         dones = terminated | truncated
         if self.mode == "train":
-            self.accounting.track(self.state, self.time_steps, broken)  # no-op unless the sampler uses errors
+            state = self.state  # the errors are computed only for a sampler that declares them
+            self.feedback.measure(self.time_steps, broken, dones, self.rew_buf, lambda: tracking_errors(state))
             self.stats.end_episodes(dones, terminated | broken, self.episode_length_buf)
             self.rewards.end_episodes(dones)
             # What ends now, counted in one pass: finished episodes (at this frame) and, for
             # attribution=failure, continuing episodes whose clip ends on the next frame.
             clip_end, end_frames = self.segments.ending(dones)
-            counts = self.accounting.count(dones, clip_end, end_frames, self.segment_start, terminated, broken,
+            counts = self.feedback.count(dones, clip_end, end_frames, self.segment_start, terminated, broken,
                                            self.episode_length_buf)
             self.start_segments(dones, dones)
             self.episode_length_buf.masked_fill_(dones, 0)
@@ -202,7 +203,7 @@ class TrackingEnv(VecEnv):
             self.start_segments(self.segments.advance(), dones)
             # After this step's resets were drawn, as in the released code: the sampler update
             # (update_every=step), or the counts wait for end_rollout (update_every=iteration).
-            self.accounting.record(counts)
+            self.feedback.record(counts)
             self.events.reset(self, dones)
             self.events.interval(self, self.step_dt)
         else:
@@ -222,13 +223,13 @@ class TrackingEnv(VecEnv):
     def end_rollout(self) -> None:
         """Once per PPO iteration, after the rollout: the sampler update of update_every=iteration
         (the design's runner hook); the sampling distribution is fixed until then."""
-        if self.accounting is not None:
-            self.accounting.end_rollout()
+        if self.feedback is not None:
+            self.feedback.end_rollout()
 
     def pop_iteration_stats(self) -> dict:
         """Per-iteration statistics (one host transfer each), then reset the accumulators."""
-        if self.accounting is not None:
-            bin_episodes, bin_failures = self.accounting.pop_counts()
+        if self.feedback is not None:
+            bin_episodes, bin_failures = self.feedback.pop_counts()
         else:
             bin_episodes = bin_failures = None
         # Per bin, as the sampler was fed them (after end_rollout for update_every=iteration).

@@ -7,18 +7,17 @@ import math
 import pandas as pd
 
 from bmimic.evaluation.tables import EvalResult
+from bmimic.run_schema import MPKPE_MM, TRACKING_ERRORS
 
+_ERROR_TITLES = ("MPKPE_mm", "rel_MPKPE_mm", "anchor_ori_rad", "body_ori_rad", "joint_pos_rad", "joint_vel_radps",
+                 "ee_pos_mm")
+"""The printed table's short titles of ERROR_COLUMNS, in its order."""
 _SHOWN = {
     "visits": ("visits", "{:d}"),
     "failures": ("failures", "{:d}"),
     "success_rate": ("success", "{:.3f}"),
-    "mpkpe_mm": ("MPKPE_mm", "{:.1f}"),
-    "mpkpe_rel_mm": ("rel_MPKPE_mm", "{:.1f}"),
-    "anchor_ori_err_rad": ("anchor_ori_rad", "{:.3f}"),
-    "body_ori_err_rad": ("body_ori_rad", "{:.3f}"),
-    "joint_pos_err_rad": ("joint_pos_rad", "{:.3f}"),
-    "joint_vel_err_radps": ("joint_vel_radps", "{:.2f}"),
-    "ee_pos_err_mm": ("ee_pos_mm", "{:.1f}"),
+    **{c.name: (title, "{:.1f}" if c.unit == "mm" else "{:.2f}" if c.unit == "rad/s" else "{:.3f}")
+       for c, title in zip(TRACKING_ERRORS, _ERROR_TITLES)},
 }
 MAX_BINS_SHOWN = 30
 
@@ -49,7 +48,7 @@ def format_report(result: EvalResult) -> str:
         result.bins["bin_start_s"], result.bins["bin_end_s"], result.bins["horizon_truncated"])])
     title = "per bin:"
     if len(bins) > MAX_BINS_SHOWN:
-        bins = bins.sort_values(["success_rate", "mpkpe_mm"], ascending=[True, False]).head(MAX_BINS_SHOWN // 3)
+        bins = bins.sort_values(["success_rate", MPKPE_MM], ascending=[True, False]).head(MAX_BINS_SHOWN // 3)
         title = f"worst {len(bins)} of {len(result.bins)} bins:"
     lines += [title, _format_rows(bins, {"bin": "bin", "span": "t_s", "segment": "segment"}), ""]
     overall = pd.DataFrame([{"visits": s["episodes"], "failures": s["failures"], "success_rate": s["eval_success_rate"],

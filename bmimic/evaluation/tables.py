@@ -1,5 +1,5 @@
 """The tables of one evaluation of a saved policy: one row per episode, per time bin and per motion
-segment, with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluation.aggregate), and
+segment, with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluator.aggregate), and
 their atomic writing. sim2sim builds the same tables from native-MuJoCo episodes.
 """
 
@@ -18,6 +18,7 @@ from bmimic.run_folder import (
     atomic_write_parquet,
     make_folder,
 )
+from bmimic.run_schema import ERROR_COLUMNS
 
 
 def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
@@ -34,8 +35,6 @@ def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: 
     """One row per episode: where it started and ended, whether and where it failed, how long it lived,
     and its mean errors (raw: Rollouts.episodes of Evaluator.run_episodes or another evaluator;
     layout: the BinLayout it was run with)."""
-    from bmimic.training.evaluation import ERROR_COLUMNS
-
     edges = layout.edges_s.cpu().numpy()
     start_s = raw["start_frame"].to_numpy() / motion.fps
     segment, difficulty = segment_at(motion.segments, start_s)
@@ -78,7 +77,7 @@ def _with_rates(table: pd.DataFrame, survival_s: np.ndarray) -> pd.DataFrame:
 def bin_table(rollouts, episodes: pd.DataFrame, layout, segments) -> pd.DataFrame:
     """One row per time bin of `layout`: failures where they happened per visit (training's eval.parquet
     columns), the start-bin counts, and the mean survival of the episodes started in it."""
-    from bmimic.training.evaluation import bin_table as labelled_bins
+    from bmimic.training.evaluator import bin_table as labelled_bins
 
     per_bin = labelled_bins(rollouts, layout, segments)
     per_bin.insert(0, "iteration", int(episodes["iteration"].iloc[0]))
@@ -89,7 +88,7 @@ def bin_table(rollouts, episodes: pd.DataFrame, layout, segments) -> pd.DataFram
 def segment_table(rollouts, episodes: pd.DataFrame, motion) -> pd.DataFrame:
     """One row per stretch of the motion covered by one segment ('' = no segment), in time order, with
     the same per-visit accounting as the bins: visits, failures where they happened, start counts."""
-    from bmimic.training.evaluation import aggregate
+    from bmimic.training.evaluator import aggregate
 
     names, levels = segment_at(motion.segments, np.arange(motion.num_frames) / motion.fps)
     names = np.asarray(names, dtype=object)

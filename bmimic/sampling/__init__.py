@@ -4,7 +4,7 @@ per-bin counts.
 
 See :mod:`bmimic.sampling.samplers` for the formulas, :mod:`bmimic.sampling.registry` for how a
 sampler is registered, :mod:`bmimic.sampling.bins` for the bin layouts,
-:mod:`bmimic.sampling.accounting` for episode attribution and update timing,
+:mod:`bmimic.sampling.feedback` for the signals samplers learn from, episode attribution and update timing,
 :mod:`bmimic.sampling.config` for the options and the named variants.
 
 Importing the package registers the built-in schemas (:mod:`bmimic.sampling.schemas`, torch-free, so
@@ -20,7 +20,7 @@ from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, SamplerCo
 
 _LAZY = {
     "AccountingConfig": "schemas",
-    "EpisodeAccounting": "accounting",
+    "SamplerFeedback": "feedback",
     "BinSampler": "base",
     "bin_counts": "base",
     "BinLayout": "bins",
@@ -58,12 +58,12 @@ def __getattr__(name: str):
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     # The first use loads the whole package (torch), and so registers every built-in class.
     from bmimic.sampling import (
-        accounting,
         base,
         bins,
         clips,
         config,
         diagnostics,
+        feedback,
         layouts,
         peer_clips,
         peer_errors,
@@ -72,7 +72,7 @@ def __getattr__(name: str):
         schemas,
     )
 
-    modules = {m.__name__.rpartition(".")[2]: m for m in (accounting, base, bins, clips, config, diagnostics, layouts,
+    modules = {m.__name__.rpartition(".")[2]: m for m in (base, bins, clips, config, diagnostics, feedback, layouts,
                                                           peer_clips, peer_errors, registry, samplers, schemas)}
     return registry.SAMPLERS if name == "SAMPLERS" else getattr(modules[_LAZY[name]], name)
 
@@ -87,7 +87,6 @@ __all__ = [
     "BinSampler",
     "ClipLayout",
     "EGMSampler",
-    "EpisodeAccounting",
     "GMTSampler",
     "PHCSampler",
     "ProtoMotionsSampler",
@@ -95,6 +94,7 @@ __all__ = [
     "SAMPLERS",
     "SamplerConfig",
     "SamplerConfigError",
+    "SamplerFeedback",
     "UniformConfig",
     "UniformSampler",
     "attribute",

@@ -1,6 +1,6 @@
 """`BinSampler`: what every sampler shares (cached probabilities and their CDF, inverse-CDF draws,
 `update`/`update_counts`, the state dict), and `bin_counts`, the fixed-shape histogram the samplers
-and the episode accounting count with. A sampler subclasses BinSampler and implements `_update`
+and the sampler's feedback count with. A sampler subclasses BinSampler and implements `_update`
 (see :mod:`bmimic.sampling.samplers` for the built-in ones and how to add one)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import torch
 from bmimic.sampling.checks import SamplerConfigError
 
 ERROR_COMPONENTS = ("body_pos_m", "body_ori_rad", "body_lin_vel_m_per_s", "max_body_pos_m")
-"""The per-env tracking errors the episode accounting sums per bin for samplers with
-``tracking_error``: the mean over tracked bodies of the position (anchor-relative reference),
+"""The per-env tracking errors the sampler's feedback sums per bin for samplers that declare
+``TRACKING_ERRORS``: the mean over tracked bodies of the position (anchor-relative reference),
 orientation and linear-velocity errors, and the largest body position error."""
 DTYPE = torch.float64
 """Probabilities and state: float64, so 10^6 updates at alpha=0.001 accumulate no visible rounding."""
@@ -41,12 +41,10 @@ class BinSampler:
     name it is registered under (`bmimic.sampling.registry.register_sampler` sets it)."""
 
     kind = ""
-    tracking_error = False
-    """True: the sampler also learns from per-bin tracking errors; the episode accounting then
-    measures them in the step and calls :meth:`update_errors` once per iteration."""
-    eval_driven = False
-    """True: the sampler also learns from the periodic evaluation; the trainer calls
-    :meth:`observe_eval` after each one (every rank, with rank 0's outcome under torchrun)."""
+    signals: tuple = ()
+    """What the sampler learns from (:class:`bmimic.sampling.feedback.Signal` s): the sampler's
+    feedback measures each and delivers it, at its cadence, to the method the signal names
+    (:meth:`update_counts`, :meth:`update_errors`, :meth:`observe_eval`). None: it never changes."""
 
     @classmethod
     def check_config(cls, cfg: Any) -> None:
@@ -182,12 +180,12 @@ class BinSampler:
         raise NotImplementedError
 
     def update_errors(self, error_sums: torch.Tensor, steps: torch.Tensor) -> None:
-        """One iteration's tracking errors per bin (samplers with ``tracking_error``): ``error_sums``
+        """One iteration's tracking errors per bin (signal ``TRACKING_ERRORS``): ``error_sums``
         [len(ERROR_COMPONENTS), S] sums over the env-steps spent at a frame of each bin, ``steps`` [S]
         their number. Fixed shapes, no host synchronisation."""
 
     def observe_eval(self, clip_failed: torch.Tensor, iterations: int) -> None:
-        """The outcome of one evaluation (samplers with ``eval_driven``): ``clip_failed`` [C] whether
+        """The outcome of one evaluation (signal ``CLIP_OUTCOMES``): ``clip_failed`` [C] whether
         an evaluation episode of each clip failed; ``iterations`` since the previous evaluation."""
 
     def smoothed_failure(self) -> torch.Tensor:

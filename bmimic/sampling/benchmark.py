@@ -5,7 +5,7 @@
 
 prints one line with microseconds per call. Parts, each timed alone:
 
-- ``count``: one control step's bookkeeping (:meth:`EpisodeAccounting.count` of ~num_envs/50
+- ``count``: one control step's bookkeeping (:meth:`SamplerFeedback.count` of ~num_envs/50
   finished episodes into per-bin counts, then ``record``: a sampler update for
   ``update_every=step``, an add to the pending counts for ``update_every=iteration``);
 - ``update``: one ``update_counts`` (the per-step update, or the one update after a rollout);
@@ -17,10 +17,10 @@ prints one line with microseconds per call. Parts, each timed alone:
 - ``iteration``: a whole rollout's sampler work per control step: ``steps_per_iteration`` x (count +
   record + sample) plus ``end_rollout``, divided by ``steps_per_iteration``.
 
-For the samplers that learn from tracking errors (egm, gmt) ``count`` also measures the step's
-errors (:meth:`EpisodeAccounting.track`, 14 bodies, as BeyondMimic's G1) and ``update`` also feeds
-one iteration's errors; for the evaluation-driven ones (phc, protomotions) ``observe_eval`` times
-one evaluation's update. ``--num-clips`` cuts the bins into that many equal clips (a library).
+For the samplers that learn from tracking errors (egm, gmt) ``count`` also sums the step's errors per
+bin (:meth:`SamplerFeedback.measure`; computing them is the environment's, timed by ``bmimic.bench``)
+and ``update`` also feeds one iteration's errors; for the ones that learn from evaluations (phc,
+protomotions) ``observe_eval`` times one evaluation's update. ``--num-clips`` cuts the bins into that many equal clips (a library).
 
 On CUDA the loops are timed with CUDA events (the host never waits inside them, as in training); on
 CPU with ``time.perf_counter``. The test suite runs 10^4 sequential updates; the long-run stability
@@ -32,14 +32,13 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from types import SimpleNamespace
 from typing import Any, Callable
 
 import torch
 
-from bmimic.sampling.accounting import EpisodeAccounting
 from bmimic.sampling.base import ERROR_COMPONENTS
 from bmimic.sampling.config import layout_for, load_variant, make_sampler, variant_names
+from bmimic.sampling.feedback import CLIP_OUTCOMES, TRACKING_ERRORS, SamplerFeedback
 
 FPS = 50.0
 MAX_EPISODE_LENGTH = 500  # 10 s at 50 Hz, BeyondMimic's
@@ -98,7 +97,7 @@ def bench_sampler(
         last = torch.zeros(num_clips, dtype=torch.long, device=dev).scatter_reduce(
             0, bin_clip, torch.arange(layout.num_bins, device=dev), "amax")
         s.set_clips(bin_clip, last[bin_clip], num_clips)
-    acc = EpisodeAccounting.from_config(cfg.accounting, s, layout, num_envs, MAX_EPISODE_LENGTH, device=dev)
+    acc = SamplerFeedback.from_config(cfg.accounting, s, layout, num_envs, MAX_EPISODE_LENGTH, device=dev)
     gen = torch.Generator(device=dev).manual_seed(seed)
     n = layout.num_frames
     dones = torch.rand(num_envs, generator=gen, device=dev) < 1.0 / FPS
@@ -109,22 +108,19 @@ def bench_sampler(
     length = torch.randint(0, MAX_EPISODE_LENGTH, (num_envs,), generator=gen, device=dev)
     acc.start_episodes(~never, layout.bins_of(segment_start))
     counts = acc.count(dones, never, end_frames, segment_start, terminated, never, length)
-    bodies = 14
-    quat = torch.nn.functional.normalize(torch.randn(num_envs, bodies, 4, generator=gen, device=dev), dim=-1)
-    vec = lambda: torch.randn(num_envs, bodies, 3, generator=gen, device=dev)  # noqa: E731
-    state = SimpleNamespace(ref_body_pos_relative=vec(), robot_body_pos=vec(), ref_body_quat_relative=quat,
-                            robot_body_quat=quat.roll(1, 0), ref_body_lin_vel=vec(), robot_body_lin_vel=vec())
+    step_errors = torch.rand(len(ERROR_COMPONENTS), num_envs, generator=gen, device=dev)
+    rewards = torch.rand(num_envs, generator=gen, device=dev)
     error_sums = torch.rand(len(ERROR_COMPONENTS), layout.num_bins, generator=gen, device=dev, dtype=torch.float64)
     error_steps = torch.ones(layout.num_bins, device=dev, dtype=torch.float64)
     clip_failed = torch.rand(max(num_clips, 1), generator=gen, device=dev) < 0.5
 
     def count() -> None:
-        acc.track(state, segment_start, never)
+        acc.measure(segment_start, never, dones, rewards, lambda: step_errors)
         acc.record(acc.count(dones, never, end_frames, segment_start, terminated, never, length))
 
     def update() -> None:
         s.update_counts(counts[0], counts[1])
-        if s.tracking_error:
+        if TRACKING_ERRORS in s.signals:
             s.update_errors(error_sums, error_steps)
 
     def sample() -> None:
@@ -153,7 +149,7 @@ def bench_sampler(
         "end_rollout_us": us(acc.end_rollout),
         "iteration_us": us(rollout, max(1, iters // steps_per_iteration)) / steps_per_iteration,
     }
-    if s.eval_driven:
+    if CLIP_OUTCOMES in s.signals:
         result["observe_eval_us"] = us(lambda: s.observe_eval(clip_failed, 200))
     for method in ("multinomial", "inverse_cdf"):
         s.method = method

@@ -7,7 +7,7 @@ sampler class: it lists that class's schema first in its defaults (``<kind>_sche
 
 - the keys of every variant (:class:`SamplerConfig`): ``name``, ``kind`` (the class; the schema's
   default), ``enabled``, the bin layout ``bins`` and ``bin_size_seconds``, ``accounting`` (the
-  episode accounting, :class:`bmimic.sampling.accounting.AccountingConfig`: ``attribution``,
+  episode accounting, :class:`bmimic.sampling.schemas.AccountingConfig`: ``attribution``,
   ``failure``, ``failure_threshold``, ``update_every``) and ``log_every`` (the trainer's);
 - the sampler's own parameters (its schema, beside its class in :mod:`bmimic.sampling.samplers`).
 
@@ -104,8 +104,8 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
 
     Raises :class:`SamplerConfigError` with a one-line message naming the first bad key.
     """
-    from bmimic.sampling.accounting import check_accounting
     from bmimic.sampling.bins import LAYOUTS, check_bin_size
+    from bmimic.sampling.feedback import check_accounting
 
     cfg = sampler_config(cfg)
     if not (isinstance(cfg.name, str) and cfg.name):

@@ -33,6 +33,7 @@ import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, check_positive, fail
+from bmimic.sampling.feedback import CLIP_OUTCOMES
 from bmimic.sampling.registry import register_sampler
 from bmimic.sampling.schemas import PHCConfig, ProtoMotionsConfig
 
@@ -93,7 +94,7 @@ PHC_MODES = ("soft", "hard")
 class PHCSampler(GroupSampler):
     """Clip weights from evaluation failures (module doc)."""
 
-    eval_driven = True
+    signals = (CLIP_OUTCOMES,)
 
     def __init__(self, num_bins: int, mode: str = "soft", rollout_max_s: Optional[float] = None, device: Any = "cpu"):
         check_choice("mode", mode, PHC_MODES)
@@ -143,7 +144,7 @@ class PHCSampler(GroupSampler):
 class ProtoMotionsSampler(GroupSampler):
     """Multiplicative clip weights from evaluations with a floor (module doc)."""
 
-    eval_driven = True
+    signals = (CLIP_OUTCOMES,)
 
     def __init__(self, num_bins: int, success_decay: float = 0.999, failure_decay: float = 0.0,
                  min_weight: Optional[float] = None, rollout_max_s: Optional[float] = 12.0, device: Any = "cpu"):

@@ -1,7 +1,7 @@
 r"""The field's tracking-error samplers (issue 24): EGM and GMT, on bmimic's bins, MDP and simulator.
 Each YAML in ``conf/sampler/`` cites its source and marks what the source leaves open and how bmimic
 chose it; the formulas are here (PHC and ProtoMotions: :mod:`bmimic.sampling.peer_clips`). The episode
-accounting measures the errors in the step (:meth:`EpisodeAccounting.track`).
+sampler's feedback measures the errors in the step (:meth:`SamplerFeedback.measure`).
 
 **EGMSampler** (``egm``; EGM, arXiv 2512.19043, "bin-based cross-motion curriculum adaptive sampling").
 Per bin, an EMA of a composite tracking error: with :math:`\bar e_b` the iteration's mean over
@@ -35,6 +35,7 @@ import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import check_fraction, check_int_at_least, check_nonnegative, check_positive, fail
+from bmimic.sampling.feedback import EPISODE_OUTCOMES, TRACKING_ERRORS
 from bmimic.sampling.peer_clips import GroupSampler
 from bmimic.sampling.registry import register_sampler
 from bmimic.sampling.schemas import EGMConfig, GMTConfig
@@ -49,7 +50,7 @@ class EGMSampler(BinSampler):
     """EMA of a composite tracking error per bin, normalised, raised to a scheduled power, mixed with
     a scheduled uniform ratio (module doc)."""
 
-    tracking_error = True
+    signals = (TRACKING_ERRORS,)
 
     def __init__(self, num_bins: int, ema: float = 0.1, weights: tuple[float, float, float] = (1.0, 0.1, 0.1),
                  power: tuple[float, float] = (0.5, 2.0), uniform: tuple[float, float] = (0.5, 0.1),
@@ -130,7 +131,7 @@ class EGMSampler(BinSampler):
 class GMTSampler(GroupSampler):
     """Completion levels per sub-clip, then the largest body error once mastered (module doc)."""
 
-    tracking_error = True
+    signals = (EPISODE_OUTCOMES, TRACKING_ERRORS)
 
     def __init__(self, num_bins: int, subclip_bins: int = 10, initial_level: float = 10.0,
                  completion_decay: float = 0.99, min_level: float = 1.0, error_scale_m: float = 0.15,

@@ -56,6 +56,15 @@ no episodes; the released code decays every bin). Because q is a count, the weig
 the policy fails; it is not a floor. The released code updates once per control step and draws
 the resets of a step *before* adding that step's failures.
 
+**LowReturnSampler** (``low_return``; the feedback protocol's worked example, issue 34). With
+:math:`\bar R_s` an iteration's mean return of the episodes that started in bin s and finished,
+:math:`R_s \leftarrow (1-\beta) R_s + \beta \bar R_s` (the first visit sets it; unvisited bins
+hold); a bin never visited counts as the lowest visited one (so it is tried), and
+
+.. math:: P_s = \lambda_{uniform}/S + (1-\lambda_{uniform})\, e^{-R_s/T} / \textstyle\sum_j e^{-R_j/T}
+
+(uniform before any episode finished).
+
 Sampling is exact inverse-CDF sampling: uniforms in [0, 1) are located with ``searchsorted`` in
 the cumulative sum of P, which is cached at each update, so a draw is two kernels and never
 synchronises with the host. ``torch.multinomial`` with replacement rebuilds its table on every
@@ -80,8 +89,9 @@ import torch
 
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import check_choice, check_fraction, check_int_at_least, check_positive
+from bmimic.sampling.feedback import EPISODE_OUTCOMES, EPISODE_RETURNS
 from bmimic.sampling.registry import register_sampler
-from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, UniformConfig
+from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, LowReturnConfig, UniformConfig
 
 EMPTY_BINS = ("decay", "hold")
 
@@ -116,6 +126,8 @@ class UniformSampler(BinSampler):
 
 class _LookaheadSampler(BinSampler):
     """A sampler whose weights are smoothed with the look-ahead kernel and whose state is an EMA."""
+
+    signals = (EPISODE_OUTCOMES,)
 
     def __init__(self, num_bins: int, gamma: float, K: int, empty_bins: str, device: Any, method: str):
         check_fraction("gamma", gamma)
@@ -280,5 +292,64 @@ class BeyondMimicSampler(_LookaheadSampler):
         return {"count": self._count}
 
 
-__all__ = ["EMPTY_BINS", "AdaptiveConfig", "AdaptiveSampler", "BeyondMimicConfig", "BeyondMimicSampler", "UniformConfig",
+@register_sampler("low_return", LowReturnConfig)
+class LowReturnSampler(BinSampler):
+    """Softmax over the negated EMA of each bin's mean episode return, with a uniform share (module doc)."""
+
+    signals = (EPISODE_RETURNS,)
+
+    def __init__(self, num_bins: int, ema: float = 0.1, temperature: float = 1.0, lambda_uniform: float = 0.1,
+                 device: Any = "cpu", method: str = "inverse_cdf"):
+        check_fraction("ema", ema)
+        check_positive("temperature", temperature)
+        check_fraction("lambda_uniform", lambda_uniform, closed_below=True)
+        super().__init__(num_bins, device=device, method=method)
+        self.ema, self.temperature, self.lambda_uniform = float(ema), float(temperature), float(lambda_uniform)
+        self._return = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
+        self._seen = torch.zeros(num_bins, dtype=torch.bool, device=self.device)
+
+    @classmethod
+    def check_config(cls, cfg: Any) -> None:
+        check_fraction("ema", cfg.ema)
+        check_positive("temperature", cfg.temperature)
+        check_fraction("lambda_uniform", cfg.lambda_uniform, closed_below=True)
+
+    @classmethod
+    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "LowReturnSampler":
+        return cls(num_bins, ema=cfg.ema, temperature=cfg.temperature, lambda_uniform=cfg.lambda_uniform,
+                   device=device)
+
+    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
+        pass  # learns from returns only
+
+    def update_returns(self, sums: torch.Tensor, episodes: torch.Tensor) -> None:
+        """One iteration's summed returns [1, S] of the episodes finished per start bin, and their number [S]."""
+        visited = episodes > 0
+        mean = sums[0].to(DTYPE) / episodes.to(DTYPE).clamp(min=1.0)
+        self._return.copy_(torch.where(visited, torch.where(self._seen, self._return.lerp(mean, self.ema), mean),
+                                       self._return))
+        self._seen |= visited
+        self._recompute()
+
+    def _recompute(self) -> None:
+        # An unvisited bin counts as the lowest visited one; before any visit every bin is 0 (uniform).
+        lowest = torch.where(self._seen, self._return, torch.inf).amin()
+        r = torch.where(self._seen, self._return, torch.where(self._seen.any(), lowest, 0.0))
+        p = torch.softmax(-r / self.temperature, 0)
+        torch.add(p * (1.0 - self.lambda_uniform), self.lambda_uniform / self.num_bins, out=self._probs)
+        self._refresh_cdf()
+
+    def smoothed_failure(self) -> torch.Tensor:
+        """The EMA of each bin's mean episode return R (not a failure rate)."""
+        return self._return.clone()
+
+    def hparams(self) -> dict[str, Any]:
+        return {"ema": self.ema, "temperature": self.temperature, "lambda_uniform": self.lambda_uniform}
+
+    def _state_tensors(self) -> dict[str, torch.Tensor]:
+        return {"return": self._return, "seen": self._seen}
+
+
+__all__ = ["EMPTY_BINS", "AdaptiveConfig", "AdaptiveSampler", "BeyondMimicConfig", "BeyondMimicSampler", "LowReturnConfig",
+           "LowReturnSampler", "UniformConfig",
            "UniformSampler", "lookahead_index", "lookahead_kernel"]

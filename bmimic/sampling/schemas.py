@@ -43,7 +43,7 @@ class SamplerConfig:
     """The keys every variant of ``conf/sampler/`` has; each sampler's schema subclasses it."""
 
     name: str = ""
-    """The variant: equals the YAML's file name (adaptive, adaptive_hybrid, beyondmimic, egm, gmt, phc,
+    """The variant: equals the YAML's file name (adaptive, adaptive_hybrid, beyondmimic, egm, gmt, low_return, phc,
     protomotions, uniform)."""
     kind: str = ""
     """The registered sampler class the variant configures (its schema's default; not set in a YAML)."""
@@ -164,6 +164,20 @@ class GMTConfig(SamplerConfig):
 
 
 @dataclass
+class LowReturnConfig(SamplerConfig):
+    """`sampler=low_return`: start where episodes earn least (the per-bin mean episode return)."""
+
+    name: str = "low_return"
+    kind: str = "low_return"
+    ema: float = 0.1
+    """EMA weight of an iteration's mean return of the episodes started in a bin, in (0, 1]."""
+    temperature: float = 1.0
+    """Softmax temperature over the negated mean returns (return units), > 0: low = sharp."""
+    lambda_uniform: float = 0.1
+    """Share of probability mass spread uniformly, in [0, 1]."""
+
+
+@dataclass
 class PHCConfig(SamplerConfig):
     """`sampler=phc`: PHC's evaluation-driven hard-negative mining over clips."""
 
@@ -196,11 +210,12 @@ class ProtoMotionsConfig(SamplerConfig):
 
 
 BUILTIN_SCHEMAS = {"uniform": UniformConfig, "adaptive": AdaptiveConfig, "beyondmimic": BeyondMimicConfig,
-                   "egm": EGMConfig, "gmt": GMTConfig, "phc": PHCConfig, "protomotions": ProtoMotionsConfig}
+                   "egm": EGMConfig, "gmt": GMTConfig, "phc": PHCConfig, "protomotions": ProtoMotionsConfig,
+                   "low_return": LowReturnConfig}
 """The built-in sampler kinds and their schemas (the classes register with the same ones)."""
 
 for _kind, _schema in BUILTIN_SCHEMAS.items():
     register_schema(_kind, _schema)
 
 __all__ = ["BUILTIN_SCHEMAS", "AccountingConfig", "AdaptiveConfig", "BeyondMimicConfig", "EGMConfig", "GMTConfig",
-           "PHCConfig", "ProtoMotionsConfig", "SamplerConfig", "UniformConfig"]
+           "LowReturnConfig", "PHCConfig", "ProtoMotionsConfig", "SamplerConfig", "UniformConfig"]

@@ -27,7 +27,7 @@ the file's metadata alone, never from bmimic's training code:
   armature, joint damping and friction loss are kept (`--joint-dynamics model`: a model difference is
   what the check is for); `--joint-dynamics metadata` sets training's (metadata armature, none else).
 
-The evaluation is `bmimic.eval`'s, with the same accounting (bmimic.training.evaluation):
+The evaluation is `bmimic.eval`'s, with the same accounting (bmimic.training.evaluator):
 `episodes_per_bin` episodes start at the same stratified frames of every time bin, from the reference
 state, with the deterministic policy, for `horizon_s`; the reference stops at the end of its clip. An
 episode that terminates fails at the frame it was judged at (with `max_mpkpe_rel_mm`, one whose mean
@@ -51,9 +51,9 @@ comparable row by row.
 """
 
 from bmimic.sim2sim.cli import main, parser, render_video
-from bmimic.sim2sim.evaluation import MOTION_FILE, checkpoint_label, collect, evaluate, locate
 from bmimic.sim2sim.gap import GAP_FILE, SETTINGS, WarpEval, format_gap, gap_table, warp_eval
 from bmimic.sim2sim.model import MENAGERIE_ENV, MODELS, build_model, find_menagerie, model_label
+from bmimic.sim2sim.native_eval import MOTION_FILE, checkpoint_label, collect, evaluate, locate
 from bmimic.sim2sim.rollout import ERROR_NAMES, Episode, Rollout, run_episode, run_episodes
 from bmimic.sim2sim.spec import (
     OBS_DIMS,

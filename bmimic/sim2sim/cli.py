@@ -14,9 +14,9 @@ import numpy as np
 from bmimic.cli_common import user_errors
 from bmimic.extras import require_extra
 from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR, atomic_write_csv, make_folder
-from bmimic.sim2sim.evaluation import evaluate, locate
 from bmimic.sim2sim.gap import GAP_FILE, format_gap
 from bmimic.sim2sim.model import build_model, model_label
+from bmimic.sim2sim.native_eval import evaluate, locate
 from bmimic.sim2sim.rollout import Rollout, run_episode
 from bmimic.sim2sim.spec import Sim2SimError, first_line, policy_session, read_policy, read_reference
 

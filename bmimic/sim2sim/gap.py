@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, read_resolved_config, table_path
+from bmimic.run_schema import MPKPE_REL_MM
 from bmimic.sim2sim.spec import Sim2SimError
 
 log = logging.getLogger("bmimic.sim2sim")
@@ -39,11 +40,11 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     """RUN/eval/<label>/ (bmimic.eval) if present, else the training-time rows of RUN/eval.parquet."""
     import pandas as pd
 
-    from bmimic.training.evaluation import summarize
+    from bmimic.training.evaluator import summarize
 
     if run_dir is None:
         return None
-    columns = ["bin", "visits", "failures", "success_rate", "mpkpe_rel_mm"]
+    columns = ["bin", "visits", "failures", "success_rate", MPKPE_REL_MM]
     folder = run_dir / EVAL_DIR / label
     summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
     if summary_file.is_file() and bins_file.is_file():
@@ -134,8 +135,8 @@ def gap_table(bins, warp: WarpEval):
     """Per bin: MuJoCo-Warp and sim2sim visits, failures (where they happened), success rate per visit
     and anchor-relative MPKPE, and the differences."""
     ours = bins[["bin", "bin_start_s", "bin_end_s", "segment", "horizon_truncated", "visits", "failures",
-                 "success_rate", "mpkpe_rel_mm"]]
-    names = ["visits", "failures", "success_rate", "mpkpe_rel_mm"]
+                 "success_rate", MPKPE_REL_MM]]
+    names = ["visits", "failures", "success_rate", MPKPE_REL_MM]
     out = ours.rename(columns={c: f"sim2sim_{c}" for c in names})
     out = out.merge(warp.bins.rename(columns={c: f"warp_{c}" for c in names}), on="bin", how="left")
     out["success_gap"] = out["sim2sim_success_rate"] - out["warp_success_rate"]

@@ -10,17 +10,17 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
 
+from bmimic.run_schema import ERROR_COLUMNS, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
 from bmimic.sim2sim.spec import PolicySpec, policy_session
 
 if TYPE_CHECKING:
     from bmimic.motion.motion import Motion
 
-ERROR_NAMES = ("mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
-               "joint_vel_err_radps", "ee_pos_err_mm")
-"""Per-step tracking errors, named and ordered as bmimic.training.evaluation.ERROR_COLUMNS."""
-REL_MPKPE = ERROR_NAMES.index("mpkpe_rel_mm")
-SMOOTHNESS_NAMES = ("action_rate", "joint_acc_radps2")
-"""The policy's per-step smoothness, as bmimic.training.evaluation.SMOOTHNESS_COLUMNS."""
+ERROR_NAMES = ERROR_COLUMNS
+"""Per-step tracking errors, named and ordered as the run schema's (bmimic.run_schema.ERROR_COLUMNS)."""
+REL_MPKPE = ERROR_NAMES.index(MPKPE_REL_MM)
+SMOOTHNESS_NAMES = SMOOTHNESS_COLUMNS
+"""The policy's per-step smoothness (bmimic.run_schema.SMOOTHNESS_COLUMNS)."""
 MEASURED = (*ERROR_NAMES, *SMOOTHNESS_NAMES)
 
 
@@ -207,7 +207,7 @@ class Rollout:
 
     # ---------------------------------------------------------------------------------- errors
     def errors(self) -> np.ndarray:
-        """The ERROR_NAMES at the current state and frame (bmimic.training.evaluation's definitions)."""
+        """The ERROR_NAMES at the current state and frame (bmimic.training.evaluator's definitions)."""
         s = self.state()
         a, ee = self.anchor, self.ee
         return np.array((
@@ -263,7 +263,7 @@ class Episode(NamedTuple):
     """One evaluation episode: its tidy row and the errors of each step where they were measured."""
 
     row: dict
-    """bmimic.training.evaluation.EPISODE_COLUMNS, `error_failed`, the mean of each MEASURED entry over
+    """bmimic.training.evaluator.EPISODE_COLUMNS, `error_failed`, the mean of each MEASURED entry over
     the alive steps, `broken` (= `diverged`: the world broke, a failure) and `wall_s`."""
     frames: np.ndarray
     """[steps] the reference frame each step was judged at."""
@@ -273,7 +273,7 @@ class Episode(NamedTuple):
 
 def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkpe_rel_mm: float | None = None,
                 on_step: Callable[[Rollout, bool], None] | None = None) -> Episode:
-    """One evaluation episode, accounted exactly as bmimic.training.evaluation.Evaluator.run_episodes does.
+    """One evaluation episode, accounted exactly as bmimic.training.evaluator.Evaluator.run_episodes does.
 
     Each step is judged at the frame the reference stood at when it began (terminations; the step's
     errors, measured after the reference advanced, are summed at that frame). The episode ends at a

@@ -6,7 +6,7 @@ and call it failed when that rollout failed before the motion's end (PHC: the wh
 its first ``max_eval_steps`` steps). bmimic does the same in its evaluation environment: per clip,
 one episode starts at the clip's first frame and runs the deterministic policy to the clip's last
 frame, or for ``max_s`` seconds when that is shorter, under the evaluation's failure rule
-(:class:`bmimic.training.evaluation.Evaluator`: a termination, a broken world, or the optional
+(:class:`bmimic.training.evaluator.Evaluator`: a termination, a broken world, or the optional
 ``eval.max_mpkpe_rel_mm``). A clip failed when its rollout failed.
 
 The rollouts of all clips run side by side in one wave of the evaluation environment; the wave lasts
@@ -22,11 +22,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-CLIP_ROLLOUT_COLUMNS = ("clip", "clip_name", "start_frame", "end_frame", "steps", "failed", "terminated", "broken",
-                        "reached_end")
-"""clip_eval.parquet's columns after ``iteration, env_steps`` (one row per clip and evaluation):
-``end_frame`` is the last frame the rollout was alive at; ``reached_end`` whether it tracked to the
-clip's last frame (False for one cut by ``max_s`` or failed)."""
+from bmimic.run_schema import CLIP_ROLLOUT_COLUMNS
 
 
 def clip_bounds(layout) -> tuple[np.ndarray, np.ndarray]:

@@ -121,7 +121,7 @@ class RunLogger:
                      row["learning_rate"], row["fps"])
 
     def evaluation(self, iteration: int, summary: dict) -> None:
-        """One evaluation's summary (bmimic.training.evaluation.summarize)."""
+        """One evaluation's summary (bmimic.training.evaluator.summarize)."""
         self.open()
         if self.writer is not None:
             for k, v in summary.items():

@@ -1,5 +1,7 @@
-"""The PPO training loop: rsl-rl-lib's PPO (as `GraphPPO`, see ppo.py), this project's tables,
-evaluation and checkpoints; TensorBoard / W&B / console output goes through one RunLogger (logger.py).
+"""The PPO training loop, in the manner of rsl-rl's runner: it loops and hands off. Its parts: the
+run's tables (`bmimic.run_record.RunRecord`), when to evaluate and checkpoint (`schedule.Schedule`),
+what a checkpoint holds and the resume (`run_state`), what the sampler hears (the task's
+`SamplerFeedback`); TensorBoard / W&B / console output goes through one RunLogger (logger.py).
 
 rsl-rl's `OnPolicyRunner` builds the algorithm (models, storage, optimiser, multi-GPU set-up); the loop
 itself is written here so that each iteration can (a) read the environment's statistics with a single
@@ -11,44 +13,34 @@ and RNG states, so `resume` reproduces iteration count, learning rate and sample
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import pandas as pd
 import torch
 from rsl_rl.runners import OnPolicyRunner
 
 from bmimic import BmimicError
 from bmimic.run_folder import (
-    atomic_write_parquet,
-    checkpoint_path,
-    checkpoints_dir,
-    latest_checkpoint,
-    table_path,
     write_status,
 )
-from bmimic.runtime import any_rank, rng_state, set_rng_state
+from bmimic.run_record import RunRecord
+from bmimic.runtime import any_rank
 from bmimic.sampling import diagnostics
+from bmimic.training import run_state
 from bmimic.training.checkpoints import (
-    CHECKPOINT_FORMAT,
-    CheckpointMismatchError,
-    atomic_torch_save,
     load_checkpoint_file,
-    mismatch_detail,
-    motion_meta,
 )
 from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
-from bmimic.training.evaluation import summarize
+from bmimic.training.evaluator import summarize
 from bmimic.training.health import Health
 from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
-from bmimic.training.resume import key_allowed
+from bmimic.training.run_state import Progress
+from bmimic.training.schedule import Schedule
 
 log = logging.getLogger(__name__)
 
@@ -68,30 +60,18 @@ class _Runner(OnPolicyRunner):
                                  "world_size": self.gpu_world_size} if self.is_distributed else None
 
 
-@dataclass
-class Progress:
-    """Counters a checkpoint carries so a resumed run continues them."""
-
-    iteration: int = 0
-    env_steps: int = 0
-    wall_time_s: float = 0.0
-    last_eval: dict = field(default_factory=dict)
-
-
-_SOFT_META = {"num_envs": "num_envs", "motion_frames": "motion", "motion_fps": "motion", "motion_sha256": "motion"}
-"""Checkpoint meta a resume may change when resume_allow_changes names the config key on the right."""
-
-
 class Trainer:
     """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables. Nothing is written
     into the run folder until `learn` (or `evaluate`, `save_checkpoint`) runs, so a resume refused by
     `restore` leaves the folder as it was."""
 
-    def __init__(self, env, evaluator, sampler, cfg, run_dir: str | os.PathLike, device: str, logger: RunLogger,
-                 is_main_rank: bool = True, run_config: dict | None = None) -> None:
+    def __init__(self, env, evaluator, sampler, feedback, cfg, run_dir: str | os.PathLike, device: str,
+                 logger: RunLogger, is_main_rank: bool = True, run_config: dict | None = None) -> None:
         self.env = env
         self.evaluator = evaluator
         self.sampler = sampler
+        self.feedback = feedback
+        """The sampler's feedback (bmimic.sampling.feedback): told after each periodic evaluation."""
         self.cfg = cfg
         """The run's runtime-resolved config: ppo, eval.every_iters, sampler.log_every and the budget."""
         self.ppo_cfg = cfg.ppo
@@ -106,10 +86,8 @@ class Trainer:
         self.runner = _Runner(env, rsl_rl_train_cfg(self.ppo_cfg, cfg.run_name), log_dir=None, device=device)
         self.alg = self.runner.alg
         self.progress = Progress()
-        self.train_rows: list[dict] = []
-        self.sampler_rows: list[pd.DataFrame] = []
-        self.eval_rows: list[pd.DataFrame] = []
-        self.clip_eval_rows: list[pd.DataFrame] = []
+        self.record = RunRecord(self.run_dir, enabled=is_main_rank)
+        """The run's tables (train_metrics, sampler, eval, clip_eval): rows, resume truncation, flushes."""
         self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
         # A stopping rule after each evaluation (its summary -> True: stop; bmimic.race), when learn()
         # began (time.time()) and the wall time the evaluations took.
@@ -117,120 +95,35 @@ class Trainer:
         self.learn_started_unix_s: float | None = None
         self.eval_time_s = 0.0
         self.health = Health(env.num_envs * self.ppo_cfg.num_steps_per_env)
+        self.schedule = Schedule(cfg.eval.every_iters, self.ppo_cfg.save_interval)
         self.interrupted = False  # learn() stopped early on a signal (bmimic.training.interrupts)
 
-    # ------------------------------------------------------------------ checkpoints
+    # ------------------------------------------------------------------ checkpoints (bmimic.training.run_state)
     def meta(self) -> dict:
         """What a checkpoint must match to be loaded into this trainer (plain values)."""
-        obs = self.env.get_observations()
-        return {
-            "num_envs": int(self.env.num_envs),
-            "num_actions": int(self.env.num_actions),
-            "obs_dims": {k: int(v.shape[-1]) for k, v in obs.items()},
-            "sampler_kind": str(self.sampler.state_dict().get("kind")),
-            "num_bins": int(self.env.layout.num_bins),
-            **motion_meta(self.env.reference.motion),
-        }
+        return run_state.meta(self)
 
     def checkpoint_state(self) -> dict:
         """Tensors and plain values only (CHECKPOINT_FORMAT): loads with torch.load(weights_only=True)."""
-        state = self.alg.save()
-        progress = vars(self.progress).copy()
-        progress["last_eval"] = {str(k): float(v) for k, v in self.progress.last_eval.items()}
-        state.update(
-            iter=int(self.progress.iteration),
-            progress=progress,
-            sampler=self.sampler.state_dict(),
-            rng=rng_state(),
-            format=CHECKPOINT_FORMAT,
-            meta=self.meta(),
-            config=json.dumps(self.run_config, sort_keys=True, default=str) if self.run_config else None,
-        )
-        return state
+        return run_state.checkpoint_state(self)
 
     def save_checkpoint(self) -> Path:
         """Write model_<it>.pt and latest.pt (tables first) and their ONNX exports."""
-        from bmimic.training.export import export_checkpoint_onnx
-
-        it = self.progress.iteration
-        path = checkpoint_path(self.run_dir, it)
-        # Tables first (never behind a checkpoint), latest.pt first (never older than a model_<it>.pt).
-        self.flush_tables()
-        state = self.checkpoint_state()
-        atomic_torch_save(latest_checkpoint(self.run_dir), state)
-        atomic_torch_save(path, state)
-        try:  # policy_<it>.onnx and the BeyondMimic-compatible motion_policy_<it>.onnx
-            export_checkpoint_onnx(self.alg.get_policy(), self.env, checkpoints_dir(self.run_dir), it)
-        except Exception as e:  # export must never cost a training run
-            log.warning("ONNX export failed at iteration %d: %s", it, e)
-        return path
+        return run_state.save_checkpoint(self)
 
     def load_checkpoint(self, path: str | os.PathLike, trust: bool = False) -> None:
         """Read a checkpoint (weights_only unless `trust`) and `restore` it."""
         self.restore(load_checkpoint_file(path, "cpu", trust), path)
 
     def restore(self, state: dict, path: str | os.PathLike = "checkpoint", allowed: tuple | list = ()) -> None:
-        """Load networks, optimiser, counters, sampler and RNG states; reads the run's tables but writes
-        nothing; CheckpointMismatchError (one line) when it does not fit. `allowed` (resume_allow_changes)
-        may accept another num_envs or motion; observation and action sizes, sampler kind and bins must
-        match (the networks and sampler state depend on them)."""
-        saved = state.get("meta")
-        if isinstance(saved, dict):
-            own = self.meta()
-            soft = {k: cfg_key for k, cfg_key in _SOFT_META.items() if key_allowed(cfg_key, allowed)}
-            differ = [f"{k} {saved[k]} -> {own[k]}" for k in own
-                      if k in saved and saved[k] != own[k] and k not in soft]
-            if differ:
-                raise CheckpointMismatchError(f"{path}: does not fit this run: {'; '.join(differ)}")
-        try:
-            self.alg.load(state, None, strict=True)
-        except (RuntimeError, KeyError, ValueError, TypeError) as e:
-            raise CheckpointMismatchError(f"{path}: its networks do not fit this config: {mismatch_detail(e)}") from None
-        try:
-            self.sampler.load_state_dict(state["sampler"])
-            self.progress = Progress(**state["progress"])
-            set_rng_state(state["rng"])
-        except BmimicError as e:
-            raise CheckpointMismatchError(f"{path}: {e}") from None
-        except (KeyError, TypeError, ValueError, RuntimeError) as e:
-            raise CheckpointMismatchError(f"{path}: malformed checkpoint ({type(e).__name__}: {e})") from None
-        self.runner.current_learning_iteration = self.progress.iteration
-        self._truncate_tables(self.progress.iteration)
-        for key in self.total_resets:
-            self.total_resets[key] = int(sum(_count(r.get(key)) for r in self.train_rows))
-        log.info("resumed from %s at iteration %d (lr %.2e)", path, self.progress.iteration, self.alg.learning_rate)
+        """Load networks, optimiser, counters, sampler and RNG states and read the run's tables back; writes
+        nothing (run_state.restore)."""
+        run_state.restore(self, state, path, allowed)
 
     # ------------------------------------------------------------------ tables
-    def _truncate_tables(self, iteration: int) -> None:
-        """On resume, keep only rows of iterations the checkpoint had completed."""
-        for name, rows in (("train_metrics", self.train_rows), ("sampler", self.sampler_rows), ("eval", self.eval_rows),
-                           ("clip_eval", self.clip_eval_rows)):
-            path = table_path(self.run_dir, name)
-            if path.exists():
-                try:
-                    df = pd.read_parquet(path)
-                except Exception as e:  # noqa: BLE001 - any reader error: the table is damaged
-                    raise CheckpointMismatchError(
-                        f"{path}: cannot be read ({type(e).__name__}); move it aside to resume without its "
-                        "rows") from None
-                if "iteration" not in df:
-                    raise CheckpointMismatchError(f"{path}: has no iteration column; move it aside to resume "
-                                                  "without its rows")
-                df = df[df["iteration"] <= iteration] if "eval" in name else df[df["iteration"] < iteration]
-                if name == "train_metrics":
-                    self.train_rows.extend(df.to_dict("records"))
-                else:
-                    rows.append(df)
-
     def flush_tables(self) -> None:
-        """Write the run's tables (rank 0 only)."""
-        if not self.is_main:
-            return
-        if self.train_rows:
-            atomic_write_parquet(table_path(self.run_dir, "train_metrics"), pd.DataFrame(self.train_rows))
-        for name, rows in (("sampler", self.sampler_rows), ("eval", self.eval_rows), ("clip_eval", self.clip_eval_rows)):
-            if rows:
-                atomic_write_parquet(table_path(self.run_dir, name), pd.concat(rows, ignore_index=True))
+        """Write the run's tables (rank 0 only: the record of another rank writes nothing)."""
+        self.record.flush()
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict:
@@ -239,7 +132,7 @@ class Trainer:
         with eval_mode(self.alg.get_policy()) as policy:
             per_bin = self.evaluator.evaluate(policy, self.progress.iteration, self.progress.env_steps,
                                               self.progress.wall_time_s)
-        self.eval_rows.append(per_bin)
+        self.record.append("eval", per_bin)
         self.flush_tables()  # evaluations are the expensive rows: never lose them to an interruption
         self.eval_time_s += time.perf_counter() - t0
         summary = summarize(per_bin)
@@ -247,25 +140,17 @@ class Trainer:
         self.logger.evaluation(self.progress.iteration, summary)
         return summary
 
-    def _eval_to_sampler(self, iterations: int) -> None:
-        """An evaluation-driven sampler (phc, protomotions) learns which clips' rollouts from their first frame
-        failed (clip_rollouts, clip_eval.parquet); under torchrun rank 0 runs them and broadcasts the outcome."""
-        sampler, layout = self.env.accounting.sampler, self.env.accounting.layout
-        if not sampler.eval_driven:
-            return
-        failed = torch.zeros(layout.num_clips, dtype=torch.float32, device=self.env.device)
-        if self.is_main:
-            with eval_mode(self.alg.get_policy()) as policy:
-                rows = clip_rollouts(self.evaluator, policy, sampler.rollout_max_s)
-            p = self.progress
-            self.clip_eval_rows.append(rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
-                ["iteration", "env_steps", *CLIP_ROLLOUT_COLUMNS]])
-            self.flush_tables()
-            failed.copy_(clips_failed(rows, layout.num_clips))
-            log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
-        if self.runner.is_distributed:
-            torch.distributed.broadcast(failed, src=0)
-        sampler.observe_eval(failed > 0, iterations)
+    def _clip_outcomes(self, max_s: float | None) -> torch.Tensor:
+        """Rank 0, for a sampler that learns from clip outcomes (phc, protomotions): one rollout per clip
+        from its first frame (clip_rollouts; a row of clip_eval.parquet each); [C] > 0 where one failed."""
+        with eval_mode(self.alg.get_policy()) as policy:
+            rows = clip_rollouts(self.evaluator, policy, max_s)
+        p = self.progress
+        self.record.append("clip_eval", rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
+            ["iteration", "env_steps", *CLIP_ROLLOUT_COLUMNS]])
+        self.flush_tables()
+        log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
+        return clips_failed(rows, self.env.layout.num_clips)
 
     # ------------------------------------------------------------------ the loop
     def learn(self, signals=None) -> None:
@@ -313,16 +198,7 @@ class Trainer:
             out_of_time = time_limit_s is not None and any_rank(self.progress.wall_time_s >= time_limit_s, self.device)
             done = self.progress.iteration == end_it or out_of_time
             self._record_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
-            every = cfg.eval.every_iters
-            stop = False
-            if every and self.progress.iteration % every == 0:
-                if self.is_main:
-                    summary = self.evaluate()
-                    stop = self.after_evaluation is not None and bool(self.after_evaluation(self, summary))
-                self._eval_to_sampler(every)
-            if self.is_main and (self.progress.iteration % self.ppo_cfg.save_interval == 0 and not done):
-                self.save_checkpoint()
-                write_status(self.run_dir, "running", self.progress.iteration)
+            stop = self._hand_off(last=done)
             if out_of_time:
                 log.info("time limit of %.0f s reached after %d iterations", time_limit_s, self.progress.iteration)
             if out_of_time or stop:
@@ -331,6 +207,20 @@ class Trainer:
                 self.interrupted = True
                 break
         self.logger.end()
+
+    def _hand_off(self, last: bool) -> bool:
+        """After an iteration, as scheduled: the evaluation (rank 0) and the sampler's evaluation feedback
+        (every rank), then a checkpoint. True: the stopping rule (`after_evaluation`) says stop."""
+        it, stop = self.progress.iteration, False
+        if self.schedule.evaluates(it):
+            if self.is_main:
+                summary = self.evaluate()
+                stop = self.after_evaluation is not None and bool(self.after_evaluation(self, summary))
+            self.feedback.after_evaluation(self._clip_outcomes, self.schedule.eval_every)
+        if self.is_main and self.schedule.checkpoints(it, last):
+            self.save_checkpoint()
+            write_status(self.run_dir, "running", it)
+        return stop
 
     def _record_iteration(self, it: int, losses: dict, collect_s: float, learn_s: float, steps: int,
                        last: bool = False) -> dict:
@@ -368,14 +258,13 @@ class Trainer:
                 row["metrics/" + k.split("/", 1)[1]] = v
         for key in self.total_resets:
             self.total_resets[key] += int(stats[key])
-        self.train_rows.append(row)
+        self.record.append("train_metrics", row)
         self.health.check(it, row, self.ppo_cfg.learning_rate, self.runner.is_distributed, self.device)
         sampler_table = it % self._sampler_every == 0 or last
         if sampler_table:
-            self.sampler_rows.append(
-                diagnostics.bin_table(it, self.env.layout, torch.as_tensor(stats["bin_episodes"]),
-                                      torch.as_tensor(stats["bin_failures"]), self.sampler)
-            )
+            self.record.append("sampler", diagnostics.bin_table(
+                it, self.env.layout, torch.as_tensor(stats["bin_episodes"]), torch.as_tensor(stats["bin_failures"]),
+                self.sampler))
         self.logger.iteration(it, row, sum(self.total_resets.values()),
                               *((self.sampler, self.env.layout) if sampler_table else ()))
         return row
@@ -387,12 +276,4 @@ class Trainer:
         finally:
             self.alg.release_graphs()  # before destroy_process_group: graphs may hold NCCL calls
             self.logger.close()
-
-
-def _count(value) -> float:
-    """A counter from a table row (absent or NaN in rows written before the column existed: 0)."""
-    try:
-        return 0.0 if math.isnan(value := float(value)) else value
-    except (TypeError, ValueError):
-        return 0.0
 

@@ -140,7 +140,7 @@ def test_sensitivity_one_line_per_series_with_reference(tmp_path):
 # ------------------------------------------------------------------------- a study the size of a real one
 def _report_figures(study, tmp_path, monkeypatch) -> tuple[dict, str]:
     """Build the report of ``study``, keeping every figure it saves (name -> Figure) and its text."""
-    from analysis import report
+    from analysis import report, report_files
     from analysis.tables import ReportOptions
 
     figures = {}
@@ -149,7 +149,7 @@ def _report_figures(study, tmp_path, monkeypatch) -> tuple[dict, str]:
         figures[path.name] = fig
         return save_figure(path, fig)
 
-    monkeypatch.setattr(report, "save_figure", keep)
+    monkeypatch.setattr(report_files, "save_figure", keep)  # the report's file writer
     out = report.build_report([study], tmp_path / "report", ReportOptions(n_resamples=20))
     return figures, (out / "report.md").read_text()
 

@@ -27,7 +27,7 @@ from bmimic.evaluation.saved_run import anchor_relative_paths, checkpoint_label
 from bmimic.evaluation.tables import segment_at
 from bmimic.motion.motion import Segment
 from bmimic.run_folder import EVAL_TABLES
-from bmimic.training.evaluation import ERROR_COLUMNS
+from bmimic.training.evaluator import ERROR_COLUMNS
 from tests.conftest import REPO, train_in_process
 
 NUM_BINS = 7  # motion.duration_s=7 with 1 s bins

@@ -146,7 +146,7 @@ def test_failures_reach_the_sampler(built):
     _fresh_iteration(env)
     fps = int(motion.fps)
     _on_reference(env, torch.full((4,), 5 * fps + 5))
-    env.accounting.start_bin.fill_(3)  # episodes that started in bin 3 ...
+    env.feedback.start_bin.fill_(3)  # episodes that started in bin 3 ...
     _fall(env, slice(None))  # ... and fail now, in bin 5
     before = sampler.smoothed_failure().clone()
     _, _, dones, extras = env.step(torch.zeros(4, 29, device=env.device))
@@ -184,7 +184,7 @@ def test_sampling_distribution_is_fixed_within_an_iteration(built):
 
 def test_start_bins_survive_clip_end_resamples_and_partial_resets(built):
     cfg, robot, motion, layout, sampler, env, _ = built
-    acc = env.accounting
+    acc = env.feedback
     _fresh_iteration(env)
     zeros = torch.zeros(4, 29, device=env.device)
     last = int(env.reference.frame_clip_end[0]) - 1

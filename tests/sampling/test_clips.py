@@ -157,10 +157,10 @@ def test_clip_balance_is_a_checked_key():
 
 @pytest.mark.parametrize("attribution", ["start", "failure"])
 def test_an_episode_across_a_clip_end_is_charged_to_the_right_clip_and_bin(attribution):
-    from bmimic.sampling.accounting import EpisodeAccounting
+    from bmimic.sampling.feedback import SamplerFeedback
 
     layout = _two_clip_layout()  # clip a: frames 0-124, bins 0-2; clip b: frames 125-184, bins 3-4
-    acc = EpisodeAccounting(UniformSampler(5), layout, num_envs=2, max_episode_length=500, attribution=attribution)
+    acc = SamplerFeedback(UniformSampler(5), layout, num_envs=2, max_episode_length=500, attribution=attribution)
     no = torch.zeros(2, dtype=torch.bool)
     acc.start_episodes(torch.tensor([True, True]), torch.tensor([1, 0]))  # env 0 starts at frame 60, bin 1
     # step k: env 0 reaches clip a's last frame (124) and is resampled into clip b, the episode goes on

@@ -12,10 +12,11 @@ import pandas as pd
 import pytest
 import torch
 
-from bmimic.sampling import EGMSampler, EpisodeAccounting, GMTSampler, PHCSampler, ProtoMotionsSampler
+from bmimic.sampling import EGMSampler, GMTSampler, PHCSampler, ProtoMotionsSampler, SamplerFeedback
 from bmimic.sampling.base import ERROR_COMPONENTS
 from bmimic.sampling.checks import SamplerConfigError
 from bmimic.sampling.config import load_variant, make_sampler, validate_sampler_config
+from bmimic.sampling.feedback import TRACKING_ERRORS
 from bmimic.sampling.peer_errors import UNSET_SCHEDULE_ITERATIONS
 from bmimic.training.clip_rollouts import clips_failed
 from tests.conftest import TINY, train_in_process
@@ -168,7 +169,7 @@ def _state(ref_pos, robot_pos, n_bodies=2):
 
 
 class _Recorder:
-    tracking_error = True
+    signals = (TRACKING_ERRORS,)
 
     def __init__(self):
         self.calls = []
@@ -180,18 +181,22 @@ class _Recorder:
         pass
 
 
-def test_accounting_sums_errors_per_bin_of_the_current_frame_and_charges_broken_worlds_a_lost_track():
+def test_feedback_sums_errors_per_bin_of_the_current_frame_and_charges_broken_worlds_a_lost_track():
     """A broken world (env 2, NaN state) is charged BROKEN_ERRORS, the hardest failure an
     error-driven sampler can see (issue 36: it was skipped, so a bin that blew up looked easy)."""
-    from bmimic.sampling.accounting import BROKEN_ERRORS
+    from bmimic.envs.state import tracking_errors
+    from bmimic.sampling.feedback import BROKEN_ERRORS
 
     layout = SimpleNamespace(num_bins=3, bins_of=lambda frames: frames // 10)
     rec = _Recorder()
-    acc = EpisodeAccounting(rec, layout, num_envs=3, max_episode_length=100)
+    acc = SamplerFeedback(rec, layout, num_envs=3, max_episode_length=100)
     # env 0 at frame 5 (bin 0): bodies 0.3 m and 0.1 m off; env 1 at frame 25 (bin 2): 0.2 m, 0; env 2 broken
     ref = [[[0, 0, 0], [0, 0, 0]]] * 3
     robot = [[[0.3, 0, 0], [0, 0.1, 0]], [[0, 0, 0.2], [0, 0, 0]], [[float("nan"), 0, 0], [0, 0, 0]]]
-    acc.track(_state(ref, robot), torch.tensor([5, 25, 15]), torch.tensor([False, False, True]))
+    state = _state(ref, robot)
+    no = torch.zeros(3, dtype=torch.bool)
+    acc.measure(torch.tensor([5, 25, 15]), torch.tensor([False, False, True]), no, torch.zeros(3),
+                lambda: tracking_errors(state))
     acc.end_rollout()
     sums, steps = rec.calls[0]
     assert np.isfinite(sums.numpy()).all()
@@ -203,11 +208,15 @@ def test_accounting_sums_errors_per_bin_of_the_current_frame_and_charges_broken_
     assert float(rec.calls[1][1].sum()) == 0
 
 
-def test_accounting_measures_nothing_for_samplers_without_errors():
+def test_feedback_measures_nothing_for_samplers_without_errors():
     layout = SimpleNamespace(num_bins=2, bins_of=lambda f: f)
-    acc = EpisodeAccounting(make_sampler(load_variant("adaptive"), 2), layout, num_envs=1, max_episode_length=10)
-    assert not acc.tracks_errors
-    acc.track(None, torch.tensor([0]), torch.tensor([False]))  # returns before reading the state
+    acc = SamplerFeedback(make_sampler(load_variant("adaptive"), 2), layout, num_envs=1, max_episode_length=10)
+    assert not acc.wants(TRACKING_ERRORS)
+
+    def never():
+        raise AssertionError("the errors were computed for a sampler that does not declare them")
+
+    acc.measure(torch.tensor([0]), torch.tensor([False]), torch.tensor([False]), torch.zeros(1), never)
 
 
 def test_clips_failed_from_the_clip_rollouts():
@@ -300,12 +309,13 @@ def test_two_cpu_iterations_on_the_builtin_library(kind, tmp_path):
 def test_peer_hot_path_has_no_host_sync(kind):
     """Error tracking in the step, the per-rollout update, an evaluation's update and sampling never
     wait for the device."""
+    from bmimic.envs.state import tracking_errors
     from bmimic.sampling.bins import BinLayout
 
     dev, n = torch.device("cuda"), 4096
     layout = BinLayout(3000, 50.0, 1.0, device=dev)
     s = make_sampler(load_variant(kind), layout.num_bins, dev)
-    acc = EpisodeAccounting(s, layout, n, 500, device=dev)
+    acc = SamplerFeedback(s, layout, n, 500, device=dev)
     g = torch.Generator(device=dev).manual_seed(0)
     ref, robot = torch.randn(n, 14, 3, device=dev), torch.randn(n, 14, 3, device=dev)
     quat = torch.nn.functional.normalize(torch.randn(n, 14, 4, device=dev), dim=-1)
@@ -317,7 +327,7 @@ def test_peer_hot_path_has_no_host_sync(kind):
     torch.cuda.set_sync_debug_mode("error")
     try:
         acc.start_episodes(done, s.sample(n, generator=g))
-        acc.track(state, frames, done)
+        acc.measure(frames, done, done, frames.float(), lambda: tracking_errors(state))
         acc.record(acc.count(done, done & ~done, frames, frames, done, done & ~done, frames % 500))
         acc.end_rollout()
         s.observe_eval(torch.rand(1, device=dev, generator=g) < 0.5, 100)

@@ -90,10 +90,10 @@ def test_a_registered_sampler_trains_one_iteration(tmp_path):
     training = build_training(cfg, "cpu")  # validates against the motion too
     sampler, env, layout = training.sampler, training.env, training.task.layout
     assert isinstance(sampler, FirstBinSampler)
-    assert env.accounting.start_bin.tolist() == [0, 0, 0, 0]  # every start drawn from the toy's P
+    assert env.feedback.start_bin.tolist() == [0, 0, 0, 0]  # every start drawn from the toy's P
     assert describe(cfg.sampler, layout, sampler)[0].startswith("sampler first_bin (FirstBinSampler)")
     trainer = build_trainer(training, None, tmp_path)
     trainer.learn()
     assert trainer.progress.iteration == 1
-    probs = trainer.sampler_rows[-1]["probability"].to_numpy()
+    probs = trainer.record.rows("sampler")[-1]["probability"].to_numpy()
     assert probs[0] > 0.99 and abs(probs.sum() - 1.0) < 1e-9

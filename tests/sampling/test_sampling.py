@@ -24,9 +24,9 @@ from bmimic.sampling import (
     BeyondMimicConfig,
     BeyondMimicSampler,
     BinLayout,
-    EpisodeAccounting,
     ReleasedBinLayout,
     SamplerConfigError,
+    SamplerFeedback,
     UniformConfig,
     UniformSampler,
     attribute,
@@ -537,7 +537,7 @@ def test_failed_mask():
 def _accounting(update_every="iteration", attribution="start", failure="short", sampler=None, num_envs=4):
     layout = BinLayout(50, 5.0, 1.0)  # 10 bins of 5 frames
     sampler = sampler or AdaptiveSampler(10, K=1, alpha_smooth=0.5, lambda_uniform=0.0)
-    acc = EpisodeAccounting(sampler, layout, num_envs, max_episode_length=100, attribution=attribution,
+    acc = SamplerFeedback(sampler, layout, num_envs, max_episode_length=100, attribution=attribution,
                             failure=failure, failure_threshold=0.8, update_every=update_every)
     return acc, layout, sampler
 
@@ -701,13 +701,13 @@ def test_adaptive_defaults_are_the_design_from_one_source():
     sampler = inspect.signature(AdaptiveSampler).parameters
     for key in DESIGN:
         assert sampler[key].default == schema[key], key
-    accounting = inspect.signature(EpisodeAccounting).parameters
+    accounting = inspect.signature(SamplerFeedback).parameters
     for key in DESIGN_ACCOUNTING:
         assert accounting[key].default == schema["accounting"][key], key
 
 
 def test_the_variants_are_the_yaml_files_of_registered_samplers():
-    assert variant_names() == ("adaptive", "adaptive_hybrid", "beyondmimic", "egm", "gmt", "phc", "protomotions",
+    assert variant_names() == ("adaptive", "adaptive_hybrid", "beyondmimic", "egm", "gmt", "low_return", "phc", "protomotions",
                                "uniform")
     assert {k: (e.cls, e.config) for k, e in SAMPLERS.items() if k in ("adaptive", "beyondmimic", "uniform")} == {
         "adaptive": (AdaptiveSampler, AdaptiveConfig), "beyondmimic": (BeyondMimicSampler, BeyondMimicConfig),
@@ -976,8 +976,8 @@ def test_hot_path_has_no_host_sync():
         for s in (AdaptiveSampler(lay.num_bins, device=dev), BeyondMimicSampler(lay.num_bins, K=3, device=dev)):
             for attribution in ("start", "failure"):
                 for update_every in ("iteration", "step"):
-                    acc = EpisodeAccounting(s, lay, n, 500, attribution=attribution, update_every=update_every,
-                                            device=dev)
+                    acc = SamplerFeedback(s, lay, n, 500, attribution=attribution, update_every=update_every,
+                                          device=dev)
                     torch.cuda.synchronize()
                     torch.cuda.set_sync_debug_mode("error")
                     try:

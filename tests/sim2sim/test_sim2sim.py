@@ -22,7 +22,7 @@ import torch
 from tensordict import TensorDict
 
 from bmimic import sim2sim
-from bmimic.training.export import MOTION_OUTPUTS, export_checkpoint_onnx
+from bmimic.training.onnx_export import MOTION_OUTPUTS, export_checkpoint_onnx
 from tests.conftest import TINY, cli_env, compose, train_in_process
 
 OBS_TOL = 1e-5
@@ -188,7 +188,7 @@ def test_sim2sim_control_step_equals_the_training_envs(task):
 
 
 def test_reference_targets_and_errors_equal_the_training_envs(task):
-    from bmimic.training.evaluation import ERROR_COLUMNS, _errors
+    from bmimic.training.evaluator import ERROR_COLUMNS, _errors
 
     env, _, paths = task
     assert tuple(sim2sim.ERROR_NAMES) == tuple(ERROR_COLUMNS)
@@ -356,8 +356,8 @@ def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypat
     identical per-episode rows (end, failure frame, steps, truncation, tracking failures), per-frame
     step counts and error sums, and so identical per-bin tables."""
     from bmimic.sampling.layouts import make_layout
-    from bmimic.training import evaluation
-    from bmimic.training.evaluation import EPISODE_COLUMNS, ERROR_COLUMNS, Evaluator
+    from bmimic.training import evaluator
+    from bmimic.training.evaluator import EPISODE_COLUMNS, ERROR_COLUMNS, Evaluator
 
     env, _, paths = task
     # 38 steps: the episode from 462 reaches the clip end after 37 (truncated, by one step). Mean errors
@@ -378,9 +378,9 @@ def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypat
             stop = torch.tensor([pair in PLANTED_FAILURES for pair in zip(self.start, judged)])
             return obs, rew, dones, {**extras, "terminated": stop}
 
-    monkeypatch.setattr(evaluation, "_errors",
+    monkeypatch.setattr(evaluator, "_errors",
                         lambda e: torch.as_tensor(planted_errors(e.time_steps.numpy()), dtype=torch.float32))
-    monkeypatch.setattr(evaluation, "_smoothness",
+    monkeypatch.setattr(evaluator, "_smoothness",
                         lambda e, _: torch.as_tensor(planted_smoothness(e.time_steps.numpy()), dtype=torch.float32))
     spec = sim2sim.read_policy(paths[1])
     ev = Evaluator(Planted(), env.layout, spec.segments, per_bin, horizon_s, max_rel_mm)
@@ -422,7 +422,7 @@ def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypat
     assert ep.loc[462, ["end_frame", "failed", "horizon_truncated", "steps"]].tolist() == [499, False, True, 37]
     assert ep.loc[137, ["failure_frame", "error_failed"]].tolist() == [157, True]  # its worst frame, in bin 3
     assert not ep.loc[337, "failed"] and ep["error_failed"].sum() == 4
-    table, theirs = (evaluation.bin_table(r, layout, spec.segments) for r in (ours, warp))
+    table, theirs = (evaluator.bin_table(r, layout, spec.segments) for r in (ours, warp))
     assert theirs["failures"].tolist() == [1, 1, 2, 1, 0, 1, 0, 0, 2, 1]
     pd.testing.assert_frame_equal(table, theirs, check_dtype=False, rtol=1e-6)
 

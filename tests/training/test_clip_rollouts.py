@@ -14,7 +14,7 @@ import torch
 from bmimic.sampling import PHCSampler, ProtoMotionsSampler
 from bmimic.sampling.clips import ClipLayout
 from bmimic.training.clip_rollouts import clip_bounds, clip_rollouts, clips_failed
-from bmimic.training.evaluation import Evaluator
+from bmimic.training.evaluator import Evaluator
 
 FPS = 50.0
 STARTS, NUM_FRAMES = [0, 40, 70], 100  # clips of 0.8, 0.6 and 0.6 s

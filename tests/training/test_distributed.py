@@ -44,7 +44,7 @@ def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> No
         seed_everything(cfg.seed)  # different worlds per rank, as train.py does
         training = build_training(cfg, "cpu")
         sampler, env = training.sampler, training.env
-        assert env.accounting.world_size == WORLD
+        assert env.feedback.world_size == WORLD
         for _ in range(40):  # random actions: episodes end, and differently on each rank
             env.step(torch.randn(env.num_envs, env.num_actions))
         env.end_rollout()

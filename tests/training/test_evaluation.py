@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 import torch
 
-from bmimic.training.evaluation import BIN_COLUMNS, aggregate
+from bmimic.training.evaluator import BIN_COLUMNS, aggregate
 
 # 3 bins of 10 frames each.
 FRAME_TO_BIN = np.repeat([0, 1, 2], 10)
@@ -197,7 +197,7 @@ def test_robust_env_pushes_the_robot(robust_evaluator):
 def test_a_policy_that_breaks_the_simulation_fails_every_episode(robust_evaluator):
     # NaN actions make every world non-finite on the first step: the environment resets those worlds
     # (a time-out for PPO), and the evaluation must count each as a failure, never as tracking.
-    from bmimic.training.evaluation import summarize
+    from bmimic.training.evaluator import summarize
 
     ev = robust_evaluator
     env = ev.env

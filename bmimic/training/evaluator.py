@@ -15,7 +15,7 @@ Failures are charged where they happen. A 2 s horizon spans two or three 1 s bin
   `horizon_s` (the clip's last bins): its failure rate comes from shorter exposure;
 - `tracked_through`: episodes that entered the bin from an earlier bin and were still alive at its
   last frame, i.e. tracked all of the bin's frames after a run-up. A horizon-truncated bin counts as
-  mastered only when this is at least 1 (bmimic.evaluation.mastery.counts_as_mastered), so the clip's last
+  mastered only when this is at least 1 (bmimic.run_schema.counts_as_mastered), so the clip's last
   bins are not "mastered" by an untrained policy whose episodes simply run out of clip.
 
 An episode fails when it terminates (any termination but a time-out), when its world breaks (the
@@ -40,39 +40,20 @@ import pandas as pd
 import torch
 
 from bmimic.envs.quat import quat_error_magnitude
-from bmimic.evaluation.mastery import counts_as_mastered
+from bmimic.run_schema import (  # noqa: F401  (the tables' columns, re-exported for the evaluators)
+    BIN_COLUMNS,
+    EPISODE_COLUMNS,
+    ERROR_COLUMNS,
+    MASTERED_BELOW,
+    MPKPE_REL_MM,
+    SMOOTHNESS_COLUMNS,
+    TRACKED_THROUGH,
+    counts_as_mastered,
+)
 from bmimic.sampling.base import bin_counts
 from bmimic.sampling.bins import visits_histogram
 
-ERROR_COLUMNS = (
-    "mpkpe_mm", "mpkpe_rel_mm", "anchor_ori_err_rad", "body_ori_err_rad", "joint_pos_err_rad",
-    "joint_vel_err_radps", "ee_pos_err_mm",
-)
-REL_MPKPE = ERROR_COLUMNS.index("mpkpe_rel_mm")
-
-SMOOTHNESS_COLUMNS = ("action_rate", "joint_acc_radps2")
-"""Per-step smoothness of the policy itself (averaged like the errors): `action_rate` is the MDP's
-action_rate_l2 term, sum over joints of (a_t - a_{t-1})^2 (a_{-1} = 0 at an episode's start);
-`joint_acc_radps2` is the mean over joints of |qvel_t - qvel_{t-1}| / control period (a finite
-difference over one control step, so it is the acceleration a controller at that rate sees)."""
-
-EPISODE_COLUMNS = (
-    "start_frame", "end_frame", "failed", "failure_frame", "terminated", "steps", "horizon_truncated",
-)
-"""Per-episode columns `aggregate` reads (error means may follow): the first frame and the last frame
-the episode was alive at (the clip's last frame for one that reached it), whether it failed and at
-which frame (-1 if not), whether it terminated, steps alive, and whether its clip ends before the
-horizon (the clip's exclusive end frame minus 1 minus the start frame < horizon steps). An optional
-`broken` column marks episodes that ended because their world broke (a failure, not a termination)."""
-
-BIN_COLUMNS = (
-    "bin", "visits", "failures", "failure_rate", "start_episodes", "start_failures", "terminations",
-    "tracking_failures", "broken", "horizon_truncated", "tracked_through", "eval_steps",
-)
-"""The counts of the per-bin table, in order; the error columns (means per step) follow."""
-
-MASTERED_BELOW = 0.1
-"""Failure rate below which a bin counts as mastered in the run's own summary (the report's default)."""
+REL_MPKPE = ERROR_COLUMNS.index(MPKPE_REL_MM)
 
 
 def stratified_start_frames(bin_first_frame: np.ndarray, bin_num_frames: np.ndarray, per_bin: int) -> np.ndarray:
@@ -148,7 +129,7 @@ def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame |
         "tracking_failures": _counts(fail_bin, num_bins, failed & ~terminated & ~broken),
         "broken": _counts(fail_bin, num_bins, broken),
         "horizon_truncated": _counts(start_bin, num_bins, truncated) > 0,
-        "tracked_through": _visits(through_lo, np.maximum(through_hi, through_lo), num_bins, through),
+        TRACKED_THROUGH: _visits(through_lo, np.maximum(through_hi, through_lo), num_bins, through),
     })
     with np.errstate(invalid="ignore", divide="ignore"):
         out.insert(3, "failure_rate", out["failures"] / out["visits"].where(out["visits"] > 0))

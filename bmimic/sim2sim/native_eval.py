@@ -1,5 +1,5 @@
 """sim2sim's evaluation: stratified starts per bin, episodes in native MuJoCo, and the tables of
-bmimic.evaluation.tables built from them with the MuJoCo-Warp evaluator's accounting (training.evaluation)."""
+bmimic.evaluation.tables built from them with the MuJoCo-Warp evaluator's accounting (training.evaluator)."""
 
 from __future__ import annotations
 
@@ -49,11 +49,12 @@ def checkpoint_label(spec: PolicySpec) -> str:
 
 
 def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int):
-    """bmimic.training.evaluation.Rollouts of sim2sim episodes: the rows with their start `bin` first,
+    """bmimic.training.evaluator.Rollouts of sim2sim episodes: the rows with their start `bin` first,
     and per motion frame the steps judged at it and their error sums."""
     import pandas as pd
 
-    from bmimic.training.evaluation import ERROR_COLUMNS, SMOOTHNESS_COLUMNS, Rollouts
+    from bmimic.run_schema import ERROR_COLUMNS, SMOOTHNESS_COLUMNS
+    from bmimic.training.evaluator import Rollouts
 
     rows = pd.DataFrame([e.row for e in episodes])
     rows.insert(0, "bin", np.asarray(start_bins, dtype=np.int64))
@@ -73,7 +74,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
     from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table
     from bmimic.sampling.layouts import make_layout
     from bmimic.task import check_evaluation_fits
-    from bmimic.training.evaluation import stratified_start_frames, summarize
+    from bmimic.training.evaluator import stratified_start_frames, summarize
 
     spec = read_policy(policy_path)
     label = checkpoint_label(spec)

@@ -1,0 +1,155 @@
+"""The run record's contract: the columns of every run table, with units and labels, the metrics.json
+keys, the mastery rule and the logistics keys. Producers (training, `bmimic.eval`, sim2sim) and
+readers (evaluation's report, the analysis) spell these names through this module only.
+
+File names are `bmimic.run_folder`'s; this module says what the files hold. It is torch-free and imports
+nothing heavy (the analysis imports it without torch; sim2sim, numpy only, imports it too).
+A test (tests/test_run_schema.py) holds LOGISTICS_KEYS equal to conf/train.yaml's
+`hydra.job.config.override_dirname.exclude_keys`; tests/test_architecture.py fails on a string literal
+of a measured column's name outside this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a run table."""
+
+    name: str
+    """The column's name in the table (units in the name: `_mm`, `_rad`, `_radps`, `_s`)."""
+    unit: str
+    """The unit of its values ("" for counts, fractions and flags)."""
+    label: str
+    """What a report calls it (lower case, unit in parentheses)."""
+
+
+# --------------------------------------------------------------------------------------------- keys
+ITERATION = "iteration"
+"""The PPO iteration a row belongs to (train_metrics: the one that produced it; eval: after which it ran)."""
+ENV_STEPS = "env_steps"
+"""Environment steps taken before the row (all ranks together)."""
+WALL_TIME_S = "wall_time_s"
+"""Seconds of training before the row (collection and learning; evaluations not counted)."""
+BIN = "bin"
+"""The bin of the motion (a row of a per-bin table)."""
+
+# --------------------------------------------------------------------------------------------- measures
+TRACKING_ERRORS = (
+    Column("mpkpe_mm", "mm", "global MPKPE (mm)"),
+    Column("mpkpe_rel_mm", "mm", "root-relative MPKPE (mm)"),
+    Column("anchor_ori_err_rad", "rad", "anchor orientation error (rad)"),
+    Column("body_ori_err_rad", "rad", "body orientation error (rad)"),
+    Column("joint_pos_err_rad", "rad", "joint position error (rad)"),
+    Column("joint_vel_err_radps", "rad/s", "joint velocity error (rad/s)"),
+    Column("ee_pos_err_mm", "mm", "end-effector position error (mm)"),
+)
+"""Per-step tracking errors, in the order the evaluation measures them; a per-bin table holds their
+means over the steps taken at the bin's frames."""
+ERROR_COLUMNS = tuple(c.name for c in TRACKING_ERRORS)
+(MPKPE_MM, MPKPE_REL_MM, ANCHOR_ORI_ERR_RAD, BODY_ORI_ERR_RAD, JOINT_POS_ERR_RAD, JOINT_VEL_ERR_RADPS,
+ EE_POS_ERR_MM) = ERROR_COLUMNS
+REPORTED_ERRORS = (MPKPE_REL_MM, MPKPE_MM, JOINT_POS_ERR_RAD, JOINT_VEL_ERR_RADPS, BODY_ORI_ERR_RAD, EE_POS_ERR_MM)
+"""The tracking errors a comparison report shows, in its order (the anchor's is in the body's)."""
+
+SMOOTHNESS = (
+    Column("action_rate", "", "action rate (Σ over joints of (a_t − a_{t−1})², per step)"),
+    Column("joint_acc_radps2", "rad/s²", "joint acceleration (rad/s², mean over joints)"),
+)
+"""Per-step smoothness of the policy itself (averaged like the errors): `action_rate` is the MDP's
+action_rate_l2 term, sum over joints of (a_t - a_{t-1})^2 (a_{-1} = 0 at an episode's start);
+`joint_acc_radps2` is the mean over joints of |qvel_t - qvel_{t-1}| / control period."""
+SMOOTHNESS_COLUMNS = tuple(c.name for c in SMOOTHNESS)
+
+LABELS = {c.name: c.label for c in (*TRACKING_ERRORS, *SMOOTHNESS)}
+"""Measured column -> its report label."""
+
+# --------------------------------------------------------------------------------------------- eval tables
+EPISODE_COLUMNS = (
+    "start_frame", "end_frame", "failed", "failure_frame", "terminated", "steps", "horizon_truncated",
+)
+"""Per-episode columns the per-bin aggregation reads (error means may follow): the first frame and the
+last frame the episode was alive at (the clip's last frame for one that reached it), whether it failed
+and at which frame (-1 if not), whether it terminated, steps alive, and whether its clip ends before
+the horizon. An optional `broken` column marks episodes whose world broke (a failure, not a termination)."""
+
+FAILURE_RATE = "failure_rate"
+"""Per-bin table: failures per visit, charged to the bin where the failure happened."""
+HORIZON_TRUNCATED = "horizon_truncated"
+TRACKED_THROUGH = "tracked_through"
+BIN_COLUMNS = (
+    BIN, "visits", "failures", FAILURE_RATE, "start_episodes", "start_failures", "terminations",
+    "tracking_failures", "broken", HORIZON_TRUNCATED, TRACKED_THROUGH, "eval_steps",
+)
+"""The counts of the per-bin evaluation table (eval.parquet after `iteration, env_steps, wall_time_s`;
+eval/<label>/eval_bins.parquet), in order; the ERROR_COLUMNS and SMOOTHNESS_COLUMNS means follow."""
+
+CLIP_ROLLOUT_COLUMNS = ("clip", "clip_name", "start_frame", "end_frame", "steps", "failed", "terminated", "broken",
+                        "reached_end")
+"""clip_eval.parquet's columns after `iteration, env_steps` (one row per clip and evaluation):
+`end_frame` is the last frame the rollout was alive at; `reached_end` whether it tracked to the clip's
+last frame (False for one cut by its time limit or failed)."""
+
+# --------------------------------------------------------------------------------------------- metrics.json
+EVAL_SUMMARY_KEYS = ("failure_rate", "bins_mastered_frac", "success_rate", "broken",
+                     *ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
+"""An evaluation's summary, each key prefixed `<prefix>_` (`eval_`, `robust_eval_`); metrics.json holds
+the final one as `final_eval_<key>` (and `final_robust_eval_<key>` with eval.robust)."""
+
+
+def summary_key(key: str, prefix: str = "eval") -> str:
+    """The summary name of `key` (one of EVAL_SUMMARY_KEYS) under `prefix`."""
+    return f"{prefix}_{key}"
+
+
+FINAL_METRICS = tuple(f"final_{summary_key(k)}" for k in ("failure_rate", "success_rate", "mpkpe_mm",
+                                                           "bins_mastered_frac"))
+"""The final evaluation's numbers every metrics.json holds first."""
+RUN_METRICS = ("iterations", "env_steps", "wall_time_s", "mean_episode_length", "max_episode_length", "num_bins",
+               "num_envs", "device", "nonfinite_resets", "out_of_bounds_resets")
+"""The rest of metrics.json: the run's budget, scale and broken-world totals."""
+
+# --------------------------------------------------------------------------------------------- mastery
+MASTERED_BELOW = 0.1
+"""Failure rate (per visit) below which a bin counts as mastered in a run's own summary (the report's
+default threshold)."""
+
+
+def counts_as_mastered(per_bin: "pd.DataFrame", threshold: float = MASTERED_BELOW) -> "pd.Series":
+    """Whether each row (one bin of one evaluation) counts as mastered: its failure rate is below
+    `threshold` and, if the bin is horizon-truncated (its episodes run out of clip before the
+    horizon), at least one episode tracked all of its frames after entering it from an earlier bin, so
+    the clip's last bins are not "mastered" by a policy whose episodes simply run out of clip.
+
+    Tables from before `horizon_truncated` existed are taken as not truncated.
+    """
+    below = per_bin[FAILURE_RATE].astype(float) < threshold
+    if HORIZON_TRUNCATED not in per_bin:
+        return below
+    truncated = per_bin[HORIZON_TRUNCATED].fillna(False).astype(bool)
+    through = per_bin[TRACKED_THROUGH].fillna(0) if TRACKED_THROUGH in per_bin else 0
+    return below & (~truncated | (through >= 1))
+
+
+# --------------------------------------------------------------------------------------------- logistics
+LOGISTICS_KEYS = ("seed", "sweep_name", "run_name", "device", "resume", "sweep", "+sweep", "logger", "progress_bar",
+                  "max_iterations", "num_envs", "time_limit_s", "eval.every_iters", "ppo.save_interval",
+                  "wandb_project", "verbose", "data.lafan_dir", "resume_allow_changes", "trust_checkpoint",
+                  "max_cpu_hours")
+"""Override keys that are budgets or logistics, not arms: they stay out of a sweep job's folder name
+(conf/train.yaml's `hydra.job.config.override_dirname.exclude_keys`, which a test holds equal) and
+out of the analysis's arm names."""
+
+
+__all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "EE_POS_ERR_MM", "JOINT_POS_ERR_RAD",
+           "JOINT_VEL_ERR_RADPS", "CLIP_ROLLOUT_COLUMNS", "Column", "ENV_STEPS", "EPISODE_COLUMNS", "ERROR_COLUMNS",
+           "EVAL_SUMMARY_KEYS", "FAILURE_RATE", "FINAL_METRICS", "HORIZON_TRUNCATED", "ITERATION", "LABELS",
+           "LOGISTICS_KEYS", "MASTERED_BELOW", "MPKPE_MM", "MPKPE_REL_MM", "REPORTED_ERRORS", "RUN_METRICS",
+           "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "TRACKED_THROUGH", "TRACKING_ERRORS",
+           "WALL_TIME_S", "counts_as_mastered", "summary_key"]

@@ -1,0 +1,53 @@
+"""The run schema (bmimic.run_schema): the contract between what a run writes and what reads it."""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from analysis.metrics import ERROR_METRICS, SMOOTHNESS_METRICS
+from analysis.run_files import IGNORED_OVERRIDE_KEYS
+from bmimic import run_schema as rs
+from tests.conftest import compose
+
+
+def test_logistics_keys_are_the_composed_configs_exclude_keys():
+    cfg = compose(["sampler=uniform"], return_hydra_config=True)
+    assert tuple(cfg.hydra.job.config.override_dirname.exclude_keys) == rs.LOGISTICS_KEYS
+
+
+def test_the_analysis_ignores_every_logistics_key_in_arm_names():
+    # The drift issue 34 found: the analysis lacked resume_allow_changes and trust_checkpoint.
+    assert set(rs.LOGISTICS_KEYS) <= IGNORED_OVERRIDE_KEYS
+    assert {"resume_allow_changes", "trust_checkpoint", "max_cpu_hours"} <= IGNORED_OVERRIDE_KEYS
+
+
+def test_every_measured_column_has_a_unit_in_its_name_and_a_label():
+    for c in (*rs.TRACKING_ERRORS, *rs.SMOOTHNESS):
+        assert c.label and c.label == rs.LABELS[c.name]
+        if c.unit:
+            assert f"({c.unit}" in c.label
+    suffix = {"mm": "_mm", "rad": "_rad", "rad/s": "_radps"}
+    assert all(c.name.endswith(suffix[c.unit]) for c in rs.TRACKING_ERRORS)
+    assert set(rs.REPORTED_ERRORS) <= set(rs.ERROR_COLUMNS)
+
+
+def test_readers_label_the_columns_the_producers_write():
+    assert list(ERROR_METRICS) == list(rs.REPORTED_ERRORS)
+    assert list(SMOOTHNESS_METRICS) == list(rs.SMOOTHNESS_COLUMNS)
+    assert all(ERROR_METRICS[c] == rs.LABELS[c] for c in ERROR_METRICS)
+
+
+def test_the_mastery_rule_on_planted_rows():
+    rows = pd.DataFrame({rs.FAILURE_RATE: [0.05, 0.05, 0.05, 0.1, 0.0],
+                         rs.HORIZON_TRUNCATED: [False, True, True, False, None],
+                         rs.TRACKED_THROUGH: [0, 0, 2, 5, None]})
+    # below the threshold; truncated needs one tracked-through episode; 0.1 is not below 0.1; NaN = not truncated
+    assert rs.counts_as_mastered(rows).tolist() == [True, False, True, False, True]
+    assert rs.counts_as_mastered(rows, threshold=0.2).tolist() == [True, False, True, True, True]
+    assert rs.counts_as_mastered(rows[[rs.FAILURE_RATE]]).tolist() == [True, True, True, False, True]
+
+
+def test_summary_keys_are_prefixed():
+    assert rs.summary_key(rs.MPKPE_REL_MM) == "eval_mpkpe_rel_mm"
+    assert rs.summary_key("failure_rate", "robust_eval") == "robust_eval_failure_rate"
+    assert rs.FINAL_METRICS[0] == "final_eval_failure_rate"
