@@ -22,7 +22,10 @@ SETUPS = [("cpu", False)] + ([("cuda:0", False), ("cuda:0", True)] if torch.cuda
 def built(request):
     device, compiled = request.param
     seed_everything(0)  # the tests below must not depend on what ran before them
-    cfg = compose(["motion=easy_only", "num_envs=4", f"device={device}", f"sim.compile_env_step={compiled}"])
+    # sampler=adaptive (the design), not the default: the accounting tests below plant start bins and
+    # one update per iteration, which are the design's bookkeeping
+    cfg = compose(["motion=easy_only", "num_envs=4", f"device={device}", f"sim.compile_env_step={compiled}",
+                   "sampler=adaptive"])
     resolve_runtime(cfg, device)
     training = build_training(cfg, device)
     task = training.task
