@@ -54,6 +54,11 @@ from bmimic.sampling.base import bin_counts
 from bmimic.sampling.bins import visits_histogram
 
 REL_MPKPE = ERROR_COLUMNS.index(MPKPE_REL_MM)
+ALIVE_CHECK_STEPS = 50
+"""A wave of a deterministic evaluation env stops once none of its episodes is alive, checked every
+this many steps (one host sync each): a clip rollout (phc, protomotions) otherwise runs the longest
+clip's length even when every clip failed in its first second. Outputs are unchanged: steps after the
+last episode ended measure nothing. A robust env keeps stepping, as its draws advance torch's generator."""
 
 
 def stratified_start_frames(bin_first_frame: np.ndarray, bin_num_frames: np.ndarray, per_bin: int) -> np.ndarray:
@@ -221,6 +226,7 @@ class Evaluator:
         measured = (*ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
         frame_sums = torch.zeros(num_frames, len(measured) + 1, device=dev)  # steps, then per-step sums
         rows = []
+        may_stop = not getattr(env, "robust", False)
         for first in range(0, len(self.frames), n):
             frames = self.frames[first : first + n]
             m = len(frames)
@@ -238,7 +244,7 @@ class Evaluator:
             steps = torch.zeros(n, device=dev)
             sums = torch.zeros(n, len(measured), device=dev)
             obs = env.get_observations()
-            for _ in range(self.horizon_steps):
+            for step in range(self.horizon_steps):
                 frame = env.time_steps.clone()  # the frame this step is judged at (terminations)
                 end_frame = torch.where(alive, frame, end_frame)
                 prev_joint_vel = env.state.joint_vel.clone()
@@ -262,6 +268,8 @@ class Evaluator:
                 # An episode that reaches the end of its clip tracked up to the clip's last frame.
                 end_frame = torch.where(alive & ~stop & env.reached_clip_end, env.time_steps, end_frame)
                 alive &= ~stop & ~env.reached_clip_end
+                if may_stop and (step + 1) % ALIVE_CHECK_STEPS == 0 and not bool(alive.any()):
+                    break
             means = sums / steps.clamp_min(1)[:, None]
             error_failed = torch.zeros_like(terminated)
             if self.max_mpkpe_rel_mm is not None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -125,3 +126,34 @@ def test_phc_resets_to_uniform_when_nothing_failed_and_keeps_its_counts():
     np.testing.assert_allclose(mass(), [1 / 3] * 3)
     s.observe_eval(torch.tensor([True, False, False]), 10)  # h = [1, 1, 0]: the history is kept
     np.testing.assert_allclose(mass(), [0.5, 0.5, 0], atol=1e-12)
+
+
+class CountingEnv(PlantedEnv):
+    def __init__(self, num_envs: int, failing: set[int], robust: bool = False):
+        super().__init__(num_envs, failing)
+        self.robust, self.steps_taken = robust, 0
+
+    def step(self, actions: torch.Tensor):
+        self.steps_taken += 1
+        return super().step(actions)
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_a_wave_stops_when_no_episode_is_alive_and_measures_the_same(monkeypatch, robust):
+    """Every episode ends by step 40 (clip ends, clip 1's failure); the horizon is 200 steps. A
+    deterministic env stops at the first check after that (step 50) with the same tables; a robust one
+    (its draws advance torch's generator) runs the whole horizon."""
+    from bmimic.training import evaluator as evaluator_module
+
+    def run(check_steps: int):
+        monkeypatch.setattr(evaluator_module, "ALIVE_CHECK_STEPS", check_steps)
+        layout = ClipLayout("time", STARTS, NUM_FRAMES, FPS, 0.2, clip_names=["walk", "jump", "run"])
+        env = CountingEnv(16, {1}, robust=robust)
+        out = Evaluator(env, layout, [], episodes_per_bin=2, horizon_s=4.0).run_episodes(_policy)
+        return out, env.steps_taken
+
+    (early, n_early), (full, n_full) = run(50), run(10**9)
+    assert n_full == 2 * 200  # 10 bins x 2 episodes: two waves of 16 envs, 200 steps each
+    assert n_early == (2 * 200 if robust else 2 * 50)
+    pd.testing.assert_frame_equal(early.episodes, full.episodes)
+    pd.testing.assert_frame_equal(early.frame_errors, full.frame_errors)
