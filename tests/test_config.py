@@ -26,9 +26,9 @@ def test_defaults():
     cfg = compose()
     assert cfg.robot.name == "g1"
     assert cfg.motion.source == "builtin"
-    # the design-choice study's pick (issue 32): the design's formulas, the released code's bookkeeping
-    assert cfg.sampler.name == "adaptive_hybrid"
-    assert cfg.sampler.accounting.attribution == "failure" and cfg.sampler.accounting.update_every == "step"
+    # the literal design: no other reading beat it by the design-choice study's rule (issue 32)
+    assert cfg.sampler.name == "adaptive"
+    assert cfg.sampler.accounting.attribution == "start" and cfg.sampler.accounting.update_every == "iteration"
     assert cfg.ppo.num_steps_per_env == 24 and cfg.ppo.learning_rate == 1e-3 and cfg.ppo.entropy_coef == 0.005
     for key in ("seed", "device", "num_envs", "max_iterations", "run_name", "sweep_name"):
         assert key in cfg

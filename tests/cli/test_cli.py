@@ -72,7 +72,7 @@ def test_console_is_one_summary_then_iteration_lines_off_a_terminal(tmp_path):
     assert text.count("\n  run folder  ") == 1
     for row in ("device      cpu (requested cpu)", "envs        2", "iterations  2 of 8 steps per env",
                 "motion      easy_only: built-in easy_only; 10.0 s at 50 Hz", "bins        10 time bins of 1 s over 10 s",
-                "sampler     adaptive_hybrid", f"run folder  {tmp_path / 'quiet'}"):
+                "sampler     adaptive", f"run folder  {tmp_path / 'quiet'}"):
         assert f"\n  {row}\n" in text, row
     # Captured output is no terminal: lines, not tqdm's carriage-return frames (test_output: the bar on a tty).
     assert text.index("run folder") < text.index("iteration 1/2: ") < text.index("iteration 2/2: ")
