@@ -24,6 +24,7 @@ from analysis.metrics import (
 )
 from analysis.stats import MIN_SEEDS_IQM, curve_intervals, seed_interval
 from analysis.tables import SPEEDUP_COLUMNS, ReportOptions, per_seed_text, use_bootstrap
+from bmimic.run_schema import FAILURE_RATE, HORIZON_TRUNCATED
 
 
 def run_times(overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
@@ -64,7 +65,7 @@ def mastery(mastery_seed_df: pd.DataFrame, bins: pd.DataFrame) -> pd.DataFrame:
         rows.append((arm, b, s.n, s.n_reached, s.median, s.follow_up, per_seed))
     out = pd.DataFrame(rows, columns=["arm", "bin", "n_seeds", "n_mastered", "mastery_iteration", "follow_up",
                                       "per_seed"])
-    return out.merge(bins[["bin", "segment", "horizon_truncated"]], on="bin", how="left")
+    return out.merge(bins[["bin", "segment", HORIZON_TRUNCATED]], on="bin", how="left")
 
 
 def speedups(times: pd.DataFrame, mastery_seed_df: pd.DataFrame, baseline: str, runs: pd.DataFrame,
@@ -113,7 +114,7 @@ def bin_failure(eval_df: pd.DataFrame) -> pd.DataFrame:
     """Seed-mean failure per ``arm, iteration, bin`` (``failure_rate``, ``n_seeds``)."""
     return (
         eval_df.groupby(["arm", "iteration", "bin"], sort=True)
-        .agg(failure_rate=("failure_rate", "mean"), n_seeds=("seed", "nunique"))
+        .agg(failure_rate=(FAILURE_RATE, "mean"), n_seeds=("seed", "nunique"))
         .reset_index()
     )
 
@@ -128,7 +129,7 @@ def final_bin_failure(eval_df: pd.DataFrame, runs: pd.DataFrame, opts: ReportOpt
     boot = use_bootstrap(runs)
     frames = []
     for arm, g in last.groupby("arm", sort=True):
-        wide = g.pivot_table(index="seed", columns="bin", values="failure_rate", aggfunc="mean").sort_index()
+        wide = g.pivot_table(index="seed", columns="bin", values=FAILURE_RATE, aggfunc="mean").sort_index()
         m = wide.to_numpy(dtype=float)
         p, low, high, method = curve_intervals(m, boot, opts.n_resamples, opts.confidence, opts.bootstrap_seed)
         n = (~np.isnan(m)).sum(axis=0)
@@ -161,7 +162,7 @@ def segment_failure(eval_df: pd.DataFrame, bins: pd.DataFrame, mastery_df: pd.Da
     boot = use_bootstrap(runs)
     rows = []
     for (arm, seg), g in per_run.groupby(["arm", "segment"], sort=False):
-        p, low, high, method = seed_interval(g["failure_rate"], boot, opts.n_resamples, opts.confidence,
+        p, low, high, method = seed_interval(g[FAILURE_RATE], boot, opts.n_resamples, opts.confidence,
                                              opts.bootstrap_seed)
         rows.append({"arm": arm, "segment": seg, "difficulty": difficulty.get(seg, ""),
                      "num_bins": int((bins["segment"] == seg).sum()), "final_failure": p,

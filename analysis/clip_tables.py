@@ -17,6 +17,7 @@ from analysis.markdown import estimate_cell
 from analysis.metrics import at_budget, start_failure
 from analysis.stats import seed_interval
 from analysis.tables import ReportOptions, use_bootstrap
+from bmimic.run_schema import FAILURE_RATE
 
 FAILURE_HEADER = "final failure (failed / started episodes, by start clip)"
 MASS_HEADER = "sampling probability mass (mean over training)"
@@ -56,7 +57,7 @@ def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd
     boot = use_bootstrap(runs)
     rows = []
     for (arm, clip), g in per_run.groupby(["arm", "clip"], sort=False):
-        p, low, high, method = seed_interval(g["failure_rate"].dropna(), boot, opts.n_resamples, opts.confidence,
+        p, low, high, method = seed_interval(g[FAILURE_RATE].dropna(), boot, opts.n_resamples, opts.confidence,
                                              opts.bootstrap_seed)
         rows.append({"arm": arm, "clip": clip, "num_bins": int((clips == clip).sum()), "final_failure": p,
                      "final_failure_low": low, "final_failure_high": high, "ci_method": method, "n_seeds": len(g),

@@ -8,6 +8,7 @@ import pandas as pd
 
 from analysis.markdown import fmt, is_nan, mastery_speedup_line, md_table, p_text, plural, speedup_phrase
 from analysis.tables import ReportOptions
+from bmimic.run_schema import ENV_STEPS, WALL_TIME_S
 
 
 def threshold_ranges(values, grid) -> str:
@@ -75,7 +76,7 @@ def speedup_curve_text(curve: pd.DataFrame, speed: pd.DataFrame, per_bin: pd.Dat
     for arm, g in curve.groupby("arm", sort=True):
         base = g["baseline"].iloc[0]
         its = g[g["measure"] == "iteration"].sort_values("threshold")
-        steps = g[g["measure"] == "env_steps"].sort_values("threshold")
+        steps = g[g["measure"] == ENV_STEPS].sort_values("threshold")
         text = (f"- `{arm}` vs `{base}`, speedup in time to overall success (baseline median / arm median over "
                 f"seeds; success thresholds {fmt(g['threshold'].min())}–{fmt(g['threshold'].max())}, "
                 f"speedup_curve.png): in iterations {curve_phrase(its, opts)}.")
@@ -84,11 +85,11 @@ def speedup_curve_text(curve: pd.DataFrame, speed: pd.DataFrame, per_bin: pd.Dat
                 steps["status"].to_numpy() == its["status"].to_numpy()).all()
             text += (" In env steps the same (every run collects the same env steps per iteration)." if same
                      else f" In env steps {curve_phrase(steps, opts)}.")
-        wall = speed[(speed["arm"] == arm) & (speed["measure"] == "wall_time_s")]
+        wall = speed[(speed["arm"] == arm) & (speed["measure"] == WALL_TIME_S)]
         if len(wall):
             r = wall.iloc[0]
             text += (f" In wall time at {opts.success_threshold:g} (one machine kind): "
-                     + speedup_phrase(r, t.loc[(base, "wall_time_s")], t.loc[(arm, "wall_time_s")], "ratio") + ".")
+                     + speedup_phrase(r, t.loc[(base, WALL_TIME_S)], t.loc[(arm, WALL_TIME_S)], "ratio") + ".")
         elif machines:
             text += " Wall time: not compared (the runs trained on different machine kinds; see Budget)."
         lines.append(text)

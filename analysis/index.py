@@ -26,6 +26,7 @@ from analysis.files import write_csv
 from analysis.load import load_runs
 from analysis.run_files import find_run_dirs
 from bmimic.run_folder import lock_held, read_metrics, read_provenance
+from bmimic.run_schema import ENV_STEPS, WALL_TIME_S
 
 log = logging.getLogger("analysis.index")
 
@@ -34,7 +35,7 @@ LOCK_NAME = ".index.lock"
 
 METRIC_KEYS = (
     "final_eval_failure_rate", "final_eval_success_rate", "final_robust_eval_failure_rate", "iterations",
-    "env_steps", "wall_time_s", "mean_episode_length", "max_episode_length", "num_bins",
+    ENV_STEPS, WALL_TIME_S, "mean_episode_length", "max_episode_length", "num_bins",
 )
 """metrics.json keys copied into the index (absent keys stay empty, e.g. for running jobs)."""
 

@@ -10,8 +10,9 @@ import pandas as pd
 from analysis import tables
 from analysis.stats import MIN_SEEDS_BOOTSTRAP, MIN_SEEDS_IQM
 from analysis.tables import ReportOptions
+from bmimic.run_schema import ENV_STEPS, HORIZON_TRUNCATED, WALL_TIME_S
 
-MEASURE_WORDS = {"iteration": "iterations", "env_steps": "env steps", "wall_time_s": "wall time (s)"}
+MEASURE_WORDS = {"iteration": "iterations", ENV_STEPS: "env steps", WALL_TIME_S: "wall time (s)"}
 
 
 def _verdict(claim: bool, opts: ReportOptions) -> str:
@@ -231,7 +232,7 @@ def evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
         lines.append("- Some runs' eval.parquet predates per-visit accounting: there `failure_rate` is the failure "
                      "rate of the episodes that *started* in a bin (a failure was charged to the start bin), and "
                      "bins whose episodes run out of clip before the horizon are not flagged.")
-    truncated = bins.loc[bins["horizon_truncated"], "bin"].tolist()
+    truncated = bins.loc[bins[HORIZON_TRUNCATED], "bin"].tolist()
     if truncated:
         one = len(truncated) == 1
         its, they = ("its", "it is") if one else ("their", "they are")
@@ -254,8 +255,8 @@ def budget_section(budget: pd.DataFrame, opts: ReportOptions, kinds: pd.Series |
     view = pd.DataFrame({
         "arm": [a for a, _ in g.groups],
         "iterations": [span(x) for _, x in g["iterations"]],
-        "env steps": [span(x) for _, x in g["env_steps"]],
-        "wall time (s)": [span(x) for _, x in g["wall_time_s"]],
+        "env steps": [span(x) for _, x in g[ENV_STEPS]],
+        "wall time (s)": [span(x) for _, x in g[WALL_TIME_S]],
     })
     if kinds is not None:
         view.insert(1, "machine (provenance.json)", [k for _, k in g.groups])
@@ -310,7 +311,7 @@ FAILURE_UNIT = "failed / started episodes"
 
 
 def arms_view(summary: pd.DataFrame, time_df: pd.DataFrame, per_run: dict, at: str,
-              measures=("iteration", "env_steps", "wall_time_s")) -> pd.DataFrame:
+              measures=("iteration", ENV_STEPS, WALL_TIME_S)) -> pd.DataFrame:
     """The Arms table: per arm its final failure, bins mastered and times to threshold (``measures``:
     wall time only where it compares)."""
     arms = sorted(set(summary["arm"]))
@@ -368,8 +369,8 @@ def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
     cells = mastery_df.assign(cell=[f"{fmt(m)} ({k}/{n})" for m, k, n in zip(
         mastery_df["mastery_iteration"], mastery_df["n_mastered"], mastery_df["n_seeds"], strict=True)])
     view = cells.pivot(index="bin", columns="arm", values="cell").reset_index()
-    meta = mastery_df.drop_duplicates("bin")[["bin", "segment", "horizon_truncated"]]
-    meta = meta.assign(bin=[f"{b}†" if t else str(b) for b, t in zip(meta["bin"], meta["horizon_truncated"],
+    meta = mastery_df.drop_duplicates("bin")[["bin", "segment", HORIZON_TRUNCATED]]
+    meta = meta.assign(bin=[f"{b}†" if t else str(b) for b, t in zip(meta["bin"], meta[HORIZON_TRUNCATED],
                                                                       strict=True)], _key=meta["bin"])
-    view = meta.merge(view.rename(columns={"bin": "_key"}), on="_key").drop(columns=["_key", "horizon_truncated"])
+    view = meta.merge(view.rename(columns={"bin": "_key"}), on="_key").drop(columns=["_key", HORIZON_TRUNCATED])
     return view

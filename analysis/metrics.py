@@ -47,13 +47,17 @@ from analysis.stats import (
     restricted_km_median,
 )
 from bmimic.run_schema import (  # training's rule too
+    ENV_STEPS,
+    FAILURE_RATE,
+    HORIZON_TRUNCATED,
     LABELS,
     REPORTED_ERRORS,
     SMOOTHNESS_COLUMNS,
+    WALL_TIME_S,
     counts_as_mastered,
 )
 
-MEASURES = ("iteration", "env_steps", "wall_time_s")
+MEASURES = ("iteration", ENV_STEPS, WALL_TIME_S)
 """How time is measured: training iterations, environment steps, seconds of training."""
 
 SPEEDUP_STATUSES = ("estimate", "lower_bound", "upper_bound", "not_estimable")
@@ -75,17 +79,17 @@ def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     out = (
         eval_df.groupby([*by, "iteration"], sort=True)
         .agg(
-            env_steps=("env_steps", "max"),
-            wall_time_s=("wall_time_s", "max"),
+            env_steps=(ENV_STEPS, "max"),
+            wall_time_s=(WALL_TIME_S, "max"),
             failures=("failures", "sum"),
             starts=(starts, "sum"),
             num_bins=("bin", "nunique"),
         )
         .reset_index()
     )
-    out["failure_rate"] = out["failures"] / out["starts"].where(out["starts"] > 0)
-    out["success_rate"] = 1.0 - out["failure_rate"]
-    return out[[*by, "iteration", "env_steps", "wall_time_s", "failure_rate", "success_rate", "num_bins"]]
+    out[FAILURE_RATE] = out["failures"] / out["starts"].where(out["starts"] > 0)
+    out["success_rate"] = 1.0 - out[FAILURE_RATE]
+    return out[[*by, "iteration", ENV_STEPS, WALL_TIME_S, FAILURE_RATE, "success_rate", "num_bins"]]
 
 
 def start_failure(eval_df: pd.DataFrame, groups: pd.Series, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
@@ -104,7 +108,7 @@ def start_failure(eval_df: pd.DataFrame, groups: pd.Series, by=("run_dir", "arm"
     df = eval_df[[*by, "iteration", "bin", fails, starts]].assign(group=eval_df["bin"].map(groups))
     out = (df.groupby([*by, "iteration", "group"], sort=False)
            .agg(failures=(fails, "sum"), starts=(starts, "sum")).reset_index())
-    out["failure_rate"] = out["failures"] / out["starts"].where(out["starts"] > 0)
+    out[FAILURE_RATE] = out["failures"] / out["starts"].where(out["starts"] > 0)
     return out
 
 
@@ -134,17 +138,17 @@ def mastery_per_seed(eval_df: pd.DataFrame, threshold: float = 0.1, persist: int
     last evaluation (the censoring point); ``horizon_truncated`` is the bin's flag at the last one.
     """
     df = eval_df.assign(_ok=counts_as_mastered(eval_df, threshold).to_numpy())
-    if "horizon_truncated" not in df:
-        df["horizon_truncated"] = False
+    if HORIZON_TRUNCATED not in df:
+        df[HORIZON_TRUNCATED] = False
     rows = []
     for (run_dir, arm, seed, b), g in df.sort_values("iteration").groupby(["run_dir", "arm", "seed", "bin"],
                                                                         sort=True, dropna=False):
         i = first_sustained(g["_ok"].to_numpy(), persist)
         hit = [float(g[m].iloc[i]) if i >= 0 else math.nan for m in MEASURES]
         last = [float(g[m].iloc[-1]) for m in MEASURES]
-        rows.append((run_dir, arm, seed, b, i >= 0, *hit, *last, bool(g["horizon_truncated"].iloc[-1])))
+        rows.append((run_dir, arm, seed, b, i >= 0, *hit, *last, bool(g[HORIZON_TRUNCATED].iloc[-1])))
     return pd.DataFrame(rows, columns=["run_dir", "arm", "seed", "bin", "mastered", *MEASURES,
-                                       *(f"last_{m}" for m in MEASURES), "horizon_truncated"])
+                                       *(f"last_{m}" for m in MEASURES), HORIZON_TRUNCATED])
 
 
 def time_to_threshold(
@@ -298,14 +302,14 @@ def tracking_errors(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     by = list(by)
     cols = [c for c in (*ERROR_METRICS, *SMOOTHNESS_METRICS) if c in eval_df.columns]
     if not cols or "eval_steps" not in eval_df.columns or not len(eval_df):
-        return pd.DataFrame(columns=[*by, "iteration", "env_steps"])
+        return pd.DataFrame(columns=[*by, "iteration", ENV_STEPS])
     w = eval_df["eval_steps"].astype(float).clip(lower=0.0)
     values = eval_df[cols].astype(float)
     weights = pd.DataFrame({c: w.where(values[c].notna() & (w > 0), 0.0) for c in cols})
     parts = values.fillna(0.0).mul(weights)  # a bin never reached has NaN values and no weight
-    frame = pd.concat([eval_df[[*by, "iteration", "env_steps"]], parts, weights.add_prefix("_w_")], axis=1)
+    frame = pd.concat([eval_df[[*by, "iteration", ENV_STEPS]], parts, weights.add_prefix("_w_")], axis=1)
     g = frame.groupby([*by, "iteration"], sort=True).agg(
-        {"env_steps": "max", **{c: "sum" for c in cols}, **{f"_w_{c}": "sum" for c in cols}}).reset_index()
+        {ENV_STEPS: "max", **{c: "sum" for c in cols}, **{f"_w_{c}": "sum" for c in cols}}).reset_index()
     for c in cols:
         g[c] = g[c] / g[f"_w_{c}"].where(g[f"_w_{c}"] > 0)
     return g.drop(columns=[f"_w_{c}" for c in cols])
@@ -351,8 +355,8 @@ def bin_table(eval_df: pd.DataFrame, segments: pd.DataFrame | None = None) -> pd
             inside = (mid >= seg.start_s) & (mid < seg.end_s)
             bins.loc[inside, "segment"] = str(seg.name)
     bins["label"] = [f"{b} {s}".strip() for b, s in zip(bins["bin"], bins["segment"], strict=True)]
-    if "horizon_truncated" in eval_df.columns:
-        bins["horizon_truncated"] = g["horizon_truncated"].any().astype(bool).to_numpy()
+    if HORIZON_TRUNCATED in eval_df.columns:
+        bins[HORIZON_TRUNCATED] = g[HORIZON_TRUNCATED].any().astype(bool).to_numpy()
     else:
-        bins["horizon_truncated"] = False
+        bins[HORIZON_TRUNCATED] = False
     return bins

@@ -16,6 +16,8 @@ from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.ticker import MaxNLocator
 
+from bmimic.run_schema import FAILURE_RATE, HORIZON_TRUNCATED
+
 FIGSIZE = (6.0, 3.6)
 """Default size of a single-panel figure in inches (about 600x360 px at the report's 100 dpi)."""
 
@@ -78,9 +80,9 @@ def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: 
     if bins is None or not len(bins):
         return
     bins = bins.sort_values("bin").reset_index(drop=True)
-    if "horizon_truncated" in bins and bins["horizon_truncated"].any():
+    if HORIZON_TRUNCATED in bins and bins[HORIZON_TRUNCATED].any():
         span = ax.axvspan if axis == "x" else ax.axhspan
-        for b in bins.loc[bins["horizon_truncated"].astype(bool), "bin"]:
+        for b in bins.loc[bins[HORIZON_TRUNCATED].astype(bool), "bin"]:
             span(b - 0.5, b + 0.5, facecolor="none", edgecolor="0.55", hatch="///", lw=0,
                  zorder=3 if hatch_above else 0.5)
     if not bins["segment"].astype(bool).any():
@@ -161,7 +163,7 @@ def plot_learning_curve(
 
 def plot_bin_heatmap(
     df: pd.DataFrame,
-    value: str = "failure_rate",
+    value: str = FAILURE_RATE,
     ax=None,
     bins: pd.DataFrame | None = None,
     vmin: float | None = 0.0,
@@ -207,7 +209,7 @@ def _extend(cells: np.ndarray, vmax: float | None) -> str:
 
 
 def plot_bin_heatmaps(
-    df: pd.DataFrame, value: str = "failure_rate", bins: pd.DataFrame | None = None,
+    df: pd.DataFrame, value: str = FAILURE_RATE, bins: pd.DataFrame | None = None,
     vmax: float | None = None, cmap: str = "magma_r", scale: str = "shared",
 ) -> Figure:
     """plot_bin_heatmap for every arm in ``df``, in rows of at most MAX_PANEL_COLUMNS panels (segment

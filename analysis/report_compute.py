@@ -29,6 +29,7 @@ from analysis.plots import arm_colors
 from analysis.speedup_curve import iso_failure, speedup_curve
 from analysis.stats import bootstrap_coverage
 from analysis.tables import ReportOptions
+from bmimic.run_schema import WALL_TIME_S
 
 
 def _portable_path(path):
@@ -140,7 +141,7 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     machines = "" if wall_ok else (
         "Wall time is not compared (no wall-time speedup is printed, and the Arms table leaves wall time out): "
         f"the runs trained on different or unrecorded machine kinds ({kinds_text(runs, kinds)}).")
-    measures = MEASURES if wall_ok else tuple(m for m in MEASURES if m != "wall_time_s")
+    measures = MEASURES if wall_ok else tuple(m for m in MEASURES if m != WALL_TIME_S)
     overall = tables.overall(eval_df)
     robust_overall = tables.overall(robust_df) if len(robust_df) else None
     mastery_seed_df = bin_tables.mastery_seeds(eval_df, opts)

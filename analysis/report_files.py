@@ -13,6 +13,7 @@ from analysis import curve_plots, plots, tables
 from analysis.files import save_figure, write_csv
 from analysis.report_compute import ReportData
 from analysis.stats import MIN_SEEDS_IQM
+from bmimic.run_schema import FAILURE_RATE
 
 
 def _sensitivity_figure(sens: pd.DataFrame, key: str, reference: dict, per_run: dict) -> Figure:
@@ -39,7 +40,7 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
                                                                     "thin lines: seeds"))
             figures.append((name, f"Learning curve: {label}"))
     write_csv(out / "bin_failure.csv", d.bin_fail)
-    save_figure(out / "bin_failure_heatmap.png", plots.plot_bin_heatmaps(d.bin_fail, "failure_rate", bins=bins))
+    save_figure(out / "bin_failure_heatmap.png", plots.plot_bin_heatmaps(d.bin_fail, FAILURE_RATE, bins=bins))
     figures.append(("bin_failure_heatmap.png", "Evaluated failure rate per bin, per visit, over training (mean over "
                                                "seeds; hatched: horizon-truncated)"))
     write_csv(out / "final_bin_failure.csv", d.final_bins)

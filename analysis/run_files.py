@@ -12,13 +12,13 @@ import yaml
 
 from analysis import AnalysisError
 from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
-from bmimic.run_schema import LOGISTICS_KEYS
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, LOGISTICS_KEYS, WALL_TIME_S
 
 REQUIRED_COLUMNS = {
-    "train_metrics": ["iteration", "env_steps", "wall_time_s", "mean_episode_length", "mean_reward"],
-    "eval": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
+    "train_metrics": ["iteration", ENV_STEPS, WALL_TIME_S, "mean_episode_length", "mean_reward"],
+    "eval": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE],
     "sampler": ["iteration", "bin", "probability"],
-    "eval_robust": ["iteration", "env_steps", "wall_time_s", "bin", "bin_start_s", "bin_end_s", "failure_rate"],
+    "eval_robust": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE],
     "clip_eval": ["iteration", "clip", "failed"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""

@@ -30,11 +30,12 @@ import pandas as pd
 from analysis.metrics import event_times, speedup, time_to_threshold
 from analysis.stats import point, smallest_pvalue
 from analysis.tables import ReportOptions, use_bootstrap
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE
 
 THRESHOLDS = tuple(p / 100 for p in (*range(50, 80, 5), *range(80, 100)))
 """Success thresholds of the speedup curve: 0.50 to 0.80 in steps of 0.05, then to 0.99 in steps of 0.01."""
 
-CURVE_MEASURES = ("iteration", "env_steps")
+CURVE_MEASURES = ("iteration", ENV_STEPS)
 """Measures of the speedup curve (wall time is not comparable across machines and loads)."""
 
 CURVE_COLUMNS = ["arm", "baseline", "measure", "threshold", "ratio", "ci_low", "ci_high", "ci_method", "status",
@@ -71,7 +72,7 @@ def _point_curve(overall: pd.DataFrame, measure: str) -> pd.DataFrame:
     """Per arm and evaluation iteration: the point estimate over seeds of the failure and the measure."""
     g = overall.groupby(["arm", "iteration"], sort=True)
     out = g.agg(time=(measure, "mean")).reset_index()
-    out["failure"] = g["failure_rate"].apply(lambda v: float(point(v.to_numpy(dtype=float)))).to_numpy()
+    out["failure"] = g[FAILURE_RATE].apply(lambda v: float(point(v.to_numpy(dtype=float)))).to_numpy()
     return out
 
 

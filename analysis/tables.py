@@ -29,7 +29,7 @@ from analysis.stats import (
     iqm,
     seed_interval,
 )
-from bmimic.run_schema import MPKPE_REL_MM, summary_key
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, MPKPE_REL_MM, WALL_TIME_S, summary_key
 
 
 @dataclass(frozen=True)
@@ -144,7 +144,7 @@ def seed_curves(train: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions,
     """Per-run curves ``arm, run_dir, seed, metric, iteration, value`` for every CURVE_METRICS entry
     (training metrics at most ``max_curve_points`` iterations): the thin lines of the figures."""
     frames = []
-    sources = {"train_metrics": train, "eval": overall.rename(columns={"failure_rate": "eval_failure_rate"}),
+    sources = {"train_metrics": train, "eval": overall.rename(columns={FAILURE_RATE: "eval_failure_rate"}),
                "errors": (errors if errors is not None else pd.DataFrame()).rename(
                    columns={MPKPE_REL_MM: summary_key(MPKPE_REL_MM)})}
     for metric, (source, _) in CURVE_METRICS.items():
@@ -182,12 +182,12 @@ def learning_curves(per_seed: pd.DataFrame, runs: pd.DataFrame, opts: ReportOpti
 def budgets(runs: pd.DataFrame, train: pd.DataFrame) -> pd.DataFrame:
     """Per included run: completed ``iterations``, ``env_steps`` and ``wall_time_s`` (training's last row)."""
     if not len(train):
-        return pd.DataFrame(columns=["run_dir", "arm", "seed", "iterations", "env_steps", "wall_time_s"])
+        return pd.DataFrame(columns=["run_dir", "arm", "seed", "iterations", ENV_STEPS, WALL_TIME_S])
     last = train.sort_values("iteration").groupby("run_dir").tail(1)
     out = last[["run_dir", "arm", "seed"]].copy()
     out["iterations"] = last["iteration"].to_numpy() + 1  # rows are numbered from iteration 0
-    out["env_steps"] = last["env_steps"].to_numpy()
-    out["wall_time_s"] = last["wall_time_s"].to_numpy()
+    out[ENV_STEPS] = last[ENV_STEPS].to_numpy()
+    out[WALL_TIME_S] = last[WALL_TIME_S].to_numpy()
     return out.sort_values(["arm", "seed"]).reset_index(drop=True)
 
 
@@ -209,7 +209,7 @@ def budget_warning(budget: pd.DataFrame, opts: ReportOptions) -> str | None:
 
 def common_budget(overall: pd.DataFrame) -> dict[str, float]:
     """Per measure, the largest value every run's evaluations reach (the equal-budget comparison point)."""
-    return {m: float(overall.groupby("run_dir")[m].max().min()) for m in ("iteration", "env_steps")}
+    return {m: float(overall.groupby("run_dir")[m].max().min()) for m in ("iteration", ENV_STEPS)}
 
 
 def final_overall(overall: pd.DataFrame, measure: str = "iteration") -> pd.DataFrame:
@@ -256,14 +256,14 @@ def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors
     keep = ["run_dir", "arm", "seed"]
     if len(overall):
         f = final_overall(overall, "iteration")
-        out["final_failure"] = f[keep].assign(value=f["failure_rate"].to_numpy())
+        out["final_failure"] = f[keep].assign(value=f[FAILURE_RATE].to_numpy())
         steps_per_it = overall[overall["iteration"] > 0].eval("env_steps / iteration").round(6)
         if steps_per_it.nunique() > 1:
-            f = final_overall(overall, "env_steps")
-            out["final_failure_equal_env_steps"] = f[keep].assign(value=f["failure_rate"].to_numpy())
+            f = final_overall(overall, ENV_STEPS)
+            out["final_failure_equal_env_steps"] = f[keep].assign(value=f[FAILURE_RATE].to_numpy())
     if robust_overall is not None and len(robust_overall):
         f = robust_overall.sort_values("iteration").groupby("run_dir").tail(1)
-        out["final_failure_robust"] = f[keep].assign(value=f["failure_rate"].to_numpy())
+        out["final_failure_robust"] = f[keep].assign(value=f[FAILURE_RATE].to_numpy())
     if len(mastery_seeds):
         m = mastery_seeds.groupby(keep, dropna=False)["mastered"].sum().reset_index()
         out["bins_mastered"] = m[keep].assign(value=m["mastered"].astype(float).to_numpy())
@@ -274,7 +274,7 @@ def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors
                 out[f"final_{col}"] = f[keep].assign(value=f[col].to_numpy(dtype=float)).dropna(subset=["value"])
     if broken is not None and len(broken):
         out["broken_episodes"] = broken[keep].assign(value=broken["broken"].astype(float).to_numpy())
-    for col in ("iterations", "env_steps", "wall_time_s"):
+    for col in ("iterations", ENV_STEPS, WALL_TIME_S):
         if len(budget):
             out[col] = budget[keep].assign(value=budget[col].astype(float).to_numpy())
     return out

@@ -35,7 +35,7 @@ from bmimic.run_folder import (
     write_status,
 )
 from bmimic.run_record import metrics as run_metrics
-from bmimic.run_schema import FINAL_METRICS
+from bmimic.run_schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
 from bmimic.runtime import init_distributed, resolve_device, seed_everything
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import build_evaluator, build_task, build_trainer, build_training, check_num_envs_fit
@@ -149,8 +149,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     train_rows = trainer.record.rows("train_metrics")
     metrics = run_metrics(final, robust, {
         "iterations": trainer.progress.iteration,
-        "env_steps": trainer.progress.env_steps,
-        "wall_time_s": trainer.progress.wall_time_s,
+        ENV_STEPS: trainer.progress.env_steps,
+        WALL_TIME_S: trainer.progress.wall_time_s,
         "mean_episode_length": train_rows[-1]["mean_episode_length"] if train_rows else math.nan,
         "max_episode_length": env.max_episode_length,
         "num_bins": layout.num_bins,
@@ -166,7 +166,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     write_status(run_dir, "done", trainer.progress.iteration)
     broken = sum(trainer.total_resets.values())
     log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s -> %s", metrics["iterations"],
-             metrics["wall_time_s"], metrics["final_eval_failure_rate"],
+             metrics[WALL_TIME_S], metrics["final_eval_failure_rate"],
              f"; {broken} broken world-steps were reset" if broken else "", run_dir)
     if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
         log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", run_dir, run_dir,

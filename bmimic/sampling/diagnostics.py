@@ -30,6 +30,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from bmimic.run_schema import FAILURE_RATE
 from bmimic.sampling.checks import SamplerConfigError
 
 MAX_SAMPLER_ROWS = 1_000_000
@@ -83,7 +84,7 @@ def summary(
     top1 = int(torch.argmax(probs))
     return {
         "episodes": n,
-        "failure_rate": float(failures.sum()) / n if n > 0 else math.nan,
+        FAILURE_RATE: float(failures.sum()) / n if n > 0 else math.nan,
         "sampling_entropy": sampling_entropy(probs),
         "top1_prob": float(probs[top1]),
         "top1_bin": float(top1),

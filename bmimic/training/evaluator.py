@@ -42,12 +42,16 @@ import torch
 from bmimic.envs.quat import quat_error_magnitude
 from bmimic.run_schema import (  # noqa: F401  (the tables' columns, re-exported for the evaluators)
     BIN_COLUMNS,
+    ENV_STEPS,
     EPISODE_COLUMNS,
     ERROR_COLUMNS,
+    FAILURE_RATE,
+    HORIZON_TRUNCATED,
     MASTERED_BELOW,
     MPKPE_REL_MM,
     SMOOTHNESS_COLUMNS,
     TRACKED_THROUGH,
+    WALL_TIME_S,
     counts_as_mastered,
 )
 from bmimic.sampling.base import bin_counts
@@ -108,7 +112,7 @@ def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame |
     failed = episodes["failed"].to_numpy(dtype=bool)
     failure_frame = episodes["failure_frame"].to_numpy(dtype=np.int64) if "failure_frame" in episodes else end
     terminated = episodes["terminated"].to_numpy(dtype=bool) if "terminated" in episodes else failed
-    truncated = (episodes["horizon_truncated"].to_numpy(dtype=bool) if "horizon_truncated" in episodes
+    truncated = (episodes[HORIZON_TRUNCATED].to_numpy(dtype=bool) if HORIZON_TRUNCATED in episodes
                  else np.zeros(len(start), dtype=bool))
     broken = episodes["broken"].to_numpy(dtype=bool) if "broken" in episodes else np.zeros(len(start), dtype=bool)
     if np.any(broken & ~failed):
@@ -133,11 +137,11 @@ def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame |
         "terminations": _counts(fail_bin, num_bins, failed & terminated & ~broken),
         "tracking_failures": _counts(fail_bin, num_bins, failed & ~terminated & ~broken),
         "broken": _counts(fail_bin, num_bins, broken),
-        "horizon_truncated": _counts(start_bin, num_bins, truncated) > 0,
+        HORIZON_TRUNCATED: _counts(start_bin, num_bins, truncated) > 0,
         TRACKED_THROUGH: _visits(through_lo, np.maximum(through_hi, through_lo), num_bins, through),
     })
     with np.errstate(invalid="ignore", divide="ignore"):
-        out.insert(3, "failure_rate", out["failures"] / out["visits"].where(out["visits"] > 0))
+        out.insert(3, FAILURE_RATE, out["failures"] / out["visits"].where(out["visits"] > 0))
     if frame_errors is None:
         out["eval_steps"] = 0
         return out
@@ -289,7 +293,7 @@ class Evaluator:
                 "terminated": ints[:, 4].astype(bool),
                 "error_failed": ints[:, 5].astype(bool),
                 "steps": ints[:, 3],
-                "horizon_truncated": ints[:, 6].astype(bool),
+                HORIZON_TRUNCATED: ints[:, 6].astype(bool),
                 "broken": ints[:, 7].astype(bool),
             })
             rows.append(pd.concat([head, wave], axis=1))
@@ -303,8 +307,8 @@ class Evaluator:
     def evaluate(self, policy, iteration: int, env_steps: int, wall_time_s: float) -> pd.DataFrame:
         """Per-bin table (eval.parquet rows) for one evaluation."""
         per_bin = self.bin_table(self.run_episodes(policy))
-        per_bin.insert(0, "wall_time_s", float(wall_time_s))
-        per_bin.insert(0, "env_steps", int(env_steps))
+        per_bin.insert(0, WALL_TIME_S, float(wall_time_s))
+        per_bin.insert(0, ENV_STEPS, int(env_steps))
         per_bin.insert(0, "iteration", int(iteration))
         return per_bin
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from bmimic.extras import require_extra
 from bmimic.run_folder import TENSORBOARD_DIR
+from bmimic.run_schema import FAILURE_RATE
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +26,7 @@ LOGGERS = ("tensorboard", "wandb", "none")
 
 _TAGS = {
     "mean_episode_length": "Train/mean_episode_length", "mean_reward": "Train/mean_reward",
-    "failure_rate": "Train/failure_rate", "episodes": "Train/episodes",
+    FAILURE_RATE: "Train/failure_rate", "episodes": "Train/episodes",
     "sampling_entropy": "Sampler/entropy", "top1_prob": "Sampler/top1_prob", "top1_bin": "Sampler/top1_bin",
     "fps": "Perf/total_fps", "collection_time_s": "Perf/collection_time", "learning_time_s": "Perf/learning_time",
     "learning_rate": "Loss/learning_rate", "action_std": "Policy/mean_std",
@@ -117,7 +118,7 @@ class RunLogger:
                                                               if broken_so_far else {}))
         elif self.enabled and ((it + 1) % self._line_every == 0 or it + 1 == self._end_it):
             log.info("iteration %d/%d: episode length %.1f, reward %.3f, failure rate %.3f, lr %.1e, %.0f steps/s",
-                     it + 1, self._end_it, row["mean_episode_length"], row["mean_reward"], row["failure_rate"],
+                     it + 1, self._end_it, row["mean_episode_length"], row["mean_reward"], row[FAILURE_RATE],
                      row["learning_rate"], row["fps"])
 
     def evaluation(self, iteration: int, summary: dict) -> None:

@@ -28,6 +28,7 @@ from bmimic.run_folder import (
     write_status,
 )
 from bmimic.run_record import RunRecord
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, WALL_TIME_S
 from bmimic.runtime import any_rank
 from bmimic.sampling import diagnostics
 from bmimic.training import run_state
@@ -147,7 +148,7 @@ class Trainer:
             rows = clip_rollouts(self.evaluator, policy, max_s)
         p = self.progress
         self.record.append("clip_eval", rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
-            ["iteration", "env_steps", *CLIP_ROLLOUT_COLUMNS]])
+            ["iteration", ENV_STEPS, *CLIP_ROLLOUT_COLUMNS]])
         self.flush_tables()
         log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
         return clips_failed(rows, self.env.layout.num_clips)
@@ -229,12 +230,12 @@ class Trainer:
                                 torch.as_tensor(stats["bin_failures"]), total_episodes=stats["episodes"])
         row = {
             "iteration": it,
-            "env_steps": self.progress.env_steps,
-            "wall_time_s": self.progress.wall_time_s,
+            ENV_STEPS: self.progress.env_steps,
+            WALL_TIME_S: self.progress.wall_time_s,
             "mean_episode_length": stats["mean_episode_length"],
             "mean_reward": stats["mean_episode_reward"],
             "episodes": stats["episodes"],
-            "failure_rate": stats["failures"] / stats["episodes"] if stats["episodes"] else math.nan,
+            FAILURE_RATE: stats["failures"] / stats["episodes"] if stats["episodes"] else math.nan,
             "sampling_entropy": s["sampling_entropy"],
             "top1_prob": s["top1_prob"],
             "top1_bin": s["top1_bin"],
