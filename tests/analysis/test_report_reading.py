@@ -14,6 +14,7 @@ import pytest
 
 from analysis.adaptation import sampling_support, signal_summary
 from analysis.comparisons import baseline_comparisons
+from analysis.curve_text import flat_span
 from analysis.report import build_report
 from analysis.speedup_curve import THRESHOLDS, first_crossing, iso_failure, speedup_curve
 from analysis.stats import bootstrap_coverage, holm, smallest_pvalue
@@ -307,3 +308,10 @@ def test_clip_rollouts_are_summarised_per_arm(tmp_path):
     md = (build_report([tmp_path / "lib"], opts=OPTS) / "report.md").read_text()
     assert "`sampler=phc` clip rollouts (one from each clip's first frame per evaluation): every clip failed in 4 " \
            "and no clip in 0 of 4 evaluations" in md
+
+
+def test_flat_span_says_which_seeds_stayed_flat_in_words():
+    assert flat_span(["never", "500", "400", "never", "never"]) == (
+        "until iteration 500, 400 in 2 seeds and throughout in 3 seeds")
+    assert flat_span(["300"]) == "until iteration 300 in 1 seed"
+    assert flat_span(["never", "never"]) == "throughout in 2 seeds"
