@@ -177,14 +177,13 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
 def robust_evaluation(trainer, evaluator) -> dict:
     """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
     on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
-    from bmimic.run_folder import atomic_write_parquet, table_path
     from bmimic.training.evaluator import summarize
 
     policy = trainer.alg.get_policy()
     policy.eval()
     p = trainer.progress
     per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
-    atomic_write_parquet(table_path(trainer.run_dir, "eval_robust"), per_bin)
+    trainer.record.write_table("eval_robust", per_bin)
     evaluator.env.close()
     summary = summarize(per_bin, prefix="robust_eval")
     log.info("robust eval at iteration %d: failure rate %.3f (clean: see eval.parquet)", p.iteration,

@@ -68,7 +68,9 @@ EVAL_TABLES = ("eval_episodes.parquet", "eval_bins.parquet", "eval_segments.csv"
 EVAL_SUMMARY = EVAL_TABLES[-1]
 VIDEOS_DIR = "videos"
 SIM2SIM_DIR = "sim2sim"
-"""`python -m bmimic.sim2sim` writes sim2sim/<model>/<checkpoint label>/ (EVAL_TABLES and the gap)."""
+"""`python -m bmimic.sim2sim` writes sim2sim/<model>/<checkpoint label>/ (EVAL_TABLES and SIM2SIM_GAP)."""
+SIM2SIM_GAP = "sim2sim_gap_bins.csv"
+"""sim2sim's per-bin gap to the MuJoCo-Warp evaluation of the same checkpoint."""
 
 _CHECKPOINT = re.compile(r"model_(\d+)\.pt")
 MOTION_POLICY = re.compile(r"motion_policy_(\d+)\.onnx$")

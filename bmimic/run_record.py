@@ -1,11 +1,14 @@
-"""`RunRecord`: the tables a training run writes into its folder, held in memory between flushes.
+"""`RunRecord`: the tables a training run writes into its folder, held in memory between flushes, and
+`write_evaluation`: the files of one evaluation of a saved policy (`bmimic.eval`, sim2sim). This module
+is the one writer of run-folder tables (tests/test_architecture.py holds it so).
 
 Rows are appended as they are made (a dict per training iteration; a frame per evaluation, sampler
 snapshot or round of clip rollouts), `flush` writes each table atomically (rank 0 only: a record
 made with `enabled=False` never writes), and on resume `truncate` reads the folder's tables back and
-keeps the rows of the iterations the checkpoint had completed. `metrics` assembles metrics.json in
-the run schema's order. Names are `bmimic.run_folder`'s (files) and `bmimic.run_schema`'s (columns
-and keys). Torch-free.
+keeps the rows of the iterations the checkpoint had completed; a table made whole at once
+(eval_robust) is written by `write_table`. `metrics` assembles metrics.json in the run schema's
+order. Names are `bmimic.run_folder`'s (files) and `bmimic.run_schema`'s (columns and keys).
+Torch-free.
 """
 
 from __future__ import annotations
@@ -17,7 +20,15 @@ from typing import Any
 import pandas as pd
 
 from bmimic import BmimicError
-from bmimic.run_folder import atomic_write_parquet, table_path
+from bmimic.run_folder import (
+    EVAL_TABLES,
+    SIM2SIM_GAP,
+    atomic_write_csv,
+    atomic_write_json,
+    atomic_write_parquet,
+    make_folder,
+    table_path,
+)
 from bmimic.run_schema import FINAL_METRICS, ITERATION, RUN_METRICS
 
 TRAINING_TABLES = ("train_metrics", "sampler", "eval", "clip_eval")
@@ -84,6 +95,15 @@ class RunRecord:
                 table = pd.DataFrame(rows) if name in ROW_TABLES else pd.concat(rows, ignore_index=True)
                 atomic_write_parquet(table_path(self.run_dir, name), table)
 
+    def write_table(self, name: str, table: pd.DataFrame) -> None:
+        """Write table `name` whole, now (atomically; nothing when not `enabled`): for a table made at
+        once rather than row by row (eval_robust, after the last iteration). A table held as rows is
+        refused: its next flush would overwrite what this wrote."""
+        if name in self._rows:
+            raise RunRecordError(f"{name}: is written from its rows by flush, not whole")
+        if self.enabled:
+            atomic_write_parquet(table_path(self.run_dir, name), table)
+
 
 def metrics(final: dict[str, Any], robust: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
     """metrics.json: the final evaluation's FINAL_METRICS (from its summary, `eval_*` keys), the robust
@@ -95,4 +115,22 @@ def metrics(final: dict[str, Any], robust: dict[str, Any], run: dict[str, Any]) 
             **{k: run[k] for k in RUN_METRICS}}
 
 
-__all__ = ["ROW_TABLES", "TRAINING_TABLES", "RunRecord", "RunRecordError", "metrics"]
+def write_evaluation(out_dir: str | os.PathLike, episodes: pd.DataFrame, bins: pd.DataFrame,
+                     segments: pd.DataFrame, summary: dict[str, Any],
+                     gap: pd.DataFrame | None = None) -> Path:
+    """One finished evaluation of a saved policy into `out_dir` (eval/<label>/ for `bmimic.eval`,
+    sim2sim/<model>/<label>/ for sim2sim, which adds its `gap` table): run_folder.EVAL_TABLES, each
+    atomically, the summary last so that its presence means a complete set (a reader, or sim2sim's gap,
+    never takes a half-written evaluation). Returns `out_dir` as a Path."""
+    episodes_file, bins_file, segments_file, summary_file = EVAL_TABLES
+    out_dir = make_folder(out_dir)
+    if gap is not None:
+        atomic_write_csv(out_dir / SIM2SIM_GAP, gap)
+    atomic_write_parquet(out_dir / episodes_file, episodes)
+    atomic_write_parquet(out_dir / bins_file, bins)
+    atomic_write_csv(out_dir / segments_file, segments)
+    atomic_write_json(out_dir / summary_file, summary)
+    return out_dir
+
+
+__all__ = ["ROW_TABLES", "TRAINING_TABLES", "RunRecord", "RunRecordError", "metrics", "write_evaluation"]

@@ -9,6 +9,9 @@
 - bmimic.run_folder and the analysis are torch-free (checked by importing them in a fresh process), and
   every bmimic module the analysis reaches (imports, lazy ones included) names no torch import;
 - no string literal spells a measured column of the run schema (bmimic.run_schema) outside it;
+- run-folder tables are written through bmimic.run_record only: no other module names the table writers
+  (atomic_write_parquet, atomic_write_csv), and evaluation's producers (bmimic.eval, bmimic.evaluation,
+  bmimic.sim2sim) name no atomic writer at all;
 - no import runs back up the layers robot < motion < sim < sampling < envs < training < evaluation
   (a lower layer never imports a higher one: the env hands the sampler's feedback what it measured);
 - no module is over 400 lines.
@@ -258,3 +261,44 @@ def test_no_import_runs_back_up_the_layers():
     up = sorted((a, b) for a, targets in GRAPH.items() for b in targets
                 if _layer(a) is not None and _layer(b) is not None and _layer(b) > _layer(a))
     assert up == []
+
+
+TABLE_WRITERS = ("atomic_write_parquet", "atomic_write_csv")
+TABLE_WRITING_MODULES = ("bmimic.atomic_io", "bmimic.run_folder", "bmimic.run_record")
+"""atomic_io defines the writers, run_folder re-exports them, run_record writes every run-folder table."""
+EVALUATION_PRODUCERS = ("bmimic.eval", "bmimic.evaluation", "bmimic.sim2sim")
+"""They write an evaluation's files through bmimic.run_record.write_evaluation (the summary JSON too)."""
+
+
+def _writers_named(tree: ast.AST, prefixes: tuple[str, ...]) -> list[tuple[str, int]]:
+    """(name, line) of every name, attribute or import in `tree` that starts with one of `prefixes`."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Name):
+            names = [node.id]
+        elif isinstance(node, ast.Attribute):
+            names = [node.attr]
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = [a.name.rpartition(".")[2] for a in node.names]
+        else:
+            continue
+        found += [(n, node.lineno) for n in names if n.startswith(prefixes)]
+    return found
+
+
+def test_the_writer_finder_sees_calls_attributes_and_imports():
+    planted = ast.parse("from bmimic.run_folder import atomic_write_csv\nimport bmimic.run_folder as rf\n"
+                        "def f(df):\n    atomic_write_csv('a.csv', df)\n"
+                        "    rf.atomic_write_parquet('b', df)\n")
+    assert sorted(_writers_named(planted, TABLE_WRITERS)) == [
+        ("atomic_write_csv", 1), ("atomic_write_csv", 4), ("atomic_write_parquet", 5)]
+
+
+def test_run_folder_tables_are_written_only_through_the_run_record():
+    bypassing = sorted((name, *hit) for name, module in MODULES.items() if name not in TABLE_WRITING_MODULES
+                       for hit in _writers_named(module.tree, TABLE_WRITERS))
+    assert bypassing == []
+    producers = sorted((name, *hit) for name, module in MODULES.items()
+                       if any(name == p or name.startswith(p + ".") for p in EVALUATION_PRODUCERS)
+                       for hit in _writers_named(module.tree, ("atomic_write", "make_folder")))
+    assert producers == []

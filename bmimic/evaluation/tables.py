@@ -1,6 +1,6 @@
 """The tables of one evaluation of a saved policy: one row per episode, per time bin and per motion
-segment, with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluator.aggregate), and
-their atomic writing. sim2sim builds the same tables from native-MuJoCo episodes.
+segment, with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluator.aggregate); they are
+written by bmimic.run_record.write_evaluation. sim2sim builds the same tables from native-MuJoCo episodes.
 """
 
 from __future__ import annotations
@@ -11,13 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bmimic.run_folder import (
-    EVAL_TABLES,
-    atomic_write_csv,
-    atomic_write_json,
-    atomic_write_parquet,
-    make_folder,
-)
+from bmimic.run_record import write_evaluation
 from bmimic.run_schema import ERROR_COLUMNS
 
 
@@ -123,16 +117,11 @@ class EvalResult:
 
 
 
-def write_tables(result: EvalResult, out_dir: Path) -> Path:
-    """Write the four tables (run_folder.EVAL_TABLES) atomically; the summary last, so its presence
-    means a complete set."""
-    episodes, bins, segments, summary = EVAL_TABLES
-    make_folder(out_dir)
-    atomic_write_parquet(out_dir / episodes, result.episodes)
-    atomic_write_parquet(out_dir / bins, result.bins)
-    atomic_write_csv(out_dir / segments, result.segments)
-    atomic_write_json(out_dir / summary, result.summary)
-    result.out_dir = out_dir
-    return out_dir
+def write_tables(result: EvalResult, out_dir: Path, gap: pd.DataFrame | None = None) -> Path:
+    """Write the four tables (run_folder.EVAL_TABLES) and sim2sim's `gap`, if any, through the run
+    record (bmimic.run_record.write_evaluation: atomically, the summary last)."""
+    result.out_dir = write_evaluation(out_dir, result.episodes, result.bins, result.segments,
+                                      result.summary, gap)
+    return result.out_dir
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from bmimic.cli_common import user_errors
 from bmimic.extras import require_extra
-from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR, atomic_write_csv, make_folder
+from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR
 from bmimic.sim2sim.gap import GAP_FILE, format_gap
 from bmimic.sim2sim.model import build_model, model_label
 from bmimic.sim2sim.native_eval import evaluate, locate
@@ -113,7 +113,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _write(result, gap, out_dir: Path) -> None:
     from bmimic.evaluation.tables import write_tables
 
-    make_folder(out_dir)
-    if gap is not None:
-        atomic_write_csv(out_dir / GAP_FILE, gap)
-    write_tables(result, out_dir)  # the summary last: its presence means a complete set
+    write_tables(result, out_dir, gap)  # through the run record: the gap first, the summary last

@@ -9,13 +9,21 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, read_resolved_config, table_path
+from bmimic.run_folder import (
+    EVAL_DIR,
+    EVAL_SUMMARY,
+    EVAL_TABLES,
+    SIM2SIM_GAP,
+    read_resolved_config,
+    table_path,
+)
 from bmimic.run_schema import MPKPE_REL_MM
 from bmimic.sim2sim.spec import Sim2SimError
 
 log = logging.getLogger("bmimic.sim2sim")
 
-GAP_FILE = "sim2sim_gap_bins.csv"
+GAP_FILE = SIM2SIM_GAP
+"""The gap table's file name (bmimic.run_folder spells it)."""
 SETTINGS = ("episodes_per_bin", "horizon_s", "max_mpkpe_rel_mm")
 """Evaluation settings two evaluations must share to be compared bin by bin."""
 

@@ -7,8 +7,8 @@ import math
 import pandas as pd
 import pytest
 
-from bmimic.run_folder import table_path
-from bmimic.run_record import RunRecord, RunRecordError, metrics
+from bmimic.run_folder import EVAL_TABLES, SIM2SIM_GAP, table_path
+from bmimic.run_record import RunRecord, RunRecordError, metrics, write_evaluation
 from bmimic.run_schema import FINAL_METRICS, RUN_METRICS
 from bmimic.training.schedule import Schedule
 
@@ -35,6 +35,32 @@ def test_flush_writes_every_table_with_rows_and_resume_keeps_the_completed_itera
 def test_a_record_that_is_not_enabled_writes_nothing(tmp_path):
     _record(tmp_path, 2, enabled=False).flush()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_whole_table_is_written_at_once_and_a_row_table_is_refused(tmp_path):
+    table = pd.DataFrame({"iteration": [3, 3], "bin": [0, 1]})
+    RunRecord(tmp_path, enabled=False).write_table("eval_robust", table)
+    assert list(tmp_path.iterdir()) == []
+    RunRecord(tmp_path).write_table("eval_robust", table)
+    pd.testing.assert_frame_equal(pd.read_parquet(table_path(tmp_path, "eval_robust")), table)
+    with pytest.raises(RunRecordError, match="flush"):
+        RunRecord(tmp_path).write_table("eval", table)
+
+
+def test_an_evaluation_is_written_whole_with_the_summary_last(tmp_path, monkeypatch):
+    import bmimic.atomic_io as atomic_io
+
+    written, write = [], atomic_io.atomic_write
+    monkeypatch.setattr(atomic_io, "atomic_write",
+                        lambda path, w: (written.append(path.name), write(path, w))[1])
+    frame = pd.DataFrame({"bin": [0, 1], "segment": ["", "walk"]})
+    out = write_evaluation(tmp_path / "sim2sim" / "project" / "model_3", frame, frame, frame,
+                           {"label": "model_3"}, gap=frame)
+    assert written == [SIM2SIM_GAP, *EVAL_TABLES] and sorted(p.name for p in out.iterdir()) == sorted(written)
+    pd.testing.assert_frame_equal(pd.read_csv(out / EVAL_TABLES[2], keep_default_na=False), frame)
+    written.clear()
+    write_evaluation(tmp_path / "eval" / "model_3", frame, frame, frame, {"label": "model_3"})
+    assert written == list(EVAL_TABLES)
 
 
 @pytest.mark.parametrize("damage", ["garbage", "no_iteration"])
