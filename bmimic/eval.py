@@ -42,6 +42,7 @@ from bmimic.evaluation.report import format_report
 from bmimic.evaluation.saved_run import LoadedRun, checkpoint_label, load_run, load_run_checkpoint
 from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table, write_tables
 from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR
+from bmimic.run_schema import ENV_STEPS, HORIZON_TRUNCATED
 
 log = logging.getLogger("bmimic.eval")
 
@@ -79,12 +80,12 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
         "episodes_per_bin": int(cfg.eval.episodes_per_bin),
         "horizon_s": float(cfg.eval.horizon_s),
         "max_mpkpe_rel_mm": cfg.eval.max_mpkpe_rel_mm,
-        "horizon_truncated_bins": int(bins["horizon_truncated"].sum()),
+        "horizon_truncated_bins": int(bins[HORIZON_TRUNCATED].sum()),
         "eval_worlds": int(env.num_envs),
         "eval_wall_time_s": wall,
         "checkpoint": str(run.checkpoint),
         "iteration": iteration,
-        "env_steps": int(progress.get("env_steps", -1)),
+        ENV_STEPS: int(progress.get(ENV_STEPS, -1)),
         "run_dir": str(run.run_dir),
         "motion": str(cfg.motion.name),
         "motion_duration_s": float(motion.duration_s),

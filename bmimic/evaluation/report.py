@@ -7,7 +7,7 @@ import math
 import pandas as pd
 
 from bmimic.evaluation.tables import EvalResult
-from bmimic.run_schema import MPKPE_MM, TRACKING_ERRORS
+from bmimic.run_schema import HORIZON_TRUNCATED, MPKPE_MM, TRACKING_ERRORS
 
 _ERROR_TITLES = ("MPKPE_mm", "rel_MPKPE_mm", "anchor_ori_rad", "body_ori_rad", "joint_pos_rad", "joint_vel_radps",
                  "ee_pos_mm")
@@ -45,7 +45,7 @@ def format_report(result: EvalResult) -> str:
     )
     lines += ["per segment:", _format_rows(seg, {"segment": "segment", "difficulty": "difficulty", "span": "t_s"}), ""]
     bins = result.bins.assign(span=[f"{a:.1f}-{b:.1f}" + ("*" if t else "") for a, b, t in zip(
-        result.bins["bin_start_s"], result.bins["bin_end_s"], result.bins["horizon_truncated"])])
+        result.bins["bin_start_s"], result.bins["bin_end_s"], result.bins[HORIZON_TRUNCATED])])
     title = "per bin:"
     if len(bins) > MAX_BINS_SHOWN:
         bins = bins.sort_values(["success_rate", MPKPE_MM], ascending=[True, False]).head(MAX_BINS_SHOWN // 3)

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from bmimic.run_record import write_evaluation
-from bmimic.run_schema import ERROR_COLUMNS
+from bmimic.run_schema import ERROR_COLUMNS, FAILURE_RATE, HORIZON_TRUNCATED
 
 
 def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
@@ -54,7 +54,7 @@ def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: 
         "broken": raw["broken"].to_numpy().astype(bool) if "broken" in raw else np.zeros(len(raw), dtype=bool),
         "failure_frame": failure_frame,
         "failure_bin": np.where(failed, fail_bin, -1),
-        "horizon_truncated": raw["horizon_truncated"].to_numpy().astype(bool),
+        HORIZON_TRUNCATED: raw[HORIZON_TRUNCATED].to_numpy().astype(bool),
         "steps": raw["steps"].to_numpy().astype(int),
         "survival_s": raw["steps"].to_numpy() * step_dt,
         **{c: raw[c].to_numpy(dtype=float) for c in ERROR_COLUMNS},
@@ -63,7 +63,7 @@ def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: 
 
 def _with_rates(table: pd.DataFrame, survival_s: np.ndarray) -> pd.DataFrame:
     """success_rate (1 - failure_rate) and `mean_survival_s` (of the episodes started in each row's group)."""
-    table.insert(table.columns.get_loc("failure_rate") + 1, "success_rate", 1.0 - table["failure_rate"])
+    table.insert(table.columns.get_loc(FAILURE_RATE) + 1, "success_rate", 1.0 - table[FAILURE_RATE])
     table.insert(table.columns.get_loc("start_failures") + 1, "mean_survival_s", survival_s)
     return table
 

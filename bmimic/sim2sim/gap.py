@@ -17,7 +17,7 @@ from bmimic.run_folder import (
     read_resolved_config,
     table_path,
 )
-from bmimic.run_schema import MPKPE_REL_MM
+from bmimic.run_schema import FAILURE_RATE, HORIZON_TRUNCATED, MPKPE_REL_MM
 from bmimic.sim2sim.spec import Sim2SimError
 
 log = logging.getLogger("bmimic.sim2sim")
@@ -83,7 +83,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
         settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
         config = _run_eval_config(run_dir)
         settings |= {k: config[k] for k in SETTINGS[1:] if k in config}
-        return WarpEval(f"{table} (iteration {iteration})", rows.assign(success_rate=1.0 - rows["failure_rate"])[columns],
+        return WarpEval(f"{table} (iteration {iteration})", rows.assign(success_rate=1.0 - rows[FAILURE_RATE])[columns],
                         overall["eval_success_rate"], overall["eval_mpkpe_rel_mm"], settings)
 
 
@@ -142,7 +142,7 @@ def setting_differences(ours: dict, warp: WarpEval) -> list[str]:
 def gap_table(bins, warp: WarpEval):
     """Per bin: MuJoCo-Warp and sim2sim visits, failures (where they happened), success rate per visit
     and anchor-relative MPKPE, and the differences."""
-    ours = bins[["bin", "bin_start_s", "bin_end_s", "segment", "horizon_truncated", "visits", "failures",
+    ours = bins[["bin", "bin_start_s", "bin_end_s", "segment", HORIZON_TRUNCATED, "visits", "failures",
                  "success_rate", MPKPE_REL_MM]]
     names = ["visits", "failures", "success_rate", MPKPE_REL_MM]
     out = ours.rename(columns={c: f"sim2sim_{c}" for c in names})

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
 
-from bmimic.run_schema import ERROR_COLUMNS, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
+from bmimic.run_schema import ERROR_COLUMNS, HORIZON_TRUNCATED, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
 from bmimic.sim2sim.spec import PolicySpec, policy_session
 
 if TYPE_CHECKING:
@@ -327,7 +327,7 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
     row = {
         "start_frame": int(start), "end_frame": int(end_frame), "failed": terminated or diverged or error_failed,
         "failure_frame": int(failure_frame), "terminated": terminated, "error_failed": error_failed,
-        "steps": len(frames), "horizon_truncated": bool(truncated), **dict(zip(MEASURED, means.tolist())),
+        "steps": len(frames), HORIZON_TRUNCATED: bool(truncated), **dict(zip(MEASURED, means.tolist())),
         "broken": diverged, "diverged": diverged, "wall_s": time.perf_counter() - t0,
     }
     return Episode(row, np.asarray(frames, dtype=np.int64), err)
