@@ -50,8 +50,9 @@ from pathlib import Path  # noqa: E402
 
 from bmimic.run_schema import ENV_STEPS, MPKPE_REL_MM, summary_key  # noqa: E402
 
-RACE_EVAL_EVERY = 50
-"""Iterations between evaluations: ~12 s at 4096 envs on an H100, the race's time resolution."""
+RACE_EVAL_EVERY = 100
+"""Iterations between evaluations, the race's time resolution: ~24 s at 4096 envs on an H100 or H200.
+Every 50 cost 9.5-12.8% of the race's wall time, every 100 costs 2.9-4.9% (docs/benchmarks.md)."""
 RACE_EPISODES_PER_BIN = 16
 """Stratified episodes per bin: 2112 episodes on the 132-bin dance, one wave of the eval env."""
 DEFAULT_SUCCESS = (0.90, 0.95, 0.98, 0.99)

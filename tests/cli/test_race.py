@@ -81,8 +81,8 @@ def test_bad_race_options_are_one_line_exit_2(argv, message, capsys):
 
 
 def test_race_defaults_give_way_to_the_overrides():
-    assert race_overrides(["seed=3"])[:3] == ["eval.every_iters=50", "eval.episodes_per_bin=16", "run_name=race"]
-    assert "eval.every_iters=50" not in race_overrides(["eval.every_iters=10"])
+    assert race_overrides(["seed=3"])[:3] == ["eval.every_iters=100", "eval.episodes_per_bin=16", "run_name=race"]
+    assert "eval.every_iters=100" not in race_overrides(["eval.every_iters=10"])
     assert race_overrides(["run_name=mine"])[-1] == "run_name=mine" and "run_name=race" not in race_overrides(
         ["run_name=mine"])
 
