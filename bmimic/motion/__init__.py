@@ -1,8 +1,28 @@
-"""Reference motions: the `Motion` container, npz I/O, CSV conversion and the built-in motions."""
+"""Reference motions: the `Motion` container, npz I/O, CSV conversion and the built-in motions.
 
-from bmimic.motion.builtin import BUILTIN_MOTIONS, generate_builtin
-from bmimic.motion.config import DataConfig, MotionConfig, lafan_clip_path, load_motion
-from bmimic.motion.motion import Motion, MotionDataError, Segment
+The names below are imported on first use (PEP 562), so that the mujoco-free modules of this package
+(`bmimic.motion.math`, `bmimic.motion.segments`) import without mujoco: sim2sim reads its quaternion
+helpers from `bmimic.motion.math` and must choose MuJoCo's GL backend before mujoco is imported, and a
+submodule imported with the package would make `python -m bmimic.motion.convert` warn under runpy.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_SOURCES = {
+    "BUILTIN_MOTIONS": "bmimic.motion.builtin",
+    "generate_builtin": "bmimic.motion.builtin",
+    "DataConfig": "bmimic.motion.config",
+    "MotionConfig": "bmimic.motion.config",
+    "lafan_clip_path": "bmimic.motion.config",
+    "load_motion": "bmimic.motion.config",
+    "Motion": "bmimic.motion.motion",
+    "MotionDataError": "bmimic.motion.motion",
+    "Segment": "bmimic.motion.motion",
+    "convert_csv": "bmimic.motion.convert",
+}
 
 __all__ = [
     "BUILTIN_MOTIONS",
@@ -17,12 +37,17 @@ __all__ = [
     "load_motion",
 ]
 
+if TYPE_CHECKING:
+    from bmimic.motion.builtin import BUILTIN_MOTIONS, generate_builtin
+    from bmimic.motion.config import DataConfig, MotionConfig, lafan_clip_path, load_motion
+    from bmimic.motion.convert import convert_csv
+    from bmimic.motion.motion import Motion, MotionDataError, Segment
 
-def __getattr__(name: str):
-    # Imported on first use: were bmimic.motion.convert imported with the package, `python -m
-    # bmimic.motion.convert` would find it in sys.modules already and runpy would warn.
-    if name == "convert_csv":
-        from bmimic.motion.convert import convert_csv
 
-        return convert_csv
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+def __getattr__(name: str) -> Any:
+    source = _SOURCES.get(name)
+    if source is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(source), name)
+    globals()[name] = value  # later lookups skip this function
+    return value

@@ -142,3 +142,18 @@ def output_times(num_in: int, fps_in: float, fps_out: float) -> np.ndarray:
                               "(motion.fps_in, the file's fps, sim.timestep_s x sim.decimation)")
     num_out = int(np.ceil(count))
     return np.arange(max(num_out, 0)) / fps_out
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of unit quaternions (w, x, y, z)."""
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    m = np.stack((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)), axis=-1)
+    return m.reshape(m.shape[:-1] + (3, 3))
+
+
+def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in [0, pi] of the rotation between rotation matrices a and b ([..., 3, 3])."""
+    cos = 0.5 * (np.einsum("...ij,...ij->...", a, b) - 1.0)  # (trace(a^T b) - 1) / 2
+    return np.arccos(np.clip(cos, -1.0, 1.0))

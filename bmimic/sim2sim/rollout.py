@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
 
+from bmimic.motion.math import quat_to_matrix, rotation_angle
 from bmimic.run_schema import ERROR_COLUMNS, HORIZON_TRUNCATED, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
 from bmimic.sim2sim.spec import PolicySpec, policy_session
 
@@ -22,22 +23,6 @@ REL_MPKPE = ERROR_NAMES.index(MPKPE_REL_MM)
 SMOOTHNESS_NAMES = SMOOTHNESS_COLUMNS
 """The policy's per-step smoothness (bmimic.run_schema.SMOOTHNESS_COLUMNS)."""
 MEASURED = (*ERROR_NAMES, *SMOOTHNESS_NAMES)
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] of unit quaternions (w, x, y, z)."""
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
-    m = np.stack((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)), axis=-1)
-    return m.reshape(m.shape[:-1] + (3, 3))
-
-
-def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle in [0, pi] of the rotation between rotation matrices a and b ([..., 3, 3])."""
-    cos = 0.5 * (np.einsum("...ij,...ij->...", a, b) - 1.0)  # (trace(a^T b) - 1) / 2
-    return np.arccos(np.clip(cos, -1.0, 1.0))
-
 
 
 # ============================================================================================ rollout

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 from pathlib import Path
 
 import mujoco
@@ -21,6 +23,8 @@ from bmimic.motion.math import (
     quat_rotate,
     quat_slerp,
     quat_to_axis_angle,
+    quat_to_matrix,
+    rotation_angle,
     yaw_quat,
 )
 from bmimic.motion.motion import NPZ_ARRAY_KEYS, Motion, MotionDataError, Segment
@@ -110,6 +114,34 @@ def test_axis_angle_round_trip_and_rotation(rotvec, vec):
     # composing with the inverse rotation gives back the vector
     back = quat_rotate(quat_mul(axis_angle_to_quat(-rotvec), q), vec)
     np.testing.assert_allclose(back, vec, atol=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.lists(st.floats(-1.8, 1.8), min_size=3, max_size=3), st.lists(st.floats(-1.8, 1.8), min_size=3, max_size=3),
+    st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+)
+def test_rotation_matrix_and_angle_agree_with_the_quaternion(rotvec_a, rotvec_b, vec):
+    # sim2sim measures orientation error as the angle between rotation matrices
+    qa, qb = axis_angle_to_quat(np.array(rotvec_a)), axis_angle_to_quat(np.array(rotvec_b))
+    ma = quat_to_matrix(qa)
+    np.testing.assert_allclose(ma @ np.array(vec), quat_rotate(qa, np.array(vec)), atol=1e-9)
+    np.testing.assert_allclose(ma.T @ ma, np.eye(3), atol=1e-9)
+    # the angle of the relative rotation a^-1 b, |axis-angle| in [0, pi]
+    relative = quat_to_axis_angle(quat_mul(qa * np.array([1, -1, -1, -1]), qb))
+    np.testing.assert_allclose(rotation_angle(ma, quat_to_matrix(qb)), np.linalg.norm(relative), atol=1e-6)
+
+
+def test_rotation_angle_known_answer():
+    quarter_turn_z = np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])
+    assert rotation_angle(np.eye(3), quat_to_matrix(quarter_turn_z)) == pytest.approx(np.pi / 2)
+    assert rotation_angle(np.eye(3), np.diag([1.0, -1.0, -1.0])) == pytest.approx(np.pi)
+
+
+def test_quaternion_helpers_import_without_mujoco():
+    # sim2sim sets MuJoCo's GL backend before mujoco is first imported, after reading these helpers
+    code = "import sys, bmimic.motion.math, bmimic.motion; sys.exit('mujoco' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 
 
 def test_output_times_match_beyondmimic_arange():
