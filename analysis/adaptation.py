@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from bmimic.run_schema import BIN, ITERATION
+
 FLAT_TOLERANCE = 1e-9
 """Relative spread below which a signal counts as equal in every bin."""
 
@@ -34,7 +36,7 @@ def _per_iteration(g: pd.DataFrame, clips: pd.Series | None) -> pd.Series:
     s = len(p)
     out = {"num_bins": s, "effective_support": 1.0 / float(np.sum(p * p)) / s, "max_p_rel": float(p.max()) * s}
     if clips is not None and len(clips):
-        mass = pd.Series(p, index=g["bin"].to_numpy()).groupby(clips).sum().to_numpy(dtype=float)
+        mass = pd.Series(p, index=g[BIN].to_numpy()).groupby(clips).sum().to_numpy(dtype=float)
         c = len(mass)
         out.update(num_clips=c, clip_effective_support=1.0 / float(np.sum(mass * mass)) / c,
                    clip_max_p_rel=float(mass.max()) * c)
@@ -53,7 +55,7 @@ def sampling_support(sampler_df: pd.DataFrame, clips: pd.Series | None = None) -
     """SUPPORT_COLUMNS, one row per run and logged iteration; ``clips`` maps bin -> clip (a library)."""
     if not len(sampler_df):
         return pd.DataFrame(columns=SUPPORT_COLUMNS)
-    rows = sampler_df.sort_values("bin").groupby(["run_dir", "arm", "seed", "iteration"], sort=True).apply(
+    rows = sampler_df.sort_values(BIN).groupby(["run_dir", "arm", "seed", ITERATION], sort=True).apply(
         lambda g: _per_iteration(g, clips), include_groups=False)
     out = rows.reset_index()
     out["signal_flat"] = out["signal_flat"].astype(float)
@@ -65,8 +67,8 @@ def at_evaluations(support: pd.DataFrame, eval_iterations) -> pd.DataFrame:
     was trained with last), per run, labelled with the evaluation's ``iteration``."""
     frames = []
     for _, g in support.groupby("run_dir", sort=True):
-        g = g.sort_values("iteration")
-        its = g["iteration"].to_numpy()
+        g = g.sort_values(ITERATION)
+        its = g[ITERATION].to_numpy()
         for e in eval_iterations:
             i = np.searchsorted(its, e, side="right") - 1
             if i >= 0:
@@ -77,7 +79,7 @@ def at_evaluations(support: pd.DataFrame, eval_iterations) -> pd.DataFrame:
 def support_summary(support: pd.DataFrame) -> pd.DataFrame:
     """Per ``arm, iteration``: the mean over seeds of every support column, and ``n_seeds``."""
     cols = ["effective_support", "max_p_rel", "clip_effective_support", "clip_max_p_rel"]
-    g = support.groupby(["arm", "iteration"], sort=True)
+    g = support.groupby(["arm", ITERATION], sort=True)
     out = g[cols].mean().reset_index()
     out.insert(2, "n_seeds", g["run_dir"].nunique().to_numpy())
     return out
@@ -92,8 +94,8 @@ def signal_summary(support: pd.DataFrame) -> pd.DataFrame:
     for arm, g in support.groupby("arm", sort=True):
         has = bool(g["signal_flat"].notna().any())
         firsts = []
-        for _, r in g.sort_values("iteration").groupby("run_dir", sort=True):
-            moved = r.loc[r["signal_flat"] == 0, "iteration"]
+        for _, r in g.sort_values(ITERATION).groupby("run_dir", sort=True):
+            moved = r.loc[r["signal_flat"] == 0, ITERATION]
             firsts.append(str(int(moved.iloc[0])) if len(moved) else "never")
         degenerate = has and all(f == "never" for f in firsts)
         constant = bool(g.groupby("run_dir")[["effective_support", "max_p_rel"]]

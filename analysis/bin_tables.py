@@ -24,7 +24,7 @@ from analysis.metrics import (
 )
 from analysis.stats import MIN_SEEDS_IQM, curve_intervals, seed_interval
 from analysis.tables import SPEEDUP_COLUMNS, ReportOptions, per_seed_text, use_bootstrap
-from bmimic.run_schema import FAILURE_RATE, HORIZON_TRUNCATED
+from bmimic.run_schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
 
 
 def run_times(overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
@@ -57,15 +57,15 @@ def mastery(mastery_seed_df: pd.DataFrame, bins: pd.DataFrame) -> pd.DataFrame:
     Kaplan-Meier median over seeds, NaN = not reached), ``follow_up`` and ``per_seed`` (iterations,
     ``>t`` for seeds censored at t)."""
     rows = []
-    for (arm, b), g in mastery_seed_df.groupby(["arm", "bin"], sort=True):
+    for (arm, b), g in mastery_seed_df.groupby(["arm", BIN], sort=True):
         g = g.sort_values("seed")
         t, e = event_times(g, "iteration")
         s = arm_time(t, e)
         per_seed = ";".join(f"{x:.6g}" if ev else f">{x:.6g}" for x, ev in zip(t, e, strict=True))
         rows.append((arm, b, s.n, s.n_reached, s.median, s.follow_up, per_seed))
-    out = pd.DataFrame(rows, columns=["arm", "bin", "n_seeds", "n_mastered", "mastery_iteration", "follow_up",
+    out = pd.DataFrame(rows, columns=["arm", BIN, "n_seeds", "n_mastered", "mastery_iteration", "follow_up",
                                       "per_seed"])
-    return out.merge(bins[["bin", "segment", HORIZON_TRUNCATED]], on="bin", how="left")
+    return out.merge(bins[[BIN, "segment", HORIZON_TRUNCATED]], on=BIN, how="left")
 
 
 def speedups(times: pd.DataFrame, mastery_seed_df: pd.DataFrame, baseline: str, runs: pd.DataFrame,
@@ -84,8 +84,8 @@ def speedups(times: pd.DataFrame, mastery_seed_df: pd.DataFrame, baseline: str, 
             s = speedup(*event_times(base_t, m), *event_times(t, m), **kw)
             rows.append((arm, baseline, m, s.ratio, s.ci_low, s.ci_high, s.status, s.p_value))
     base_m = mastery_seed_df[mastery_seed_df["arm"] == baseline]
-    for (arm, b), g in mastery_seed_df[mastery_seed_df["arm"] != baseline].groupby(["arm", "bin"], sort=True):
-        bm = base_m[base_m["bin"] == b]
+    for (arm, b), g in mastery_seed_df[mastery_seed_df["arm"] != baseline].groupby(["arm", BIN], sort=True):
+        bm = base_m[base_m[BIN] == b]
         if not len(bm):
             continue
         s = speedup(*event_times(bm.sort_values("seed"), "iteration"), *event_times(g.sort_values("seed"), "iteration"),
@@ -113,7 +113,7 @@ def speedup_per_seed(times: pd.DataFrame, baseline: str) -> pd.DataFrame:
 def bin_failure(eval_df: pd.DataFrame) -> pd.DataFrame:
     """Seed-mean failure per ``arm, iteration, bin`` (``failure_rate``, ``n_seeds``)."""
     return (
-        eval_df.groupby(["arm", "iteration", "bin"], sort=True)
+        eval_df.groupby(["arm", ITERATION, BIN], sort=True)
         .agg(failure_rate=(FAILURE_RATE, "mean"), n_seeds=("seed", "nunique"))
         .reset_index()
     )
@@ -124,20 +124,20 @@ def final_bin_failure(eval_df: pd.DataFrame, runs: pd.DataFrame, opts: ReportOpt
     ci_method, per_seed, iteration``."""
     if not len(eval_df):
         return pd.DataFrame()
-    common = float(eval_df.groupby("run_dir")["iteration"].max().min())
+    common = float(eval_df.groupby("run_dir")[ITERATION].max().min())
     last = at_budget(eval_df, "iteration", common)
     boot = use_bootstrap(runs)
     frames = []
     for arm, g in last.groupby("arm", sort=True):
-        wide = g.pivot_table(index="seed", columns="bin", values=FAILURE_RATE, aggfunc="mean").sort_index()
+        wide = g.pivot_table(index="seed", columns=BIN, values=FAILURE_RATE, aggfunc="mean").sort_index()
         m = wide.to_numpy(dtype=float)
         p, low, high, method = curve_intervals(m, boot, opts.n_resamples, opts.confidence, opts.bootstrap_seed)
         n = (~np.isnan(m)).sum(axis=0)
         frames.append(pd.DataFrame({
-            "arm": arm, "bin": wide.columns, "n_seeds": n, "point": p,
+            "arm": arm, BIN: wide.columns, "n_seeds": n, "point": p,
             "point_label": np.where(n >= MIN_SEEDS_IQM, "iqm", "mean"), "ci_low": low, "ci_high": high,
             "ci_method": method, "per_seed": [per_seed_text(pd.Series(col[~np.isnan(col)])) for col in m.T],
-            "iteration": common,
+            ITERATION: common,
         }))
     return pd.concat(frames, ignore_index=True)
 
@@ -151,13 +151,13 @@ def segment_failure(eval_df: pd.DataFrame, bins: pd.DataFrame, mastery_df: pd.Da
     fewer than two segments."""
     if bins["segment"].nunique() < 2:
         return pd.DataFrame()
-    common = float(eval_df.groupby("run_dir")["iteration"].max().min())
+    common = float(eval_df.groupby("run_dir")[ITERATION].max().min())
     last = at_budget(eval_df, "iteration", common)
-    per_run = start_failure(last, bins.set_index("bin")["segment"]).rename(columns={"group": "segment"})
+    per_run = start_failure(last, bins.set_index(BIN)["segment"]).rename(columns={"group": "segment"})
     difficulty = {}
     if segments is not None and "difficulty" in segments.columns:
         difficulty = dict(zip(segments["name"].astype(str), segments["difficulty"].astype(str), strict=True))
-    order = list(dict.fromkeys(bins.sort_values("bin")["segment"]))
+    order = list(dict.fromkeys(bins.sort_values(BIN)["segment"]))
     never = mastery_df[mastery_df["mastery_iteration"].isna()].groupby(["arm", "segment"]).size()
     boot = use_bootstrap(runs)
     rows = []
@@ -177,4 +177,4 @@ def sampling(sampler_df: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
     """Seed-mean sampling probability per ``arm, iteration, bin`` for adaptive arms (sampler != uniform)."""
     adaptive = set(runs.loc[runs["included"] & (runs["sampler"] != "uniform"), "arm"])
     df = sampler_df[sampler_df["arm"].isin(adaptive)]
-    return df.groupby(["arm", "iteration", "bin"], sort=True)["probability"].mean().reset_index()
+    return df.groupby(["arm", ITERATION, BIN], sort=True)["probability"].mean().reset_index()

@@ -17,7 +17,7 @@ from analysis.markdown import estimate_cell
 from analysis.metrics import at_budget, start_failure
 from analysis.stats import seed_interval
 from analysis.tables import ReportOptions, use_bootstrap
-from bmimic.run_schema import FAILURE_RATE
+from bmimic.run_schema import BIN, FAILURE_RATE, ITERATION
 
 FAILURE_HEADER = "final failure (failed / started episodes, by start clip)"
 MASS_HEADER = "sampling probability mass (mean over training)"
@@ -27,7 +27,7 @@ def bin_clips(eval_df: pd.DataFrame) -> pd.Series:
     """The clip of each bin (index: bin), from the evaluation table; empty without a `clip` column."""
     if "clip" not in eval_df.columns or eval_df["clip"].nunique() < 2:
         return pd.Series(dtype=object)
-    return eval_df.drop_duplicates("bin").set_index("bin")["clip"].sort_index()
+    return eval_df.drop_duplicates(BIN).set_index(BIN)["clip"].sort_index()
 
 
 def clip_mass(sampler_df: pd.DataFrame, clips: pd.Series) -> pd.Series:
@@ -35,8 +35,8 @@ def clip_mass(sampler_df: pd.DataFrame, clips: pd.Series) -> pd.Series:
     logged iterations, then over the arm's runs (empty without sampler tables)."""
     if not len(sampler_df) or "probability" not in sampler_df.columns:
         return pd.Series(dtype=float)
-    df = sampler_df.assign(clip=sampler_df["bin"].map(clips))
-    per_it = df.groupby(["arm", "run_dir", "iteration", "clip"])["probability"].sum()
+    df = sampler_df.assign(clip=sampler_df[BIN].map(clips))
+    per_it = df.groupby(["arm", "run_dir", ITERATION, "clip"])["probability"].sum()
     per_run = per_it.groupby(["arm", "run_dir", "clip"]).mean()
     return per_run.groupby(["arm", "clip"]).mean()
 
@@ -48,10 +48,10 @@ def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd
     clips = bin_clips(eval_df)
     if clips.empty:
         return pd.DataFrame()
-    common = float(eval_df.groupby("run_dir")["iteration"].max().min())
+    common = float(eval_df.groupby("run_dir")[ITERATION].max().min())
     last = at_budget(eval_df, "iteration", common)
     per_run = start_failure(last, clips).rename(columns={"group": "clip"})
-    never = mastery_df[mastery_df["mastery_iteration"].isna()].assign(clip=lambda d: d["bin"].map(clips))
+    never = mastery_df[mastery_df["mastery_iteration"].isna()].assign(clip=lambda d: d[BIN].map(clips))
     never = never.groupby(["arm", "clip"]).size()
     mass = clip_mass(sampler_df, clips)
     boot = use_bootstrap(runs)

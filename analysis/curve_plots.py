@@ -8,6 +8,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from analysis.plots import IntegerTicks, _axes, _marker, arm_colors
+from bmimic.run_schema import ITERATION
 
 CURVE_MARKERS = {"estimate": "o", "lower_bound": "^", "upper_bound": "v"}
 """Marker of each speedup status on the curve figures (not estimable: not drawn)."""
@@ -87,8 +88,8 @@ def plot_sampling_support(summary: pd.DataFrame, colors: dict | None = None) -> 
     ax1, ax2 = fig.subplots(1, 2)
     colors = colors or arm_colors(summary["arm"])
     for arm, g in summary.groupby("arm", sort=True):
-        g = g.sort_values("iteration")
-        x = g["iteration"].to_numpy(float)
+        g = g.sort_values(ITERATION)
+        x = g[ITERATION].to_numpy(float)
         ax1.plot(x, g["effective_support"].to_numpy(float), color=colors[arm], lw=1.4, label=arm, **_marker(len(x)))
         ax2.plot(x, g["max_p_rel"].to_numpy(float), color=colors[arm], lw=1.4, label=arm, **_marker(len(x)))
         if g["clip_effective_support"].notna().any():

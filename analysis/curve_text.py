@@ -8,7 +8,7 @@ import pandas as pd
 
 from analysis.markdown import fmt, is_nan, mastery_speedup_line, md_table, p_text, plural, speedup_phrase
 from analysis.tables import ReportOptions
-from bmimic.run_schema import ENV_STEPS, WALL_TIME_S
+from bmimic.run_schema import ENV_STEPS, ITERATION, WALL_TIME_S
 
 
 def threshold_ranges(values, grid) -> str:
@@ -124,10 +124,10 @@ def iso_text(iso: pd.DataFrame) -> list[str]:
 def support_table(summary: pd.DataFrame, max_rows: int = 12) -> pd.DataFrame:
     """Effective support / largest p relative to uniform per evaluation (rows, at most ``max_rows``
     evenly spaced, always the first and last) and arm (columns); over clips in brackets for a library."""
-    its = np.unique(summary["iteration"].to_numpy())
+    its = np.unique(summary[ITERATION].to_numpy())
     if len(its) > max_rows:
         its = its[np.unique(np.r_[np.linspace(0, len(its) - 1, max_rows).round().astype(int)])]
-    s = summary[summary["iteration"].isin(its)]
+    s = summary[summary[ITERATION].isin(its)]
 
     def text(r) -> str:
         t = f"{r.effective_support:.3f} / ×{r.max_p_rel:.2f}"
@@ -136,8 +136,8 @@ def support_table(summary: pd.DataFrame, max_rows: int = 12) -> pd.DataFrame:
         return t
 
     cells = s.assign(cell=[text(r) for r in s.itertuples(index=False)])
-    view = cells.pivot(index="iteration", columns="arm", values="cell").reset_index()
-    return view.rename(columns={"iteration": "evaluation iteration"})
+    view = cells.pivot(index=ITERATION, columns="arm", values="cell").reset_index()
+    return view.rename(columns={ITERATION: "evaluation iteration"})
 
 
 NEAR_UNIFORM = 0.99
@@ -150,11 +150,11 @@ def near_uniform_lines(summary: pd.DataFrame, signals: pd.DataFrame) -> list[str
     lines = []
     with_signal = set(signals.loc[signals["has_signal"] & ~signals["constant"], "arm"])
     for arm, g in summary[summary["arm"].isin(with_signal)].groupby("arm", sort=True):
-        g = g.sort_values("iteration")
+        g = g.sort_values(ITERATION)
         near = (g["effective_support"] >= NEAR_UNIFORM).to_numpy()
         if not near[0]:
             continue
-        its = g["iteration"].to_numpy()
+        its = g[ITERATION].to_numpy()
         if near.all():
             lines.append(f"- `{arm}`: within 1% of uniform over bins (effective support ≥ {NEAR_UNIFORM}) at every "
                          f"evaluation, to iteration {fmt(its[-1])}.")
@@ -191,7 +191,7 @@ def adaptation_section(summary: pd.DataFrame, signals: pd.DataFrame, clip_evals:
     lines += near_uniform_lines(summary, signals)
     if clip_evals is not None and len(clip_evals):
         for arm, g in clip_evals.groupby("arm", sort=True):
-            per_eval = g.groupby(["run_dir", "iteration"])["failed"].agg(["all", "any"])
+            per_eval = g.groupby(["run_dir", ITERATION])["failed"].agg(["all", "any"])
             n = len(per_eval)
             lines.append(f"- `{arm}` clip rollouts (one from each clip's first frame per evaluation): every clip "
                          f"failed in {int(per_eval['all'].sum())} and no clip in {int((~per_eval['any']).sum())} of "

@@ -33,6 +33,7 @@ from analysis.run_files import (
     table_problem,
 )
 from bmimic.run_folder import MOTION_SEGMENTS, STATUS, TABLES, table_path
+from bmimic.run_schema import ITERATION
 
 log = logging.getLogger("analysis")
 
@@ -44,7 +45,7 @@ RUN_COLUMNS = [
 
 def _read_run(run_dir: Path, root: Path) -> dict:
     """One row of the runs frame (without the arm of single runs, filled in later)."""
-    row = {"run_dir": str(run_dir), "error": None, "iteration": None, "problem": None}
+    row = {"run_dir": str(run_dir), "error": None, ITERATION: None, "problem": None}
     problems = []
     try:
         cfg = read_config(run_dir)
@@ -60,7 +61,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
     if isinstance(status, dict):
         row["status"] = str(status.get("status", "unknown"))
         row["error"] = status.get("error")
-        row["iteration"] = status.get("iteration")
+        row[ITERATION] = status.get(ITERATION)
     else:
         row["status"] = "unknown"
         problems.append("no status.json")
@@ -142,7 +143,7 @@ def _missing_jobs(rows: list[dict]) -> list[dict]:
                 continue
             missing.append({
                 "run_dir": run_dir, "sweep_dir": sweep_dir, "arm": arm, "seed": seed,
-                "status": "missing", "error": None, "iteration": None,
+                "status": "missing", "error": None, ITERATION: None,
                 "sampler": siblings[arm]["sampler"] if arm in siblings else None,
                 "overrides": siblings[arm]["overrides"] if arm in siblings else arm,
                 "included": False, "problem": "job folder missing",
@@ -223,7 +224,7 @@ def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
     df = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
     df = df[RUN_COLUMNS + [f"param.{k}" for k in keys]]
     df["seed"] = df["seed"].astype("Int64")
-    df["iteration"] = pd.to_numeric(df["iteration"], errors="coerce").astype("Int64")
+    df[ITERATION] = pd.to_numeric(df[ITERATION], errors="coerce").astype("Int64")
     df["included"] = df["included"].astype(bool)
     return df.sort_values(["arm", "seed", "run_dir"], na_position="last").reset_index(drop=True)
 
@@ -256,8 +257,8 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
         missing = [c for c in REQUIRED_COLUMNS[name] if c not in table.columns]
         if missing:
             raise AnalysisError(f"{path}: missing columns {missing}")
-        if max_iteration is not None and "iteration" in table.columns:
-            done = table["iteration"] if "eval" in name else table["iteration"] + 1
+        if max_iteration is not None and ITERATION in table.columns:
+            done = table[ITERATION] if "eval" in name else table[ITERATION] + 1
             table = table[done <= max_iteration]
         table = table.drop(columns=[c for c in ("run_dir", "arm", "seed") if c in table.columns])
         table.insert(0, "seed", run.seed)

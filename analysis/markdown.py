@@ -10,9 +10,9 @@ import pandas as pd
 from analysis import tables
 from analysis.stats import MIN_SEEDS_BOOTSTRAP, MIN_SEEDS_IQM
 from analysis.tables import ReportOptions
-from bmimic.run_schema import ENV_STEPS, HORIZON_TRUNCATED, WALL_TIME_S
+from bmimic.run_schema import BIN, ENV_STEPS, HORIZON_TRUNCATED, ITERATION, WALL_TIME_S
 
-MEASURE_WORDS = {"iteration": "iterations", ENV_STEPS: "env steps", WALL_TIME_S: "wall time (s)"}
+MEASURE_WORDS = {ITERATION: "iterations", ENV_STEPS: "env steps", WALL_TIME_S: "wall time (s)"}
 
 
 def _verdict(claim: bool, opts: ReportOptions) -> str:
@@ -232,7 +232,7 @@ def evaluation_notes(eval_df: pd.DataFrame, bins: pd.DataFrame) -> list[str]:
         lines.append("- Some runs' eval.parquet predates per-visit accounting: there `failure_rate` is the failure "
                      "rate of the episodes that *started* in a bin (a failure was charged to the start bin), and "
                      "bins whose episodes run out of clip before the horizon are not flagged.")
-    truncated = bins.loc[bins[HORIZON_TRUNCATED], "bin"].tolist()
+    truncated = bins.loc[bins[HORIZON_TRUNCATED], BIN].tolist()
     if truncated:
         one = len(truncated) == 1
         its, they = ("its", "it is") if one else ("their", "they are")
@@ -368,9 +368,9 @@ def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
     """The per-bin mastery table: median mastery iteration per bin (rows) and arm (columns)."""
     cells = mastery_df.assign(cell=[f"{fmt(m)} ({k}/{n})" for m, k, n in zip(
         mastery_df["mastery_iteration"], mastery_df["n_mastered"], mastery_df["n_seeds"], strict=True)])
-    view = cells.pivot(index="bin", columns="arm", values="cell").reset_index()
-    meta = mastery_df.drop_duplicates("bin")[["bin", "segment", HORIZON_TRUNCATED]]
-    meta = meta.assign(bin=[f"{b}†" if t else str(b) for b, t in zip(meta["bin"], meta[HORIZON_TRUNCATED],
-                                                                      strict=True)], _key=meta["bin"])
-    view = meta.merge(view.rename(columns={"bin": "_key"}), on="_key").drop(columns=["_key", HORIZON_TRUNCATED])
+    view = cells.pivot(index=BIN, columns="arm", values="cell").reset_index()
+    meta = mastery_df.drop_duplicates(BIN)[[BIN, "segment", HORIZON_TRUNCATED]]
+    meta = meta.assign(bin=[f"{b}†" if t else str(b) for b, t in zip(meta[BIN], meta[HORIZON_TRUNCATED],
+                                                                      strict=True)], _key=meta[BIN])
+    view = meta.merge(view.rename(columns={BIN: "_key"}), on="_key").drop(columns=["_key", HORIZON_TRUNCATED])
     return view

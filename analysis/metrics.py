@@ -47,9 +47,11 @@ from analysis.stats import (
     restricted_km_median,
 )
 from bmimic.run_schema import (  # training's rule too
+    BIN,
     ENV_STEPS,
     FAILURE_RATE,
     HORIZON_TRUNCATED,
+    ITERATION,
     LABELS,
     REPORTED_ERRORS,
     SMOOTHNESS_COLUMNS,
@@ -77,7 +79,7 @@ def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     by = list(by)
     starts = "start_episodes" if "start_episodes" in eval_df.columns else "episodes"
     out = (
-        eval_df.groupby([*by, "iteration"], sort=True)
+        eval_df.groupby([*by, ITERATION], sort=True)
         .agg(
             env_steps=(ENV_STEPS, "max"),
             wall_time_s=(WALL_TIME_S, "max"),
@@ -89,7 +91,7 @@ def overall_failure(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     )
     out[FAILURE_RATE] = out["failures"] / out["starts"].where(out["starts"] > 0)
     out["success_rate"] = 1.0 - out[FAILURE_RATE]
-    return out[[*by, "iteration", ENV_STEPS, WALL_TIME_S, FAILURE_RATE, "success_rate", "num_bins"]]
+    return out[[*by, ITERATION, ENV_STEPS, WALL_TIME_S, FAILURE_RATE, "success_rate", "num_bins"]]
 
 
 def start_failure(eval_df: pd.DataFrame, groups: pd.Series, by=("run_dir", "arm", "seed")) -> pd.DataFrame:
@@ -105,8 +107,8 @@ def start_failure(eval_df: pd.DataFrame, groups: pd.Series, by=("run_dir", "arm"
         fails, starts = "start_failures", "start_episodes"
     else:
         fails, starts = "failures", "episodes"
-    df = eval_df[[*by, "iteration", "bin", fails, starts]].assign(group=eval_df["bin"].map(groups))
-    out = (df.groupby([*by, "iteration", "group"], sort=False)
+    df = eval_df[[*by, ITERATION, BIN, fails, starts]].assign(group=eval_df[BIN].map(groups))
+    out = (df.groupby([*by, ITERATION, "group"], sort=False)
            .agg(failures=(fails, "sum"), starts=(starts, "sum")).reset_index())
     out[FAILURE_RATE] = out["failures"] / out["starts"].where(out["starts"] > 0)
     return out
@@ -141,13 +143,13 @@ def mastery_per_seed(eval_df: pd.DataFrame, threshold: float = 0.1, persist: int
     if HORIZON_TRUNCATED not in df:
         df[HORIZON_TRUNCATED] = False
     rows = []
-    for (run_dir, arm, seed, b), g in df.sort_values("iteration").groupby(["run_dir", "arm", "seed", "bin"],
+    for (run_dir, arm, seed, b), g in df.sort_values(ITERATION).groupby(["run_dir", "arm", "seed", BIN],
                                                                         sort=True, dropna=False):
         i = first_sustained(g["_ok"].to_numpy(), persist)
         hit = [float(g[m].iloc[i]) if i >= 0 else math.nan for m in MEASURES]
         last = [float(g[m].iloc[-1]) for m in MEASURES]
         rows.append((run_dir, arm, seed, b, i >= 0, *hit, *last, bool(g[HORIZON_TRUNCATED].iloc[-1])))
-    return pd.DataFrame(rows, columns=["run_dir", "arm", "seed", "bin", "mastered", *MEASURES,
+    return pd.DataFrame(rows, columns=["run_dir", "arm", "seed", BIN, "mastered", *MEASURES,
                                        *(f"last_{m}" for m in MEASURES), HORIZON_TRUNCATED])
 
 
@@ -166,7 +168,7 @@ def time_to_threshold(
     rows = []
     for key, group in curve.groupby(by, sort=True, dropna=False):
         key = key if isinstance(key, tuple) else (key,)
-        group = group.sort_values("iteration")
+        group = group.sort_values(ITERATION)
         i = first_sustained((group[value] >= threshold).to_numpy(), persist)
         first = [float(group[m].iloc[i]) if i >= 0 else math.nan for m in MEASURES]
         last = [float(group[m].iloc[-1]) for m in MEASURES]
@@ -271,8 +273,8 @@ def speedup(
 def final_rows(df: pd.DataFrame, by=("run_dir",)) -> pd.DataFrame:
     """The rows of each group's last iteration (e.g. each run's final evaluation)."""
     by = list(by)
-    last = df.groupby(by)["iteration"].transform("max")
-    return df[df["iteration"] == last].reset_index(drop=True)
+    last = df.groupby(by)[ITERATION].transform("max")
+    return df[df[ITERATION] == last].reset_index(drop=True)
 
 
 ERROR_METRICS = {c: LABELS[c] for c in REPORTED_ERRORS}
@@ -302,13 +304,13 @@ def tracking_errors(eval_df: pd.DataFrame, by=("run_dir", "arm", "seed")) -> pd.
     by = list(by)
     cols = [c for c in (*ERROR_METRICS, *SMOOTHNESS_METRICS) if c in eval_df.columns]
     if not cols or "eval_steps" not in eval_df.columns or not len(eval_df):
-        return pd.DataFrame(columns=[*by, "iteration", ENV_STEPS])
+        return pd.DataFrame(columns=[*by, ITERATION, ENV_STEPS])
     w = eval_df["eval_steps"].astype(float).clip(lower=0.0)
     values = eval_df[cols].astype(float)
     weights = pd.DataFrame({c: w.where(values[c].notna() & (w > 0), 0.0) for c in cols})
     parts = values.fillna(0.0).mul(weights)  # a bin never reached has NaN values and no weight
-    frame = pd.concat([eval_df[[*by, "iteration", ENV_STEPS]], parts, weights.add_prefix("_w_")], axis=1)
-    g = frame.groupby([*by, "iteration"], sort=True).agg(
+    frame = pd.concat([eval_df[[*by, ITERATION, ENV_STEPS]], parts, weights.add_prefix("_w_")], axis=1)
+    g = frame.groupby([*by, ITERATION], sort=True).agg(
         {ENV_STEPS: "max", **{c: "sum" for c in cols}, **{f"_w_{c}": "sum" for c in cols}}).reset_index()
     for c in cols:
         g[c] = g[c] / g[f"_w_{c}"].where(g[f"_w_{c}"] > 0)
@@ -343,7 +345,7 @@ def bin_table(eval_df: pd.DataFrame, segments: pd.DataFrame | None = None) -> pd
     else the eval table's ``segment`` column, else empty; ``label`` reads ``"<bin> <segment>"``.
     ``horizon_truncated`` is true when any evaluation flagged the bin (False for older tables).
     """
-    g = eval_df.groupby("bin", sort=True)
+    g = eval_df.groupby(BIN, sort=True)
     bins = g.agg(bin_start_s=("bin_start_s", "min"), bin_end_s=("bin_end_s", "max")).reset_index()
     if "segment" in eval_df.columns:
         bins["segment"] = g["segment"].first().fillna("").astype(str).to_numpy()
@@ -354,7 +356,7 @@ def bin_table(eval_df: pd.DataFrame, segments: pd.DataFrame | None = None) -> pd
         for seg in segments.itertuples(index=False):
             inside = (mid >= seg.start_s) & (mid < seg.end_s)
             bins.loc[inside, "segment"] = str(seg.name)
-    bins["label"] = [f"{b} {s}".strip() for b, s in zip(bins["bin"], bins["segment"], strict=True)]
+    bins["label"] = [f"{b} {s}".strip() for b, s in zip(bins[BIN], bins["segment"], strict=True)]
     if HORIZON_TRUNCATED in eval_df.columns:
         bins[HORIZON_TRUNCATED] = g[HORIZON_TRUNCATED].any().astype(bool).to_numpy()
     else:

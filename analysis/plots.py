@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.ticker import MaxNLocator
 
-from bmimic.run_schema import FAILURE_RATE, HORIZON_TRUNCATED
+from bmimic.run_schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
 
 FIGSIZE = (6.0, 3.6)
 """Default size of a single-panel figure in inches (about 600x360 px at the report's 100 dpi)."""
@@ -79,10 +79,10 @@ def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: 
     (ax.xaxis if axis == "x" else ax.yaxis).set_major_locator(IntegerTicks())
     if bins is None or not len(bins):
         return
-    bins = bins.sort_values("bin").reset_index(drop=True)
+    bins = bins.sort_values(BIN).reset_index(drop=True)
     if HORIZON_TRUNCATED in bins and bins[HORIZON_TRUNCATED].any():
         span = ax.axvspan if axis == "x" else ax.axhspan
-        for b in bins.loc[bins[HORIZON_TRUNCATED].astype(bool), "bin"]:
+        for b in bins.loc[bins[HORIZON_TRUNCATED].astype(bool), BIN]:
             span(b - 0.5, b + 0.5, facecolor="none", edgecolor="0.55", hatch="///", lw=0,
                  zorder=3 if hatch_above else 0.5)
     if not bins["segment"].astype(bool).any():
@@ -141,13 +141,13 @@ def plot_learning_curve(
     fig, ax = _axes(ax)
     colors = colors or arm_colors(curves["arm"])
     if per_seed is not None and len(per_seed):
-        for (arm, _), c in per_seed.sort_values("iteration").groupby(["arm", "run_dir"], sort=True):
-            x = c["iteration"].to_numpy(dtype=float)
+        for (arm, _), c in per_seed.sort_values(ITERATION).groupby(["arm", "run_dir"], sort=True):
+            x = c[ITERATION].to_numpy(dtype=float)
             ax.plot(x, c["value"].to_numpy(dtype=float), color=colors.get(arm, "0.5"), lw=0.6, alpha=0.45,
                     **({"marker": ".", "ms": 3} if len(x) <= 25 else {}))
     for arm, c in curves.groupby("arm", sort=True):
-        c = c.sort_values("iteration")
-        x = c["iteration"].to_numpy(dtype=float)  # concatenated tables can arrive as object columns
+        c = c.sort_values(ITERATION)
+        x = c[ITERATION].to_numpy(dtype=float)  # concatenated tables can arrive as object columns
         ax.plot(x, c["point"].to_numpy(dtype=float), color=colors[arm], lw=1.6, label=arm, **_marker(len(x)))
         ax.fill_between(x, c["ci_low"].to_numpy(dtype=float), c["ci_high"].to_numpy(dtype=float),
                         color=colors[arm], alpha=0.2, lw=0)
@@ -182,7 +182,7 @@ def plot_bin_heatmap(
     spacing is drawn to scale. The colour bar says when cells above ``vmax`` saturate.
     """
     fig, ax = _axes(ax)
-    grid = df.pivot_table(index="iteration", columns="bin", values=value, aggfunc="mean").sort_index()
+    grid = df.pivot_table(index=ITERATION, columns=BIN, values=value, aggfunc="mean").sort_index()
     if len(grid) > max_rows:  # more rows than pixels: keep every k-th iteration (and the last)
         keep = np.unique(np.r_[np.arange(0, len(grid), int(np.ceil(len(grid) / max_rows))), len(grid) - 1])
         grid = grid.iloc[keep]
@@ -258,8 +258,8 @@ def plot_final_bin_failure(
     colors = colors or arm_colors(final["arm"])
     arms = sorted(final["arm"].unique())
     for i, (arm, f) in enumerate(final.groupby("arm", sort=True)):
-        f = f.sort_values("bin")
-        x = f["bin"].to_numpy(dtype=float)
+        f = f.sort_values(BIN)
+        x = f[BIN].to_numpy(dtype=float)
         ax.plot(x, f["point"], marker="o", ms=3, color=colors[arm], lw=1.2, label=arm)
         ax.fill_between(x, f["ci_low"].to_numpy(dtype=float), f["ci_high"].to_numpy(dtype=float),
                         color=colors[arm], alpha=0.2, lw=0)
@@ -288,18 +288,18 @@ def plot_mastery(
     colors = colors or arm_colors(mastery["arm"])
     arms = sorted(mastery["arm"].unique())
     for i, (arm, m) in enumerate(mastery.groupby("arm", sort=True)):
-        m = m.sort_values("bin")
+        m = m.sort_values(BIN)
         jitter = (i - (len(arms) - 1) / 2) * 0.12
-        ax.plot(m["bin"], m["mastery_iteration"], marker="o", ms=4, color=colors[arm], lw=1.2, label=arm)
+        ax.plot(m[BIN], m["mastery_iteration"], marker="o", ms=4, color=colors[arm], lw=1.2, label=arm)
         never = m[m["mastery_iteration"].isna()]
         if len(never):
-            ax.scatter(never["bin"], never["follow_up"], marker="^", facecolors="none", edgecolors=colors[arm], s=30)
+            ax.scatter(never[BIN], never["follow_up"], marker="^", facecolors="none", edgecolors=colors[arm], s=30)
         if per_seed is not None and len(per_seed):
             s = per_seed[per_seed["arm"] == arm]
             got = s[s["mastered"]]
-            ax.scatter(got["bin"] + jitter, got["iteration"], s=6, color=colors[arm], alpha=0.6, lw=0)
+            ax.scatter(got[BIN] + jitter, got[ITERATION], s=6, color=colors[arm], alpha=0.6, lw=0)
             cen = s[~s["mastered"]]
-            ax.scatter(cen["bin"] + jitter, cen["last_iteration"], s=10, marker="x", color=colors[arm], alpha=0.6,
+            ax.scatter(cen[BIN] + jitter, cen["last_iteration"], s=10, marker="x", color=colors[arm], alpha=0.6,
                        lw=0.8)
     ax.set_xlabel("bin")
     ax.set_ylabel("mastery iteration")

@@ -29,7 +29,7 @@ from analysis.plots import arm_colors
 from analysis.speedup_curve import iso_failure, speedup_curve
 from analysis.stats import bootstrap_coverage
 from analysis.tables import ReportOptions
-from bmimic.run_schema import WALL_TIME_S
+from bmimic.run_schema import BIN, ITERATION, WALL_TIME_S
 
 
 def _portable_path(path):
@@ -57,7 +57,7 @@ def read_runs(paths: list[Path], opts: ReportOptions, allow_mixed: bool = False)
     """The runs under `paths`, cut at the common budget and labelled by the overrides that differ."""
     runs = load_runs(paths, allow_mixed=allow_mixed)
     if opts.max_iteration is not None:  # a common budget: longer runs are read as if they had stopped there
-        runs["iteration"] = runs["iteration"].clip(upper=opts.max_iteration)
+        runs[ITERATION] = runs[ITERATION].clip(upper=opts.max_iteration)
     for col in ("run_dir", "sweep_dir"):  # the tables travel (docs/, other machines): no absolute paths from here
         runs[col] = runs[col].map(_portable_path)
     labels, shared = short_arm_labels(runs["arm"])
@@ -155,12 +155,12 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     summary = tables.summary(per_run, runs, opts)
     overview = tables.arm_overview(summary, time_df)
     common = tables.common_budget(overall)
-    at = f"iteration {fmt(common['iteration'])}, the last evaluation every run has"
+    at = f"iteration {fmt(common[ITERATION])}, the last evaluation every run has"
     per_seed_curves = tables.seed_curves(train, overall, opts, errors)
     curves = tables.learning_curves(per_seed_curves, runs, opts)
     band = ("band: bootstrap interval" if tables.use_bootstrap(runs) else "band: range of the seeds")
     bin_fail = bin_tables.bin_failure(eval_df)
-    final_bins = bin_tables.final_bin_failure(eval_df, runs, opts).merge(bins[["bin", "segment"]], on="bin", how="left")
+    final_bins = bin_tables.final_bin_failure(eval_df, runs, opts).merge(bins[[BIN, "segment"]], on=BIN, how="left")
     samp = bin_tables.sampling(sampler_df, runs)
     comp = comparisons.comparisons(per_run, "final_failure", opts)
     comp_robust = comparisons.comparisons(per_run, "final_failure_robust", opts)
@@ -170,7 +170,7 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     comp_base = comparisons.baseline_comparisons(per_run, "final_failure", baseline, opts)
     clips = clip_tables.bin_clips(eval_df)
     support = sampling_support(sampler_df, clips if len(clips) else None)
-    support_eval = at_evaluations(support, sorted(overall["iteration"].unique())) if len(support) else support
+    support_eval = at_evaluations(support, sorted(overall[ITERATION].unique())) if len(support) else support
     support_sum = support_summary(support_eval) if len(support_eval) else pd.DataFrame()
     signals = signal_summary(support) if len(support) else pd.DataFrame()
     extra = {}

@@ -30,7 +30,7 @@ import pandas as pd
 from analysis.metrics import event_times, speedup, time_to_threshold
 from analysis.stats import point, smallest_pvalue
 from analysis.tables import ReportOptions, use_bootstrap
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION
 
 THRESHOLDS = tuple(p / 100 for p in (*range(50, 80, 5), *range(80, 100)))
 """Success thresholds of the speedup curve: 0.50 to 0.80 in steps of 0.05, then to 0.99 in steps of 0.01."""
@@ -70,7 +70,7 @@ def speedup_curve(overall: pd.DataFrame, baseline: str, runs: pd.DataFrame, opts
 
 def _point_curve(overall: pd.DataFrame, measure: str) -> pd.DataFrame:
     """Per arm and evaluation iteration: the point estimate over seeds of the failure and the measure."""
-    g = overall.groupby(["arm", "iteration"], sort=True)
+    g = overall.groupby(["arm", ITERATION], sort=True)
     out = g.agg(time=(measure, "mean")).reset_index()
     out["failure"] = g[FAILURE_RATE].apply(lambda v: float(point(v.to_numpy(dtype=float)))).to_numpy()
     return out

@@ -29,7 +29,7 @@ from analysis.stats import (
     iqm,
     seed_interval,
 )
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, MPKPE_REL_MM, WALL_TIME_S, summary_key
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION, MPKPE_REL_MM, WALL_TIME_S, summary_key
 
 
 @dataclass(frozen=True)
@@ -152,8 +152,8 @@ def seed_curves(train: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions,
         if not len(df) or metric not in df:
             continue
         if source == "train_metrics":
-            df = df[df["iteration"].isin(thin_iterations(df["iteration"], opts.max_curve_points))]
-        frames.append(df[["arm", "run_dir", "seed", "iteration", metric]].rename(columns={metric: "value"})
+            df = df[df[ITERATION].isin(thin_iterations(df[ITERATION], opts.max_curve_points))]
+        frames.append(df[["arm", "run_dir", "seed", ITERATION, metric]].rename(columns={metric: "value"})
                       .assign(metric=metric).dropna(subset=["value"]))
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
@@ -164,7 +164,7 @@ def learning_curves(per_seed: pd.DataFrame, runs: pd.DataFrame, opts: ReportOpti
     boot = use_bootstrap(runs)
     frames = []
     for (metric, arm), g in (per_seed.groupby(["metric", "arm"], sort=True) if len(per_seed) else ()):
-        wide = g.pivot_table(index="run_dir", columns="iteration", values="value", aggfunc="mean")
+        wide = g.pivot_table(index="run_dir", columns=ITERATION, values="value", aggfunc="mean")
         m = wide.to_numpy(dtype=float)
         p, low, high, method = curve_intervals(m, boot, opts.n_resamples, opts.confidence, opts.bootstrap_seed)
         n = (~np.isnan(m)).sum(axis=0)
@@ -172,7 +172,7 @@ def learning_curves(per_seed: pd.DataFrame, runs: pd.DataFrame, opts: ReportOpti
             mean = np.nanmean(m, axis=0)
         q = np.where(n >= MIN_SEEDS_IQM, iqm(m, axis=0), np.nan)
         frames.append(pd.DataFrame({
-            "arm": arm, "metric": metric, "iteration": wide.columns.to_numpy(), "n_seeds": n, "point": p,
+            "arm": arm, "metric": metric, ITERATION: wide.columns.to_numpy(), "n_seeds": n, "point": p,
             "point_label": np.where(n >= MIN_SEEDS_IQM, "iqm", "mean"), "mean": mean, "iqm": q,
             "ci_low": low, "ci_high": high, "ci_method": method,
         }))
@@ -183,9 +183,9 @@ def budgets(runs: pd.DataFrame, train: pd.DataFrame) -> pd.DataFrame:
     """Per included run: completed ``iterations``, ``env_steps`` and ``wall_time_s`` (training's last row)."""
     if not len(train):
         return pd.DataFrame(columns=["run_dir", "arm", "seed", "iterations", ENV_STEPS, WALL_TIME_S])
-    last = train.sort_values("iteration").groupby("run_dir").tail(1)
+    last = train.sort_values(ITERATION).groupby("run_dir").tail(1)
     out = last[["run_dir", "arm", "seed"]].copy()
-    out["iterations"] = last["iteration"].to_numpy() + 1  # rows are numbered from iteration 0
+    out["iterations"] = last[ITERATION].to_numpy() + 1  # rows are numbered from iteration 0
     out[ENV_STEPS] = last[ENV_STEPS].to_numpy()
     out[WALL_TIME_S] = last[WALL_TIME_S].to_numpy()
     return out.sort_values(["arm", "seed"]).reset_index(drop=True)
@@ -257,18 +257,18 @@ def per_run_metrics(runs, overall, robust_overall, mastery_seeds, budget, errors
     if len(overall):
         f = final_overall(overall, "iteration")
         out["final_failure"] = f[keep].assign(value=f[FAILURE_RATE].to_numpy())
-        steps_per_it = overall[overall["iteration"] > 0].eval("env_steps / iteration").round(6)
+        steps_per_it = overall[overall[ITERATION] > 0].eval("env_steps / iteration").round(6)
         if steps_per_it.nunique() > 1:
             f = final_overall(overall, ENV_STEPS)
             out["final_failure_equal_env_steps"] = f[keep].assign(value=f[FAILURE_RATE].to_numpy())
     if robust_overall is not None and len(robust_overall):
-        f = robust_overall.sort_values("iteration").groupby("run_dir").tail(1)
+        f = robust_overall.sort_values(ITERATION).groupby("run_dir").tail(1)
         out["final_failure_robust"] = f[keep].assign(value=f[FAILURE_RATE].to_numpy())
     if len(mastery_seeds):
         m = mastery_seeds.groupby(keep, dropna=False)["mastered"].sum().reset_index()
         out["bins_mastered"] = m[keep].assign(value=m["mastered"].astype(float).to_numpy())
     if errors is not None and len(errors) and len(overall):
-        f = at_budget(errors, "iteration", common_budget(overall)["iteration"])
+        f = at_budget(errors, "iteration", common_budget(overall)[ITERATION])
         for col in (*ERROR_METRICS, *SMOOTHNESS_METRICS):
             if col in f and f[col].notna().any():
                 out[f"final_{col}"] = f[keep].assign(value=f[col].to_numpy(dtype=float)).dropna(subset=["value"])

@@ -42,7 +42,7 @@ from bmimic.evaluation.report import format_report
 from bmimic.evaluation.saved_run import LoadedRun, checkpoint_label, load_run, load_run_checkpoint
 from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table, write_tables
 from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR
-from bmimic.run_schema import ENV_STEPS, HORIZON_TRUNCATED
+from bmimic.run_schema import ENV_STEPS, HORIZON_TRUNCATED, ITERATION
 
 log = logging.getLogger("bmimic.eval")
 
@@ -84,7 +84,7 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
         "eval_worlds": int(env.num_envs),
         "eval_wall_time_s": wall,
         "checkpoint": str(run.checkpoint),
-        "iteration": iteration,
+        ITERATION: iteration,
         ENV_STEPS: int(progress.get(ENV_STEPS, -1)),
         "run_dir": str(run.run_dir),
         "motion": str(cfg.motion.name),

@@ -48,7 +48,7 @@ import sys  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from bmimic.run_schema import ENV_STEPS, MPKPE_REL_MM, summary_key  # noqa: E402
+from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, summary_key  # noqa: E402
 
 RACE_EVAL_EVERY = 100
 """Iterations between evaluations, the race's time resolution: ~24 s at 4096 envs on an H100 or H200.
@@ -103,7 +103,7 @@ class Race:
         self.eval_time_s = float(trainer.eval_time_s)
         p = trainer.progress
         record = {
-            "iteration": int(p.iteration), ENV_STEPS: int(p.env_steps),
+            ITERATION: int(p.iteration), ENV_STEPS: int(p.env_steps),
             "wall_from_launch_s": now - self.launch_unix_s,
             "wall_from_first_iteration_s": now - (self.first_iteration_unix_s or self.launch_unix_s),
             "training_s": float(p.wall_time_s), "evaluation_s": self.eval_time_s,
@@ -130,11 +130,11 @@ class Race:
         for t in self.thresholds:
             r = t.reached_at
             if r is not None:
-                out.append(f"race: {t.label} at iteration {r['iteration']} ({r[ENV_STEPS]:.3g} env steps): "
+                out.append(f"race: {t.label} at iteration {r[ITERATION]} ({r[ENV_STEPS]:.3g} env steps): "
                            f"{r['wall_from_launch_s']:.0f} s from launch, {r['wall_from_first_iteration_s']:.0f} s "
                            "from the first iteration")
             elif last is not None:
-                out.append(f"race: {t.label} not reached by iteration {last['iteration']} "
+                out.append(f"race: {t.label} not reached by iteration {last[ITERATION]} "
                            f"({last['wall_from_launch_s']:.0f} s from launch; censored)")
             else:
                 out.append(f"race: {t.label} not reached (no evaluation ran)")

@@ -31,6 +31,7 @@ from bmimic.run_folder import (
     lock_run,
     read_status,
 )
+from bmimic.run_schema import ITERATION
 
 MAX_SUFFIX = 1000
 """Most `_<n>` suffixes tried for a generated folder taken in the same second."""
@@ -182,6 +183,6 @@ def holds_run(path: Path) -> str:
         return ""
     status = read_status(path)
     what = f"status {status.get('status')}"
-    if status.get("iteration") is not None:
-        what += f" at iteration {status.get('iteration')}"
+    if status.get(ITERATION) is not None:
+        what += f" at iteration {status.get(ITERATION)}"
     return what + (f", {len(ckpts)} checkpoint file(s)" if ckpts else "")

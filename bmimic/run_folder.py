@@ -36,6 +36,7 @@ from bmimic.atomic_io import (  # noqa: F401  (the writer of every run-folder fi
     make_folder,
     rewrite_in_place,
 )
+from bmimic.run_schema import ITERATION
 
 # --------------------------------------------------------------------------------------------- layout
 HYDRA_DIR = ".hydra"
@@ -188,7 +189,7 @@ def write_status(run_dir: str | os.PathLike, status: str, iteration: int = 0, er
     On a full disk the atomic write (a new file) fails; the status is then rewritten in place, in the
     blocks the file already holds, so that a run stopped by a full disk is never left `running`."""
     path = Path(run_dir) / STATUS
-    record = {"status": status, "iteration": int(iteration), "error": error, "updated": now()}
+    record = {"status": status, ITERATION: int(iteration), "error": error, "updated": now()}
     try:
         atomic_write_json(path, record)
     except WriteError:

@@ -9,7 +9,7 @@
 - bmimic.run_folder and the analysis are torch-free (checked by importing them in a fresh process), and
   every bmimic module the analysis reaches (imports, lazy ones included) names no torch import;
 - no string literal spells a measured, progress or failure column of the run schema (bmimic.run_schema)
-  outside it;
+  outside it, and none names the key columns (`iteration`, `bin`) where a column or record key is named;
 - run-folder tables are written through bmimic.run_record only: no other module names the table writers
   (atomic_write_parquet, atomic_write_csv), and evaluation's producers (bmimic.eval, bmimic.evaluation,
   bmimic.sim2sim) name no atomic writer at all;
@@ -237,8 +237,47 @@ def test_analysis_reaches_only_torch_free_bmimic_modules():
 SCHEMA_NAMES = {*run_schema.ERROR_COLUMNS, *run_schema.SMOOTHNESS_COLUMNS, run_schema.TRACKED_THROUGH,
                 run_schema.ENV_STEPS, run_schema.WALL_TIME_S, run_schema.FAILURE_RATE, run_schema.HORIZON_TRUNCATED}
 """The measured columns and the progress and failure columns: spelled in bmimic.run_schema only, used
-through its names everywhere else. (`iteration` and `bin` are not yet here: "iteration" is also a
-value of sampler.accounting.update_every and a status.json key.)"""
+through its names everywhere else."""
+
+KEY_NAMES = {run_schema.ITERATION, run_schema.BIN}
+"""The key columns: plain words ("bin" is an axis label and a word of the report's prose, "iteration" a
+value of sampler.accounting.update_every), so they are held to the rule where they name a column or a
+record key (`column_positions`), not wherever the word occurs."""
+
+COLUMN_METHODS = {"sort_values", "groupby", "set_index", "pivot", "pivot_table", "drop", "drop_duplicates",
+                  "merge", "get", "pop", "melt", "nunique", "value_counts", "rename", "reindex", "filter"}
+COLUMN_KEYWORDS = {"by", "on", "columns", "index", "values", "subset", "left_on", "right_on", "id_vars",
+                   "value_vars", "x", "y", "hue"}
+
+
+def _constants(node: ast.AST) -> list[ast.Constant]:
+    """A string constant, or the string constants of a list / tuple / set display."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return [node]
+    if isinstance(node, (ast.List, ast.Tuple, ast.Set)):
+        return [c for e in node.elts for c in _constants(e)]
+    return []
+
+
+def column_positions(tree: ast.AST) -> list[ast.Constant]:
+    """String constants in the places where a table's column or a record's key is named: a subscript
+    (`df["bin"]`, `df[["iteration", "bin"]]`), a key of a dict display, an argument of a table or dict
+    method that takes column names (`sort_values`, `groupby`, `get`, ...), a column keyword (`on=`,
+    `columns=`, ...), and the left side of `in df.columns`."""
+    found: list[ast.Constant] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Subscript):
+            found += _constants(node.slice)
+        elif isinstance(node, ast.Dict):
+            found += [c for k in node.keys if k is not None for c in _constants(k)]
+        elif isinstance(node, ast.Call):
+            if isinstance(node.func, ast.Attribute) and node.func.attr in COLUMN_METHODS:
+                found += [c for a in node.args for c in _constants(a)]
+            found += [c for k in node.keywords if k.arg in COLUMN_KEYWORDS for c in _constants(k.value)]
+        elif (isinstance(node, ast.Compare) and isinstance(node.ops[0], (ast.In, ast.NotIn))
+              and isinstance(node.comparators[0], ast.Attribute) and node.comparators[0].attr == "columns"):
+            found += _constants(node.left)
+    return found
 
 
 def test_measured_columns_are_spelled_only_in_the_run_schema():
@@ -246,6 +285,20 @@ def test_measured_columns_are_spelled_only_in_the_run_schema():
                      for node in ast.walk(module.tree)
                      if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in SCHEMA_NAMES)
     assert spelled == []
+
+
+def test_key_columns_are_named_through_the_run_schema():
+    spelled = sorted((name, node.value, node.lineno) for name, module in MODULES.items() if name != "bmimic.run_schema"
+                     for node in column_positions(module.tree) if node.value in KEY_NAMES)
+    assert spelled == []
+
+
+def test_column_positions_finds_the_places_a_column_is_named():
+    tree = ast.parse('df["bin"]; df[["iteration", "x"]]; {"bin": 1}; df.sort_values("iteration"); '
+                     'df.merge(o, on=["bin"]); s.get("iteration"); "bin" in df.columns; '
+                     'ax.set_xlabel("bin"); cfg.update_every == "iteration"; f"{n} bin"')
+    assert [c.value for c in column_positions(tree) if c.value in KEY_NAMES] == [
+        "bin", "iteration", "bin", "iteration", "bin", "iteration", "bin"]
 
 
 LAYERS = ("bmimic.robot", "bmimic.motion", "bmimic.sim", "bmimic.sampling", "bmimic.envs", "bmimic.training",

@@ -7,7 +7,7 @@ import math
 import pandas as pd
 
 from bmimic.evaluation.tables import EvalResult
-from bmimic.run_schema import HORIZON_TRUNCATED, MPKPE_MM, TRACKING_ERRORS
+from bmimic.run_schema import BIN, HORIZON_TRUNCATED, ITERATION, MPKPE_MM, TRACKING_ERRORS
 
 _ERROR_TITLES = ("MPKPE_mm", "rel_MPKPE_mm", "anchor_ori_rad", "body_ori_rad", "joint_pos_rad", "joint_vel_radps",
                  "ee_pos_mm")
@@ -34,7 +34,7 @@ def format_report(result: EvalResult) -> str:
     """A readable summary: per segment, per bin (the worst ones for long motions), overall."""
     s = result.summary
     lines = [
-        f"{s['checkpoint']} (iteration {s['iteration']}), {s['device']}: {s['num_bins']} bins x "
+        f"{s['checkpoint']} (iteration {s[ITERATION]}), {s['device']}: {s['num_bins']} bins x "
         f"{s['episodes_per_bin']} episodes, horizon {s['horizon_s']:g} s, deterministic policy",
         "",
     ]
@@ -50,7 +50,7 @@ def format_report(result: EvalResult) -> str:
     if len(bins) > MAX_BINS_SHOWN:
         bins = bins.sort_values(["success_rate", MPKPE_MM], ascending=[True, False]).head(MAX_BINS_SHOWN // 3)
         title = f"worst {len(bins)} of {len(result.bins)} bins:"
-    lines += [title, _format_rows(bins, {"bin": "bin", "span": "t_s", "segment": "segment"}), ""]
+    lines += [title, _format_rows(bins, {BIN: "bin", "span": "t_s", "segment": "segment"}), ""]
     overall = pd.DataFrame([{"visits": s["episodes"], "failures": s["failures"], "success_rate": s["eval_success_rate"],
                              **{c: s[f"eval_{c}"] for c in _SHOWN if f"eval_{c}" in s}}])
     lines += ["overall:", _format_rows(overall, {}, titles={"visits": "episodes"}),

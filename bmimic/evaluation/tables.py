@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from bmimic.run_record import write_evaluation
-from bmimic.run_schema import ERROR_COLUMNS, FAILURE_RATE, HORIZON_TRUNCATED
+from bmimic.run_schema import BIN, ERROR_COLUMNS, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
 
 
 def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
@@ -32,14 +32,14 @@ def episode_table(raw: pd.DataFrame, layout, motion, step_dt: float, iteration: 
     edges = layout.edges_s.cpu().numpy()
     start_s = raw["start_frame"].to_numpy() / motion.fps
     segment, difficulty = segment_at(motion.segments, start_s)
-    bins = raw["bin"].to_numpy()
+    bins = raw[BIN].to_numpy()
     failed = raw["failed"].to_numpy().astype(bool)
     failure_frame = raw["failure_frame"].to_numpy().astype(int)
     fail_bin = layout.frame_to_bin.cpu().numpy()[np.where(failed, failure_frame, 0)]
     return pd.DataFrame({
-        "iteration": int(iteration),
+        ITERATION: int(iteration),
         "episode": np.arange(len(raw)),
-        "bin": bins.astype(int),
+        BIN: bins.astype(int),
         "bin_start_s": edges[bins],
         "bin_end_s": edges[bins + 1],
         "segment": segment,
@@ -74,8 +74,8 @@ def bin_table(rollouts, episodes: pd.DataFrame, layout, segments) -> pd.DataFram
     from bmimic.training.evaluator import bin_table as labelled_bins
 
     per_bin = labelled_bins(rollouts, layout, segments)
-    per_bin.insert(0, "iteration", int(episodes["iteration"].iloc[0]))
-    survival = episodes.groupby("bin")["survival_s"].mean().reindex(per_bin["bin"]).to_numpy(dtype=float)
+    per_bin.insert(0, "iteration", int(episodes[ITERATION].iloc[0]))
+    survival = episodes.groupby(BIN)["survival_s"].mean().reindex(per_bin[BIN]).to_numpy(dtype=float)
     return _with_rates(per_bin, survival)
 
 
@@ -88,7 +88,7 @@ def segment_table(rollouts, episodes: pd.DataFrame, motion) -> pd.DataFrame:
     names = np.asarray(names, dtype=object)
     stretch = np.r_[0, np.cumsum(names[1:] != names[:-1])]  # contiguous frames of one label
     per_seg = aggregate(rollouts.episodes, stretch, rollouts.frame_errors)
-    ids = per_seg.pop("bin").to_numpy()
+    ids = per_seg.pop(BIN).to_numpy()
     first = np.searchsorted(stretch, ids)
     last = np.searchsorted(stretch, ids, side="right") - 1
     per_seg.insert(0, "segment", names[first])

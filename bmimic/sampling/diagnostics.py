@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bmimic.run_schema import FAILURE_RATE
+from bmimic.run_schema import BIN, FAILURE_RATE, ITERATION
 from bmimic.sampling.checks import SamplerConfigError
 
 MAX_SAMPLER_ROWS = 1_000_000
@@ -124,8 +124,8 @@ def bin_table(
         raw = np.where(episodes > 0, failures / np.maximum(episodes, 1.0), np.nan)
     return pd.DataFrame(
         {
-            "iteration": np.full(s, int(iteration), dtype=np.int64),
-            "bin": np.arange(s, dtype=np.int64),
+            ITERATION: np.full(s, int(iteration), dtype=np.int64),
+            BIN: np.arange(s, dtype=np.int64),
             "clip": _clip_names(layout, s),
             "bin_start_s": edges[:-1],
             "bin_end_s": edges[1:],

@@ -33,6 +33,7 @@ from typing import Any
 
 import torch
 
+from bmimic.run_schema import ITERATION
 from bmimic.sampling.base import DTYPE, BinSampler
 from bmimic.sampling.checks import check_fraction, check_int_at_least, check_nonnegative, check_positive, fail
 from bmimic.sampling.feedback import EPISODE_OUTCOMES, TRACKING_ERRORS
@@ -123,7 +124,7 @@ class EGMSampler(BinSampler):
                 "uniform": list(self.uniform), "schedule_iterations": self.schedule_iterations}
 
     def _state_tensors(self) -> dict[str, torch.Tensor]:
-        return {"error": self._error, "seen": self._seen, "iteration": self._iteration}
+        return {"error": self._error, "seen": self._seen, ITERATION: self._iteration}
 
 
 # ------------------------------------------------------------------------------------------------ GMT

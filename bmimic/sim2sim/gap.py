@@ -17,7 +17,7 @@ from bmimic.run_folder import (
     read_resolved_config,
     table_path,
 )
-from bmimic.run_schema import FAILURE_RATE, HORIZON_TRUNCATED, MPKPE_REL_MM
+from bmimic.run_schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION, MPKPE_REL_MM
 from bmimic.sim2sim.spec import Sim2SimError
 
 log = logging.getLogger("bmimic.sim2sim")
@@ -71,7 +71,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
         return None
     with _readable(table):
         rows = pd.read_parquet(table)
-        rows = rows[rows["iteration"] == iteration].reset_index(drop=True)
+        rows = rows[rows[ITERATION] == iteration].reset_index(drop=True)
     if rows.empty:
         return None
     if "visits" not in rows:
@@ -142,11 +142,11 @@ def setting_differences(ours: dict, warp: WarpEval) -> list[str]:
 def gap_table(bins, warp: WarpEval):
     """Per bin: MuJoCo-Warp and sim2sim visits, failures (where they happened), success rate per visit
     and anchor-relative MPKPE, and the differences."""
-    ours = bins[["bin", "bin_start_s", "bin_end_s", "segment", HORIZON_TRUNCATED, "visits", "failures",
+    ours = bins[[BIN, "bin_start_s", "bin_end_s", "segment", HORIZON_TRUNCATED, "visits", "failures",
                  "success_rate", MPKPE_REL_MM]]
     names = ["visits", "failures", "success_rate", MPKPE_REL_MM]
     out = ours.rename(columns={c: f"sim2sim_{c}" for c in names})
-    out = out.merge(warp.bins.rename(columns={c: f"warp_{c}" for c in names}), on="bin", how="left")
+    out = out.merge(warp.bins.rename(columns={c: f"warp_{c}" for c in names}), on=BIN, how="left")
     out["success_gap"] = out["sim2sim_success_rate"] - out["warp_success_rate"]
     out["mpkpe_rel_gap_mm"] = out["sim2sim_mpkpe_rel_mm"] - out["warp_mpkpe_rel_mm"]
     return out

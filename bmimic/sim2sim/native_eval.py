@@ -12,7 +12,7 @@ import numpy as np
 
 from bmimic.run_folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
 from bmimic.run_folder import checkpoint_label as run_checkpoint_label
-from bmimic.run_schema import HORIZON_TRUNCATED
+from bmimic.run_schema import HORIZON_TRUNCATED, ITERATION
 from bmimic.sim2sim.gap import eval_settings, gap_table, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.rollout import Episode, run_episodes
@@ -111,7 +111,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
         **settings,
         "horizon_truncated_bins": int(bins[HORIZON_TRUNCATED].sum()),
         "checkpoint": str(policy_path),
-        "iteration": iteration,
+        ITERATION: iteration,
         "run_dir": str(run_dir) if run_dir else "",
         "label": label,
         "device": f"cpu, native MuJoCo, {workers} worker process(es)",

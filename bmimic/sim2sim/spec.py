@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from bmimic import BmimicError
+from bmimic.run_schema import ITERATION
 
 if TYPE_CHECKING:
     from bmimic.motion.motion import Motion
@@ -221,7 +222,7 @@ def read_policy(path: str | Path) -> PolicySpec:
         # files exported before these keys: training's defaults (bmimic.sim.config.SimConfig)
         max_abs_qvel=scalar("sim_max_abs_qvel") if "sim_max_abs_qvel" in meta else 1000.0,
         max_root_distance_m=scalar("sim_max_root_distance_m") if "sim_max_root_distance_m" in meta else 1000.0,
-        iteration=int(meta["iteration"]) if meta.get("iteration", "").lstrip("-").isdigit() else None,
+        iteration=int(meta[ITERATION]) if meta.get(ITERATION, "").lstrip("-").isdigit() else None,
     )
     _check_spec(spec)
     return spec

@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bmimic import CONF_DIR, BmimicError
 from bmimic.run_folder import lock_held, read_status
+from bmimic.run_schema import ITERATION
 
 SWEEPS_DIR = CONF_DIR / "sweep"
 
@@ -146,7 +147,7 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
             if state == "running" and not lock_held(run_dir):
                 state = "dead"  # its status says running, but no process holds its lock: killed
             jobs.append(Job(num, tuple(job_overrides), run_dir, "new" if state == "missing" else state,
-                            status.get("iteration"), OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])))
+                            status.get(ITERATION), OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])))
     finally:
         if saved is not None:
             HydraConfig.instance().cfg = saved

@@ -41,6 +41,7 @@ import torch
 
 from bmimic.envs.quat import quat_error_magnitude
 from bmimic.run_schema import (  # noqa: F401  (the tables' columns, re-exported for the evaluators)
+    BIN,
     BIN_COLUMNS,
     ENV_STEPS,
     EPISODE_COLUMNS,
@@ -129,7 +130,7 @@ def aggregate(episodes: pd.DataFrame, frame_to_bin, frame_errors: pd.DataFrame |
     through = through_hi >= start_bin + 1
     through_lo = np.minimum(start_bin + 1, num_bins - 1)  # in range even where `through` is false
     out = pd.DataFrame({
-        "bin": np.arange(num_bins),
+        BIN: np.arange(num_bins),
         "visits": _visits(start_bin, end_bin, num_bins, np.ones(len(start))),
         "failures": _counts(fail_bin, num_bins, failed),
         "start_episodes": _counts(start_bin, num_bins),
@@ -187,10 +188,10 @@ def bin_table(rollouts: Rollouts, layout, segments) -> pd.DataFrame:
     per_bin = aggregate(rollouts.episodes, layout.frame_to_bin.cpu().numpy(), rollouts.frame_errors)
     edges = layout.edges_s.cpu().numpy()
     labels = segment_of_bin(layout, segments)
-    per_bin.insert(1, "bin_start_s", edges[per_bin["bin"]])
-    per_bin.insert(2, "bin_end_s", edges[per_bin["bin"] + 1])
-    per_bin.insert(3, "segment", [labels[b] for b in per_bin["bin"]])
-    per_bin.insert(4, "clip", clip_of_bins(layout, per_bin["bin"]))
+    per_bin.insert(1, "bin_start_s", edges[per_bin[BIN]])
+    per_bin.insert(2, "bin_end_s", edges[per_bin[BIN] + 1])
+    per_bin.insert(3, "segment", [labels[b] for b in per_bin[BIN]])
+    per_bin.insert(4, "clip", clip_of_bins(layout, per_bin[BIN]))
     return per_bin
 
 
@@ -285,7 +286,7 @@ class Evaluator:
                                 error_failed.long(), truncated.long(), broken.long()), dim=-1)[:m].cpu().numpy()
             wave = pd.DataFrame(means[:m].cpu().numpy(), columns=list(measured))
             head = pd.DataFrame({
-                "bin": self.bins[first : first + m],
+                BIN: self.bins[first : first + m],
                 "start_frame": ints[:, 0],
                 "end_frame": ints[:, 1],
                 "failed": failed[:m].cpu().numpy(),

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from bmimic.run_folder import atomic_write, motion_policy_onnx_name, policy_onnx_name
+from bmimic.run_schema import ITERATION
 
 METADATA_VERSION = "2"
 """Version of the metadata key set (1: today's keys only; 2: BeyondMimic keys + sim2sim keys)."""
@@ -80,7 +81,7 @@ def policy_metadata(env, iteration: int | None = None, run_path: str = "") -> di
         "body_names": ",".join(body_names),
         # bmimic's keys.
         "bmimic_metadata_version": METADATA_VERSION,
-        "iteration": "" if iteration is None else str(int(iteration)),
+        ITERATION: "" if iteration is None else str(int(iteration)),
         "observation_layout": json.dumps(_term_entries(policy_terms, dims)),
         "policy_obs_dim": str(int(obs["policy"].shape[-1])),
         "terminations": json.dumps(terminations),

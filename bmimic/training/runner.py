@@ -28,7 +28,7 @@ from bmimic.run_folder import (
     write_status,
 )
 from bmimic.run_record import RunRecord
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, WALL_TIME_S
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S
 from bmimic.runtime import any_rank
 from bmimic.sampling import diagnostics
 from bmimic.training import run_state
@@ -148,7 +148,7 @@ class Trainer:
             rows = clip_rollouts(self.evaluator, policy, max_s)
         p = self.progress
         self.record.append("clip_eval", rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
-            ["iteration", ENV_STEPS, *CLIP_ROLLOUT_COLUMNS]])
+            [ITERATION, ENV_STEPS, *CLIP_ROLLOUT_COLUMNS]])
         self.flush_tables()
         log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
         return clips_failed(rows, self.env.layout.num_clips)
@@ -229,7 +229,7 @@ class Trainer:
         s = diagnostics.summary(self.sampler, torch.as_tensor(stats["bin_episodes"]),
                                 torch.as_tensor(stats["bin_failures"]), total_episodes=stats["episodes"])
         row = {
-            "iteration": it,
+            ITERATION: it,
             ENV_STEPS: self.progress.env_steps,
             WALL_TIME_S: self.progress.wall_time_s,
             "mean_episode_length": stats["mean_episode_length"],

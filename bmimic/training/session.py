@@ -34,6 +34,7 @@ from bmimic.run_folder import (
     write_resolved_config,
     write_status,
 )
+from bmimic.run_schema import ITERATION
 from bmimic.runtime import provenance
 from bmimic.training.resume import RunPlan
 
@@ -87,7 +88,7 @@ def commit(ctx: RunContext, plan: RunPlan, resolved: dict, device: str, changes:
         move_file_logs(ctx.launch_dir, run_dir, ctx.claim)  # a resumed run logs into its own folder
         ctx.discard()  # no empty timestamped folder is left behind
     ctx.run_dir = run_dir
-    entry = {"checkpoint": str(plan.checkpoint), "iteration": int((plan.state or {}).get("iter", 0)),
+    entry = {"checkpoint": str(plan.checkpoint), ITERATION: int((plan.state or {}).get("iter", 0)),
              "changes": {k: list(v) for k, v in changes.items()}, "note": plan.note or None}
     note_previous_attempt(run_dir, read_status(run_dir))  # a sweep job's killed or failed attempt
     if plan.continues:
@@ -106,7 +107,7 @@ def commit(ctx: RunContext, plan: RunPlan, resolved: dict, device: str, changes:
         write_resolved_config(run_dir, resolved)
         if plan.state is not None:  # a new run that starts from another run's checkpoint
             append_resume(run_dir, entry)
-    write_status(run_dir, "running", entry["iteration"])
+    write_status(run_dir, "running", entry[ITERATION])
     write_motion_segments(run_dir, [s._asdict() for s in motion.segments])
 
 
@@ -114,13 +115,13 @@ def note_previous_attempt(run_dir: str | os.PathLike, status: dict) -> None:
     """Before retrying a sweep job, record how its previous attempt ended when it did not finish."""
     state = status.get("status")
     if state == "failed":
-        append_error_log(run_dir, f"retrying after a failed attempt (iteration {status.get('iteration')}, "
+        append_error_log(run_dir, f"retrying after a failed attempt (iteration {status.get(ITERATION)}, "
                                   f"updated {status.get('updated')}): {status.get('error')}")
     elif state == "running":
-        append_error_log(run_dir, f"previous attempt stopped while running (iteration {status.get('iteration')}, "
+        append_error_log(run_dir, f"previous attempt stopped while running (iteration {status.get(ITERATION)}, "
                                   f"updated {status.get('updated')}): killed, preempted or timed out; resuming")
     elif state == "interrupted":
-        append_error_log(run_dir, f"previous attempt interrupted by a signal after iteration {status.get('iteration')} "
+        append_error_log(run_dir, f"previous attempt interrupted by a signal after iteration {status.get(ITERATION)} "
                                   f"(updated {status.get('updated')}), with a checkpoint there; resuming")
 
 
@@ -131,7 +132,7 @@ def record_failure(ctx: RunContext, multirun: bool, message: str, details: str =
     may be that very disk being full): status.json is rewritten in place, the error log is skipped."""
     try:
         if ctx.run_dir is not None:
-            write_status(ctx.run_dir, "failed", read_status(ctx.run_dir).get("iteration", 0) or 0, error=message)
+            write_status(ctx.run_dir, "failed", read_status(ctx.run_dir).get(ITERATION, 0) or 0, error=message)
             with contextlib.suppress(OSError):  # the status says it; the log is a convenience
                 append_error_log(ctx.run_dir, f"attempt failed: {message}", details)
         elif multirun:
