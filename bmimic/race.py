@@ -48,7 +48,7 @@ import sys  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, summary_key  # noqa: E402
+from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, summary_key  # noqa: E402
 
 RACE_EVAL_EVERY = 100
 """Iterations between evaluations, the race's time resolution: ~24 s at 4096 envs on an H100 or H200.
@@ -107,7 +107,7 @@ class Race:
             "wall_from_launch_s": now - self.launch_unix_s,
             "wall_from_first_iteration_s": now - (self.first_iteration_unix_s or self.launch_unix_s),
             "training_s": float(p.wall_time_s), "evaluation_s": self.eval_time_s,
-            "success_rate": float(summary.get("eval_success_rate", math.nan)),
+            SUCCESS_RATE: float(summary.get("eval_success_rate", math.nan)),
             MPKPE_REL_MM: float(summary.get(summary_key(MPKPE_REL_MM), math.nan)),
         }
         self.evaluations.append(record)
@@ -158,7 +158,7 @@ class Race:
 
     def to_json(self, config: dict, provenance: dict | None) -> dict:
         return {
-            "kind": "bmimic-race-1",
+            "kind": RACE_KIND,
             "run_dir": self.run_dir,
             "sustain": self.sustain,
             "budget_s": self.budget_s,

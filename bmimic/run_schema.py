@@ -147,9 +147,15 @@ LOGISTICS_KEYS = ("seed", "sweep_name", "run_name", "device", "resume", "sweep",
 out of the analysis's arm names."""
 
 
+# ---------------------------------------------------------------------------------------------- race record
+RACE_KIND = "bmimic-race-1"
+"""The `kind` of RUN/race.json (bmimic.race writes it, analysis.races reads it); bumped when its layout changes."""
+SUCCESS_RATE = "success_rate"
+"""Evaluated success (0-1) in one evaluation record of a race (the evaluation summary's eval_success_rate)."""
+
 __all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "EE_POS_ERR_MM", "JOINT_POS_ERR_RAD",
            "JOINT_VEL_ERR_RADPS", "CLIP_ROLLOUT_COLUMNS", "Column", "ENV_STEPS", "EPISODE_COLUMNS", "ERROR_COLUMNS",
            "EVAL_SUMMARY_KEYS", "FAILURE_RATE", "FINAL_METRICS", "HORIZON_TRUNCATED", "ITERATION", "LABELS",
-           "LOGISTICS_KEYS", "MASTERED_BELOW", "MPKPE_MM", "MPKPE_REL_MM", "REPORTED_ERRORS", "RUN_METRICS",
-           "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "TRACKED_THROUGH", "TRACKING_ERRORS",
+           "LOGISTICS_KEYS", "MASTERED_BELOW", "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND", "REPORTED_ERRORS", "RUN_METRICS",
+           "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "SUCCESS_RATE", "TRACKED_THROUGH", "TRACKING_ERRORS",
            "WALL_TIME_S", "counts_as_mastered", "summary_key"]

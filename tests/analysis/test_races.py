@@ -1,0 +1,134 @@
+"""analysis.races: race JSONs written by bmimic.race's own record, read back into tidy tables, drawn,
+and refused with one line when they are not race JSONs."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import pandas as pd
+import pytest
+
+from analysis import AnalysisError
+from analysis.races import (
+    LINESTYLES,
+    config_label,
+    main,
+    plot_races,
+    race_evaluations,
+    race_thresholds,
+    read_race,
+)
+from bmimic.race import Race, Threshold
+from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _race_json(path, successes, mpkpes, seed=0, overrides=(), num_envs=4096, gpu="NVIDIA H100 80GB HBM3",
+               every=100):
+    """A race fed `successes` / `mpkpes` at evaluations every `every` iterations (1 s per 10 iterations from
+    a first iteration 20 s after launch), written as bmimic.race writes it."""
+    race = Race([Threshold("eval_success_rate", 0.9), Threshold("eval_success_rate", 0.99),
+                 Threshold("eval_mpkpe_rel_mm", 40.0)], budget_s=1e9, launch_unix_s=100.0)
+    for i, (s, m) in enumerate(zip(successes, mpkpes, strict=True), start=1):
+        it = i * every
+        progress = SimpleNamespace(iteration=it, env_steps=num_envs * 24 * it, wall_time_s=it / 10)
+        trainer = SimpleNamespace(run_dir="RUN", learn_started_unix_s=120.0, eval_time_s=0.5 * i, progress=progress)
+        race.on_evaluation(trainer, {"eval_success_rate": s, "eval_mpkpe_rel_mm": m}, now=120.0 + it / 10)
+    config = {"seed": seed, "sampler": "adaptive_hybrid", "num_envs": num_envs, "eval": {"every_iters": every},
+              "overrides": ["motion=lafan_dance1_full", *overrides, f"seed={seed}", "hydra.run.dir=/tmp/x"]}
+    machine = {"gpu": {"name": gpu}, "created": "2026-11-27T14:28:24+00:00"}
+    path.write_text(json.dumps(race.to_json(config, machine)))
+    return path
+
+
+def test_evaluations_and_thresholds_read_back_as_planted(tmp_path):
+    a = _race_json(tmp_path / "a.json", [0.5, 0.92, 0.95, 0.991, 0.995], [60, 45, 39, 38, 37],
+                   overrides=["env=tracking"])
+    b = _race_json(tmp_path / "b.json", [0.4, 0.8, 0.91], [70, 50, 45], seed=1)
+    ev = race_evaluations([a, b])
+    assert len(ev) == 8 and sorted(ev["race"].unique()) == ["a", "b"]
+    ra = ev[ev["race"] == "a"]
+    assert ra[ITERATION].tolist() == [100, 200, 300, 400, 500]
+    assert ra[ENV_STEPS].tolist() == [4096 * 24 * it for it in (100, 200, 300, 400, 500)]
+    assert ra["wall_from_launch_s"].tolist() == pytest.approx([30, 40, 50, 60, 70])
+    assert ra[MPKPE_REL_MM].tolist() == [60, 45, 39, 38, 37]
+    assert set(ra["config"]) == {"env=tracking sampler=adaptive_hybrid num_envs=4096"}
+    assert set(ev.loc[ev["race"] == "b", "config"]) == {"env=beyondmimic sampler=adaptive_hybrid num_envs=4096"}
+    assert set(ev["gpu"]) == {"H100"} and set(ev["date"]) == {"2026-11-27"}
+
+    th = race_thresholds([a, b]).set_index(["race", "metric", "threshold"])
+    # success 0.9 held from iteration 200 (0.92, 0.95); 0.99 from 400; MPKPE <= 40 from 300
+    assert th.loc[("a", "eval_success_rate", 0.9), ITERATION] == 200
+    assert th.loc[("a", "eval_success_rate", 0.99), ITERATION] == 400
+    assert th.loc[("a", "eval_success_rate", 0.99), "wall_from_launch_s"] == pytest.approx(60)
+    assert th.loc[("a", "eval_mpkpe_rel_mm", 40.0), ITERATION] == 300
+    # b: 0.9 met once (needs two in a row), never 0.99, never 40 mm: all censored, no time
+    censored = th.loc["b"]
+    assert (censored["status"] == "censored").all() and censored[ITERATION].isna().all()
+
+
+def test_config_label_names_what_was_trained_and_drops_seed_logging_and_evaluation():
+    cfg = {"sampler": "adaptive", "num_envs": 8192,
+           "overrides": ["motion=m", "env=tracking", "num_envs=8192", "ppo.learning_rate=3e-4", "seed=2",
+                         "eval.every_iters=100", "hydra.run.dir=/x", "logger=none", "+run_name=r"]}
+    assert config_label(cfg) == "env=tracking sampler=adaptive num_envs=8192 ppo.learning_rate=3e-4"
+    assert config_label({"sampler": "uniform", "num_envs": 4096, "overrides": []}) == (
+        "env=beyondmimic sampler=uniform num_envs=4096")
+
+
+def test_the_figure_draws_one_line_per_race_on_each_panel_styled_by_seed(tmp_path):
+    paths = [_race_json(tmp_path / f"r{s}.json", [0.5, 0.9, 1.0], [60, 50, 40], seed=s) for s in (0, 1)]
+    fig = plot_races(race_evaluations(paths))
+    axes = fig.axes
+    assert len(axes) == 4
+    for ax in axes:
+        races = [ln for ln in ax.get_lines() if ln.get_marker() == "o"]
+        assert len(races) == 2
+        assert sorted(ln.get_linestyle() for ln in races) == sorted(LINESTYLES[:2])
+    failure = [ln for ln in axes[0].get_lines() if ln.get_marker() == "o"][0].get_ydata()
+    assert failure[-1] == pytest.approx(1e-3)  # success 1.0 drawn at the log axis' floor, not dropped
+    assert axes[0].get_yscale() == "log"
+
+
+def test_the_cli_writes_the_tables_and_the_figure(tmp_path, capsys):
+    paths = [_race_json(tmp_path / f"r{s}.json", [0.5, 0.9, 0.99, 0.995], [60, 45, 40, 39], seed=s) for s in (0, 1)]
+    out = tmp_path / "curves"
+    assert main([*map(str, paths), "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["race_curves.png", "race_evaluations.csv", "race_thresholds.csv"]
+    assert (out / "race_curves.png").read_bytes().startswith(PNG_MAGIC)
+    assert len(pd.read_csv(out / "race_evaluations.csv")) == 8
+    th = pd.read_csv(out / "race_thresholds.csv")
+    assert len(th) == 6 and th[ITERATION].dropna().astype(int).tolist() == [200, 300, 300] * 2
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "no such file"),
+    ("{not json", "not a readable JSON file"),
+    ('{"kind": "bmimic-bench-1"}', "kind is 'bmimic-bench-1', expected 'bmimic-race-1'"),
+    ('[1, 2]', "kind is 'list'"),
+    ('{"kind": "bmimic-race-1", "config": {}, "evaluations": {}}', "'evaluations' is not a list"),
+    ('{"kind": "bmimic-race-1", "evaluations": []}', "no 'config' object"),
+    ('{"kind": "bmimic-race-1", "config": {}, "evaluations": [{"iteration": 1}]}', "evaluation 0 lacks env_steps"),
+])
+def test_bad_input_is_one_line_naming_the_file_and_writes_nothing(tmp_path, capsys, content, message):
+    bad = tmp_path / "bad.json"
+    if content is not None:
+        bad.write_text(content)
+    with pytest.raises(AnalysisError, match="bad.json"):
+        read_race(bad)
+    good = _race_json(tmp_path / "good.json", [0.5, 0.9], [60, 50])
+    out = tmp_path / "curves"
+    assert main([str(good), str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bad.json" in err and message in err
+    assert not out.exists()
+
+
+def test_an_out_path_that_is_a_file_is_refused_and_left_alone(tmp_path, capsys):
+    good = _race_json(tmp_path / "good.json", [0.5, 0.9], [60, 50])
+    out = tmp_path / "curves"
+    out.write_text("keep me")
+    assert main([str(good), "--out", str(out)]) == 2
+    assert "is a file" in capsys.readouterr().err and out.read_text() == "keep me"
