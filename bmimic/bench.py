@@ -207,7 +207,12 @@ def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
 
 
 def environment_info(device: str) -> dict:
-    info = {"python": platform.python_version(), "date": time.strftime("%Y-%m-%d"), "device": device}
+    """Where the numbers came from: code commit (runtime.source_commit), Python, date, device, versions."""
+    from bmimic.runtime import source_commit
+
+    commit, dirty = source_commit()
+    info = {"python": platform.python_version(), "date": time.strftime("%Y-%m-%d"), "device": device,
+            "git_commit": commit, "git_dirty": dirty}
     for lib in ("torch", "warp-lang", "mujoco", "mujoco-warp", "rsl-rl-lib"):
         try:
             info[lib] = version(lib)

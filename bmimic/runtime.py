@@ -23,6 +23,8 @@ import numpy as np
 from bmimic import BmimicError
 from bmimic.run_folder import now
 
+log = logging.getLogger(__name__)
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -158,6 +160,30 @@ def _git(*args: str) -> str | None:
         return None
 
 
+SOURCE_COMMIT_ENV = "BMIMIC_SOURCE_COMMIT"
+"""The code's commit for a tree without git metadata (a copy shipped to a GPU machine, an unpacked
+archive): set it to `git rev-parse HEAD` where the copy was made. Ignored where git answers."""
+
+_COMMIT = re.compile(r"[0-9a-f]{7,40}")
+
+
+def source_commit() -> tuple[str | None, bool | None]:
+    """(commit, dirty) of the running code: from git where the tree has its metadata; else the commit
+    in $BMIMIC_SOURCE_COMMIT with dirty unknown (None); else (None, None). A value that is not a hex
+    commit is ignored with a warning naming the variable: provenance never stops a run."""
+    commit = _git("rev-parse", "HEAD")
+    if commit:
+        return commit, bool(_git("status", "--porcelain", "--untracked-files=no"))
+    given = os.environ.get(SOURCE_COMMIT_ENV, "").strip().lower()
+    if not given:
+        return None, None
+    if not _COMMIT.fullmatch(given):
+        log.warning("%s=%r is not a git commit (7-40 hex digits); provenance records none", SOURCE_COMMIT_ENV,
+                    given)
+        return None, None
+    return given, None
+
+
 def _version(module: str) -> str | None:
     try:
         from importlib.metadata import version
@@ -171,10 +197,11 @@ def provenance(device: str) -> dict:
     """What produced a run: code version, library versions, hardware, precision flags, command line."""
     import torch
 
+    commit, dirty = source_commit()
     info: dict[str, Any] = {
         "created": now(),
-        "git_commit": _git("rev-parse", "HEAD"),
-        "git_dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
+        "git_commit": commit,
+        "git_dirty": dirty,
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
         "python": platform.python_version(),
         "platform": platform.platform(),

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from bmimic import runtime
 from bmimic.run_folder import (
     atomic_write_json,
     atomic_write_text,
@@ -16,7 +17,7 @@ from bmimic.run_folder import (
     write_provenance,
     write_status,
 )
-from bmimic.runtime import provenance, resolve_device, seed_everything
+from bmimic.runtime import SOURCE_COMMIT_ENV, provenance, resolve_device, seed_everything, source_commit
 
 
 def test_atomic_write_replaces_whole_file(tmp_path):
@@ -62,6 +63,30 @@ def test_provenance_fields(tmp_path):
     for lib in ("torch", "warp-lang", "mujoco", "mujoco-warp", "rsl-rl-lib"):
         assert on_disk["versions"][lib], lib
     assert provenance("cpu")["device"] == "cpu"
+
+
+def test_a_tree_without_git_takes_its_commit_from_the_environment(monkeypatch, caplog):
+    # git answers nothing, as in a copy of the tree without .git (the GPU machine's)
+    monkeypatch.setattr(runtime, "_git", lambda *args: None)
+    monkeypatch.delenv(SOURCE_COMMIT_ENV, raising=False)
+    assert source_commit() == (None, None)
+    monkeypatch.setenv(SOURCE_COMMIT_ENV, " 8D82203 ")
+    assert source_commit() == ("8d82203", None)  # dirty is unknown, not False
+    info = provenance("cpu")
+    assert info["git_commit"] == "8d82203" and info["git_dirty"] is None
+    monkeypatch.setenv(SOURCE_COMMIT_ENV, "main; rm -rf /")
+    with caplog.at_level("WARNING", logger="bmimic.runtime"):
+        assert source_commit() == (None, None)
+    assert SOURCE_COMMIT_ENV in caplog.text and "not a git commit" in caplog.text
+
+
+def test_git_wins_over_the_environment(monkeypatch):
+    answers = {"rev-parse": "a" * 40, "status": " M bmimic/x.py"}
+    monkeypatch.setattr(runtime, "_git", lambda *args: answers[args[0]])
+    monkeypatch.setenv(SOURCE_COMMIT_ENV, "8d82203")
+    assert source_commit() == ("a" * 40, True)
+    answers["status"] = ""
+    assert source_commit() == ("a" * 40, False)
 
 
 def test_resolve_device():

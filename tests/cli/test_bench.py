@@ -32,6 +32,7 @@ def test_bench_cli_on_cpu(tmp_path):
     assert set(run["breakdown_ms"]) >= {"physics", "observations", "rewards", "resets", "policy", "env_step_total"}
     assert all(math.isfinite(v) and v >= 0 for v in run["breakdown_ms"].values())
     assert result["environment"]["torch"]
+    assert "git_commit" in result["environment"] and "git_dirty" in result["environment"]
     lines = proc.stdout.splitlines()
     header = lines.index("envs | physics/s | collect/s | train/s | b/a | c/a | GiB")
     assert lines[header + 1].split(" | ")[0] == "2" and len(lines[header + 1].split(" | ")) == 7
