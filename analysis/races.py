@@ -8,6 +8,8 @@ change is judged against its baseline (issue 33: the change's learning curve bes
 - ``race_evaluations``: one row per evaluation (race, config, seed, gpu, date, iteration, env steps, wall
   time from launch, success rate, root-relative MPKPE);
 - ``race_thresholds``: one row per race and threshold (reached or censored, when);
+- ``race_summary`` / ``summary_markdown``: one row per race (start-up, seconds per iteration,
+  evaluation share, each threshold's time and iteration): the race tables of docs/benchmarks.md;
 - ``plot_races``: failure (1 - success, log scale, so 99% success is visible) and MPKPE against wall
   time from launch and against iterations; one colour per config, one line style per seed.
 
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -27,7 +30,8 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from analysis import AnalysisError
-from analysis.files import save_figure, write_csv
+from analysis.files import save_figure, write_csv, write_text
+from analysis.markdown import is_nan, md_table
 from analysis.plots import arm_colors
 from bmimic import BmimicError
 from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE
@@ -123,6 +127,59 @@ def race_thresholds(paths) -> pd.DataFrame:
     return df.astype({ITERATION: "Int64", ENV_STEPS: "Int64"})  # censored rows stay empty, the rest integers
 
 
+def _threshold_name(metric: str, value: float) -> str:
+    return f"{value:.0%} success" if metric == "eval_success_rate" else f"MPKPE <= {value:g} mm"
+
+
+def _cell(t: dict, censored_at: float) -> str:
+    """`440 s (it 1600)` for a reached threshold, `> 538 s` for a censored one (not by the race's end)."""
+    if t.get("status") == "reached":
+        return f"{t['wall_from_launch_s']:.0f} s (it {t[ITERATION]})"
+    return f"> {censored_at:.0f} s" if np.isfinite(censored_at) else "–"
+
+
+def race_summary(paths) -> pd.DataFrame:
+    """One row per race: what was raced, start-up (launch to the first iteration), training seconds per
+    iteration (training time over iterations at the last evaluation), the evaluations' share of the
+    wall time after start-up, why it stopped, and one column per threshold: wall time from launch with
+    the iteration, or `> T s` when the race ended at T without it. The table docs/benchmarks.md quotes."""
+    rows = []
+    for path in paths:
+        data = read_race(path)
+        cfg, evals = data["config"], data["evaluations"]
+        last = evals[-1] if evals else {}
+        end = float(last.get("wall_from_launch_s", math.nan))
+        per_it = (float(last["training_s"]) / last[ITERATION]
+                  if last.get("training_s") is not None and last.get(ITERATION) else math.nan)
+        row = {"race": Path(path).stem, "config": config_label(cfg), "seed": cfg.get("seed"), "gpu": _gpu(data),
+               "date": _date(data), "eval_every_iters": (cfg.get("eval") or {}).get("every_iters"),
+               "startup_s": data.get("startup_s"), "training_s_per_iteration": per_it,
+               "eval_share": data.get("eval_overhead"), "last_iteration": last.get(ITERATION),
+               "last_success": last.get(SUCCESS_RATE), "stopped": data.get("stopped")}
+        for t in data.get("thresholds") or []:
+            row[_threshold_name(t.get("metric"), float(t.get("threshold")))] = _cell(t, end)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def summary_markdown(summary: pd.DataFrame) -> str:
+    """race_summary as the markdown table of docs/benchmarks.md (rounded, units in the headers)."""
+    if summary.empty:
+        return md_table(summary)
+    fixed = ["config", "seed", "gpu", "date", "eval_every_iters", "startup_s", "training_s_per_iteration",
+             "eval_share"]
+    thresholds = [c for c in summary.columns if c.endswith("% success") or c.startswith("MPKPE <=")]
+    view = summary[fixed + thresholds + ["last_success"]].copy()
+    view["startup_s"] = view["startup_s"].map(lambda x: f"{x:.0f} s" if not is_nan(x) else "–")
+    view["training_s_per_iteration"] = view["training_s_per_iteration"].map(
+        lambda x: f"{x:.3f}" if not is_nan(x) else "–")
+    view["eval_share"] = view["eval_share"].map(lambda x: f"{100 * x:.1f}%" if not is_nan(x) else "–")
+    view["last_success"] = view["last_success"].map(lambda x: f"{x:.3f}" if not is_nan(x) else "–")
+    view = view.rename(columns={"eval_every_iters": "eval every", "startup_s": "start-up", "training_s_per_iteration": "training s/iteration",
+                                "eval_share": "evaluation share", "last_success": "success at the end"})
+    return md_table(view)
+
+
 def plot_races(evals: pd.DataFrame, figsize=(11.0, 7.0)) -> Figure:
     """Four panels: failure (log) and MPKPE against wall time from launch (left) and iterations (right).
     One line per race: colour by config, GPU, date and evaluation cadence, style by seed."""
@@ -157,13 +214,15 @@ def plot_races(evals: pd.DataFrame, figsize=(11.0, 7.0)) -> Figure:
 
 
 def write_race_curves(paths, out: str | Path) -> list[Path]:
-    """Write ``race_evaluations.csv``, ``race_thresholds.csv`` and ``race_curves.png`` into ``out``."""
+    """Write ``race_evaluations.csv``, ``race_thresholds.csv``, ``race_summary.csv``, ``race_table.md``
+    and ``race_curves.png`` into ``out`` (every input is read and checked before anything is written)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise AnalysisError(f"--out {out}: is a file, not a folder")
-    evals, thresholds = race_evaluations(paths), race_thresholds(paths)
+    evals, thresholds, summary = race_evaluations(paths), race_thresholds(paths), race_summary(paths)
     fig = plot_races(evals)
     return [write_csv(out / "race_evaluations.csv", evals), write_csv(out / "race_thresholds.csv", thresholds),
+            write_csv(out / "race_summary.csv", summary), write_text(out / "race_table.md", summary_markdown(summary)),
             save_figure(out / "race_curves.png", fig)]
 
 

@@ -4,6 +4,7 @@ and refused with one line when they are not race JSONs."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import pandas as pd
@@ -16,13 +17,18 @@ from analysis.races import (
     main,
     plot_races,
     race_evaluations,
+    race_summary,
     race_thresholds,
     read_race,
+    summary_markdown,
 )
 from bmimic.race import Race, Threshold
 from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _race_json(path, successes, mpkpes, seed=0, overrides=(), num_envs=4096, gpu="NVIDIA H100 80GB HBM3",
@@ -96,7 +102,8 @@ def test_the_cli_writes_the_tables_and_the_figure(tmp_path, capsys):
     paths = [_race_json(tmp_path / f"r{s}.json", [0.5, 0.9, 0.99, 0.995], [60, 45, 40, 39], seed=s) for s in (0, 1)]
     out = tmp_path / "curves"
     assert main([*map(str, paths), "--out", str(out)]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["race_curves.png", "race_evaluations.csv", "race_thresholds.csv"]
+    assert sorted(p.name for p in out.iterdir()) == ["race_curves.png", "race_evaluations.csv", "race_summary.csv",
+                                                     "race_table.md", "race_thresholds.csv"]
     assert (out / "race_curves.png").read_bytes().startswith(PNG_MAGIC)
     assert len(pd.read_csv(out / "race_evaluations.csv")) == 8
     th = pd.read_csv(out / "race_thresholds.csv")
@@ -132,3 +139,34 @@ def test_an_out_path_that_is_a_file_is_refused_and_left_alone(tmp_path, capsys):
     out.write_text("keep me")
     assert main([str(good), "--out", str(out)]) == 2
     assert "is a file" in capsys.readouterr().err and out.read_text() == "keep me"
+
+
+def test_the_summary_row_times_each_threshold_or_says_when_the_race_ended_without_it(tmp_path):
+    a = _race_json(tmp_path / "a.json", [0.5, 0.92, 0.95, 0.991, 0.995], [60, 45, 39, 38, 37])
+    b = _race_json(tmp_path / "b.json", [0.4, 0.8, 0.91], [70, 50, 45], seed=1)
+    summary = race_summary([a, b]).set_index("race")
+    # start-up: first iteration at 120 s, launch at 100 s; 0.1 s of training per iteration
+    assert summary.loc["a", "startup_s"] == pytest.approx(20)
+    assert summary.loc["a", "training_s_per_iteration"] == pytest.approx(0.1)
+    assert summary.loc["a", "90% success"] == "40 s (it 200)"
+    assert summary.loc["a", "99% success"] == "60 s (it 400)"
+    assert summary.loc["a", "MPKPE <= 40 mm"] == "50 s (it 300)"
+    assert summary.loc["b", "90% success"] == "> 50 s"  # b ended at 50 s from launch without it
+    assert summary.loc["a", "stopped"] == "every threshold reached" and summary.loc["b", "last_success"] == 0.91
+    table = summary_markdown(summary.reset_index())
+    header, rule, row_a, row_b = table.strip().splitlines()
+    assert header.split(" | ")[-1] == "success at the end |" and "99% success" in header
+    assert "| 20 s | 0.100 |" in row_a and "60 s (it 400)" in row_a and row_b.endswith("| 0.910 |")
+
+
+def test_the_committed_race_tables_rebuild_from_the_committed_race_jsons(tmp_path):
+    """docs/bench/race_curves_*: the tables docs/benchmarks.md quotes come from the JSONs beside them."""
+    folders = sorted((REPO / "docs" / "bench").glob("race_curves_*"))
+    if not folders:
+        pytest.skip("no committed race tables (docs/bench/race_curves_*)")
+    for folder in folders:
+        committed = pd.read_csv(folder / "race_summary.csv")
+        paths = [REPO / "docs" / "bench" / f"{race}.json" for race in committed["race"]]
+        assert main([*map(str, paths), "--out", str(tmp_path / folder.name)]) == 0
+        for name in ("race_summary.csv", "race_thresholds.csv", "race_evaluations.csv", "race_table.md"):
+            assert (tmp_path / folder.name / name).read_bytes() == (folder / name).read_bytes(), (folder.name, name)
