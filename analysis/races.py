@@ -5,6 +5,7 @@ A race JSON (``bmimic-race-1``, written by ``python -m bmimic.race --json``) hol
 of one race. This module reads several into tidy tables and draws them together, which is how a
 change is judged against its baseline (issue 33: the change's learning curve beside the baseline's):
 
+- ``read_races``: the JSONs, each read and checked once;
 - ``race_evaluations``: one row per evaluation (race, config, seed, gpu, date, iteration, env steps, wall
   time from launch, success rate, root-relative MPKPE);
 - ``race_thresholds``: one row per race and threshold (reached or censored, when);
@@ -85,45 +86,43 @@ def config_label(config: dict) -> str:
     return " ".join(parts)
 
 
-def _gpu(data: dict) -> str:
-    gpu = ((data.get("machine") or {}).get("gpu") or {}).get("name") or "cpu"
-    return str(gpu).replace("NVIDIA ", "").split(" ")[0]
+def read_races(paths) -> list[tuple[str, dict]]:
+    """Every race JSON of ``paths``, read and checked once, with its name (the file's stem), in order."""
+    return [(Path(p).stem, read_race(p)) for p in paths]
 
 
-def _date(data: dict) -> str:
-    return str((data.get("machine") or {}).get("created") or "")[:10]
+def _identity(name: str, data: dict) -> dict:
+    """The columns that say which race a row belongs to: its name, what was trained, seed, GPU, date
+    and evaluation cadence."""
+    cfg, machine = data["config"], data.get("machine") or {}
+    gpu = (machine.get("gpu") or {}).get("name") or "cpu"
+    return {"race": name, "config": config_label(cfg), "seed": cfg.get("seed"),
+            "gpu": str(gpu).replace("NVIDIA ", "").split(" ")[0], "date": str(machine.get("created") or "")[:10],
+            "eval_every_iters": (cfg.get("eval") or {}).get("every_iters")}
 
 
-def race_evaluations(paths) -> pd.DataFrame:
-    """Every evaluation of every race in ``paths``, one row each (tidy; see the module docstring)."""
-    rows = []
-    for path in paths:
-        data = read_race(path)
-        cfg = data["config"]
-        label, seed, gpu, date = config_label(cfg), cfg.get("seed"), _gpu(data), _date(data)
-        for e in data["evaluations"]:
-            rows.append({"race": Path(path).stem, "config": label, "seed": seed, "gpu": gpu, "date": date,
-                         "eval_every_iters": (cfg.get("eval") or {}).get("every_iters"),
-                         **{k: e[k] for k in EVALUATION_KEYS}})
-    cols = ["race", "config", "seed", "gpu", "date", "eval_every_iters", *EVALUATION_KEYS]
-    return pd.DataFrame(rows, columns=cols)
+IDENTITY = ["race", "config", "seed", "gpu", "date", "eval_every_iters"]
+"""_identity's columns, first in every table."""
 
 
-def race_thresholds(paths) -> pd.DataFrame:
+def race_evaluations(races: list[tuple[str, dict]]) -> pd.DataFrame:
+    """Every evaluation of every race (``read_races``), one row each (tidy; see the module docstring)."""
+    rows = [{**_identity(name, data), **{k: e[k] for k in EVALUATION_KEYS}}
+            for name, data in races for e in data["evaluations"]]
+    return pd.DataFrame(rows, columns=[*IDENTITY, *EVALUATION_KEYS])
+
+
+THRESHOLD_KEYS = ("metric", "threshold", "status", ITERATION, ENV_STEPS, "wall_from_launch_s",
+                  "wall_from_first_iteration_s")
+"""What a race JSON records of each threshold (the times empty when censored)."""
+
+
+def race_thresholds(races: list[tuple[str, dict]]) -> pd.DataFrame:
     """Each race's thresholds: metric, value, reached or censored, and when (iteration, env steps, wall
     time from launch and from the first iteration; empty when censored)."""
-    rows = []
-    for path in paths:
-        data = read_race(path)
-        cfg = data["config"]
-        for t in data.get("thresholds") or []:
-            rows.append({"race": Path(path).stem, "config": config_label(cfg), "seed": cfg.get("seed"),
-                         "gpu": _gpu(data), "metric": t.get("metric"), "threshold": t.get("threshold"),
-                         "status": t.get("status"), ITERATION: t.get(ITERATION), ENV_STEPS: t.get(ENV_STEPS),
-                         "wall_from_launch_s": t.get("wall_from_launch_s"),
-                         "wall_from_first_iteration_s": t.get("wall_from_first_iteration_s")})
-    df = pd.DataFrame(rows, columns=["race", "config", "seed", "gpu", "metric", "threshold", "status", ITERATION,
-                                     ENV_STEPS, "wall_from_launch_s", "wall_from_first_iteration_s"])
+    rows = [{**_identity(name, data), **{k: t.get(k) for k in THRESHOLD_KEYS}}
+            for name, data in races for t in data.get("thresholds") or []]
+    df = pd.DataFrame(rows, columns=[*IDENTITY, *THRESHOLD_KEYS])
     return df.astype({ITERATION: "Int64", ENV_STEPS: "Int64"})  # censored rows stay empty, the rest integers
 
 
@@ -138,22 +137,19 @@ def _cell(t: dict, censored_at: float) -> str:
     return f"> {censored_at:.0f} s" if np.isfinite(censored_at) else "–"
 
 
-def race_summary(paths) -> pd.DataFrame:
-    """One row per race: what was raced, start-up (launch to the first iteration), training seconds per
-    iteration (training time over iterations at the last evaluation), the evaluations' share of the
-    wall time after start-up, why it stopped, and one column per threshold: wall time from launch with
-    the iteration, or `> T s` when the race ended at T without it. The table docs/benchmarks.md quotes."""
+def race_summary(races: list[tuple[str, dict]]) -> pd.DataFrame:
+    """One row per race (``read_races``): what was raced, start-up (launch to the first iteration),
+    training seconds per iteration (training time over iterations at the last evaluation), the
+    evaluations' share of the wall time after start-up, why it stopped, and one column per threshold:
+    wall time from launch with the iteration, or `> T s` when the race ended at T without it. The table
+    docs/benchmarks.md quotes."""
     rows = []
-    for path in paths:
-        data = read_race(path)
-        cfg, evals = data["config"], data["evaluations"]
-        last = evals[-1] if evals else {}
+    for name, data in races:
+        last = data["evaluations"][-1] if data["evaluations"] else {}
         end = float(last.get("wall_from_launch_s", math.nan))
         per_it = (float(last["training_s"]) / last[ITERATION]
                   if last.get("training_s") is not None and last.get(ITERATION) else math.nan)
-        row = {"race": Path(path).stem, "config": config_label(cfg), "seed": cfg.get("seed"), "gpu": _gpu(data),
-               "date": _date(data), "eval_every_iters": (cfg.get("eval") or {}).get("every_iters"),
-               "startup_s": data.get("startup_s"), "training_s_per_iteration": per_it,
+        row = {**_identity(name, data), "startup_s": data.get("startup_s"), "training_s_per_iteration": per_it,
                "eval_share": data.get("eval_overhead"), "last_iteration": last.get(ITERATION),
                "last_success": last.get(SUCCESS_RATE), "stopped": data.get("stopped")}
         for t in data.get("thresholds") or []:
@@ -170,13 +166,13 @@ def summary_markdown(summary: pd.DataFrame) -> str:
              "eval_share"]
     thresholds = [c for c in summary.columns if c.endswith("% success") or c.startswith("MPKPE <=")]
     view = summary[fixed + thresholds + ["last_success"]].copy()
-    view["startup_s"] = view["startup_s"].map(lambda x: f"{x:.0f} s" if not is_nan(x) else "–")
-    view["training_s_per_iteration"] = view["training_s_per_iteration"].map(
-        lambda x: f"{x:.3f}" if not is_nan(x) else "–")
-    view["eval_share"] = view["eval_share"].map(lambda x: f"{100 * x:.1f}%" if not is_nan(x) else "–")
-    view["last_success"] = view["last_success"].map(lambda x: f"{x:.3f}" if not is_nan(x) else "–")
-    view = view.rename(columns={"eval_every_iters": "eval every", "startup_s": "start-up", "training_s_per_iteration": "training s/iteration",
-                                "eval_share": "evaluation share", "last_success": "success at the end"})
+    formats = {"startup_s": "{:.0f} s", "training_s_per_iteration": "{:.3f}", "eval_share": "{:.1%}",
+               "last_success": "{:.3f}"}
+    for col, form in formats.items():
+        view[col] = view[col].map(lambda x, form=form: "–" if is_nan(x) else form.format(x))
+    view = view.rename(columns={"eval_every_iters": "eval every", "startup_s": "start-up",
+                                "training_s_per_iteration": "training s/iteration", "eval_share": "evaluation share",
+                                "last_success": "success at the end"})
     return md_table(view)
 
 
@@ -219,7 +215,8 @@ def write_race_curves(paths, out: str | Path) -> list[Path]:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise AnalysisError(f"--out {out}: is a file, not a folder")
-    evals, thresholds, summary = race_evaluations(paths), race_thresholds(paths), race_summary(paths)
+    races = read_races(paths)
+    evals, thresholds, summary = race_evaluations(races), race_thresholds(races), race_summary(races)
     fig = plot_races(evals)
     return [write_csv(out / "race_evaluations.csv", evals), write_csv(out / "race_thresholds.csv", thresholds),
             write_csv(out / "race_summary.csv", summary), write_text(out / "race_table.md", summary_markdown(summary)),

@@ -20,6 +20,7 @@ from analysis.races import (
     race_summary,
     race_thresholds,
     read_race,
+    read_races,
     summary_markdown,
 )
 from bmimic.race import Race, Threshold
@@ -53,7 +54,7 @@ def test_evaluations_and_thresholds_read_back_as_planted(tmp_path):
     a = _race_json(tmp_path / "a.json", [0.5, 0.92, 0.95, 0.991, 0.995], [60, 45, 39, 38, 37],
                    overrides=["env=tracking"])
     b = _race_json(tmp_path / "b.json", [0.4, 0.8, 0.91], [70, 50, 45], seed=1)
-    ev = race_evaluations([a, b])
+    ev = race_evaluations(read_races([a, b]))
     assert len(ev) == 8 and sorted(ev["race"].unique()) == ["a", "b"]
     ra = ev[ev["race"] == "a"]
     assert ra[ITERATION].tolist() == [100, 200, 300, 400, 500]
@@ -64,7 +65,7 @@ def test_evaluations_and_thresholds_read_back_as_planted(tmp_path):
     assert set(ev.loc[ev["race"] == "b", "config"]) == {"env=beyondmimic sampler=adaptive_hybrid num_envs=4096"}
     assert set(ev["gpu"]) == {"H100"} and set(ev["date"]) == {"2026-11-27"}
 
-    th = race_thresholds([a, b]).set_index(["race", "metric", "threshold"])
+    th = race_thresholds(read_races([a, b])).set_index(["race", "metric", "threshold"])
     # success 0.9 held from iteration 200 (0.92, 0.95); 0.99 from 400; MPKPE <= 40 from 300
     assert th.loc[("a", "eval_success_rate", 0.9), ITERATION] == 200
     assert th.loc[("a", "eval_success_rate", 0.99), ITERATION] == 400
@@ -86,7 +87,7 @@ def test_config_label_names_what_was_trained_and_drops_seed_logging_and_evaluati
 
 def test_the_figure_draws_one_line_per_race_on_each_panel_styled_by_seed(tmp_path):
     paths = [_race_json(tmp_path / f"r{s}.json", [0.5, 0.9, 1.0], [60, 50, 40], seed=s) for s in (0, 1)]
-    fig = plot_races(race_evaluations(paths))
+    fig = plot_races(race_evaluations(read_races(paths)))
     axes = fig.axes
     assert len(axes) == 4
     for ax in axes:
@@ -144,7 +145,7 @@ def test_an_out_path_that_is_a_file_is_refused_and_left_alone(tmp_path, capsys):
 def test_the_summary_row_times_each_threshold_or_says_when_the_race_ended_without_it(tmp_path):
     a = _race_json(tmp_path / "a.json", [0.5, 0.92, 0.95, 0.991, 0.995], [60, 45, 39, 38, 37])
     b = _race_json(tmp_path / "b.json", [0.4, 0.8, 0.91], [70, 50, 45], seed=1)
-    summary = race_summary([a, b]).set_index("race")
+    summary = race_summary(read_races([a, b])).set_index("race")
     # start-up: first iteration at 120 s, launch at 100 s; 0.1 s of training per iteration
     assert summary.loc["a", "startup_s"] == pytest.approx(20)
     assert summary.loc["a", "training_s_per_iteration"] == pytest.approx(0.1)
