@@ -55,7 +55,17 @@ STUDIES = {
     "mdp_action_rate": (2 * 5, {"env"}),
     "library_lafan": (2 * 5, {"sampler.clip_balance"}),
     "peer_samplers": (7 * 5, {"sampler"}),
+    "sensitivity_dance1": (2 * 5, {"sampler"}),
+    "sensitivity_gamma": (5 * 3, {"sampler.gamma"}),
+    "sensitivity_lambda": (4 * 3, {"sampler.lambda_uniform"}),
+    "sensitivity_kernel": (3 * 3, {"sampler.K"}),
+    "sensitivity_bin_size": (4 * 3, {"sampler.bin_size_seconds"}),
+    "sensitivity_alpha": (3 * 3, {"sampler.alpha_smooth"}),
+    "confirm_hybrid_dance1": (2 * 10, {"sampler"}),
 }
+# One knob of a study at a time: these files write into the study's folder (one report covers every
+# knob) and estimate effect sizes on 3 seeds per level, beside the study's 5-seed reference arms.
+KNOB_FILES = {f"sensitivity_{knob}": "sensitivity_dance1" for knob in ("gamma", "lambda", "kernel", "bin_size", "alpha")}
 
 
 def compose_study(study: str, *overrides: str):
@@ -84,12 +94,12 @@ def test_study_composes_and_expands(study):
     n_jobs, varied = STUDIES[study]
     cfg = compose_study(study)
     params = cfg.hydra.sweeper.params
-    assert cfg.sweep_name == study
+    assert cfg.sweep_name == KNOB_FILES.get(study, study)
     assert {"motion", "max_iterations", "seed"} <= set(params)
     assert int(params.max_iterations) > 0
     # Arms are compared at equal iterations, with at least the 5 seeds bootstrap intervals need.
     assert "time_limit_s" not in params and cfg.time_limit_s is None
-    assert len(str(params.seed).split(",")) >= 5
+    assert len(str(params.seed).split(",")) >= (3 if study in KNOB_FILES else 5)
     for key, value in params.items():  # every key is a real config key or group option (typo guard)
         if (CONF_DIR / key).is_dir():
             for option in str(value).split(","):
@@ -104,6 +114,30 @@ def test_study_composes_and_expands(study):
     changing = {k for k in keys if len({o for job in jobs for o in job if o.startswith(k + "=")}) > 1}
     assert changing == varied | {"seed"}
     assert all(f"+sweep={study}" in job for job in jobs)
+
+
+def test_knob_files_share_their_study_protocol():
+    """A knob file changes one sampler key of the design and nothing of the protocol."""
+    base = compose_study("sensitivity_dance1")
+    for study in KNOB_FILES:
+        cfg = compose_study(study)
+        for key in ("num_envs", "eval.every_iters", "eval.episodes_per_bin", "env.rewards.action_rate.weight",
+                    "ppo.save_interval"):
+            assert OmegaConf.select(cfg, key) == OmegaConf.select(base, key), (study, key)
+        params = cfg.hydra.sweeper.params
+        assert (params.motion, int(params.max_iterations), params.sampler) == ("lafan_dance1_full", 1500, "adaptive")
+
+
+def test_confirmatory_study_uses_fresh_seeds():
+    """The confirmatory test's seeds (10-19) are used by no other study on the same clip."""
+    confirm = {int(s) for s in str(compose_study("confirm_hybrid_dance1").hydra.sweeper.params.seed).split(",")}
+    assert confirm == set(range(10, 20))
+    for study in set(STUDIES) - {"confirm_hybrid_dance1"}:
+        params = compose_study(study).hydra.sweeper.params
+        if params.motion == "lafan_dance1_full":
+            assert not confirm & {int(s) for s in str(params.seed).split(",")}, study
+    header = (SWEEPS / "confirm_hybrid_dance1.yaml").read_text()
+    assert "PRE-REGISTERED RULE" in header and "184,756" in header
 
 
 def test_command_line_sweep_replaces_the_study_params():
