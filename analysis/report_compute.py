@@ -14,6 +14,7 @@ import pandas as pd
 
 from analysis import bin_tables, clip_tables, comparisons, tables
 from analysis.adaptation import at_evaluations, sampling_support, signal_summary, support_summary
+from analysis.knobs import knob_arms, knob_levels, knob_summary
 from analysis.load import load_runs, load_segments, load_table, short_arm_labels
 from analysis.machines import kinds_text, machine_kinds, wall_time_comparable
 from analysis.markdown import fmt
@@ -126,6 +127,9 @@ class ReportData:
     iso: pd.DataFrame | None = None
     dots: pd.DataFrame | None = None
     clip_evals: pd.DataFrame | None = None
+    knob_levels: pd.DataFrame | None = None
+    knob_summary: pd.DataFrame | None = None
+    uniform_arm: str | None = None
 
 
 def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
@@ -185,6 +189,12 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     if len(support):
         extra["clip_evals"] = load_table(runs, "clip_eval", opts.max_iteration)
     sens = tables.sensitivity(runs, overview)
+    knobs = knob_arms(runs)
+    if len(knobs) and "final_failure" in per_run:
+        uniform = sorted(set(runs.loc[runs["included"] & (runs["sampler"] == "uniform"), "arm"]))
+        extra["uniform_arm"] = uniform[0] if len(uniform) == 1 else None
+        extra["knob_levels"] = knob_levels(knobs, per_run["final_failure"], overall, opts, extra["uniform_arm"])
+        extra["knob_summary"] = knob_summary(extra["knob_levels"], opts.alpha)
     ref = {}
     if len(sens) and baseline is not None and baseline in set(overview["arm"]):
         b = overview.set_index("arm").loc[baseline]

@@ -11,6 +11,7 @@ from matplotlib.figure import Figure
 
 from analysis import curve_plots, plots, tables
 from analysis.files import save_figure, write_csv
+from analysis.knob_report import write_knob_files
 from analysis.report_compute import ReportData
 from analysis.stats import MIN_SEEDS_IQM
 from bmimic.run_schema import FAILURE_RATE
@@ -99,6 +100,9 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
             name = f"sensitivity_{key.replace('/', '_')}.png"
             save_figure(out / name, _sensitivity_figure(d.sens, key, d.ref, d.per_run))
             figures.append((name, f"Sensitivity to `{key}`"))
+    if d.knob_levels is not None:
+        figures += write_knob_files(d.knob_levels, d.knob_summary, d.overall, d.runs, d.bin_fail, d.samp, colors, bins,
+                                    d.uniform_arm, opts, out)
     return figures
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from analysis import clip_tables, tables
 from analysis.curve_text import adaptation_section, curve_view, iso_text, speedup_curve_text
 from analysis.definitions import definitions
+from analysis.knob_report import knob_section
 from analysis.markdown import (
     FAILURE_UNIT,
     NOT_RECORDED,
@@ -125,6 +126,8 @@ def body(d: ReportData, figures: list[tuple[str, str]], coverage: tuple | None) 
             view = d.sens[(d.sens["key"] == key)].pivot_table(index=["value", "series"], columns="metric",
                                                               values="point")
             md += [f"`{key}`:", "", md_table(view.reset_index()), ""]
+    if d.knob_levels is not None:
+        md += knob_section(d.knob_levels, d.knob_summary, d.uniform_arm, opts.alpha)
     if d.speed is not None:
         md += ["## Speedup", "", f"At overall success ≥ {opts.success_threshold:g} (ratio = baseline median / arm "
                "median; p: Gehan permutation test, uncorrected):", "", md_table(speed_view(d.speed, d.time_df)), ""]

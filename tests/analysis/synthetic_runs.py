@@ -267,3 +267,33 @@ def make_wide_study(root: str | Path, num_bins: int = 200, seeds: int = 2, last_
                 samp["probability"] = np.where(mid, spike, (1 - spike) / (num_bins - 1))
                 samp.to_parquet(run / "sampler.parquet", index=False)
     return sweep
+
+
+KNOB_REFERENCE = "sampler=adaptive"
+KNOB_UNIFORM = "sampler=uniform"
+KNOB_LEVELS = {  # arm folder -> (knob, value, mastery of bins 0-3)
+    "sampler.gamma=0.5,sampler=adaptive": ("sampler.gamma", 0.5, [5.0, 10.0, 15.0, 20.0]),
+    "sampler.gamma=1.0,sampler=adaptive": ("sampler.gamma", 1.0, [10.0, 20.0, 30.0, 40.0]),
+    "sampler.lambda_uniform=0.4,sampler=adaptive": ("sampler.lambda_uniform", 0.4, [15.0, 30.0, 45.0, 60.0]),
+}
+"""The planted knob study (make_knob_study): the reference masters bin b at 10 (b + 1) and uniform at
+20 (b + 1), so overall success reaches 0.9 at iteration 40 and 80; gamma 0.5 at 20 (x2 the reference,
+x4 uniform), gamma 1.0 at 40 (x1), lambda_uniform 0.4 at 60 (x0.667)."""
+
+
+def make_knob_study(root: str | Path, name: str = "knobs") -> Path:
+    """A one-knob-at-a-time study (sweeps/sensitivity_dance1.yaml's shape): the reference and uniform
+    with seeds 0-4, each level of KNOB_LEVELS with seeds 0-2, every run to iteration 100; every folder
+    sits under ``motion=m,`` (an override all arms share)."""
+    sweep = Path(root) / name
+    reference = {"gamma": 0.9, "lambda_uniform": 0.1}
+    arms = {KNOB_REFERENCE: ("adaptive", reference, [10.0, 20.0, 30.0, 40.0], 5),
+            KNOB_UNIFORM: ("uniform", reference, [20.0, 40.0, 60.0, 80.0], 5)}
+    for arm, (knob, value, mastery) in KNOB_LEVELS.items():
+        arms[arm] = ("adaptive", {**reference, knob.removeprefix("sampler."): value}, mastery, 3)
+    for arm, (sampler, cfg, mastery, seeds) in arms.items():
+        overrides = ["motion=m", *arm.split(",")]
+        for seed in range(seeds):
+            write_run(sweep / f"motion=m,{arm}" / f"seed={seed}", sampler=sampler, seed=seed, overrides=overrides,
+                      mastery=mastery, sampler_cfg=cfg, last_iteration=100)
+    return sweep

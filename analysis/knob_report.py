@@ -1,0 +1,151 @@
+"""The report's Knobs section (analysis.knobs): its figures and its markdown.
+
+Per knob, three figures: the speedup over uniform (or over the reference where there is no uniform
+arm) across success thresholds, one line per level; the evaluated failure per bin over training for
+the reference and the knob's two extreme levels side by side; and the sampling distribution over bins
+at three fixed iterations, one line per level (how gamma and K spread mass back from a failing bin,
+what lambda keeps)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from analysis import curve_plots, plots
+from analysis.files import save_figure, write_csv
+from analysis.knobs import THRESHOLDS
+from analysis.markdown import fmt, md_table
+from analysis.speedup_curve import speedup_curve
+from analysis.tables import ReportOptions
+from bmimic.run_schema import BIN, FAILURE_RATE, ITERATION
+
+
+def _file_key(knob: str) -> str:
+    return knob.removeprefix("sampler.").replace("/", "_")
+
+
+def sampling_iterations(samp: pd.DataFrame, fractions=(0.2, 0.5, 1.0)) -> list[int]:
+    """Logged iterations nearest to these fractions of the last one (distinct, ascending)."""
+    its = np.sort(samp[ITERATION].unique())
+    if not len(its):
+        return []
+    picks = {int(its[np.argmin(np.abs(its - f * its[-1]))]) for f in fractions}
+    return sorted(picks)
+
+
+def plot_sampling_at(samp: pd.DataFrame, iterations: list[int], colors: dict, bins: pd.DataFrame | None = None,
+                     order: list[str] | None = None) -> Figure:
+    """One panel per iteration: the seed-mean sampling probability over bins, one line per arm
+    (``samp``: ``arm, iteration, bin, probability``), relative to uniform (1 = uniform)."""
+    fig = Figure(figsize=(3.6 * max(1, len(iterations)) + 0.6, 3.0), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, max(1, len(iterations)), sharey=True))
+    arms = order or sorted(samp["arm"].unique())
+    for ax, it in zip(axes, iterations, strict=False):
+        at = samp[samp[ITERATION] == it]
+        for arm in arms:
+            g = at[at["arm"] == arm].sort_values(BIN)
+            if len(g):
+                n = g[BIN].nunique()
+                ax.plot(g[BIN], g["probability"] * n, color=colors.get(arm), lw=1.0, label=arm)
+        ax.axhline(1.0, color="0.3", lw=0.7, ls="--")
+        ax.set_title(f"iteration {it}", fontsize=8)
+        ax.set_xlabel("bin")
+        plots._mark_segments(ax, bins, names=False)
+    axes[0].set_ylabel("probability x bins (1 = uniform)")
+    axes[0].legend(fontsize=6)
+    return fig
+
+
+def write_knob_files(levels: pd.DataFrame, summary: pd.DataFrame, overall: pd.DataFrame, runs: pd.DataFrame,
+                     bin_fail: pd.DataFrame, samp: pd.DataFrame, colors: dict, bins: pd.DataFrame | None,
+                     uniform: str | None, opts: ReportOptions, out: Path) -> list[tuple[str, str]]:
+    """knob_levels.csv, knob_summary.csv and the three figures of every knob; returns (file, title)."""
+    write_csv(out / "knob_levels.csv", levels)
+    write_csv(out / "knob_summary.csv", summary)
+    figures = []
+    for knob, g in levels.groupby("knob", sort=True):
+        key = _file_key(knob)
+        arms = list(g.sort_values("value")["arm"])
+        ref = g.loc[g["is_reference"], "arm"].iloc[0]
+        base = uniform if uniform is not None else ref
+        sel = overall[overall["arm"].isin({*arms, base})]
+        curve = speedup_curve(sel, base, runs[runs["arm"].isin({*arms, base})], opts, measures=(ITERATION,))
+        name = f"knob_{key}_speedup.png"
+        save_figure(out / name, curve_plots.plot_speedup_curve(curve, ITERATION, colors=colors))
+        figures.append((name, f"`{knob}`: speedup over `{base}` in iterations across success thresholds"))
+        others = g[~g["is_reference"]].sort_values("value")
+        extremes = [ref, *dict.fromkeys([others["arm"].iloc[0], others["arm"].iloc[-1]])]
+        name = f"knob_{key}_bins.png"
+        save_figure(out / name, plots.plot_bin_heatmaps(bin_fail[bin_fail["arm"].isin(extremes)], FAILURE_RATE,
+                                                        bins=bins))
+        figures.append((name, f"`{knob}`: evaluated failure per bin over training, the reference and the lowest "
+                              "and highest level (mean over seeds)"))
+        s = samp[samp["arm"].isin(arms)]
+        if len(s):
+            its = sampling_iterations(s)
+            name = f"knob_{key}_sampling.png"
+            save_figure(out / name, plot_sampling_at(s, its, colors, bins=bins, order=arms))
+            figures.append((name, f"`{knob}`: sampling distribution over bins at iterations "
+                                  f"{', '.join(map(str, its))} (mean over seeds)"))
+    return figures
+
+
+def _ratio_cell(ratio: float, status: str, lo: float, hi: float) -> str:
+    if math.isnan(ratio):
+        return "–"
+    mark = {"lower_bound": "≥ ", "upper_bound": "≤ "}.get(status, "")
+    rng = f" [{fmt(lo)}, {fmt(hi)}]" if not (math.isnan(lo) or math.isnan(hi)) else ""
+    return f"{mark}x{fmt(ratio)}{rng}"
+
+
+def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | None, alpha: float) -> list[str]:
+    """The markdown of the Knobs section."""
+    tag = int(round(THRESHOLDS[0] * 100))
+    md = ["## Knobs", "",
+          f"One knob of the reference arm changed at a time. Speedup = the reference's median iterations to "
+          f"{THRESHOLDS[0]:g} overall success / the level's (> 1: sooner); brackets: the range of the reference's "
+          "median over each seed's time (a seed that never got there counts at its last evaluation: a bound), "
+          "never an interval. \"differs\": some level's final failure or time differs from the reference's at "
+          f"p < {alpha:g} (exact permutation / Gehan test, uncorrected over the row's tests).", ""]
+    view = pd.DataFrame({
+        "knob": summary["knob"],
+        "reference": summary["reference_value"].map(fmt),
+        "levels": summary["levels"],
+        **{f"{name} to {tag}%": [f"{fmt(r[f'{name}_value'])}: " + _ratio_cell(
+            r[f"{name}_speedup"], "estimate", r[f"{name}_speedup_seed_min"], r[f"{name}_speedup_seed_max"])
+            for _, r in summary.iterrows()] for name in ("slowest", "fastest")},
+        "final failure difference (lowest / highest)": [
+            f"{fmt(lv)}: {fmt(ld)} / {fmt(hv)}: {fmt(hd)}" for lv, ld, hv, hd in
+            zip(summary["lowest_failure_value"], summary["lowest_failure_difference"],
+                summary["highest_failure_value"], summary["highest_failure_difference"], strict=True)],
+        "tests": summary["tests"],
+        "verdict": [f"{v} ({d})" if d else v for v, d in zip(summary["verdict"], summary["differing_levels"],
+                                                            strict=True)],
+    })
+    md += ["Which knobs matter:", "", md_table(view), ""]
+    rows = []
+    for r in levels.itertuples(index=False):
+        d = r._asdict()
+        row = {"knob": r.knob, "value": fmt(r.value) + (" (reference)" if r.is_reference else ""),
+               "seeds": r.n_seeds,
+               "final failure [seeds]": f"{fmt(r.final_failure)} [{fmt(r.final_failure_min)}, {fmt(r.final_failure_max)}]",
+               "vs reference (p)": "–" if r.is_reference else f"{fmt(r.failure_difference)} ({fmt(r.failure_p)})"}
+        for t in THRESHOLDS:
+            k = int(round(t * 100))
+            row[f"iterations to {k}%"] = f"{fmt(d[f'iterations_{k}'])} ({d[f'reached_{k}']}/{r.n_seeds})"
+            row[f"speedup {k}%"] = "–" if r.is_reference else _ratio_cell(
+                d[f"speedup_{k}"], d[f"speedup_status_{k}"], d[f"speedup_seed_min_{k}"], d[f"speedup_seed_max_{k}"])
+            if uniform is not None:
+                row[f"vs uniform {k}%"] = _ratio_cell(d[f"vs_uniform_{k}"], d[f"vs_uniform_status_{k}"], math.nan,
+                                                     math.nan)
+        rows.append(row)
+    md += ["Per level (iterations: Kaplan-Meier median, `–` = not reached by half the seeds; (reached/seeds)):", "",
+           md_table(pd.DataFrame(rows)), ""]
+    return md
+
+
+__all__ = ["knob_section", "plot_sampling_at", "sampling_iterations", "write_knob_files"]

@@ -1,0 +1,191 @@
+"""One knob at a time around a reference arm: which of a sampler's knobs matter, and how much.
+
+A *knob study* (e.g. sweeps/sensitivity_dance1.yaml) runs a reference arm (the design:
+``sampler=adaptive`` with its own defaults) and arms that change exactly one numeric sampler key of it
+(``sampler=adaptive,sampler.gamma=0.5``), usually beside uniform sampling. ``knob_arms`` finds that
+structure in any set of runs; the report adds its Knobs section only where it exists.
+
+Per level (``knob_levels``), against the reference and against uniform:
+
+- final failure: per-seed mean, the seeds' range, the difference of means from the reference and its
+  two-sided exact permutation p (uncorrected; 3 v 5 seeds: smallest attainable p 2/56 = 0.036);
+- iterations to ``THRESHOLDS`` overall success (sustained as the report's time to threshold;
+  Kaplan-Meier median over seeds, censored at the run's last evaluation);
+- speedup = reference median / level median (> 1: the level reaches the threshold sooner), its status
+  (metrics.speedup: estimate, or a bound under censoring), the range of the per-seed ratios
+  (reference median / each seed's time; a seed that never got there gives a bound), and the Gehan
+  permutation p of the censored times; the same against uniform, the speedup a user of the level
+  gets over not adapting at all.
+
+Per knob (``knob_summary``): the levels' speedups over the reference at the first threshold, lowest and
+highest, with their seed ranges; the final-failure differences, lowest and highest; and which levels
+differ from the reference at p < alpha in either measure (uncorrected, so with many levels a few can
+differ by chance: the row says how many tests it made). "within noise" means none did.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+from analysis.metrics import arm_time, event_times, speedup, time_to_threshold
+from analysis.stats import permutation_pvalue, smallest_pvalue
+from analysis.tables import ReportOptions
+
+THRESHOLDS = (0.9, 0.95)
+"""Overall success levels at which each level's speedup is reported (the first one ranks the knobs)."""
+
+KNOB_ARM_COLUMNS = ["arm", "knob", "value", "reference"]
+"""Columns of knob_arms: the arm, the sampler key it changes, its value there, and the reference arm
+(the arm of the same sampler that changes nothing). The reference itself has a row per knob too, with
+its own value of the key."""
+
+LEVEL_COLUMNS = [
+    "knob", "value", "arm", "is_reference", "n_seeds", "final_failure", "final_failure_min", "final_failure_max",
+    "failure_difference", "failure_p", "failure_smallest_p",
+    *(f"{c}_{int(round(t * 100))}" for t in THRESHOLDS for c in (
+        "iterations", "reached", "speedup", "speedup_status", "speedup_seed_min", "speedup_seed_max",
+        "speedup_p", "vs_uniform", "vs_uniform_status")),
+]
+"""Columns of knob_levels.csv (one row per knob and level, the reference's value included):
+``final_failure`` is the mean over seeds of the final overall failure, ``failure_difference`` the
+level's mean minus the reference's, ``iterations_<t>`` the Kaplan-Meier median iterations to success
+>= t/100 (NaN: not reached by half the seeds), ``reached_<t>`` the seeds that reached it,
+``speedup_<t>`` the reference's median / the level's (``speedup_status`` as metrics.speedup),
+``speedup_seed_min``/``_max`` the range of reference median / each seed's time, ``speedup_p`` the Gehan
+permutation p, ``vs_uniform_<t>`` the speedup over uniform (NaN without a uniform arm)."""
+
+SUMMARY_COLUMNS = ["knob", "reference_value", "levels",
+                   *(f"{end}_{c}" for end in ("slowest", "fastest")
+                     for c in ("value", "speedup", "speedup_seed_min", "speedup_seed_max")),
+                   "lowest_failure_value",
+                   "lowest_failure_difference", "highest_failure_value", "highest_failure_difference",
+                   "tests", "differing_levels", "verdict"]
+"""Columns of knob_summary.csv, one row per knob (module docstring; speedups at THRESHOLDS[0])."""
+
+
+def _items(overrides: str) -> dict[str, str]:
+    return dict(i.split("=", 1) for i in str(overrides).split(",") if "=" in i)
+
+
+def _numeric(value) -> bool:
+    return isinstance(value, int | float | np.number) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def knob_arms(runs: pd.DataFrame) -> pd.DataFrame:
+    """KNOB_ARM_COLUMNS for the included arms of ``runs`` (load.load_runs, labelled) that change exactly
+    one numeric ``sampler.*`` key of a reference arm of the same sampler; empty when there is none."""
+    arms = runs[runs["included"]].drop_duplicates("arm").set_index("arm")
+    if arms.empty:
+        return pd.DataFrame(columns=KNOB_ARM_COLUMNS)
+    items = {a: _items(arms.loc[a, "overrides"]) for a in arms.index}
+    shared = set.intersection(*(set(i.items()) for i in items.values())) if len(items) > 1 else set()
+    own = {a: {k: v for k, v in i.items() if (k, v) not in shared and k != "sampler"} for a, i in items.items()}
+    references = {arms.loc[a, "sampler"]: a for a in sorted(arms.index) if not own[a]}
+    rows = []
+    for arm in sorted(arms.index):
+        keys = list(own[arm])
+        ref = references.get(arms.loc[arm, "sampler"])
+        if ref is None or ref == arm or len(keys) != 1 or not keys[0].startswith("sampler."):
+            continue
+        value = arms.loc[arm].get(f"param.{keys[0]}")
+        if _numeric(value):
+            rows.append((arm, keys[0], float(value), ref))
+    out = pd.DataFrame(rows, columns=KNOB_ARM_COLUMNS)
+    for (knob, ref), _ in out.groupby(["knob", "reference"], sort=True):
+        value = arms.loc[ref].get(f"param.{knob}")
+        if _numeric(value):
+            out.loc[len(out)] = (ref, knob, float(value), ref)
+    return out.sort_values(["knob", "value"], kind="stable").reset_index(drop=True)
+
+
+def _seed_ratios(ref_median: float, time: np.ndarray, event: np.ndarray) -> tuple[float, float]:
+    """(min, max) of reference median / each seed's time; a censored seed counts at its last time, a
+    bound in the direction of slower."""
+    if not len(time) or not math.isfinite(ref_median):
+        return math.nan, math.nan
+    ratios = ref_median / np.where(time > 0, time, np.nan)
+    return float(np.nanmin(ratios)), float(np.nanmax(ratios))
+
+
+def knob_levels(knobs: pd.DataFrame, final_failure: pd.DataFrame, overall: pd.DataFrame, opts: ReportOptions,
+                uniform: str | None = None) -> pd.DataFrame:
+    """LEVEL_COLUMNS for every row of ``knobs`` (knob_arms). ``final_failure`` has ``arm, seed, value``
+    per run (tables.per_run_metrics' ``final_failure``); ``overall`` is metrics.overall_failure of every
+    run; ``uniform`` names the uniform arm, if any."""
+    if knobs.empty:
+        return pd.DataFrame(columns=LEVEL_COLUMNS)
+    fails = {a: g.sort_values("seed")["value"].to_numpy(dtype=float) for a, g in final_failure.groupby("arm")}
+    times = {t: time_to_threshold(overall, t, persist=opts.mastery_persist, by=["run_dir", "arm", "seed"])
+             for t in THRESHOLDS}
+
+    def arm_times(t: float, arm: str) -> tuple[np.ndarray, np.ndarray]:
+        return event_times(times[t][times[t]["arm"] == arm].sort_values("seed"), "iteration")
+
+    rows = []
+    for k in knobs.itertuples(index=False):
+        f, f_ref = fails.get(k.arm, np.array([])), fails.get(k.reference, np.array([]))
+        row = {"knob": k.knob, "value": k.value, "arm": k.arm, "is_reference": k.arm == k.reference,
+               "n_seeds": len(f), "final_failure": float(np.mean(f)) if len(f) else math.nan,
+               "final_failure_min": float(np.min(f)) if len(f) else math.nan,
+               "final_failure_max": float(np.max(f)) if len(f) else math.nan}
+        same = k.arm == k.reference
+        row["failure_difference"] = 0.0 if same else row["final_failure"] - float(np.mean(f_ref))
+        row["failure_p"] = math.nan if same else permutation_pvalue(f, f_ref, n_resamples=opts.n_permutations,
+                                                                    seed=opts.bootstrap_seed)
+        row["failure_smallest_p"] = math.nan if same else smallest_pvalue(len(f), len(f_ref), opts.n_permutations)
+        for t in THRESHOLDS:
+            tag = int(round(t * 100))
+            at, ae = arm_times(t, k.arm)
+            bt, be = arm_times(t, k.reference)
+            s = speedup(bt, be, at, ae, bootstrap=False, n_permutations=opts.n_permutations, seed=opts.bootstrap_seed)
+            row[f"iterations_{tag}"] = arm_time(at, ae).median
+            row[f"reached_{tag}"] = int(ae.sum())
+            row[f"speedup_{tag}"], row[f"speedup_status_{tag}"] = s.ratio, s.status
+            lo, hi = _seed_ratios(arm_time(bt, be).median, at, ae)
+            row[f"speedup_seed_min_{tag}"], row[f"speedup_seed_max_{tag}"] = lo, hi
+            row[f"speedup_p_{tag}"] = math.nan if same else s.p_value
+            if uniform is not None and uniform in set(times[t]["arm"]):
+                u = speedup(*arm_times(t, uniform), at, ae, bootstrap=False, n_permutations=opts.n_permutations,
+                            seed=opts.bootstrap_seed)
+                row[f"vs_uniform_{tag}"], row[f"vs_uniform_status_{tag}"] = u.ratio, u.status
+            else:
+                row[f"vs_uniform_{tag}"], row[f"vs_uniform_status_{tag}"] = math.nan, "not_estimable"
+        rows.append(row)
+    return pd.DataFrame(rows, columns=LEVEL_COLUMNS)
+
+
+def knob_summary(levels: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
+    """SUMMARY_COLUMNS: one row per knob of ``levels`` (knob_levels)."""
+    tag = int(round(THRESHOLDS[0] * 100))
+    rows = []
+    for knob, g in levels.groupby("knob", sort=True):
+        ref = g[g["is_reference"]]
+        other = g[~g["is_reference"]]
+        if other.empty:
+            continue
+        ranked = other.assign(_s=other[f"speedup_{tag}"].fillna(-np.inf)).sort_values(["_s", "value"])
+        slow, fast = ranked.iloc[0], ranked.iloc[-1]
+        by_fail = other.sort_values(["failure_difference", "value"])
+        differing = other[(other["failure_p"] < alpha) | (other[f"speedup_p_{tag}"] < alpha)]
+        rows.append({
+            "knob": knob, "reference_value": float(ref["value"].iloc[0]) if len(ref) else math.nan,
+            "levels": ", ".join(f"{v:g}" for v in sorted(g["value"])),
+            **{f"{name}_{c}": row[f"{c}_{tag}" if c != "value" else "value"]
+               for name, row in (("slowest", slow), ("fastest", fast))
+               for c in ("value", "speedup", "speedup_seed_min", "speedup_seed_max")},
+            "lowest_failure_value": by_fail["value"].iloc[0],
+            "lowest_failure_difference": by_fail["failure_difference"].iloc[0],
+            "highest_failure_value": by_fail["value"].iloc[-1],
+            "highest_failure_difference": by_fail["failure_difference"].iloc[-1],
+            "tests": 2 * len(other),
+            "differing_levels": ", ".join(f"{v:g}" for v in sorted(differing["value"])),
+            "verdict": "differs" if len(differing) else "within noise",
+        })
+    return pd.DataFrame(rows, columns=SUMMARY_COLUMNS)
+
+
+__all__ = ["KNOB_ARM_COLUMNS", "LEVEL_COLUMNS", "SUMMARY_COLUMNS", "THRESHOLDS", "knob_arms", "knob_levels",
+           "knob_summary"]

@@ -1,0 +1,91 @@
+"""The Knobs section (analysis.knobs): one knob at a time around a reference arm, on a planted study
+(tests/analysis/synthetic_runs.make_knob_study) whose speedups are known exactly."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+import pytest
+
+from analysis.knobs import knob_arms, knob_levels, knob_summary
+from analysis.load import load_runs
+from analysis.report import build_report
+from analysis.report_compute import read_runs
+from analysis.tables import ReportOptions
+from tests.analysis.synthetic_runs import KNOB_REFERENCE, make_knob_study, make_sweep
+
+
+@pytest.fixture(scope="module")
+def knob_report(tmp_path_factory):
+    root = tmp_path_factory.mktemp("knobs")
+    out = build_report([make_knob_study(root)], out=root / "report")
+    return out, pd.read_csv(out / "knob_levels.csv"), pd.read_csv(out / "knob_summary.csv")
+
+
+def test_knob_arms_finds_one_key_changes_of_the_reference(tmp_path):
+    runs = read_runs([make_knob_study(tmp_path)], ReportOptions()).runs
+    found = knob_arms(runs)
+    assert set(found["reference"]) == {KNOB_REFERENCE}
+    by_knob = found.groupby("knob")["value"].apply(sorted).to_dict()
+    assert by_knob == {"sampler.gamma": [0.5, 0.9, 1.0], "sampler.lambda_uniform": [0.1, 0.4]}
+    assert "sampler=uniform" not in set(found["arm"])
+
+
+def test_an_arm_changing_two_keys_is_no_knob_level(tmp_path):
+    sweep = make_knob_study(tmp_path)
+    from tests.analysis.synthetic_runs import write_run
+    arm = "motion=m,sampler.K=3,sampler.gamma=0.5,sampler=adaptive"
+    write_run(sweep / arm / "seed=0", sampler="adaptive", seed=0, overrides=arm.split(","),
+              mastery=[5.0, 10.0, 15.0, 20.0], sampler_cfg={"gamma": 0.5, "K": 3}, last_iteration=100)
+    runs = read_runs([sweep], ReportOptions()).runs
+    assert "sampler.K=3,sampler.gamma=0.5,sampler=adaptive" not in set(knob_arms(runs)["arm"])
+
+
+def test_no_reference_no_knobs(tmp_path):
+    runs = load_runs([make_sweep(tmp_path)])  # gamma 0.5 and 0.9 both set explicitly: no reference arm
+    assert knob_arms(runs).empty
+    assert knob_levels(knob_arms(runs), pd.DataFrame(columns=["arm", "seed", "value"]), pd.DataFrame(),
+                       ReportOptions()).empty
+
+
+def test_planted_speedups_and_tests(knob_report):
+    _, levels, _ = knob_report
+    lv = levels.set_index(["knob", "value"])
+    assert lv.loc[("sampler.gamma", 0.5), "speedup_90"] == pytest.approx(2.0)
+    assert lv.loc[("sampler.gamma", 1.0), "speedup_90"] == pytest.approx(1.0)
+    assert lv.loc[("sampler.lambda_uniform", 0.4), "speedup_90"] == pytest.approx(40 / 60)
+    assert lv.loc[("sampler.gamma", 0.9), "vs_uniform_90"] == pytest.approx(2.0)  # the reference vs uniform
+    assert lv.loc[("sampler.gamma", 0.5), "vs_uniform_90"] == pytest.approx(4.0)
+    assert lv.loc[("sampler.gamma", 0.5), "iterations_90"] == 20
+    # every seed of gamma 0.5 beats every seed of the reference: the smallest p 3 v 5 seeds allow
+    assert lv.loc[("sampler.gamma", 0.5), "speedup_p_90"] == pytest.approx(2 / math.comb(8, 3))
+    assert lv.loc[("sampler.gamma", 1.0), "speedup_p_90"] == pytest.approx(1.0)
+    # final failure is planted per seed alike in every arm: seeds 0-2 (mean 0.03) against 0-4 (0.04)
+    assert lv.loc[("sampler.gamma", 0.5), "failure_difference"] == pytest.approx(-0.01)
+    assert lv.loc[("sampler.gamma", 0.5), "failure_p"] > 0.05
+    assert bool(lv.loc[("sampler.gamma", 0.9), "is_reference"])
+
+
+def test_which_knobs_matter(knob_report):
+    _, levels, summary = knob_report
+    s = summary.set_index("knob")
+    assert s.loc["sampler.gamma", "fastest_value"] == 0.5 and s.loc["sampler.gamma", "slowest_value"] == 1.0
+    assert s.loc["sampler.gamma", "fastest_speedup"] == pytest.approx(2.0)
+    assert s.loc["sampler.gamma", "verdict"] == "differs" and str(s.loc["sampler.gamma", "differing_levels"]) == "0.5"
+    assert s.loc["sampler.gamma", "tests"] == 4
+    assert s.loc["sampler.lambda_uniform", "slowest_speedup"] == pytest.approx(40 / 60)
+    # a knob whose only level matches the reference is within noise
+    same = levels[(levels["knob"] == "sampler.gamma") & (levels["value"] != 0.5)]
+    assert knob_summary(same)["verdict"].tolist() == ["within noise"]
+
+
+def test_report_has_the_knob_section_and_figures(knob_report, tmp_path):
+    out, _, _ = knob_report
+    text = (out / "report.md").read_text()
+    assert "## Knobs" in text and "| sampler.gamma | 0.9 | 0.5, 0.9, 1 |" in text
+    for key in ("gamma", "lambda_uniform"):
+        for kind in ("speedup", "bins", "sampling"):
+            assert (out / f"knob_{key}_{kind}.png").stat().st_size > 0
+    plain = build_report([make_sweep(tmp_path)], out=tmp_path / "plain")
+    assert "## Knobs" not in (plain / "report.md").read_text()
