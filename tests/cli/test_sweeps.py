@@ -62,9 +62,11 @@ STUDIES = {
     "sensitivity_bin_size": (4 * 3, {"sampler.bin_size_seconds"}),
     "sensitivity_alpha": (3 * 3, {"sampler.alpha_smooth"}),
     "confirm_hybrid_dance1": (2 * 10, {"sampler"}),
+    "hybrid_factorial_dance1": (2 ** 3 * 3, {"sampler.accounting.attribution", "sampler.gamma", "sampler.K"}),
 }
 # One knob of a study at a time: these files write into the study's folder (one report covers every
 # knob) and estimate effect sizes on 3 seeds per level, beside the study's 5-seed reference arms.
+FACTORIALS = {"hybrid_factorial_dance1"}  # effects read from cell means: 3 seeds per cell
 KNOB_FILES = {f"sensitivity_{knob}": "sensitivity_dance1" for knob in ("gamma", "lambda", "kernel", "bin_size", "alpha")}
 
 
@@ -99,7 +101,7 @@ def test_study_composes_and_expands(study):
     assert int(params.max_iterations) > 0
     # Arms are compared at equal iterations, with at least the 5 seeds bootstrap intervals need.
     assert "time_limit_s" not in params and cfg.time_limit_s is None
-    assert len(str(params.seed).split(",")) >= (3 if study in KNOB_FILES else 5)
+    assert len(str(params.seed).split(",")) >= (3 if study in KNOB_FILES or study in FACTORIALS else 5)
     for key, value in params.items():  # every key is a real config key or group option (typo guard)
         if (CONF_DIR / key).is_dir():
             for option in str(value).split(","):
