@@ -17,8 +17,17 @@ under docs/bench/) holds them, every evaluation's times and the machine.
 
 Evaluation runs every RACE_EVAL_EVERY iterations with RACE_EPISODES_PER_BIN episodes per bin unless
 the overrides set eval.every_iters / eval.episodes_per_bin; its wall time counts in the race and is
-also reported on its own (`eval_overhead`). A race measures one process from its launch: no -m, no
-resume, no torchrun.
+also reported on its own (`eval_overhead`). A race measures one launch from its start: no -m, no
+resume.
+
+Under torchrun one process group is one race, on any number of ranks (GPUs):
+
+    torchrun --standalone --nproc_per_node 4 -m bmimic.race motion=lafan_dance1_full num_envs=4096
+
+The ranks gather their launch times and the clock starts at the earliest; rank 0 evaluates, decides
+(every rank stops after the same iteration) and writes race.json, which also holds `gpus` (ranks),
+`num_envs_per_gpu` (num_envs, per rank), `num_envs_total` and `rank_launch_spread_s` (latest minus
+earliest launch). torchrun's own start (its agent, before it spawns the ranks) is not in the clock.
 """
 
 from __future__ import annotations
@@ -94,6 +103,18 @@ class Race:
     run_dir: str | None = None
     first_iteration_unix_s: float | None = None
     eval_time_s: float = 0.0
+    rank_launch_unix_s: list[float] = field(default_factory=list)
+    """Under torchrun: every rank's launch, in rank order (`launch_unix_s` is the earliest); else empty."""
+
+    def join_ranks(self, launches: list[float]) -> None:
+        """One race over the ranks whose launch times these are: the clock starts at the earliest."""
+        self.rank_launch_unix_s = list(launches)
+        self.launch_unix_s = min(launches)
+
+    @property
+    def gpus(self) -> int:
+        """Ranks in the race (one GPU each under NCCL)."""
+        return max(1, len(self.rank_launch_unix_s))
 
     def on_evaluation(self, trainer, summary: dict, now: float | None = None) -> bool:
         """Record this evaluation; True once every threshold is reached or the budget is spent."""
@@ -139,6 +160,9 @@ class Race:
             else:
                 out.append(f"race: {t.label} not reached (no evaluation ran)")
         summary = self.summary()
+        if self.gpus > 1:
+            out.append(f"race: one race over {self.gpus} ranks, launched within "
+                       f"{max(self.rank_launch_unix_s) - self.launch_unix_s:.1f} s; the clock starts at the earliest")
         if summary["startup_s"] is not None:
             out.append(f"race: start-up {summary['startup_s']:.0f} s (launch to the first iteration); evaluations "
                        f"{summary['evaluation_s']:.0f} s, {100 * summary['eval_overhead']:.1f}% of the wall time "
@@ -156,6 +180,14 @@ class Race:
             "stopped": self.stopped,
         }
 
+    def ranks(self, num_envs_per_gpu) -> dict:
+        """Under torchrun: the race's GPUs (ranks), envs per GPU and in all, and the launches' spread."""
+        if self.gpus == 1:
+            return {}  # a single process's race.json is as it always was
+        total = num_envs_per_gpu * self.gpus if isinstance(num_envs_per_gpu, int) else None
+        return {"gpus": self.gpus, "num_envs_per_gpu": num_envs_per_gpu, "num_envs_total": total,
+                "rank_launch_spread_s": max(self.rank_launch_unix_s) - self.launch_unix_s}
+
     def to_json(self, config: dict, provenance: dict | None) -> dict:
         return {
             "kind": RACE_KIND,
@@ -164,6 +196,7 @@ class Race:
             "budget_s": self.budget_s,
             "config": config,
             "machine": provenance,
+            **self.ranks(config.get("num_envs")),
             **self.summary(),
             "thresholds": [{"metric": t.metric, "threshold": t.value,
                             "status": "reached" if t.reached_at else "censored",
@@ -212,12 +245,24 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
             problems.append("a race times one job from its launch: run seeds or arms as separate commands, not -m")
     if any(a.split("=", 1)[0].lstrip("+~") == "resume" for a in rest):
         problems.append("a race measures a run from its launch: resume is not raced")
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        problems.append("a race runs in a single process (not under torchrun)")
     if problems:
-        print(f"error: {problems[0]}", file=sys.stderr)
+        _refuse(problems[0])
         raise SystemExit(2)
     return args, rest
+
+
+def _refuse(problem: str) -> None:
+    """The `error:` line of a refusal (exit status 2). Under torchrun every rank refuses alike and rank 0
+    alone prints; the ranks then leave together, since torchrun stops the others as soon as one exits."""
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(f"error: {problem}", file=sys.stderr, flush=True)
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        import torch
+
+        from bmimic.runtime import init_distributed
+
+        init_distributed()
+        torch.distributed.barrier()  # rank 0 has printed
 
 
 def race_overrides(rest: list[str]) -> list[str]:
@@ -230,18 +275,42 @@ def race_overrides(rest: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The race; under torchrun (WORLD_SIZE > 1) every rank runs it and the rank ends without the
+    interpreter's teardown, as bmimic.train's do (bmimic.runtime.exit_rank)."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return _race(argv)
+    import torch
+
+    try:
+        code = _race(argv)
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    if torch.distributed.is_initialized():  # a launch refused before training: training destroys it otherwise
+        torch.distributed.destroy_process_group()
+    from bmimic.runtime import exit_rank
+
+    exit_rank(code)
+    return code  # not reached
+
+
+def _race(argv: list[str] | None) -> int:
     args, rest = parse_args(sys.argv[1:] if argv is None else argv)
     from bmimic.config import ConfigError, check_additions, hydra_overrides
 
     try:
         check_additions(hydra_overrides(rest))
     except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
+        _refuse(str(e))
         return 2
     thresholds = ([Threshold("eval_success_rate", v) for v in args.success]
                   + [Threshold("eval_mpkpe_rel_mm", v) for v in args.mpkpe_rel_mm])
     race = Race(thresholds, args.budget_s, args.sustain)
     result: dict = {}
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        from bmimic.runtime import gather_floats, init_distributed
+
+        init_distributed()  # the process group training would join: joined now, to gather the launch times
+        race.join_ranks(gather_floats(LAUNCH_UNIX_S))
 
     import hydra
     from omegaconf import OmegaConf
@@ -271,6 +340,8 @@ def main(argv: list[str] | None = None) -> int:
         sys.argv = saved
     if any(a in rest for a in ("--cfg", "-c", "--info", "-i", "--hydra-help", "--resolve")):
         return 0  # Hydra printed what was asked; nothing ran
+    if int(os.environ.get("RANK", "0")) != 0:
+        return 0  # rank 0 evaluated and writes the race
     if race.run_dir is None:
         print("error: the race ran no evaluation (eval.every_iters=0, or max_iterations below it)", file=sys.stderr)
         return 2

@@ -81,6 +81,21 @@ def any_rank(flag: bool, device: Any) -> bool:
     return bool(t.item())
 
 
+def gather_floats(value: float) -> list[float]:
+    """`value` of every rank, in rank order: one float64 all-gather under torchrun (on the rank's GPU with
+    NCCL), `[value]` in a single process."""
+    import torch
+
+    dist = torch.distributed
+    if not (dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1):
+        return [float(value)]
+    device = f"cuda:{torch.cuda.current_device()}" if dist.get_backend() == "nccl" else "cpu"
+    mine = torch.tensor([float(value)], dtype=torch.float64, device=device)
+    every = [torch.empty_like(mine) for _ in range(dist.get_world_size())]
+    dist.all_gather(every, mine)
+    return [float(t.item()) for t in every]
+
+
 def exit_rank(code: int) -> None:
     """End a torchrun rank whose work is written and whose process group is destroyed: flush and
     exit without the interpreter's teardown. C++ static destructors (gloo, Warp) run at a normal exit

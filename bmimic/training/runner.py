@@ -23,7 +23,6 @@ from typing import Callable
 import torch
 from rsl_rl.runners import OnPolicyRunner
 
-from bmimic import BmimicError
 from bmimic.run_folder import (
     write_status,
 )
@@ -175,8 +174,6 @@ class Trainer:
                      "(sampler.log_every=null keeps it under about %.0e rows)", env.layout.num_bins, end_it,
                      self._sampler_every, diagnostics.MAX_SAMPLER_ROWS)
         self.logger.start(start_it, end_it)
-        if self.after_evaluation is not None and self.runner.is_distributed:
-            raise BmimicError("a stopping rule after evaluations (bmimic.race) runs in a single process, not under torchrun")
         self.learn_started_unix_s = time.time()
         for it in range(start_it, end_it):
             t0 = time.perf_counter()
@@ -217,6 +214,9 @@ class Trainer:
             if self.is_main:
                 summary = self.evaluate()
                 stop = self.after_evaluation is not None and bool(self.after_evaluation(self, summary))
+            if self.after_evaluation is not None and self.runner.is_distributed:
+                # Rank 0 alone evaluates and decides (bmimic.race); every rank stops after the same iteration.
+                stop = any_rank(stop, self.device)
             self.feedback.after_evaluation(self._clip_outcomes, self.schedule.eval_every)
         if self.is_main and self.schedule.checkpoints(it, last):
             self.save_checkpoint()

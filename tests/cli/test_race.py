@@ -1,16 +1,23 @@
 """`python -m bmimic.race`: the stopping rule on planted evaluation sequences (sustained thresholds,
 the first of the sustained evaluations timed, censoring at the wall budget), refusals in one line,
-and one tiny end-to-end race on the CPU."""
+one tiny end-to-end race on the CPU, and one under torchrun on 3 CPU ranks (gloo): one race, rank 0
+writes it, every rank stops after the same iteration."""
 
 from __future__ import annotations
 
 import json
+import re
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import pytest
 
 from bmimic.race import Race, Threshold, parse_args, race_overrides
-from tests.conftest import TINY
+from tests.conftest import TINY, cli_env
+
+RANKS = 3
+"""Ranks of the torchrun races: more than two, so that nothing is written for a pair only (issue 48)."""
 
 
 def _trainer(iteration: int) -> SimpleNamespace:
@@ -57,6 +64,25 @@ def test_the_wall_budget_stops_the_race_and_censors_what_was_not_reached():
     assert status == {("eval_success_rate", 0.9): "reached", ("eval_success_rate", 0.99): "censored",
                       ("eval_mpkpe_rel_mm", 40.0): "censored"}
     assert any("not reached by iteration 250" in line and "censored" in line for line in race.lines())
+
+
+def test_ranks_make_one_race_clocked_from_the_earliest_launch():
+    race = _race()
+    race.join_ranks([104.0, 100.0, 102.5])  # rank 1 launched first
+    assert race.launch_unix_s == 100.0 and race.gpus == 3
+    _feed(race, [(0.95, 45)])  # evaluated at 160 s (first iteration at 110 s)
+    record = race.to_json({"num_envs": 4096}, None)
+    assert record["evaluations"][0]["wall_from_launch_s"] == pytest.approx(60.0)
+    assert record["startup_s"] == pytest.approx(10.0)  # from the earliest launch to the first iteration
+    assert (record["gpus"], record["num_envs_per_gpu"], record["num_envs_total"]) == (3, 4096, 3 * 4096)
+    assert record["rank_launch_spread_s"] == pytest.approx(4.0)
+    assert any("one race over 3 ranks, launched within 4.0 s" in line for line in race.lines())
+    # A single process's record has none of these keys, as before torchrun races existed.
+    single = _race()
+    _feed(single, [(0.95, 45)])
+    assert not {"gpus", "num_envs_per_gpu", "num_envs_total", "rank_launch_spread_s"} & set(
+        single.to_json({"num_envs": 4096}, None))
+    assert single.gpus == 1 and not any("ranks" in line for line in single.lines())
 
 
 def test_one_evaluation_suffices_with_sustain_1():
@@ -108,3 +134,51 @@ def test_a_tiny_race_on_the_cpu_stops_at_its_thresholds_and_writes_its_record(tm
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["iterations"] == 2  # the run itself ended where the race stopped, checkpoint and all
     assert (tmp_path / "run" / "checkpoints" / "model_2.pt").exists()
+
+
+def _torchrun_race(tmp_path, *args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={RANKS}",
+           "-m", "bmimic.race", *args]
+    return subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=900, env=cli_env())
+
+
+@pytest.mark.slow
+def test_a_torchrun_race_on_three_cpu_ranks_is_one_race_that_rank_zero_writes(tmp_path):
+    run, out = tmp_path / "run", tmp_path / "race.json"
+    # verbose: every rank logs, so each says where it stopped
+    done = _torchrun_race(tmp_path, "--success", "0.01", "--mpkpe-rel-mm", "1000", "--json", str(out),
+                          *[a for a in TINY if not a.startswith("max_iterations")], "max_iterations=6",
+                          "eval.every_iters=1", "eval.episodes_per_bin=1", "logger=none", "verbose=true",
+                          f"hydra.run.dir={run}")
+    log = done.stdout + done.stderr
+    assert done.returncode == 0, log[-4000:]
+    record = json.loads(out.read_text())
+    assert record == json.loads((run / "race.json").read_text())
+    assert (record["gpus"], record["num_envs_per_gpu"], record["num_envs_total"]) == (RANKS, 2, 2 * RANKS)
+    assert record["stopped"] == "every threshold reached"
+    assert [e["iteration"] for e in record["evaluations"]] == [1, 2]  # sustained over 2, then stopped
+    assert record["evaluations"][-1]["env_steps"] == 2 * 8 * 2 * RANKS  # every rank's samples
+    assert 0 <= record["rank_launch_spread_s"] < record["startup_s"]
+    # Rank 0 alone evaluated and printed the race; every other rank stopped after the same iteration.
+    assert log.count("race: success >= 0.01 at iteration 1") == 1 and log.count("eval at iteration") == 2, log[-4000:]
+    assert log.count(f"one race over {RANKS} ranks") == 1
+    stops = re.findall(r"rank (\d+) done: (\d+) iterations", log)
+    assert sorted(stops) == [(str(r), "2") for r in range(1, RANKS)], log[-4000:]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["iterations"] == 2 and metrics["env_steps"] == 2 * 8 * 2 * RANKS
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("extra, message", [
+    (["resume=true"], "resume is not raced"),
+    (["-m", "seed=0,1"], "not -m"),
+])
+def test_a_torchrun_race_refuses_what_it_cannot_mean_in_one_line_and_writes_nothing(tmp_path, extra, message):
+    run, out = tmp_path / "run", tmp_path / "race.json"
+    done = _torchrun_race(tmp_path, "--json", str(out), *TINY, "logger=none", f"hydra.run.dir={run}", *extra)
+    errors = [line for line in done.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0], done.stderr[-3000:]
+    # Every rank exits 2 (torchrun itself reports the failed ranks and exits non-zero).
+    assert done.returncode != 0 and done.stderr.count("exitcode  : 2") + done.stderr.count("exitcode: 2") >= 1, \
+        done.stderr[-3000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
