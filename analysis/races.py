@@ -6,16 +6,19 @@ of one race. This module reads several into tidy tables and draws them together,
 change is judged against its baseline (issue 33: the change's learning curve beside the baseline's):
 
 - ``read_races``: the JSONs, each read and checked once;
-- ``race_evaluations``: one row per evaluation (race, config, seed, gpu, date, iteration, env steps, wall
-  time from launch, success rate, root-relative MPKPE);
+- ``race_evaluations``: one row per evaluation (race, config, seed, gpu, GPUs, envs per GPU and in all,
+  date, iteration, env steps, wall time from launch, success rate, root-relative MPKPE);
 - ``race_thresholds``: one row per race and threshold (reached or censored, when);
 - ``race_summary`` / ``summary_markdown``: one row per race (start-up, seconds per iteration,
   evaluation share, each threshold's time and iteration): the race tables of docs/benchmarks.md;
 - ``plot_races``: failure (1 - success, log scale, so 99% success is visible) and MPKPE against wall
-  time from launch and against iterations; one colour per config, one line style per seed.
+  time from launch, iterations and env steps (all ranks' together: the axis on which 1 x 8192, 2 x 4096
+  and 4 x 2048 envs compare); one colour per config and GPU count, one line style per seed.
 
-Wall time is only comparable between races on the same card kind under the same load; the GPU name
-is part of every label for that reason.
+A race under torchrun (``gpus`` > 1 in its JSON) is one race over its ranks: ``num_envs`` is per GPU;
+a JSON without ``gpus`` (a single process, and every race before torchrun races) is one GPU. Wall time
+is only comparable between races on the same card kind under the same load; the GPU name (with the
+GPU count when more than one) is part of every label for that reason.
 """
 
 from __future__ import annotations
@@ -92,17 +95,25 @@ def read_races(paths) -> list[tuple[str, dict]]:
 
 
 def _identity(name: str, data: dict) -> dict:
-    """The columns that say which race a row belongs to: its name, what was trained, seed, GPU, date
-    and evaluation cadence."""
+    """The columns that say which race a row belongs to: its name, what was trained, seed, GPU kind,
+    GPUs (ranks), envs per GPU and in all, date and evaluation cadence."""
     cfg, machine = data["config"], data.get("machine") or {}
     gpu = (machine.get("gpu") or {}).get("name") or "cpu"
+    gpus = int(data.get("gpus") or 1)
+    per_gpu = data.get("num_envs_per_gpu", cfg.get("num_envs"))
     return {"race": name, "config": config_label(cfg), "seed": cfg.get("seed"),
-            "gpu": str(gpu).replace("NVIDIA ", "").split(" ")[0], "date": str(machine.get("created") or "")[:10],
-            "eval_every_iters": (cfg.get("eval") or {}).get("every_iters")}
+            "gpu": str(gpu).replace("NVIDIA ", "").split(" ")[0], "gpus": gpus, "num_envs_per_gpu": per_gpu,
+            "num_envs_total": per_gpu * gpus if isinstance(per_gpu, int) else None,
+            "date": str(machine.get("created") or "")[:10], "eval_every_iters": (cfg.get("eval") or {}).get("every_iters")}
 
 
-IDENTITY = ["race", "config", "seed", "gpu", "date", "eval_every_iters"]
+IDENTITY = ["race", "config", "seed", "gpu", "gpus", "num_envs_per_gpu", "num_envs_total", "date", "eval_every_iters"]
 """_identity's columns, first in every table."""
+
+
+def gpu_label(gpu: pd.Series, gpus: pd.Series) -> pd.Series:
+    """`H200` for one GPU, `4 x H200` for a race over four (tables and legends)."""
+    return pd.Series([g if n == 1 else f"{n} x {g}" for g, n in zip(gpu, gpus)], index=gpu.index, dtype=object)
 
 
 def race_evaluations(races: list[tuple[str, dict]]) -> pd.DataFrame:
@@ -166,6 +177,7 @@ def summary_markdown(summary: pd.DataFrame) -> str:
              "eval_share"]
     thresholds = [c for c in summary.columns if c.endswith("% success") or c.startswith("MPKPE <=")]
     view = summary[fixed + thresholds + ["last_success"]].copy()
+    view["gpu"] = gpu_label(summary["gpu"], summary["gpus"])
     formats = {"startup_s": "{:.0f} s", "training_s_per_iteration": "{:.3f}", "eval_share": "{:.1%}",
                "last_success": "{:.3f}"}
     for col, form in formats.items():
@@ -176,14 +188,20 @@ def summary_markdown(summary: pd.DataFrame) -> str:
     return md_table(view)
 
 
-def plot_races(evals: pd.DataFrame, figsize=(11.0, 7.0)) -> Figure:
-    """Four panels: failure (log) and MPKPE against wall time from launch (left) and iterations (right).
-    One line per race: colour by config, GPU, date and evaluation cadence, style by seed."""
+CURVE_AXES = (("wall_from_launch_s", "wall time from launch [s]"), (ITERATION, "iteration"),
+              (ENV_STEPS, "env steps (all GPUs)"))
+"""The x axes of the race curves, one column of panels each."""
+
+
+def plot_races(evals: pd.DataFrame, figsize=(15.0, 7.0)) -> Figure:
+    """Six panels: failure (log, top) and MPKPE (bottom) against wall time from launch, iterations and
+    env steps (CURVE_AXES). One line per race: colour by config, GPU kind and count, date and evaluation
+    cadence, style by seed."""
     if evals.empty:
         raise AnalysisError("no evaluations to draw (every race JSON has an empty 'evaluations' list)")
     fig = Figure(figsize=figsize, layout="constrained")
-    axes = fig.subplots(2, 2, sharey="row")
-    keys = (evals["config"] + " (" + evals["gpu"] + ", " + evals["date"] + ", eval every "
+    axes = fig.subplots(2, len(CURVE_AXES), sharey="row")
+    keys = (evals["config"] + " (" + gpu_label(evals["gpu"], evals["gpus"]) + ", " + evals["date"] + ", eval every "
             + evals["eval_every_iters"].astype(str) + ")").to_numpy()
     colors = arm_colors(keys)
     seeds = sorted(evals["seed"].dropna().unique().tolist())
@@ -193,11 +211,11 @@ def plot_races(evals: pd.DataFrame, figsize=(11.0, 7.0)) -> Figure:
         key, seed = df["key"].iloc[0], df["seed"].iloc[0]
         style = LINESTYLES[seeds.index(seed) % len(LINESTYLES)] if seed in seeds else "-"
         failure = np.maximum(1.0 - df[SUCCESS_RATE].to_numpy(float), floor)
-        for col, x in enumerate(("wall_from_launch_s", ITERATION)):
+        for col, (x, _) in enumerate(CURVE_AXES):
             kw = {"color": colors[key], "ls": style, "lw": 1.3, "marker": "o", "ms": 2.5}
             axes[0, col].plot(df[x], failure, label=f"{key} seed {seed}" if col == 0 else None, **kw)
             axes[1, col].plot(df[x], df[MPKPE_REL_MM], **kw)
-    for col, xlabel in enumerate(("wall time from launch [s]", "iteration")):
+    for col, (_, xlabel) in enumerate(CURVE_AXES):
         axes[0, col].set_yscale("log")
         axes[0, col].axhline(1.0 - SUCCESS_TARGET, color="0.4", lw=0.8, ls="--")
         axes[1, col].set_xlabel(xlabel)

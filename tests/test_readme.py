@@ -73,8 +73,8 @@ def test_readme_train_examples_compose(line):
     assert cfg.sampler.name in variant_names()
 
 
-# torchrun (one node or several) and the SLURM script: the overrides after the program.
-MULTI_GPU_EXAMPLES = [re.split(r" -m bmimic\.train | sweeps/slurm_multinode\.sh ", line, maxsplit=1)[1]
+# torchrun (one node or several; train or race) and the SLURM script: the overrides after the program.
+MULTI_GPU_EXAMPLES = [re.split(r" -m bmimic\.(?:train|race) | sweeps/slurm_multinode\.sh ", line, maxsplit=1)[1]
                       for line in code_lines() if line.startswith(("torchrun ", "sbatch "))]
 
 

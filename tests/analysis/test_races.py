@@ -33,14 +33,17 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _race_json(path, successes, mpkpes, seed=0, overrides=(), num_envs=4096, gpu="NVIDIA H100 80GB HBM3",
-               every=100):
+               every=100, gpus=1):
     """A race fed `successes` / `mpkpes` at evaluations every `every` iterations (1 s per 10 iterations from
-    a first iteration 20 s after launch), written as bmimic.race writes it."""
+    a first iteration 20 s after launch), written as bmimic.race writes it (over `gpus` torchrun ranks,
+    num_envs each, launched 0.5 s apart, when gpus > 1)."""
     race = Race([Threshold("eval_success_rate", 0.9), Threshold("eval_success_rate", 0.99),
                  Threshold("eval_mpkpe_rel_mm", 40.0)], budget_s=1e9, launch_unix_s=100.0)
+    if gpus > 1:
+        race.join_ranks([100.0 + 0.5 * r for r in range(gpus)])
     for i, (s, m) in enumerate(zip(successes, mpkpes, strict=True), start=1):
         it = i * every
-        progress = SimpleNamespace(iteration=it, env_steps=num_envs * 24 * it, wall_time_s=it / 10)
+        progress = SimpleNamespace(iteration=it, env_steps=num_envs * gpus * 24 * it, wall_time_s=it / 10)
         trainer = SimpleNamespace(run_dir="RUN", learn_started_unix_s=120.0, eval_time_s=0.5 * i, progress=progress)
         race.on_evaluation(trainer, {"eval_success_rate": s, "eval_mpkpe_rel_mm": m}, now=120.0 + it / 10)
     config = {"seed": seed, "sampler": "adaptive_hybrid", "num_envs": num_envs, "eval": {"every_iters": every},
@@ -89,7 +92,7 @@ def test_the_figure_draws_one_line_per_race_on_each_panel_styled_by_seed(tmp_pat
     paths = [_race_json(tmp_path / f"r{s}.json", [0.5, 0.9, 1.0], [60, 50, 40], seed=s) for s in (0, 1)]
     fig = plot_races(race_evaluations(read_races(paths)))
     axes = fig.axes
-    assert len(axes) == 4
+    assert len(axes) == 6  # failure and MPKPE against wall time, iterations and env steps
     for ax in axes:
         races = [ln for ln in ax.get_lines() if ln.get_marker() == "o"]
         assert len(races) == 2
@@ -97,6 +100,30 @@ def test_the_figure_draws_one_line_per_race_on_each_panel_styled_by_seed(tmp_pat
     failure = [ln for ln in axes[0].get_lines() if ln.get_marker() == "o"][0].get_ydata()
     assert failure[-1] == pytest.approx(1e-3)  # success 1.0 drawn at the log axis' floor, not dropped
     assert axes[0].get_yscale() == "log"
+
+
+def test_a_torchrun_race_reads_back_with_its_gpus_and_envs_per_gpu(tmp_path):
+    one = _race_json(tmp_path / "one.json", [0.5, 0.92, 0.95], [60, 45, 39], num_envs=8192)
+    four = _race_json(tmp_path / "four.json", [0.6, 0.93, 0.96], [55, 44, 38], num_envs=2048, gpus=4,
+                      overrides=["num_envs=2048"])
+    races = read_races([one, four])
+    ev = race_evaluations(races).set_index("race")
+    assert ev.loc["one", "gpus"].tolist() == [1] * 3 and ev.loc["four", "gpus"].tolist() == [4] * 3
+    assert set(ev.loc["four", "num_envs_per_gpu"]) == {2048} and set(ev.loc["four", "num_envs_total"]) == {8192}
+    assert set(ev.loc["one", "num_envs_per_gpu"]) == {8192} and set(ev.loc["one", "num_envs_total"]) == {8192}
+    # the same total envs: the same env steps per iteration on both
+    assert ev.loc["four", ENV_STEPS].tolist() == ev.loc["one", ENV_STEPS].tolist()
+    th = race_thresholds(races)
+    assert set(th.loc[th["race"] == "four", "gpus"]) == {4}
+    table = summary_markdown(race_summary(races))
+    rows = table.strip().splitlines()[2:]
+    assert "| H100 |" in rows[0] and "| 4 x H100 |" in rows[1] and "num_envs=2048" in rows[1]
+    fig = plot_races(race_evaluations(races))
+    assert fig.axes[5].get_xlabel().startswith("env steps")  # bottom right; axes[2] is the failure panel above it
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert any("(4 x H100," in t for t in labels) and any("(H100," in t for t in labels)
+    lines = [ln for ln in fig.axes[2].get_lines() if ln.get_marker() == "o"]  # the env-steps panel
+    assert sorted(ln.get_xdata().tolist() for ln in lines)[0] == ev.loc["one", ENV_STEPS].tolist()
 
 
 def test_the_cli_writes_the_tables_and_the_figure(tmp_path, capsys):
