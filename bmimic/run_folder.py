@@ -71,6 +71,13 @@ VIDEOS_DIR = "videos"
 SIM2SIM_DIR = "sim2sim"
 """`python -m bmimic.sim2sim` writes sim2sim/<model>/<checkpoint label>/ (EVAL_TABLES and SIM2SIM_GAP)."""
 SIM2SIM_GAP = "sim2sim_gap_bins.csv"
+SIM2SIM_WHOLE_CLIP = "whole_clip"
+"""`python -m bmimic.sim2sim --whole-clip R` writes sim2sim/<model>/<checkpoint label>/whole_clip/: EVAL_TABLES
+(rows: rollouts, bins and segments by condition), WHOLE_CLIP_SURVIVAL and SIM2SIM_WHOLE_CLIP_GAP."""
+WHOLE_CLIP_SURVIVAL = "whole_clip_survival.csv"
+"""Survival over clip time of whole-clip rollouts (run_schema.WHOLE_CLIP_SURVIVAL_COLUMNS)."""
+SIM2SIM_WHOLE_CLIP_GAP = "sim2sim_gap_clips.csv"
+"""Per condition and clip: native whole-clip success, bmimic's of the same checkpoint where known, the gap."""
 """sim2sim's per-bin gap to the MuJoCo-Warp evaluation of the same checkpoint."""
 
 _CHECKPOINT = re.compile(r"model_(\d+)\.pt")

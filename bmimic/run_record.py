@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import pandas as pd
 
@@ -117,15 +117,18 @@ def metrics(final: dict[str, Any], robust: dict[str, Any], run: dict[str, Any]) 
 
 def write_evaluation(out_dir: str | os.PathLike, episodes: pd.DataFrame, bins: pd.DataFrame,
                      segments: pd.DataFrame, summary: dict[str, Any],
-                     gap: pd.DataFrame | None = None) -> Path:
+                     gap: pd.DataFrame | None = None, tables: Mapping[str, pd.DataFrame] | None = None) -> Path:
     """One finished evaluation of a saved policy into `out_dir` (eval/<label>/ for `bmimic.eval`,
-    sim2sim/<model>/<label>/ for sim2sim, which adds its `gap` table): run_folder.EVAL_TABLES, each
-    atomically, the summary last so that its presence means a complete set (a reader, or sim2sim's gap,
-    never takes a half-written evaluation). Returns `out_dir` as a Path."""
+    sim2sim/<model>/<label>/ for sim2sim, which adds its `gap` table; sim2sim's whole-clip rollouts add
+    `tables`, CSVs by run_folder file name): run_folder.EVAL_TABLES, each atomically, the summary last
+    so that its presence means a complete set (a reader, or sim2sim's gap, never takes a half-written
+    evaluation). Returns `out_dir` as a Path."""
     episodes_file, bins_file, segments_file, summary_file = EVAL_TABLES
     out_dir = make_folder(out_dir)
     if gap is not None:
         atomic_write_csv(out_dir / SIM2SIM_GAP, gap)
+    for name, table in (tables or {}).items():
+        atomic_write_csv(out_dir / name, table)
     atomic_write_parquet(out_dir / episodes_file, episodes)
     atomic_write_parquet(out_dir / bins_file, bins)
     atomic_write_csv(out_dir / segments_file, segments)

@@ -153,9 +153,28 @@ RACE_KIND = "bmimic-race-1"
 SUCCESS_RATE = "success_rate"
 """Evaluated success (0-1) in one evaluation record of a race (the evaluation summary's eval_success_rate)."""
 
+# ---------------------------------------------------------------------------------------------- whole clips
+WHOLE_CLIP_CONDITIONS = ("nominal", "robust")
+"""The conditions of a whole-clip evaluation: `nominal` as the window evaluation (no domain randomisation,
+no observation noise, no pushes: deterministic, so one rollout per clip), `robust` with training's domain
+randomisation, observation noise and pushes (each rollout its own draw)."""
+START_TRANSIENT_S = 1.0
+"""A whole-clip rollout that fails within this many seconds of its start is a start transient."""
+WHOLE_CLIP_ROLLOUT_COLUMNS = ("condition", "clip", "clip_name", "rollout", "completed", "failure_time_s", "transient",
+                              "pushes")
+"""sim2sim's whole-clip rollouts (sim2sim/<model>/<label>/whole_clip/eval_episodes.parquet), first columns,
+then its episode columns: the condition, the clip and the rollout's index in it, whether it tracked to the
+clip's last frame, when it failed (seconds into the clip; NaN if it did not), whether that was a start
+transient (within START_TRANSIENT_S), and the pushes it took."""
+WHOLE_CLIP_SURVIVAL_COLUMNS = ("condition", "clip", "clip_name", "time_s", "rollouts", "tracking", "tracking_frac")
+"""A survival table of whole-clip rollouts: per condition and clip, at every whole second of it (time_s
+from its first frame) and at its last frame, the rollouts still tracking (no failure at or before that
+time) and their fraction; at the last frame that is the clip's success rate."""
+
 __all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "EE_POS_ERR_MM", "JOINT_POS_ERR_RAD",
            "JOINT_VEL_ERR_RADPS", "CLIP_ROLLOUT_COLUMNS", "Column", "ENV_STEPS", "EPISODE_COLUMNS", "ERROR_COLUMNS",
            "EVAL_SUMMARY_KEYS", "FAILURE_RATE", "FINAL_METRICS", "HORIZON_TRUNCATED", "ITERATION", "LABELS",
            "LOGISTICS_KEYS", "MASTERED_BELOW", "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND", "REPORTED_ERRORS", "RUN_METRICS",
-           "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "SUCCESS_RATE", "TRACKED_THROUGH", "TRACKING_ERRORS",
-           "WALL_TIME_S", "counts_as_mastered", "summary_key"]
+           "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE", "TRACKED_THROUGH",
+           "TRACKING_ERRORS", "WALL_TIME_S", "WHOLE_CLIP_CONDITIONS", "WHOLE_CLIP_ROLLOUT_COLUMNS",
+           "WHOLE_CLIP_SURVIVAL_COLUMNS", "counts_as_mastered", "summary_key"]

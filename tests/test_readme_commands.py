@@ -32,7 +32,8 @@ SMOKE = ["device=cpu", "num_envs=2", "max_iterations=2", "ppo.num_steps_per_env=
          "eval.horizon_s=0.2", "eval.episodes_per_bin=1", "progress_bar=false", "logger=none"]
 """Appended to every training command (the README's own values of these keys are dropped)."""
 
-SMOKE_FLAGS = {"--episodes-per-bin": "1", "--horizon-s": "0.2", "--seconds": "0.2", "--envs": "2", "--iters": "1"}
+SMOKE_FLAGS = {"--episodes-per-bin": "1", "--horizon-s": "0.2", "--seconds": "0.2", "--envs": "2", "--iters": "1",
+               "--whole-clip": "1"}
 """The README's sizes of eval, play, bench and sim2sim replaced by these."""
 
 SKIP = [

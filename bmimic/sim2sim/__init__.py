@@ -3,6 +3,7 @@
     python -m bmimic.sim2sim outputs/runs/default/<stamp>                 # latest motion_policy_<it>.onnx
     python -m bmimic.sim2sim RUN --model menagerie --episodes-per-bin 8 --workers 16
     python -m bmimic.sim2sim RUN/checkpoints/motion_policy_500.onnx --model path/to/g1.xml --video dance.mp4
+    python -m bmimic.sim2sim RUN --whole-clip 16                          # whole clips, nominal and robust
 
 A second-simulator check before a robot: the BeyondMimic-compatible ONNX (`motion_policy_<it>.onnx`,
 written at every checkpoint or by `python -m bmimic.export RUN`) runs under onnxruntime in MuJoCo's C
@@ -41,10 +42,15 @@ anchor-relative MPKPE to the MuJoCo-Warp evaluation of the same checkpoint (RUN/
 from `bmimic.eval`, else the training-time evaluation in RUN/eval.parquet) is printed overall and per
 bin, with a note when the two ran with different episodes per bin, horizon or MPKPE threshold.
 
+`--whole-clip R` (`whole_clip`) runs every clip from its first frame to its last instead, nominal and
+with training's perturbations (`perturb`), and writes RUN/sim2sim/<model>/<checkpoint>/whole_clip/.
+
 Modules: `spec` reads the file's metadata and baked-in motion, `model` builds the robot model,
-`rollout` is the numpy control loop (observations, terminations, errors, one episode, worker
-processes), `evaluation` runs the episodes and builds the tables, `gap` compares them with the
-MuJoCo-Warp evaluation, `cli` is the command line. The simulation path (this package's imports and
+`rollout` is the numpy control loop (observations, terminations, errors, one episode), `workers`
+spreads episodes over processes, `native_eval` runs the episodes and builds the tables, `gap` compares
+them with the MuJoCo-Warp evaluation, `perturb` is the robust condition's draws, `whole_clip` the
+whole-clip rollouts and their tables, `whole_clip_gap` bmimic's own whole-clip success and the gap to
+it, `cli` is the command line. The simulation path (this package's imports and
 everything a worker runs) uses numpy, mujoco, onnxruntime and torch-free bmimic helpers only; the
 command's bookkeeping (bins, start frames, tables) reuses bmimic.evaluation's, so the two evaluations are
 comparable row by row.
@@ -54,7 +60,7 @@ from bmimic.sim2sim.cli import main, parser, render_video
 from bmimic.sim2sim.gap import GAP_FILE, SETTINGS, WarpEval, format_gap, gap_table, warp_eval
 from bmimic.sim2sim.model import MENAGERIE_ENV, MODELS, build_model, find_menagerie, model_label
 from bmimic.sim2sim.native_eval import MOTION_FILE, checkpoint_label, collect, evaluate, locate
-from bmimic.sim2sim.rollout import ERROR_NAMES, Episode, Rollout, run_episode, run_episodes
+from bmimic.sim2sim.rollout import ERROR_NAMES, Episode, Rollout, run_episode
 from bmimic.sim2sim.spec import (
     OBS_DIMS,
     REFERENCE_OUTPUTS,
@@ -67,6 +73,7 @@ from bmimic.sim2sim.spec import (
     read_policy,
     read_reference,
 )
+from bmimic.sim2sim.workers import run_episodes
 
 __all__ = [
     "ERROR_NAMES", "GAP_FILE", "MENAGERIE_ENV", "MODELS", "MOTION_FILE", "OBS_DIMS", "REFERENCE_OUTPUTS", "SETTINGS",

@@ -13,7 +13,14 @@ import numpy as np
 
 from bmimic.cli_common import user_errors
 from bmimic.extras import require_extra
-from bmimic.run_folder import EVAL_TABLES, SIM2SIM_DIR
+from bmimic.run_folder import (
+    EVAL_TABLES,
+    SIM2SIM_DIR,
+    SIM2SIM_WHOLE_CLIP,
+    SIM2SIM_WHOLE_CLIP_GAP,
+    WHOLE_CLIP_SURVIVAL,
+)
+from bmimic.run_schema import WHOLE_CLIP_CONDITIONS
 from bmimic.sim2sim.gap import GAP_FILE, format_gap
 from bmimic.sim2sim.model import build_model, model_label
 from bmimic.sim2sim.native_eval import evaluate, locate
@@ -68,7 +75,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--video", type=Path, help="also render one episode to this .mp4 (or .gif)")
     p.add_argument("--video-start-s", type=float, default=0.0, help="where the video episode starts in the motion")
     p.add_argument("--video-s", type=float, default=10.0, help="longest video episode in seconds")
-    p.add_argument("--out", type=Path, help="folder for the tables (default RUN/sim2sim/<model>/<checkpoint>)")
+    p.add_argument("--out", type=Path, help="folder for the tables (default RUN/sim2sim/<model>/<checkpoint>, "
+                   f"with --whole-clip .../<checkpoint>/{SIM2SIM_WHOLE_CLIP})")
+    p.add_argument("--whole-clip", type=int, metavar="R",
+                   help="instead of the windows: R rollouts per clip from its first frame to its last, per condition "
+                        "(nominal is deterministic here: one rollout per clip)")
+    p.add_argument("--conditions", help=f"with --whole-clip: comma-separated subset of {', '.join(WHOLE_CLIP_CONDITIONS)} "
+                   "(default all)")
+    p.add_argument("--seed", type=int, help="with --whole-clip: seed of the robust rollouts' draws (default 0)")
     return p
 
 
@@ -84,6 +98,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             select_gl_backend()  # before mujoco is imported
         if args.workers < 1:
             raise Sim2SimError(f"--workers {args.workers}: need at least 1")
+        if args.whole_clip is not None:
+            return _whole_clip(args)
+        whole_clip_only = [f for f, v in (("--conditions", args.conditions), ("--seed", args.seed)) if v is not None]
+        if whole_clip_only:
+            raise Sim2SimError(f"{', '.join(whole_clip_only)}: only with --whole-clip R")
         policy_path, run_dir = locate(args.path)
         result, warp, gap = evaluate(policy_path, run_dir, args.model, args.episodes_per_bin, args.horizon_s,
                                      args.workers, args.joint_dynamics, args.max_mpkpe_rel_mm)
@@ -110,7 +129,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _write(result, gap, out_dir: Path) -> None:
+def _whole_clip(args: argparse.Namespace) -> int:
+    """`--whole-clip R`: every check first (nothing is written on a refusal), then the rollouts, the
+    tables through the run record and the printed summary."""
+    from bmimic.evaluation.tables import EvalResult
+    from bmimic.sim2sim.whole_clip import check_rollouts, format_whole_clip, parse_conditions, run_whole_clip
+
+    check_rollouts(args.whole_clip)
+    conditions = parse_conditions(args.conditions or ",".join(WHOLE_CLIP_CONDITIONS))
+    window_only = [f for f, v in (("--episodes-per-bin", args.episodes_per_bin), ("--horizon-s", args.horizon_s),
+                                  ("--video", args.video)) if v is not None]
+    if window_only:
+        raise Sim2SimError(f"{', '.join(window_only)}: the window evaluation's; --whole-clip runs every clip whole")
+    policy_path, run_dir = locate(args.path)
+    result = run_whole_clip(policy_path, run_dir, args.whole_clip, conditions, args.model, args.workers,
+                            args.joint_dynamics, args.max_mpkpe_rel_mm, args.seed or 0)
+    out = args.out or ((run_dir or policy_path.parent) / SIM2SIM_DIR / model_label(args.model)
+                       / result.summary["label"] / SIM2SIM_WHOLE_CLIP)
+    written = EvalResult(result.rollouts, result.bins, result.segments, result.summary)
+    _write(written, None, out.resolve(), {WHOLE_CLIP_SURVIVAL: result.survival, SIM2SIM_WHOLE_CLIP_GAP: result.gap})
+    print(format_whole_clip(result))
+    print(f"tables: {written.out_dir}")
+    return 0
+
+
+def _write(result, gap, out_dir: Path, tables: dict | None = None) -> None:
     from bmimic.evaluation.tables import write_tables
 
-    write_tables(result, out_dir, gap)  # through the run record: the gap first, the summary last
+    write_tables(result, out_dir, gap, tables)  # through the run record: the gap first, the summary last

@@ -56,20 +56,20 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     folder = run_dir / EVAL_DIR / label
     summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
     if summary_file.is_file() and bins_file.is_file():
-        with _readable(summary_file):
+        with readable(summary_file):
             s = json.loads(summary_file.read_text())
             success, mpkpe = float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"])
-        with _readable(bins_file):
+        with readable(bins_file):
             bins = pd.read_parquet(bins_file)
         if "visits" in bins:
-            with _readable(bins_file):
+            with readable(bins_file):
                 return WarpEval(str(folder), bins[columns], success, mpkpe, {k: s[k] for k in SETTINGS if k in s})
         log.warning("%s: tables of the old start-bin accounting, not compared (evaluate again with python -m "
                     "bmimic.eval)", folder)
     table = table_path(run_dir, "eval")
     if iteration is None or not table.is_file():
         return None
-    with _readable(table):
+    with readable(table):
         rows = pd.read_parquet(table)
         rows = rows[rows[ITERATION] == iteration].reset_index(drop=True)
     if rows.empty:
@@ -78,7 +78,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
         log.warning("%s: rows of the old start-bin accounting, not compared (run python -m bmimic.eval %s)",
                     table, run_dir)
         return None
-    with _readable(table):
+    with readable(table):
         overall = summarize(rows)
         settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
         config = _run_eval_config(run_dir)
@@ -88,7 +88,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
 
 
 @contextlib.contextmanager
-def _readable(path: Path):
+def readable(path: Path):
     """A file of the MuJoCo-Warp evaluation that cannot be read (damaged, or lacking a column) is one
     line naming it, not a traceback from the reader."""
     try:

@@ -15,8 +15,9 @@ from bmimic.run_folder import checkpoint_label as run_checkpoint_label
 from bmimic.run_schema import HORIZON_TRUNCATED, ITERATION
 from bmimic.sim2sim.gap import eval_settings, gap_table, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
-from bmimic.sim2sim.rollout import Episode, run_episodes
+from bmimic.sim2sim.rollout import Episode
 from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, policy_session, read_policy, read_reference
+from bmimic.sim2sim.workers import run_episodes
 
 log = logging.getLogger("bmimic.sim2sim")
 

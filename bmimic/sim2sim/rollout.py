@@ -1,18 +1,18 @@
 """The numpy control loop: one robot in native MuJoCo driven by the ONNX policy, its observations,
-terminations and tracking errors, one evaluation episode, and episodes spread over worker processes."""
+terminations and tracking errors, and one evaluation episode (optionally perturbed: `EpisodeHooks`,
+which bmimic.sim2sim.perturb.Draw is). Worker processes: bmimic.sim2sim.workers."""
 
 from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
-from typing import TYPE_CHECKING, Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol
 
 import numpy as np
 
 from bmimic.motion.math import quat_to_matrix, rotation_angle
 from bmimic.run_schema import ERROR_COLUMNS, HORIZON_TRUNCATED, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
-from bmimic.sim2sim.spec import PolicySpec, policy_session
+from bmimic.sim2sim.spec import PolicySpec
 
 if TYPE_CHECKING:
     from bmimic.motion.motion import Motion
@@ -54,6 +54,11 @@ class Rollout:
         ends = np.append(ref.clip_starts[1:], ref.num_frames)
         self.clip_end = np.repeat(ends, np.diff(np.append(ref.clip_starts, ref.num_frames)))  # frame -> its clip's end
         self.actions = np.zeros(len(spec.joint_names))
+        self.default_joint_pos = spec.default_joint_pos
+        """The action offset and the joint observation's origin (a robust rollout offsets it)."""
+        self.obs_noise: np.ndarray | None = None
+        """[obs_dim] half-widths of uniform noise on the policy input, drawn from `rng` (None: none)."""
+        self.rng: np.random.Generator | None = None
         self.frame = 0
         self.segment_end = spec.num_frames
         self._obs = np.zeros((1, spec.obs_dim), dtype=np.float32)
@@ -95,6 +100,10 @@ class Rollout:
         self.segment_end = int(self.clip_end[self._clamp(frame)])
         self.actions = np.asarray(actions, dtype=np.float64).copy()
         mujoco.mj_forward(self.m, self.d)
+        self.touch()
+
+    def touch(self) -> None:
+        """The physics state was changed from outside a step (a push): state() is computed anew."""
         self._version += 1
 
     def _clamp(self, frame: int) -> int:
@@ -138,6 +147,8 @@ class Rollout:
         for fn, term in zip(self._obs_fns, self.spec.obs_terms):
             self._obs[0, i:i + term.dim] = fn(s)
             i += term.dim
+        if self.obs_noise is not None:
+            self._obs[0] += (2.0 * self.rng.random(self.spec.obs_dim) - 1.0) * self.obs_noise
         return self._obs
 
     def _o_motion_command(self, s):
@@ -165,7 +176,7 @@ class Rollout:
         return s["root_ang_vel_b"]
 
     def _o_joint_pos_rel(self, s):
-        return s["joint_pos"] - self.spec.default_joint_pos
+        return s["joint_pos"] - self.default_joint_pos
 
     def _o_joint_vel_rel(self, s):
         return s["joint_vel"]
@@ -227,7 +238,7 @@ class Rollout:
         self.actions = np.asarray(actions, dtype=np.float64).copy()
         if not np.isfinite(self.actions).all():
             return False  # MuJoCo would zero a non-finite ctrl and carry on; the policy itself broke
-        self.d.ctrl[:] = self.spec.default_joint_pos + self.spec.action_scale * self.actions
+        self.d.ctrl[:] = self.default_joint_pos + self.spec.action_scale * self.actions
         bad = self.d.warning[self._bad].number
         for _ in range(self.spec.decimation):
             mujoco.mj_step(self.m, self.d)
@@ -244,6 +255,19 @@ class Rollout:
         return self.frame >= self.segment_end - 1
 
 
+class EpisodeHooks(Protocol):
+    """What perturbs an episode (bmimic.sim2sim.perturb.Draw): called before the reset, after it, after
+    each step's terminations and errors, and at the end (even on an error)."""
+
+    def start(self, rollout: Rollout) -> None: ...
+
+    def after_reset(self, rollout: Rollout) -> None: ...
+
+    def after_step(self, rollout: Rollout) -> None: ...
+
+    def finish(self, rollout: Rollout) -> None: ...
+
+
 class Episode(NamedTuple):
     """One evaluation episode: its tidy row and the errors of each step where they were measured."""
 
@@ -257,7 +281,7 @@ class Episode(NamedTuple):
 
 
 def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkpe_rel_mm: float | None = None,
-                on_step: Callable[[Rollout, bool], None] | None = None) -> Episode:
+                on_step: Callable[[Rollout, bool], None] | None = None, draw: EpisodeHooks | None = None) -> Episode:
     """One evaluation episode, accounted exactly as bmimic.training.evaluator.Evaluator.run_episodes does.
 
     Each step is judged at the frame the reference stood at when it began (terminations; the step's
@@ -269,8 +293,24 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
     the world broke (Rollout.physics: MuJoCo reset it, or its state or the actions left their bounds)
     ends the episode as a failure at that step's frame (`broken`, and `diverged` for the tables of
     earlier versions), and its errors (of a state that no longer exists) are not counted.
+
+    `draw` (EpisodeHooks, e.g. bmimic.sim2sim.perturb.Draw): the episode's perturbations, applied before
+    the reset, after it, after each step's terminations and errors (pushes), and taken off at the end.
     """
+    if draw is None:
+        return _run_episode(rollout, start_frame, horizon_steps, max_mpkpe_rel_mm, on_step, None)
+    draw.start(rollout)
+    try:
+        return _run_episode(rollout, start_frame, horizon_steps, max_mpkpe_rel_mm, on_step, draw)
+    finally:
+        draw.finish(rollout)
+
+
+def _run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkpe_rel_mm: float | None,
+                 on_step: Callable[[Rollout, bool], None] | None, draw: EpisodeHooks | None) -> Episode:
     rollout.reset(start_frame)
+    if draw is not None:
+        draw.after_reset(rollout)
     start = rollout.frame
     truncated = rollout.segment_end - 1 - start < horizon_steps
     if on_step is not None:
@@ -299,6 +339,8 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
         if clip_end:
             end_frame = rollout.frame  # tracked up to the clip's last frame
             break
+        if draw is not None:
+            draw.after_step(rollout)  # pushes come after the step's terminations (the env's order)
     err = np.asarray(errors, dtype=np.float64).reshape(len(frames), len(MEASURED))
     means = err.sum(axis=0) / max(len(frames), 1)
     error_failed = bool(max_mpkpe_rel_mm is not None and not (terminated or diverged)
@@ -316,37 +358,3 @@ def run_episode(rollout: Rollout, start_frame: int, horizon_steps: int, max_mpkp
         "broken": diverged, "diverged": diverged, "wall_s": time.perf_counter() - t0,
     }
     return Episode(row, np.asarray(frames, dtype=np.int64), err)
-
-
-# ============================================================================================ workers
-_WORKER: dict = {}
-
-
-def _init_worker(policy_path: Path, mjm, spec: PolicySpec, ref: Motion, horizon_steps: int,
-                 max_mpkpe_rel_mm: float | None) -> None:
-    _WORKER["rollout"] = Rollout(mjm, spec, ref, policy_session(policy_path))
-    _WORKER["args"] = (horizon_steps, max_mpkpe_rel_mm)
-
-
-def _work(start_frame: int) -> Episode:
-    return run_episode(_WORKER["rollout"], int(start_frame), *_WORKER["args"])
-
-
-def run_episodes(policy_path: Path, mjm, spec: PolicySpec, ref: Motion, frames: np.ndarray, horizon_steps: int,
-                 workers: int, max_mpkpe_rel_mm: float | None = None) -> tuple[list[Episode], float]:
-    """(one Episode per start frame, in order; wall seconds) over `workers` processes (spawned: no fork
-    of the caller's threads), each with its own MjData and onnxruntime session."""
-    t0 = time.perf_counter()
-    workers = max(1, min(workers, len(frames)))
-    init = (policy_path, mjm, spec, ref, horizon_steps, max_mpkpe_rel_mm)
-    if workers == 1:
-        _init_worker(*init)
-        episodes = [_work(f) for f in frames]
-    else:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-                                 initargs=init) as pool:
-            episodes = list(pool.map(_work, frames, chunksize=max(1, len(frames) // (8 * workers))))
-    return episodes, time.perf_counter() - t0
