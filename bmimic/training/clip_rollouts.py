@@ -11,6 +11,8 @@ frame, or for ``max_s`` seconds when that is shorter, under the evaluation's fai
 
 The rollouts of all clips run side by side in one wave of the evaluation environment; the wave lasts
 as long as the longest clip (or ``max_s``), so on long clips this is a long, sequential evaluation.
+``clip_start_rollouts`` runs R such rollouts per clip; the whole-clip evaluation
+(bmimic.training.whole_clip) is built on it, with R rollouts per clip under perturbations and no ``max_s``.
 """
 
 from __future__ import annotations
@@ -31,19 +33,32 @@ def clip_bounds(layout) -> tuple[np.ndarray, np.ndarray]:
     return starts.astype(np.int64), np.r_[starts[1:], layout.num_frames].astype(np.int64)
 
 
-def clip_rollouts(evaluator, policy, max_s: float | None = None) -> pd.DataFrame:
-    """One rollout per clip of ``evaluator``'s layout (module docstring): CLIP_ROLLOUT_COLUMNS, one row
-    per clip in clip order."""
+def clip_start_rollouts(evaluator, policy, per_clip: int = 1, max_s: float | None = None):
+    """``per_clip`` rollouts per clip of ``evaluator``'s layout, each from the clip's first frame to its
+    last frame (or for ``max_s`` seconds when that is shorter), in ``evaluator``'s environment under its
+    failure rule: its Rollouts (bmimic.training.evaluator), the episodes clip by clip with the columns
+    ``clip`` and ``rollout`` (0..per_clip-1) first. Episodes beyond the environment's size run in later waves."""
     layout = evaluator.layout
     starts, ends = clip_bounds(layout)
     steps = max(1, int((ends - starts).max()) - 1)  # steps from a clip's first frame to its last
     if max_s is not None:
         steps = min(steps, max(1, int(round(max_s / evaluator.env.step_dt))))
     one = copy.copy(evaluator)  # same environment and failure rule, other starts and horizon
-    one.frames = starts
-    one.bins = layout.frame_to_bin.cpu().numpy()[starts]
+    one.frames = np.repeat(starts, per_clip)
+    one.bins = layout.frame_to_bin.cpu().numpy()[one.frames]
     one.horizon_steps = steps
-    ep = one.run_episodes(policy).episodes
+    out = one.run_episodes(policy)
+    out.episodes.insert(0, "rollout", np.tile(np.arange(per_clip), len(starts)))
+    out.episodes.insert(0, "clip", np.repeat(np.arange(len(starts)), per_clip))
+    return out
+
+
+def clip_rollouts(evaluator, policy, max_s: float | None = None) -> pd.DataFrame:
+    """One rollout per clip of ``evaluator``'s layout (module docstring): CLIP_ROLLOUT_COLUMNS, one row
+    per clip in clip order."""
+    layout = evaluator.layout
+    starts, ends = clip_bounds(layout)
+    ep = clip_start_rollouts(evaluator, policy, 1, max_s).episodes
     names = list(getattr(layout, "clip_names", ("motion",)))
     broken = ep["broken"].to_numpy(dtype=bool) if "broken" in ep else np.zeros(len(ep), dtype=bool)
     failed = ep["failed"].to_numpy(dtype=bool)
@@ -74,4 +89,4 @@ def eval_mode(policy):
             policy.train()
 
 
-__all__ = ["CLIP_ROLLOUT_COLUMNS", "clip_bounds", "clip_rollouts", "clips_failed", "eval_mode"]
+__all__ = ["CLIP_ROLLOUT_COLUMNS", "clip_bounds", "clip_rollouts", "clip_start_rollouts", "clips_failed", "eval_mode"]

@@ -33,6 +33,7 @@ the Evaluator and any other evaluator (e.g. a native-MuJoCo one) share it.
 from __future__ import annotations
 
 import math
+import time
 from typing import NamedTuple
 
 import numpy as np
@@ -216,6 +217,12 @@ class Evaluator:
         self.bins = np.repeat(np.arange(layout.num_bins), episodes_per_bin)
         self.horizon_steps = max(1, int(round(horizon_s / env.step_dt)))
         self.max_mpkpe_rel_mm = max_mpkpe_rel_mm
+        self.before_wave = None
+        """Called with each wave's index before its episodes start (whole clips: a robust wave's own draws)."""
+        self.stop_early: bool | None = None
+        """Whether a wave may stop once no episode is alive (ALIVE_CHECK_STEPS); None: unless the env is robust."""
+        self.seconds_per_step = math.nan
+        """Wall time per control step of the last wave (its steps to its rows on the host)."""
 
     def segment_of_bin(self) -> list[str]:
         """Label of each bin: the segment covering the bin's midpoint ('' without a manifest)."""
@@ -231,8 +238,10 @@ class Evaluator:
         measured = (*ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
         frame_sums = torch.zeros(num_frames, len(measured) + 1, device=dev)  # steps, then per-step sums
         rows = []
-        may_stop = not getattr(env, "robust", False)
+        may_stop = not getattr(env, "robust", False) if self.stop_early is None else self.stop_early
         for first in range(0, len(self.frames), n):
+            if self.before_wave is not None:
+                self.before_wave(first // n)
             frames = self.frames[first : first + n]
             m = len(frames)
             padded = np.concatenate([frames, np.full(n - m, frames[-1])])
@@ -249,7 +258,9 @@ class Evaluator:
             steps = torch.zeros(n, device=dev)
             sums = torch.zeros(n, len(measured), device=dev)
             obs = env.get_observations()
+            t0, taken = time.perf_counter(), 0
             for step in range(self.horizon_steps):
+                taken = step + 1
                 frame = env.time_steps.clone()  # the frame this step is judged at (terminations)
                 end_frame = torch.where(alive, frame, end_frame)
                 prev_joint_vel = env.state.joint_vel.clone()
@@ -284,6 +295,7 @@ class Evaluator:
             failure_frame = torch.where(ended, end_frame, torch.where(error_failed, worst_frame, -1))
             ints = torch.stack((start, end_frame, failure_frame, steps.long(), terminated.long(),
                                 error_failed.long(), truncated.long(), broken.long()), dim=-1)[:m].cpu().numpy()
+            self.seconds_per_step = (time.perf_counter() - t0) / max(taken, 1)
             wave = pd.DataFrame(means[:m].cpu().numpy(), columns=list(measured))
             head = pd.DataFrame({
                 BIN: self.bins[first : first + m],
