@@ -32,7 +32,7 @@ from analysis.run_files import (
     seed_from_name,
     table_problem,
 )
-from bmimic.run_folder import MOTION_SEGMENTS, STATUS, TABLES, table_path
+from bmimic.run_folder import EVALUATION_TABLES, MOTION_SEGMENTS, STATUS, TABLES, table_path
 from bmimic.run_schema import ITERATION
 
 log = logging.getLogger("analysis")
@@ -258,7 +258,7 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
         if missing:
             raise AnalysisError(f"{path}: missing columns {missing}")
         if max_iteration is not None and ITERATION in table.columns:
-            done = table[ITERATION] if "eval" in name else table[ITERATION] + 1
+            done = table[ITERATION] if name in EVALUATION_TABLES else table[ITERATION] + 1
             table = table[done <= max_iteration]
         table = table.drop(columns=[c for c in ("run_dir", "arm", "seed") if c in table.columns])
         table.insert(0, "seed", run.seed)

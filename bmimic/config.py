@@ -27,6 +27,8 @@ from bmimic.training.config import EvalConfig, PPOConfig
 GPU_DEFAULT_NUM_ENVS = 4096
 CPU_DEFAULT_NUM_ENVS = 8
 CPU_DEFAULT_MAX_ITERATIONS = 4
+GPU_WHOLE_CLIP_ROLLOUTS = 128
+CPU_WHOLE_CLIP_ROLLOUTS = 2
 
 
 class ConfigError(BmimicError):
@@ -181,6 +183,8 @@ def resolve_runtime(cfg, device: str) -> None:
         cfg.sampler.schedule_iterations = cfg.max_iterations  # EGM: a schedule that spans training
     if cfg.eval.episodes_per_bin is None:
         cfg.eval.episodes_per_bin = 32 if on_gpu else 1
+    if cfg.eval.whole_clip.rollouts is None:
+        cfg.eval.whole_clip.rollouts = GPU_WHOLE_CLIP_ROLLOUTS if on_gpu else CPU_WHOLE_CLIP_ROLLOUTS
 
 
 def with_schema_defaults(config: dict) -> dict:

@@ -229,6 +229,7 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
         _fail("eval.max_mpkpe_rel_mm", f"must be > 0 or null, got {cfg.eval.max_mpkpe_rel_mm}")
     if cfg.eval.max_envs < 1:
         _fail("eval.max_envs", f"must be >= 1, got {cfg.eval.max_envs}")
+    check_whole_clip(cfg.eval, step_dt)
     if cfg.time_limit_s is not None and cfg.time_limit_s <= 0:
         _fail("time_limit_s", f"must be > 0 or null, got {cfg.time_limit_s}")
     if cfg.logger not in ("tensorboard", "wandb", "none"):
@@ -240,6 +241,33 @@ def validate(cfg, motion_duration_s: float | None = None) -> None:
     if motion_duration_s is not None and (not math.isfinite(motion_duration_s) or motion_duration_s <= 0):
         _fail("motion", f"has no duration ({motion_duration_s} s)")
     validate_sampler_config(cfg.sampler, motion_duration_s)  # without a motion: all but the bins' fit
+
+
+def check_whole_clip(eval_cfg: Any, step_dt: float) -> None:
+    """The eval.whole_clip keys (bmimic.training.config.WholeClipConfig), one line naming the first bad one."""
+    from bmimic.run_schema import WHOLE_CLIP_CONDITIONS
+
+    w = eval_cfg.whole_clip
+    if w.rollouts is not None and w.rollouts < 1:
+        _fail("eval.whole_clip.rollouts", f"must be >= 1, got {w.rollouts}")
+    conditions = list(w.conditions or [])
+    unknown = [c for c in conditions if c not in WHOLE_CLIP_CONDITIONS]
+    if unknown or not conditions or len(set(conditions)) != len(conditions):
+        what = f"unknown condition {unknown[0]!r}" if unknown else "must name each condition once" if conditions else (
+            "names no condition")
+        _fail("eval.whole_clip.conditions", f"{what} (known: {', '.join(WHOLE_CLIP_CONDITIONS)}), got {conditions}")
+    if w.every_iters < 0:
+        _fail("eval.whole_clip.every_iters", f"must be >= 0, got {w.every_iters}")
+    if w.every_iters and (not eval_cfg.every_iters or w.every_iters % eval_cfg.every_iters):
+        _fail("eval.whole_clip.every_iters", f"must be a multiple of eval.every_iters={eval_cfg.every_iters} (it runs "
+              f"right after that window evaluation), got {w.every_iters}")
+    for key in ("max_share", "after_success"):
+        value = getattr(w, key)
+        if value is not None and not 0 < value <= 1:
+            _fail(f"eval.whole_clip.{key}", f"must be in (0, 1] or null, got {value}")
+    if not 0 < w.max_clip_s <= MAX_ITERATION * step_dt:
+        _fail("eval.whole_clip.max_clip_s", f"must be > 0 s and at most {MAX_ITERATION:.0e} control steps, got "
+              f"{w.max_clip_s}")
 
 
 def advisories(cfg: Any) -> list[str]:

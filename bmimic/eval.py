@@ -2,7 +2,8 @@
 
     python -m bmimic.eval outputs/runs/default/2026-01-01_12-00-00            # the run's latest.pt
     python -m bmimic.eval outputs/runs/default/<stamp>/checkpoints/model_500.pt --episodes-per-bin 8
-    python -m bmimic.eval RUN --horizon-s 4 --device cuda:1 eval.max_envs=1024 env.episode_length_s=20
+    python -m bmimic.eval RUN --horizon-s 4 --device cuda:1 eval.max_envs=1024
+    python -m bmimic.eval RUN --whole-clip 128 --conditions nominal,robust
 
 The run's composed config (RUN_DIR/.hydra/config.yaml) is reloaded and its `auto`/null values are
 resolved for this machine exactly as training does; dotted `key=value` overrides are merged on top.
@@ -21,14 +22,26 @@ and is refused when sim2sim compared a gap against it, unless --force or --out s
     eval_segments.csv      one row per motion segment, counted like the bins (visits, failures there)
     eval_summary.json      overall numbers (keys as in metrics.json: eval_success_rate, eval_mpkpe_mm, ...)
 
-Bad input (missing folder, no checkpoint, a checkpoint that does not match the run's config) prints
-one `error: ...` line and exits with status 2.
+`--whole-clip [R]` evaluates whole clips instead (bmimic.training.whole_clip; sim2sim's flag does the
+same in native MuJoCo): per clip, rollouts from its first frame to its last under each of `--conditions`
+(nominal: as above, deterministic, one rollout; robust: training's domain randomisation, observation
+noise and pushes, R of them, each its own draw; R defaults to eval.whole_clip.rollouts), into
+RUN_DIR/eval/<checkpoint>/whole_clip/ (or --out):
+
+    whole_clip.csv            per condition and clip: rollouts, completed, success, start transients
+                              (failures in the first second) and later failures, errors over completed ones
+    whole_clip_survival.csv   per condition, clip and second: rollouts still tracking
+    whole_clip_failures.csv   one row per failed rollout: frame, time into the clip, bin, kind
+    whole_clip_summary.json   overall numbers (whole_clip_<condition>_success_rate, ...)
+
+Bad input (missing folder, no checkpoint, a checkpoint that does not match the run's config,
+--whole-clip R below 1, an unknown condition, a clip longer than eval.whole_clip.max_clip_s) prints one
+`error: ...` line and exits with status 2, writing nothing.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import logging
 import sys
 import time
@@ -39,10 +52,17 @@ from bmimic import BmimicError
 from bmimic.cli_common import add_trust_flag, first_line, user_errors
 from bmimic.console import quiet_warp
 from bmimic.evaluation.report import format_report
-from bmimic.evaluation.saved_run import LoadedRun, checkpoint_label, load_run, load_run_checkpoint
+from bmimic.evaluation.saved_run import (
+    LoadedRun,
+    checkpoint_label,
+    evaluation_record,
+    load_run,
+    load_run_checkpoint,
+)
 from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table, write_tables
-from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR
-from bmimic.run_schema import ENV_STEPS, HORIZON_TRUNCATED, ITERATION
+from bmimic.evaluation.whole_clip import evaluate_whole_clip, format_whole_clip, write_whole_clip_tables
+from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR, WHOLE_CLIP_DIR
+from bmimic.run_schema import HORIZON_TRUNCATED, WHOLE_CLIP_CONDITIONS
 
 log = logging.getLogger("bmimic.eval")
 
@@ -71,7 +91,6 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
     episodes = episode_table(rollouts.episodes, layout, motion, env.step_dt, iteration)
     bins = bin_table(rollouts, episodes, layout, motion.segments)
     segments = segment_table(rollouts, episodes, motion)
-    progress = state.get("progress") or {}
     summary = {
         **summarize(bins),
         "episodes": int(len(episodes)),
@@ -83,17 +102,8 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
         "horizon_truncated_bins": int(bins[HORIZON_TRUNCATED].sum()),
         "eval_worlds": int(env.num_envs),
         "eval_wall_time_s": wall,
-        "checkpoint": str(run.checkpoint),
-        ITERATION: iteration,
-        ENV_STEPS: int(progress.get(ENV_STEPS, -1)),
-        "run_dir": str(run.run_dir),
-        "motion": str(cfg.motion.name),
         "motion_duration_s": float(motion.duration_s),
-        "seed": int(cfg.seed),
-        "device": device,
-        "overrides": list(overrides),
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "label": checkpoint_label(run.checkpoint, state),
+        **evaluation_record(run, state, overrides),
     }
     return EvalResult(episodes, bins, segments, summary)
 
@@ -127,7 +137,28 @@ def flag_overrides(args: argparse.Namespace) -> list[str]:
         out.append(f"eval.max_envs={args.num_envs}")
     if args.device is not None:
         out.append(f"device={args.device}")
+    if isinstance(args.whole_clip, int):
+        out.append(f"eval.whole_clip.rollouts={args.whole_clip}")
+    if args.conditions is not None:
+        out.append(f"eval.whole_clip.conditions=[{','.join(args.conditions)}]")
     return out
+
+
+def check_flags(args: argparse.Namespace) -> None:
+    """The whole-clip flags' values (UsageError, one line), before anything is read."""
+    if args.conditions is not None and args.whole_clip is None:
+        raise UsageError("--conditions: only with --whole-clip")
+    if isinstance(args.whole_clip, int) and args.whole_clip < 1:
+        raise UsageError(f"--whole-clip {args.whole_clip}: the rollouts per clip must be >= 1")
+    if args.conditions is not None:
+        unknown = [c for c in args.conditions if c not in WHOLE_CLIP_CONDITIONS]
+        if unknown or not args.conditions or len(set(args.conditions)) != len(args.conditions):
+            problem = f"unknown condition {unknown[0]!r}" if unknown else "name each condition once"
+            raise UsageError(f"--conditions: {problem} (known: {', '.join(WHOLE_CLIP_CONDITIONS)})")
+
+
+class UsageError(BmimicError):
+    """A command-line flag's value makes no sense."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -143,6 +174,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--num-envs", type=int, help="most simultaneous evaluation worlds (eval.max_envs)")
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
     p.add_argument("--out", type=Path, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
+    p.add_argument("--whole-clip", nargs="?", type=int, const=..., metavar="R",  # ...: R from the config
+                   help="instead of the windows: R rollouts per clip from its first frame to its last, per condition "
+                        "(nominal is deterministic: one per clip); R: eval.whole_clip.rollouts (128 on a GPU, 2 on a "
+                        "CPU) when left out")
+    p.add_argument("--conditions", "--condition", type=lambda text: [c.strip() for c in text.split(",") if c.strip()],
+                   help="with --whole-clip: nominal, robust or nominal,robust (eval.whole_clip.conditions)")
     p.add_argument("--force", action="store_true",
                    help="replace an earlier evaluation of this checkpoint even when sim2sim compared against it")
     add_trust_flag(p)
@@ -155,21 +192,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     quiet_warp()
     overrides = [*args.overrides, *flag_overrides(args)]
     try:
+        check_flags(args)
         run = load_run(args.path, overrides, trust=args.trust_checkpoint)
         if args.out is None:  # RUN/eval/<checkpoint>: checked before the evaluation's minutes
             from bmimic.training.checkpoints import load_checkpoint_file
 
             state = load_checkpoint_file(run.checkpoint, "cpu", args.trust_checkpoint)
             out_dir = run.run_dir / EVAL_DIR / checkpoint_label(run.checkpoint, state)
+            out_dir = out_dir / WHOLE_CLIP_DIR if args.whole_clip is not None else out_dir
         else:
             out_dir = args.out
-        keep_earlier(out_dir.resolve(), run.run_dir, args.force)
-        result = evaluate(run, overrides, trust=args.trust_checkpoint)
-        write_tables(result, out_dir.resolve())
+        if args.whole_clip is not None:
+            whole = evaluate_whole_clip(run, overrides, trust=args.trust_checkpoint)
+            write_whole_clip_tables(whole, out_dir.resolve())
+        else:
+            keep_earlier(out_dir.resolve(), run.run_dir, args.force)
+            result = evaluate(run, overrides, trust=args.trust_checkpoint)
+            write_tables(result, out_dir.resolve())
     except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)
         return 2
-    print(format_report(result))
+    print(format_whole_clip(whole) if args.whole_clip is not None else format_report(result))
     return 0
 
 

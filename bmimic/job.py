@@ -38,9 +38,17 @@ from bmimic.run_record import metrics as run_metrics
 from bmimic.run_schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
 from bmimic.runtime import init_distributed, resolve_device, seed_everything
 from bmimic.sweeping.outcomes import record_job_outcome
-from bmimic.task import build_evaluator, build_task, build_trainer, build_training, check_num_envs_fit
+from bmimic.task import (
+    build_evaluator,
+    build_task,
+    build_trainer,
+    build_training,
+    build_whole_clip,
+    check_num_envs_fit,
+)
 from bmimic.training.interrupts import StopSignals, TrainingInterrupted
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
+from bmimic.training.schedule import whole_clip_wanted
 from bmimic.training.session import RunContext, commit, record_failure
 
 log = logging.getLogger("bmimic.train")  # the command line's logger, whichever entry point runs the job
@@ -110,12 +118,16 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     for line in describe_sampler(cfg.sampler, layout, training.sampler):
         log.info("%s", line)
     evaluator = build_evaluator(task) if main_rank else None  # rank 0 evaluates
+    whole_clip = build_whole_clip(task) if main_rank and whole_clip_wanted(cfg) else None
+    if whole_clip is not None:
+        whole_clip.build()
     run_dir = plan.run_dir
     with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
         trainer = build_trainer(training, evaluator, run_dir, is_main_rank=main_rank, run_config=resolved)
     if plan.state is not None:
         trainer.restore(plan.state, plan.checkpoint, allowed)
     trainer.after_evaluation = stop_rule
+    trainer.whole_clip = whole_clip
     try:
         if stop is not None and stop.requested:  # during the build (a first start compiles for minutes)
             raise TrainingInterrupted(stop, None, run_dir)
@@ -137,6 +149,11 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             final = trainer.evaluate()
         robust = robust_evaluation(trainer, build_evaluator(task, robust=True)) if (
             cfg.eval.robust and main_rank) else {}
+        if whole_clip is not None and cfg.eval.whole_clip.at_end and (
+                trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
+            trainer.evaluate_whole_clip()
+        if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
+            robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
         if main_rank:
             trainer.save_checkpoint()
     finally:
@@ -144,6 +161,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             trainer.close()
         finally:
             env.close()
+            if whole_clip is not None:
+                whole_clip.close()
             if world > 1:
                 torch.distributed.destroy_process_group()
     train_rows = trainer.record.rows("train_metrics")

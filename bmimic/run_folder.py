@@ -60,25 +60,37 @@ TABLES = {
     "eval": "eval.parquet",
     "eval_robust": "eval_robust.parquet",
     "clip_eval": "clip_eval.parquet",
+    "whole_clip": "whole_clip.parquet",
+    "whole_clip_survival": "whole_clip_survival.parquet",
+    "whole_clip_failures": "whole_clip_failures.parquet",
 }
 """Training's tables: name -> file name in the run folder."""
+EVALUATION_TABLES = ("eval", "eval_robust", "clip_eval", "whole_clip", "whole_clip_survival", "whole_clip_failures")
+"""The TABLES of evaluations: their `iteration` is the number of iterations done before the row; in the
+others it is the 0-based index of the iteration that made the row."""
 EVAL_DIR = "eval"
 """`python -m bmimic.eval` writes eval/<checkpoint label>/ (EVAL_TABLES)."""
 EVAL_TABLES = ("eval_episodes.parquet", "eval_bins.parquet", "eval_segments.csv", "eval_summary.json")
 """One evaluation's files; the summary is written last, so its presence means a complete set."""
 EVAL_SUMMARY = EVAL_TABLES[-1]
+WHOLE_CLIP_DIR = "whole_clip"
+"""`python -m bmimic.eval --whole-clip` writes eval/<checkpoint label>/whole_clip/ (WHOLE_CLIP_FILES);
+`python -m bmimic.sim2sim --whole-clip R` sim2sim/<model>/<checkpoint label>/whole_clip/."""
+WHOLE_CLIP_SURVIVAL = "whole_clip_survival.csv"
+"""Survival over clip time of whole-clip rollouts (run_schema.WHOLE_CLIP_SURVIVAL_COLUMNS)."""
+WHOLE_CLIP_FILES = ("whole_clip.csv", WHOLE_CLIP_SURVIVAL, "whole_clip_failures.csv", "whole_clip_summary.json")
+"""One whole-clip evaluation's files (the columns of training's whole_clip tables without the iteration);
+the summary is written last, so its presence means a complete set."""
 VIDEOS_DIR = "videos"
 SIM2SIM_DIR = "sim2sim"
 """`python -m bmimic.sim2sim` writes sim2sim/<model>/<checkpoint label>/ (EVAL_TABLES and SIM2SIM_GAP)."""
 SIM2SIM_GAP = "sim2sim_gap_bins.csv"
-SIM2SIM_WHOLE_CLIP = "whole_clip"
+"""sim2sim's per-bin gap to the MuJoCo-Warp evaluation of the same checkpoint."""
+SIM2SIM_WHOLE_CLIP = WHOLE_CLIP_DIR
 """`python -m bmimic.sim2sim --whole-clip R` writes sim2sim/<model>/<checkpoint label>/whole_clip/: EVAL_TABLES
 (rows: rollouts, bins and segments by condition), WHOLE_CLIP_SURVIVAL and SIM2SIM_WHOLE_CLIP_GAP."""
-WHOLE_CLIP_SURVIVAL = "whole_clip_survival.csv"
-"""Survival over clip time of whole-clip rollouts (run_schema.WHOLE_CLIP_SURVIVAL_COLUMNS)."""
 SIM2SIM_WHOLE_CLIP_GAP = "sim2sim_gap_clips.csv"
 """Per condition and clip: native whole-clip success, bmimic's of the same checkpoint where known, the gap."""
-"""sim2sim's per-bin gap to the MuJoCo-Warp evaluation of the same checkpoint."""
 
 _CHECKPOINT = re.compile(r"model_(\d+)\.pt")
 MOTION_POLICY = re.compile(r"motion_policy_(\d+)\.onnx$")

@@ -22,7 +22,9 @@ import pandas as pd
 from bmimic import BmimicError
 from bmimic.run_folder import (
     EVAL_TABLES,
+    EVALUATION_TABLES,
     SIM2SIM_GAP,
+    WHOLE_CLIP_FILES,
     atomic_write_csv,
     atomic_write_json,
     atomic_write_parquet,
@@ -31,7 +33,8 @@ from bmimic.run_folder import (
 )
 from bmimic.run_schema import FINAL_METRICS, ITERATION, RUN_METRICS
 
-TRAINING_TABLES = ("train_metrics", "sampler", "eval", "clip_eval")
+TRAINING_TABLES = ("train_metrics", "sampler", "eval", "clip_eval", "whole_clip", "whole_clip_survival",
+                   "whole_clip_failures")
 """The tables training writes (run_folder.TABLES names); eval_robust is written once, at the end."""
 ROW_TABLES = ("train_metrics",)
 """Tables kept as one dict per row (the others as frames)."""
@@ -80,7 +83,7 @@ class RunRecord:
                                      "its rows") from None
             if ITERATION not in df:
                 raise RunRecordError(f"{path}: has no {ITERATION} column; move it aside to resume without its rows")
-            df = df[df[ITERATION] <= iteration] if "eval" in name else df[df[ITERATION] < iteration]
+            df = df[df[ITERATION] <= iteration] if name in EVALUATION_TABLES else df[df[ITERATION] < iteration]
             if name in ROW_TABLES:
                 rows.extend(df.to_dict("records"))
             else:
@@ -107,7 +110,8 @@ class RunRecord:
 
 def metrics(final: dict[str, Any], robust: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
     """metrics.json: the final evaluation's FINAL_METRICS (from its summary, `eval_*` keys), the robust
-    evaluation's `final_robust_eval_*` (if any), then the run's RUN_METRICS (every one required)."""
+    evaluation's `final_robust_eval_*` and the final whole-clip evaluation's `final_whole_clip_*` (if
+    any; both in `robust`), then the run's RUN_METRICS (every one required)."""
     missing = [k for k in RUN_METRICS if k not in run]
     if missing:
         raise RunRecordError(f"metrics.json: the run's {', '.join(missing)} missing")
@@ -136,4 +140,19 @@ def write_evaluation(out_dir: str | os.PathLike, episodes: pd.DataFrame, bins: p
     return out_dir
 
 
-__all__ = ["ROW_TABLES", "TRAINING_TABLES", "RunRecord", "RunRecordError", "metrics", "write_evaluation"]
+def write_whole_clip(out_dir: str | os.PathLike, clips: pd.DataFrame, survival: pd.DataFrame,
+                     failures: pd.DataFrame, summary: dict[str, Any]) -> Path:
+    """One whole-clip evaluation of a saved policy into `out_dir` (eval/<label>/whole_clip/ for
+    `bmimic.eval --whole-clip`): run_folder.WHOLE_CLIP_FILES, each atomically, the summary last.
+    Returns `out_dir` as a Path."""
+    clips_file, survival_file, failures_file, summary_file = WHOLE_CLIP_FILES
+    out_dir = make_folder(out_dir)
+    atomic_write_csv(out_dir / clips_file, clips)
+    atomic_write_csv(out_dir / survival_file, survival)
+    atomic_write_csv(out_dir / failures_file, failures)
+    atomic_write_json(out_dir / summary_file, summary)
+    return out_dir
+
+
+__all__ = ["ROW_TABLES", "TRAINING_TABLES", "RunRecord", "RunRecordError", "metrics", "write_evaluation",
+           "write_whole_clip"]

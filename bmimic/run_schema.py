@@ -96,6 +96,49 @@ CLIP_ROLLOUT_COLUMNS = ("clip", "clip_name", "start_frame", "end_frame", "steps"
 `end_frame` is the last frame the rollout was alive at; `reached_end` whether it tracked to the clip's
 last frame (False for one cut by its time limit or failed)."""
 
+# --------------------------------------------------------------------------------------------- whole clips
+WHOLE_CLIP_CONDITIONS = ("nominal", "robust")
+"""The conditions of a whole-clip evaluation: `nominal` as the window evaluation (no domain randomisation,
+no observation noise, no pushes: deterministic, so one rollout per clip), `robust` with training's domain
+randomisation, observation noise and pushes (each rollout its own draw)."""
+START_TRANSIENT_S = 1.0
+"""A whole-clip rollout that fails within this many seconds of its start is a start transient."""
+CONDITION = "condition"
+CLIP_TIME_S = "time_s"
+"""Seconds into the clip (its first frame at 0)."""
+WHOLE_CLIP_SUCCESS = "success_rate"
+"""Fraction of a clip's rollouts that tracked it to its last frame."""
+WHOLE_CLIP_COLUMNS = (CONDITION, "clip", "clip_name", "clip_duration_s", "rollouts", "completed", WHOLE_CLIP_SUCCESS,
+                      "failures", "transient_failures", "later_failures", "terminations", "tracking_failures", "broken",
+                      "evaluation_s")
+"""whole_clip.parquet's columns after `iteration, env_steps, wall_time_s` (one row per evaluation, condition
+and clip; the means of ERROR_COLUMNS and SMOOTHNESS_COLUMNS over the completed rollouts follow, NaN when
+none completed): R rollouts from the clip's first frame (bmimic.training.whole_clip); `failures` =
+`transient_failures` (within START_TRANSIENT_S of the start) + `later_failures`, and = terminations +
+tracking failures (eval.max_mpkpe_rel_mm) + broken worlds; `evaluation_s`: the wall time of the
+condition's whole evaluation (all its clips)."""
+WHOLE_CLIP_SURVIVAL_COLUMNS = (CONDITION, "clip", "clip_name", CLIP_TIME_S, "rollouts", "tracking", "tracking_frac")
+"""A survival table of whole-clip rollouts (whole_clip_survival.parquet after `iteration, env_steps`;
+`bmimic.eval --whole-clip`'s and sim2sim's whole_clip_survival.csv): per condition and clip, at every
+whole second of it and at its last frame, the rollouts still tracking (no failure at or before that time)
+and their fraction; at the last frame that is the clip's success rate."""
+WHOLE_CLIP_FAILURE_COLUMNS = (CONDITION, "clip", "clip_name", "rollout", "failure_frame", "failure_time_s", BIN,
+                              "transient", "terminated", "broken")
+"""whole_clip_failures.parquet's columns after `iteration, env_steps`: one row per failed rollout, where
+it failed (the motion frame the failure is charged to, its time into the clip and its bin), whether that
+was a start transient, a termination or a broken world (neither: a tracking failure)."""
+WHOLE_CLIP_SUMMARY_KEYS = ("success_rate", "rollouts", "completed", "transient_failures", "later_failures", "broken",
+                           *ERROR_COLUMNS)
+"""A whole-clip evaluation's summary per condition, each key named by `whole_clip_key` (over every clip;
+errors: step-weighted over the completed rollouts); metrics.json holds the one at the end as
+`final_<key>`."""
+
+
+def whole_clip_key(condition: str, key: str) -> str:
+    """The summary name of `key` (one of WHOLE_CLIP_SUMMARY_KEYS) under `condition`: `whole_clip_<c>_<key>`."""
+    return f"whole_clip_{condition}_{key}"
+
+
 # --------------------------------------------------------------------------------------------- metrics.json
 EVAL_SUMMARY_KEYS = ("failure_rate", "bins_mastered_frac", "success_rate", "broken",
                      *ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
@@ -153,28 +196,19 @@ RACE_KIND = "bmimic-race-1"
 SUCCESS_RATE = "success_rate"
 """Evaluated success (0-1) in one evaluation record of a race (the evaluation summary's eval_success_rate)."""
 
-# ---------------------------------------------------------------------------------------------- whole clips
-WHOLE_CLIP_CONDITIONS = ("nominal", "robust")
-"""The conditions of a whole-clip evaluation: `nominal` as the window evaluation (no domain randomisation,
-no observation noise, no pushes: deterministic, so one rollout per clip), `robust` with training's domain
-randomisation, observation noise and pushes (each rollout its own draw)."""
-START_TRANSIENT_S = 1.0
-"""A whole-clip rollout that fails within this many seconds of its start is a start transient."""
+# ---------------------------------------------------------------------------------------------- sim2sim whole clips
 WHOLE_CLIP_ROLLOUT_COLUMNS = ("condition", "clip", "clip_name", "rollout", "completed", "failure_time_s", "transient",
                               "pushes")
 """sim2sim's whole-clip rollouts (sim2sim/<model>/<label>/whole_clip/eval_episodes.parquet), first columns,
 then its episode columns: the condition, the clip and the rollout's index in it, whether it tracked to the
 clip's last frame, when it failed (seconds into the clip; NaN if it did not), whether that was a start
 transient (within START_TRANSIENT_S), and the pushes it took."""
-WHOLE_CLIP_SURVIVAL_COLUMNS = ("condition", "clip", "clip_name", "time_s", "rollouts", "tracking", "tracking_frac")
-"""A survival table of whole-clip rollouts: per condition and clip, at every whole second of it (time_s
-from its first frame) and at its last frame, the rollouts still tracking (no failure at or before that
-time) and their fraction; at the last frame that is the clip's success rate."""
 
 __all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "EE_POS_ERR_MM", "JOINT_POS_ERR_RAD",
-           "JOINT_VEL_ERR_RADPS", "CLIP_ROLLOUT_COLUMNS", "Column", "ENV_STEPS", "EPISODE_COLUMNS", "ERROR_COLUMNS",
-           "EVAL_SUMMARY_KEYS", "FAILURE_RATE", "FINAL_METRICS", "HORIZON_TRUNCATED", "ITERATION", "LABELS",
-           "LOGISTICS_KEYS", "MASTERED_BELOW", "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND", "REPORTED_ERRORS", "RUN_METRICS",
-           "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE", "TRACKED_THROUGH",
-           "TRACKING_ERRORS", "WALL_TIME_S", "WHOLE_CLIP_CONDITIONS", "WHOLE_CLIP_ROLLOUT_COLUMNS",
-           "WHOLE_CLIP_SURVIVAL_COLUMNS", "counts_as_mastered", "summary_key"]
+           "JOINT_VEL_ERR_RADPS", "CLIP_ROLLOUT_COLUMNS", "CLIP_TIME_S", "CONDITION", "Column", "ENV_STEPS",
+           "EPISODE_COLUMNS", "ERROR_COLUMNS", "EVAL_SUMMARY_KEYS", "FAILURE_RATE", "FINAL_METRICS", "HORIZON_TRUNCATED",
+           "ITERATION", "LABELS", "LOGISTICS_KEYS", "MASTERED_BELOW", "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND",
+           "REPORTED_ERRORS", "RUN_METRICS", "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE",
+           "TRACKED_THROUGH", "TRACKING_ERRORS", "WALL_TIME_S", "WHOLE_CLIP_COLUMNS", "WHOLE_CLIP_CONDITIONS",
+           "WHOLE_CLIP_FAILURE_COLUMNS", "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS",
+           "WHOLE_CLIP_SURVIVAL_COLUMNS", "counts_as_mastered", "summary_key", "whole_clip_key"]

@@ -3,14 +3,15 @@
 `build_task` builds the robot model and its resolved info, the motion at the control rate and the
 bin layout over it (the config is validated against the motion); `build_training` adds the sampler
 and the training environment; `build_evaluator` the sampler-independent evaluator (with
-`robust=True`: domain randomisation, observation noise and pushes on); `build_trainer` the PPO
-trainer with its logger. train, eval, play, bench, export and sim2sim build through here and import
-no other entry point: this is the only module that calls the constructors of TrackingEnv, the
-samplers, Evaluator and Trainer.
+`robust=True`: domain randomisation, observation noise and pushes on); `build_whole_clip` the
+whole-clip evaluation; `build_trainer` the PPO trainer with its logger. train, eval, play, bench,
+export and sim2sim build through here and import no other entry point: this is the only module that
+calls the constructors of TrackingEnv, the samplers, Evaluator and Trainer.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -113,6 +114,62 @@ def build_evaluator(task: Task, robust: bool = False):
     # (eval.horizon_s=1e300 would loop for ever): the loop stops at the motion's length.
     horizon_s = min(float(cfg.eval.horizon_s), task.motion.duration_s + env.step_dt)
     return Evaluator(env, layout, task.motion.segments, cfg.eval.episodes_per_bin, horizon_s,
+                     max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
+
+
+def build_whole_clip(task: Task):
+    """The whole-clip evaluation of `eval.whole_clip` (bmimic.training.whole_clip): its conditions and
+    rollouts, each condition's environment built on first use. A clip longer than
+    `eval.whole_clip.max_clip_s` is refused here (ConfigError), before anything runs: never cut short."""
+    from functools import partial
+
+    import numpy as np
+
+    from bmimic.training.clip_rollouts import clip_bounds
+    from bmimic.training.whole_clip import WholeClipEvaluation
+
+    cfg, layout = task.cfg, task.layout
+    w = cfg.eval.whole_clip
+    step_dt = cfg.sim.timestep_s * cfg.sim.decimation
+    starts, ends = clip_bounds(layout)
+    longest = int(np.argmax(ends - starts))
+    length_s = (int(ends[longest] - starts[longest]) - 1) * step_dt
+    if length_s > w.max_clip_s:
+        name = list(getattr(layout, "clip_names", ("motion",)))[longest]
+        raise ConfigError(f"eval.whole_clip.max_clip_s: clip {name!r} is {length_s:g} s long, longer than the "
+                          f"{w.max_clip_s:g} s a whole-clip evaluation holds; it is refused, never cut short "
+                          f"(set eval.whole_clip.max_clip_s={math.ceil(length_s)} to evaluate it)")
+    return WholeClipEvaluation(partial(_whole_clip_evaluator, task), layout, list(w.conditions), int(w.rollouts),
+                               seed=int(cfg.seed), device=task.device)
+
+
+def _whole_clip_evaluator(task: Task, condition: str, per_clip: int):
+    """One condition's evaluator for whole-clip rollouts: `per_clip` x clips worlds (eval.max_envs at most),
+    robust for a perturbed condition, its episode limit derived so that the longest clip fits."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.robot import load_mjmodel
+    from bmimic.training.clip_rollouts import clip_bounds
+    from bmimic.training.evaluator import Evaluator
+
+    cfg, device, layout = task.cfg, task.device, task.layout
+    starts, ends = clip_bounds(layout)
+    n = max(1, min(per_clip * len(starts), cfg.eval.max_envs))
+    mjm = load_mjmodel(cfg=cfg.robot)
+    check_num_envs_fit(cfg, mjm, device, n, 0)
+    step_dt = cfg.sim.timestep_s * cfg.sim.decimation
+    steps = int((ends - starts).max())  # more than the longest rollout's steps: its time-out never comes
+    env_cfg = OmegaConf.to_object(cfg.env)
+    env_cfg = dataclasses.replace(env_cfg, episode_length_s=max(float(env_cfg.episode_length_s), steps * step_dt))
+    env = TrackingEnv(env_cfg, cfg.sim, mjm, task.robot, task.reference(), n, device, mode="eval",
+                      robust=condition != "nominal", layout=layout)
+    if env.max_episode_length < steps - 1:
+        raise ConfigError(f"eval.whole_clip: the evaluation's episode limit ({env.max_episode_length} steps) is shorter "
+                          f"than the longest clip ({steps - 1} steps)")
+    return Evaluator(env, layout, task.motion.segments, 1, (steps - 1) * step_dt,
                      max_mpkpe_rel_mm=cfg.eval.max_mpkpe_rel_mm)
 
 

@@ -66,6 +66,7 @@ def test_runtime_defaults_cpu_and_gpu():
     explicit = compose(["num_envs=16", "max_iterations=7"])
     resolve_runtime(explicit, "cuda:0")
     assert explicit.num_envs == 16 and explicit.max_iterations == 7
+    assert cpu.eval.whole_clip.rollouts == 2 and gpu.eval.whole_clip.rollouts == 128  # issue 44: 1-2 on a CPU
 
 
 BAD = [
@@ -89,6 +90,13 @@ BAD = [
     (["eval.horizon_s=0"], "eval.horizon_s"),
     (["logger=stdout"], "logger"),
     (["ppo.gamma=1.5"], "ppo.gamma"),
+    (["eval.whole_clip.rollouts=0"], "eval.whole_clip.rollouts"),
+    (["eval.whole_clip.conditions=[nominal,windy]"], "eval.whole_clip.conditions"),
+    (["eval.whole_clip.conditions=[]"], "eval.whole_clip.conditions"),
+    (["eval.every_iters=100", "eval.whole_clip.every_iters=150"], "eval.whole_clip.every_iters"),
+    (["eval.whole_clip.max_share=0"], "eval.whole_clip.max_share"),
+    (["eval.whole_clip.after_success=1.5"], "eval.whole_clip.after_success"),
+    (["eval.whole_clip.max_clip_s=nan"], "eval.whole_clip.max_clip_s"),
 ]
 
 

@@ -138,6 +138,16 @@ class TrackingEnv(VecEnv):
         self.sim.forward_kinematics()
         self._observe()
 
+    def redraw_startup_events(self) -> None:
+        """Evaluation: every world draws its startup events (domain randomisation of the model and the
+        default pose, the first push times) anew from the nominal model, as a fresh environment would;
+        the caller then places the worlds with `reset_to_frames`."""
+        if self.mode != "eval":
+            raise ValueError("redraw_startup_events is for an evaluation environment between its waves")
+        self.sim.restore_model_fields(self.events.model_fields)
+        self.default_joint_pos.copy_(self.nominal_joint_pos.expand_as(self.default_joint_pos))
+        self.events.startup(self)
+
     # ----------------------------------------------------------------------------------- VecEnv API
     def get_observations(self) -> TensorDict:
         return self._obs.clone()

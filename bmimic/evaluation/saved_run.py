@@ -191,3 +191,25 @@ def checkpoint_label(checkpoint: Path, state: dict) -> str:
         return run_checkpoint_label(int(state["iter"]))
     return checkpoint.stem
 
+
+def evaluation_record(run: LoadedRun, state: dict, overrides: Sequence[str]) -> dict:
+    """What an evaluation summary says of where it comes from: the checkpoint, its iteration and env
+    steps, the run, motion, seed and device, the overrides, when, and the results' label."""
+    import datetime as _dt
+
+    from bmimic.run_schema import ENV_STEPS, ITERATION
+
+    cfg = run.task.cfg
+    progress = state.get("progress") or {}
+    return {
+        "checkpoint": str(run.checkpoint),
+        ITERATION: int(state.get("iter", -1)),
+        ENV_STEPS: int(progress.get(ENV_STEPS, -1)),
+        "run_dir": str(run.run_dir),
+        "motion": str(cfg.motion.name),
+        "seed": int(cfg.seed),
+        "device": run.task.device,
+        "overrides": list(overrides),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "label": checkpoint_label(run.checkpoint, state),
+    }

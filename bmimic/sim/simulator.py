@@ -116,6 +116,13 @@ class Simulator:
         self.geom_friction = t(m.geom_friction)  # [1 or N, ngeom, 3]
         self.body_ipos = t(m.body_ipos)  # [1 or N, nbody, 3]
 
+    def restore_model_fields(self, fields: tuple[str, ...]) -> None:
+        """Write the host model's values of `fields` (per-world model arrays, e.g. an event's
+        `model_fields`) back into every world, in place: what startup events drew is undone."""
+        for name in fields:
+            view = wp.to_torch(getattr(self.model, name))
+            view.copy_(torch.as_tensor(getattr(self.mjm, name), dtype=view.dtype, device=view.device).expand_as(view))
+
     # ----------------------------------------------------------------------------------------- stepping
     def _physics(self) -> None:
         for _ in range(self.decimation):

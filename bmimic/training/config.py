@@ -71,6 +71,37 @@ class PPOConfig:
 
 
 @dataclass
+class WholeClipConfig:
+    """Whole-clip evaluation: rollouts from each clip's first frame to its last (bmimic.training.whole_clip)."""
+
+    rollouts: Optional[int] = None
+    """Rollouts per clip under a perturbed condition (`robust`), each with its own draw of domain
+    randomisation, pushes and observation noise; null: 128 on a GPU (one wave is latency-bound, so more
+    rollouts cost little there), 2 on a CPU. The `nominal` condition is deterministic (every rollout
+    from a clip's first frame would be the same), so it runs one per clip."""
+    conditions: List[str] = field(default_factory=lambda: ["nominal", "robust"])
+    """Which conditions to evaluate: `nominal` (as the window evaluation: no domain randomisation, no
+    observation noise, no pushes) and/or `robust` (training's domain randomisation, observation noise and
+    pushes)."""
+    every_iters: int = 0
+    """During training, evaluate whole clips after every this many iterations (a multiple of
+    eval.every_iters: it runs right after that window evaluation); 0: not on a fixed cadence."""
+    max_share: Optional[float] = None
+    """During training, also evaluate whole clips after a window evaluation whenever all evaluations so far,
+    this one included at the duration of the last one, took at most this share of the wall time since the
+    first iteration (bmimic.race: 0.10); null: off."""
+    after_success: Optional[float] = None
+    """Start the cadence (every_iters, max_share) only once a window evaluation reached this evaluated
+    success (bmimic.race: 0.95): an earlier policy fails whole clips anyway; null: from the start."""
+    at_end: bool = False
+    """Evaluate whole clips once more at the end of training (`final_whole_clip_*` in metrics.json)."""
+    max_clip_s: float = 600.0
+    """The longest clip a whole-clip evaluation runs (seconds): a longer clip is refused in one line,
+    never cut short. One rollout is the clip's length in sequential control steps (on one H200, 131.5 s
+    of clip took 51 s), so this bounds one evaluation's wall time."""
+
+
+@dataclass
 class EvalConfig:
     """Sampler-independent evaluation: episodes started at stratified frames of every bin."""
 
@@ -89,3 +120,5 @@ class EvalConfig:
     robust: bool = False
     """At the end of the run, evaluate again with domain randomisation, observation noise and pushes on
     (eval_robust.parquet; `final_robust_eval_*` in metrics.json)."""
+    whole_clip: WholeClipConfig = field(default_factory=WholeClipConfig)
+    """Whole-clip evaluation (whole_clip*.parquet during training; `python -m bmimic.eval --whole-clip`)."""

@@ -130,6 +130,13 @@ class RunLogger:
         log.info("eval at iteration %d: failure rate %.3f, bins mastered %.2f, MPKPE %.1f mm", iteration,
                  summary["eval_failure_rate"], summary["eval_bins_mastered_frac"], summary["eval_mpkpe_mm"])
 
+    def whole_clip(self, iteration: int, summary: dict) -> None:
+        """One whole-clip evaluation's summary (bmimic.training.whole_clip), as `Eval/whole_clip_*` scalars."""
+        self.open()
+        if self.writer is not None:
+            for k, v in summary.items():
+                self.writer.add_scalar(f"Eval/{k}", v, iteration)
+
     def end(self) -> None:
         """The training loop ended (the bar closes; the writer stays open for the final evaluation)."""
         if self._bar is not None:

@@ -27,7 +27,7 @@ from bmimic.run_folder import (
     write_status,
 )
 from bmimic.run_record import RunRecord
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S
+from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S, whole_clip_key
 from bmimic.runtime import any_rank
 from bmimic.sampling import diagnostics
 from bmimic.training import run_state
@@ -40,7 +40,7 @@ from bmimic.training.health import Health
 from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
 from bmimic.training.run_state import Progress
-from bmimic.training.schedule import Schedule
+from bmimic.training.schedule import Schedule, WholeClipSchedule
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,13 @@ class Trainer:
         self.eval_time_s = 0.0
         self.health = Health(env.num_envs * self.ppo_cfg.num_steps_per_env)
         self.schedule = Schedule(cfg.eval.every_iters, self.ppo_cfg.save_interval)
+        w = cfg.eval.whole_clip
+        self.whole_clip = None
+        """The whole-clip evaluation (bmimic.training.whole_clip.WholeClipEvaluation; rank 0, when configured)."""
+        self.whole_clip_schedule = WholeClipSchedule(w.every_iters, w.max_share, w.after_success)
+        self.last_whole_clip: tuple[int, dict] | None = None
+        """(iteration, summary) of the latest whole-clip evaluation of this process."""
+        self._whole_clip_s: float | None = None  # how long the latest one took
         self.interrupted = False  # learn() stopped early on a signal (bmimic.training.interrupts)
 
     # ------------------------------------------------------------------ checkpoints (bmimic.training.run_state)
@@ -139,6 +146,41 @@ class Trainer:
         self.progress.last_eval = summary
         self.logger.evaluation(self.progress.iteration, summary)
         return summary
+
+    def evaluate_whole_clip(self) -> dict:
+        """Evaluate whole clips with the current policy (whole_clip*.parquet rows, logged); returns the summary."""
+        t0 = time.perf_counter()
+        with eval_mode(self.alg.get_policy()) as policy:
+            result = self.whole_clip.evaluate(policy)
+        p = self.progress
+        keys = {ITERATION: p.iteration, ENV_STEPS: p.env_steps}
+        self.record.append("whole_clip", result.clips.assign(**keys, **{WALL_TIME_S: p.wall_time_s})[
+            [ITERATION, ENV_STEPS, WALL_TIME_S, *result.clips.columns]])
+        for name, table in (("whole_clip_survival", result.survival), ("whole_clip_failures", result.failures)):
+            self.record.append(name, table.assign(**keys)[[ITERATION, ENV_STEPS, *table.columns]])
+        self.flush_tables()
+        self._whole_clip_s = time.perf_counter() - t0
+        self.eval_time_s += self._whole_clip_s
+        self.last_whole_clip = (p.iteration, result.summary)
+        self.logger.whole_clip(p.iteration, result.summary)
+        log.info("whole clips at iteration %d (%.0f s): %s", p.iteration, self._whole_clip_s, ", ".join(
+            f"{c} {result.summary[whole_clip_key(c, 'completed')]}/{result.summary[whole_clip_key(c, 'rollouts')]}"
+            for c in self.whole_clip.conditions))
+        return result.summary
+
+    def _whole_clip_due(self, summary: dict) -> bool:
+        """After a window evaluation (its `summary`): whether the whole-clip schedule asks for one now."""
+        if self.whole_clip is None:
+            return False
+        sched = self.whole_clip_schedule
+        sched.opened = sched.opened or bool(self.record.rows("whole_clip"))  # a resumed run had opened it
+        estimate = self._whole_clip_s
+        if estimate is None:  # none yet: the window evaluation's time per step (both latency-bound on a GPU)
+            estimate = self.evaluator.seconds_per_step * self.whole_clip.steps() * len(self.whole_clip.conditions)
+            estimate = estimate if math.isfinite(estimate) else 0.0
+        elapsed = time.time() - (self.learn_started_unix_s or time.time())
+        return sched.due(self.progress.iteration, float(summary.get("eval_success_rate", math.nan)),
+                         self.eval_time_s, elapsed, estimate)
 
     def _clip_outcomes(self, max_s: float | None) -> torch.Tensor:
         """Rank 0, for a sampler that learns from clip outcomes (phc, protomotions): one rollout per clip
@@ -213,6 +255,8 @@ class Trainer:
         if self.schedule.evaluates(it):
             if self.is_main:
                 summary = self.evaluate()
+                if self._whole_clip_due(summary):
+                    summary = {**summary, **self.evaluate_whole_clip()}
                 stop = self.after_evaluation is not None and bool(self.after_evaluation(self, summary))
             if self.after_evaluation is not None and self.runner.is_distributed:
                 # Rank 0 alone evaluates and decides (bmimic.race); every rank stops after the same iteration.
