@@ -1,5 +1,5 @@
-"""The figures of the speedup curve, the iso-failure ratios and the sampling distribution's support
-(same conventions as ``analysis.plots``: ``plot_x(df, ax=None, ...) -> Figure``, no pyplot state)."""
+"""The figures of the speedup curve, the iso-failure ratios, the sampling distribution's support and
+the whole-clip evaluations (same conventions as ``analysis.plots``: ``plot_x(df, ax=None, ...) -> Figure``, no pyplot state)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from analysis.plots import IntegerTicks, _axes, _marker, arm_colors
-from bmimic.run_schema import ITERATION
+from analysis.plots import IntegerTicks, _axes, _marker, arm_colors, plot_learning_curve
+from bmimic.run_schema import CLIP_TIME_S, CONDITION, ITERATION
 
 CURVE_MARKERS = {"estimate": "o", "lower_bound": "^", "upper_bound": "v"}
 """Marker of each speedup status on the curve figures (not estimable: not drawn)."""
@@ -106,4 +106,39 @@ def plot_sampling_support(summary: pd.DataFrame, colors: dict | None = None) -> 
     ax1.legend(fontsize=7)
     if summary["clip_effective_support"].notna().any():
         ax1.set_title("solid: over bins; dashed: over clips (their masses)", fontsize=7)
+    return fig
+
+
+def plot_whole_clip_success(curves: pd.DataFrame, per_seed: pd.DataFrame, colors: dict | None = None) -> Figure:
+    """Whole-clip success against iteration, one panel per condition (``metric``), one line per arm: the
+    point over seeds with its band, and each seed. ``curves`` and ``per_seed`` are analysis.whole_clip's."""
+    conditions = sorted(curves["metric"].unique())
+    fig = Figure(figsize=(4.6 * len(conditions), 3.4), layout="constrained")
+    colors = colors or arm_colors(curves["arm"])
+    for ax, condition in zip(np.atleast_1d(fig.subplots(1, len(conditions))), conditions, strict=True):
+        plot_learning_curve(curves[curves["metric"] == condition], "whole-clip success (completed / rollouts)", ax=ax,
+                            colors=colors, title=condition, per_seed=per_seed[per_seed["metric"] == condition])
+        ax.set_ylim(-0.02, 1.02)
+    return fig
+
+
+def plot_whole_clip_survival(survival: pd.DataFrame, colors: dict | None = None) -> Figure:
+    """Fraction of whole-clip rollouts still tracking against time into the clip, at each run's last
+    whole-clip evaluation, one panel per condition, one line per arm (mean over seeds, band: their range)."""
+    conditions = sorted(survival[CONDITION].unique())
+    fig = Figure(figsize=(4.6 * len(conditions), 3.4), layout="constrained")
+    colors = colors or arm_colors(survival["arm"])
+    for ax, condition in zip(np.atleast_1d(fig.subplots(1, len(conditions))), conditions, strict=True):
+        for arm, g in survival[survival[CONDITION] == condition].groupby("arm", sort=True):
+            g = g.sort_values(CLIP_TIME_S)
+            x = g[CLIP_TIME_S].to_numpy(float)
+            ax.step(x, g["tracking_frac"].to_numpy(float), where="post", color=colors[arm], lw=1.4, label=arm)
+            ax.fill_between(x, g["low"].to_numpy(float), g["high"].to_numpy(float), step="post", color=colors[arm],
+                            alpha=0.2, lw=0)
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_xlabel("time into the clip (s)")
+        ax.set_ylabel("rollouts still tracking")
+        ax.set_title(condition, fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     return fig

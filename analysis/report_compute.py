@@ -12,7 +12,7 @@ from typing import Any
 
 import pandas as pd
 
-from analysis import bin_tables, clip_tables, comparisons, tables
+from analysis import bin_tables, clip_tables, comparisons, tables, whole_clip
 from analysis.adaptation import at_evaluations, sampling_support, signal_summary, support_summary
 from analysis.knobs import knob_arms, knob_levels, knob_summary
 from analysis.load import load_runs, load_segments, load_table, short_arm_labels
@@ -130,6 +130,7 @@ class ReportData:
     knob_levels: pd.DataFrame | None = None
     knob_summary: pd.DataFrame | None = None
     uniform_arm: str | None = None
+    whole_clip: whole_clip.WholeClipReport | None = None
 
 
 def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
@@ -188,6 +189,9 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     clip_tab = clip_tables.clip_failure(eval_df, sampler_df, mastery_df, runs, opts)
     if len(support):
         extra["clip_evals"] = load_table(runs, "clip_eval", opts.max_iteration)
+    whole = whole_clip.compute(runs, opts)
+    if whole is not None:
+        extra["whole_clip"] = whole
     sens = tables.sensitivity(runs, overview)
     knobs = knob_arms(runs)
     if len(knobs) and "final_failure" in per_run:

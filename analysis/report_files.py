@@ -94,6 +94,18 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
                                                 "the sampling distribution over training (mean over seeds)"))
         if len(d.clip_evals):
             write_csv(out / "clip_eval.csv", d.clip_evals)
+    if d.whole_clip is not None:
+        w = d.whole_clip
+        write_csv(out / "whole_clip_curves.csv", w.curves)
+        write_csv(out / "whole_clip_final.csv", w.final)
+        save_figure(out / "whole_clip_success.png", curve_plots.plot_whole_clip_success(w.curves, w.per_seed, colors))
+        figures.append(("whole_clip_success.png", f"Whole-clip success over training per condition ({band}; thin "
+                                                  "lines: seeds)"))
+        if len(w.survival):
+            write_csv(out / "whole_clip_survival.csv", w.survival)
+            save_figure(out / "whole_clip_survival.png", curve_plots.plot_whole_clip_survival(w.survival, colors))
+            figures.append(("whole_clip_survival.png", "Whole-clip rollouts still tracking over clip time, at each "
+                                                       "run's last whole-clip evaluation (mean over seeds; band: range)"))
     if len(d.sens):
         write_csv(out / "sensitivity.csv", d.sens)
         for key in sorted(d.sens["key"].unique()):

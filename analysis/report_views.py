@@ -3,7 +3,7 @@ figures analysis.report_files wrote. Nothing here computes a statistic or writes
 
 from __future__ import annotations
 
-from analysis import clip_tables, tables
+from analysis import clip_tables, tables, whole_clip
 from analysis.curve_text import adaptation_section, curve_view, iso_text, speedup_curve_text
 from analysis.definitions import definitions
 from analysis.knob_report import knob_section
@@ -118,6 +118,8 @@ def body(d: ReportData, figures: list[tuple[str, str]], coverage: tuple | None) 
                   + ", ".join(f"`{a}`" for a in d.signals.loc[d.signals["degenerate"], "arm"]) + ".")
     md += ["", "## Arms", "", md_table(arms_view(d.summary, d.time_df, d.per_run, at, d.measures)), ""]
     md += _tracking(d) + _segments_and_clips(d)
+    if d.whole_clip is not None:
+        md += whole_clip.section(d.whole_clip)
     if len(d.support):
         md += adaptation_section(d.support_sum, d.signals, d.clip_evals)
     if len(d.sens):

@@ -12,7 +12,7 @@ import yaml
 
 from analysis import AnalysisError
 from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, LOGISTICS_KEYS, WALL_TIME_S
+from bmimic.run_schema import CLIP_TIME_S, CONDITION, ENV_STEPS, FAILURE_RATE, LOGISTICS_KEYS, WALL_TIME_S
 
 REQUIRED_COLUMNS = {
     "train_metrics": ["iteration", ENV_STEPS, WALL_TIME_S, "mean_episode_length", "mean_reward"],
@@ -20,13 +20,17 @@ REQUIRED_COLUMNS = {
     "sampler": ["iteration", "bin", "probability"],
     "eval_robust": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE],
     "clip_eval": ["iteration", "clip", "failed"],
+    "whole_clip": ["iteration", CONDITION, "clip", "clip_duration_s", "rollouts", "completed", "transient_failures",
+                   "later_failures"],
+    "whole_clip_survival": ["iteration", CONDITION, "clip", CLIP_TIME_S, "rollouts", "tracking"],
+    "whole_clip_failures": ["iteration", CONDITION, "clip", "failure_time_s", "transient"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""
 
 NEEDED_TABLES = ("train_metrics", "eval")
 """Tables a run must have to be included; ``sampler``, ``eval_robust`` (written with
-``eval.robust=true``) and ``clip_eval`` (the clip rollouts of phc and protomotions) are optional (what
-uses them skips runs without them)."""
+``eval.robust=true``), ``clip_eval`` (the clip rollouts of phc and protomotions) and the ``whole_clip``
+tables (eval.whole_clip) are optional (what uses them skips runs without them)."""
 
 IGNORED_OVERRIDE_KEYS = {*LOGISTICS_KEYS, "task_name"}
 """Override keys that do not define an arm: the run schema's logistics keys (conf/train.yaml's

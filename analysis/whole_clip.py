@@ -1,0 +1,105 @@
+"""Whole-clip evaluations in a report (the runs' whole_clip tables, eval.whole_clip): success against
+iterations per arm and condition, each run's survival curve at its last whole-clip evaluation, and the
+final numbers with start transients apart from later failures. `compute` returns None when no run has
+the tables, and the report then says nothing about whole clips."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from analysis.load import load_table
+from analysis.markdown import estimate_cell, fmt, md_table
+from analysis.stats import MIN_SEEDS_IQM
+from analysis.tables import ReportOptions, learning_curves, summary_rows, use_bootstrap
+from bmimic.run_schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
+
+COUNTS = ["rollouts", "completed", "transient_failures", "later_failures"]
+
+
+@dataclass
+class WholeClipReport:
+    """The report's whole-clip tables."""
+
+    per_seed: pd.DataFrame
+    """``arm, run_dir, seed, metric`` (the condition), ``iteration, value`` (success over every clip's rollouts)."""
+    curves: pd.DataFrame
+    """tables.learning_curves of ``per_seed``: the point over seeds with its band, per condition."""
+    final: pd.DataFrame
+    """Per arm and condition at each run's last whole-clip evaluation: success over seeds, failures per seed."""
+    survival: pd.DataFrame
+    """``arm, condition, time_s, n_seeds, tracking_frac, low, high``: the clips' rollouts still tracking at
+    each second of each run's last whole-clip evaluation (clips pooled), mean and range over seeds."""
+
+
+def _per_run(clips: pd.DataFrame) -> pd.DataFrame:
+    """Per run, condition and evaluation: the clips' counts summed, success = completed / rollouts, and the
+    root-relative MPKPE over the completed rollouts (weighted by completed rollouts x clip duration)."""
+    clips = clips.assign(_w=clips["completed"] * clips["clip_duration_s"])
+    has_error = MPKPE_REL_MM in clips
+    if has_error:
+        clips = clips.assign(_e=clips[MPKPE_REL_MM].fillna(0.0) * clips["_w"])
+    keys = ["arm", "run_dir", "seed", CONDITION, ITERATION]
+    out = clips.groupby(keys, sort=True)[[*COUNTS, "_w", *(["_e"] if has_error else [])]].sum().reset_index()
+    out["success"] = out["completed"] / out["rollouts"].where(out["rollouts"] > 0)
+    out[MPKPE_REL_MM] = out["_e"] / out["_w"].where(out["_w"] > 0) if has_error else np.nan
+    return out.drop(columns=[c for c in ("_w", "_e") if c in out])
+
+
+def _final_rows(last: pd.DataFrame, runs: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    boot = use_bootstrap(runs)
+    rows = []
+    for (arm, condition), g in last.groupby(["arm", CONDITION], sort=True):
+        row = summary_rows(arm, "whole_clip_success", g.assign(value=g["success"]), "value", boot, opts)
+        row.update({CONDITION: condition, "iterations": ";".join(str(int(i)) for i in g.sort_values("seed")[ITERATION]),
+                    "rollouts_per_seed": float(g["rollouts"].mean()),
+                    "transient_failures_per_seed": float(g["transient_failures"].mean()),
+                    "later_failures_per_seed": float(g["later_failures"].mean()),
+                    MPKPE_REL_MM: float(g[MPKPE_REL_MM].mean())})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def compute(runs: pd.DataFrame, opts: ReportOptions) -> WholeClipReport | None:
+    """The whole-clip tables of `runs` (None when no included run has whole_clip.parquet)."""
+    clips = load_table(runs, "whole_clip", opts.max_iteration)
+    if not len(clips):
+        return None
+    per_run = _per_run(clips)
+    per_seed = per_run[["arm", "run_dir", "seed", CONDITION, ITERATION, "success"]].rename(
+        columns={CONDITION: "metric", "success": "value"})
+    last_it = per_run.groupby(["run_dir", CONDITION])[ITERATION].transform("max")
+    last = per_run[per_run[ITERATION] == last_it]
+    survival = load_table(runs, "whole_clip_survival", opts.max_iteration)
+    if len(survival):
+        survival = survival.merge(last[["run_dir", CONDITION, ITERATION]], on=["run_dir", CONDITION, ITERATION])
+        pooled = survival.groupby(["arm", "run_dir", CONDITION, CLIP_TIME_S], sort=True)[["tracking", "rollouts"]].sum()
+        pooled = (pooled["tracking"] / pooled["rollouts"]).rename("frac").reset_index()
+        survival = pooled.groupby(["arm", CONDITION, CLIP_TIME_S], sort=True)["frac"].agg(
+            n_seeds="count", tracking_frac="mean", low="min", high="max").reset_index()
+    return WholeClipReport(per_seed, learning_curves(per_seed, runs, opts), _final_rows(last, runs, opts), survival)
+
+
+def section(w: WholeClipReport) -> list[str]:
+    """The report's "Whole clips" section."""
+    f = w.final
+    view = pd.DataFrame({
+        "arm": f["arm"], "condition": f[CONDITION], "last whole-clip evaluation (iteration per seed)": f["iterations"],
+        "whole-clip success": [estimate_cell(r.iqm if r.n_seeds >= MIN_SEEDS_IQM else r.mean, r.ci_low, r.ci_high,
+                                             str(r.ci_method), int(r.n_seeds), str(r.per_seed)) for r in f.itertuples()],
+        "rollouts per seed": f["rollouts_per_seed"].map(fmt),
+        f"start transients (< {START_TRANSIENT_S:g} s) per seed": f["transient_failures_per_seed"].map(fmt),
+        "later failures per seed": f["later_failures_per_seed"].map(fmt),
+        "root-relative MPKPE of completed rollouts (mm)": f[MPKPE_REL_MM].map(fmt),
+    })
+    return ["## Whole clips", "", "Rollouts from each clip's first frame to its last (eval.whole_clip): `nominal` "
+            "as the window evaluation (deterministic, one per clip), `robust` with training's domain randomisation, "
+            "observation noise and pushes (each rollout its own draw). Success: rollouts that tracked their clip to "
+            "its last frame / rollouts, over every clip; at each run's last whole-clip evaluation. Failures within "
+            f"{START_TRANSIENT_S:g} s of the start are start transients; the others are later failures.", "",
+            md_table(view), ""]
+
+
+__all__ = ["WholeClipReport", "compute", "section"]
