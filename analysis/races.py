@@ -38,7 +38,7 @@ from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
 from analysis.plots import arm_colors
 from bmimic import BmimicError
-from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE
+from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
 
 EVALUATION_KEYS = (ITERATION, ENV_STEPS, "wall_from_launch_s", SUCCESS_RATE, MPKPE_REL_MM)
 """Keys every evaluation record of a race JSON must have."""
@@ -138,6 +138,8 @@ def race_thresholds(races: list[tuple[str, dict]]) -> pd.DataFrame:
 
 
 def _threshold_name(metric: str, value: float) -> str:
+    if metric == whole_clip_key("robust", "success_rate"):
+        return f"{value:.0%} robust whole-clip success"
     return f"{value:.0%} success" if metric == "eval_success_rate" else f"MPKPE <= {value:g} mm"
 
 
@@ -175,7 +177,8 @@ def summary_markdown(summary: pd.DataFrame) -> str:
         return md_table(summary)
     fixed = ["config", "seed", "gpu", "date", "eval_every_iters", "startup_s", "training_s_per_iteration",
              "eval_share"]
-    thresholds = [c for c in summary.columns if c.endswith("% success") or c.startswith("MPKPE <=")]
+    thresholds = [c for c in summary.columns if c.endswith("% success") or c.startswith("MPKPE <=")
+                  or c.endswith("whole-clip success")]
     view = summary[fixed + thresholds + ["last_success"]].copy()
     view["gpu"] = gpu_label(summary["gpu"], summary["gpus"])
     formats = {"startup_s": "{:.0f} s", "training_s_per_iteration": "{:.3f}", "eval_share": "{:.1%}",

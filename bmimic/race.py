@@ -6,10 +6,13 @@ imports, Warp's kernel compile and the CUDA-graph capture included) and from the
 iterations and env steps at the first evaluation where
   - evaluated success >= each of --success (default 0.90, 0.95, 0.98, 0.99), and
   - root-relative MPKPE <= each of --mpkpe-rel-mm (default 40 and 35 mm)
-held for --sustain evaluations in a row (default 2; the time is that of the first of them). Training
-stops once every threshold is reached, at the first evaluation past --budget-s of wall time from
-launch, or at max_iterations. One line per threshold is printed; RUN/race.json (and --json PATH, e.g.
-under docs/bench/) holds them, every evaluation's times and the machine.
+  - robust whole-clip success >= each of --whole-clip-success (default 0.90, 0.95): the fraction of
+    rollouts from the clip's first frame that track it to its last frame under training's domain
+    randomisation, observation noise and pushes (bmimic.training.whole_clip; --no-whole-clip: off),
+held for --sustain evaluations in a row of that kind (default 2; the time is that of the first of them).
+Training stops once every threshold is reached, at the first evaluation past --budget-s of wall time
+from launch, or at max_iterations. One line per threshold is printed; RUN/race.json (and --json PATH,
+e.g. under docs/bench/) holds them, every evaluation's times and the machine.
 
     python -m bmimic.race motion=lafan_dance1_full                            # today's defaults
     python -m bmimic.race --budget-s 900 motion=lafan_dance1_full env=tracking num_envs=8192
@@ -28,6 +31,13 @@ The ranks gather their launch times and the clock starts at the earliest; rank 0
 (every rank stops after the same iteration) and writes race.json, which also holds `gpus` (ranks),
 `num_envs_per_gpu` (num_envs, per rank), `num_envs_total` and `rank_launch_spread_s` (latest minus
 earliest launch). torchrun's own start (its agent, before it spawns the ranks) is not in the clock.
+
+Whole clips are expensive: one robust evaluation of all of dance1_subject1 (6575 sequential steps) took
+~51 s on an H200 whatever the number of rollouts, against ~0.24 s per training iteration. So the race
+evaluates them (RACE_WHOLE_CLIP: 128 robust rollouts per clip) once the windows reached 95% success, then
+after a window evaluation whenever all evaluations so far, the next one included (at the last one's
+duration), stay within 10% of the wall time since the first iteration: beside the windows' 3-5%, about
+one every 15 minutes of racing, so whole-clip times are that coarse (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -57,7 +67,15 @@ import sys  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, summary_key  # noqa: E402
+from bmimic.run_schema import (  # noqa: E402
+    ENV_STEPS,
+    ITERATION,
+    MPKPE_REL_MM,
+    RACE_KIND,
+    SUCCESS_RATE,
+    summary_key,
+    whole_clip_key,
+)
 
 RACE_EVAL_EVERY = 100
 """Iterations between evaluations, the race's time resolution: ~24 s at 4096 envs on an H100 or H200.
@@ -66,6 +84,13 @@ RACE_EPISODES_PER_BIN = 16
 """Stratified episodes per bin: 2112 episodes on the 132-bin dance, one wave of the eval env."""
 DEFAULT_SUCCESS = (0.90, 0.95, 0.98, 0.99)
 DEFAULT_MPKPE_REL_MM = (40.0, 35.0)
+DEFAULT_WHOLE_CLIP_SUCCESS = (0.90, 0.95)
+WHOLE_CLIP_METRIC = whole_clip_key("robust", "success_rate")
+"""The whole-clip finish line's measure: robust whole-clip success (bmimic.training.whole_clip)."""
+RACE_WHOLE_CLIP = {"eval.whole_clip.conditions": "[robust]", "eval.whole_clip.rollouts": 128,
+                   "eval.whole_clip.after_success": 0.95, "eval.whole_clip.max_share": 0.10}
+"""The race's whole-clip evaluation unless the overrides set it: robust, 128 rollouts (one latency-bound wave on
+a GPU), from 95% window success, whenever all evaluations stay within 10% of the wall time (module docstring)."""
 
 
 @dataclass
@@ -78,15 +103,19 @@ class Threshold:
     """Evaluations in a row that met it, up to the latest."""
     reached_at: dict | None = None
     """The evaluation record where the sustained run began (None: not yet)."""
+    first: dict | None = None
+    """The evaluation record where the current streak began."""
 
     def met(self, summary: dict) -> bool:
         x = float(summary.get(self.metric, math.nan))
-        return x >= self.value if self.metric == "eval_success_rate" else x <= self.value
+        return x >= self.value if self.metric.endswith("success_rate") else x <= self.value
 
     @property
     def label(self) -> str:
         if self.metric == "eval_success_rate":
             return f"success >= {self.value:g}"
+        if self.metric == WHOLE_CLIP_METRIC:
+            return f"robust whole-clip success >= {self.value:g}"
         return f"root-relative MPKPE <= {self.value:g} mm"
 
 
@@ -131,11 +160,16 @@ class Race:
             SUCCESS_RATE: float(summary.get("eval_success_rate", math.nan)),
             MPKPE_REL_MM: float(summary.get(summary_key(MPKPE_REL_MM), math.nan)),
         }
+        if WHOLE_CLIP_METRIC in summary:
+            record[WHOLE_CLIP_METRIC] = float(summary[WHOLE_CLIP_METRIC])
         self.evaluations.append(record)
         for t in self.thresholds:
+            if t.metric not in summary:  # not measured this time (whole clips run less often): the streak waits
+                continue
             t.streak = t.streak + 1 if t.met(summary) else 0
+            t.first = (record if t.streak == 1 else t.first) if t.streak else None
             if t.reached_at is None and t.streak >= self.sustain:
-                t.reached_at = self.evaluations[-self.sustain]
+                t.reached_at = t.first
         if all(t.reached_at is not None for t in self.thresholds):
             self.stopped = "every threshold reached"
             return True
@@ -220,12 +254,16 @@ def _floats(text: str) -> tuple[float, ...]:
 def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     """Race options, and the rest (Hydra overrides of the train config)."""
     p = argparse.ArgumentParser(prog="python -m bmimic.race", description=__doc__.split("\n\n")[0],
-                                epilog="Every other argument is a Hydra override of the train config.")
+                                epilog="Every other argument is a Hydra override of the train config. "
+                                       + __doc__.split("\n\n")[-1])
     p.add_argument("--budget-s", type=float, default=3600.0,
                    help="stop at the first evaluation this many seconds of wall time after launch (default 3600)")
     p.add_argument("--success", type=_floats, default=DEFAULT_SUCCESS, help="success thresholds, e.g. 0.9,0.99")
     p.add_argument("--mpkpe-rel-mm", type=_floats, default=DEFAULT_MPKPE_REL_MM,
                    help="root-relative MPKPE thresholds in mm (default 40,35)")
+    p.add_argument("--whole-clip-success", type=_floats, default=DEFAULT_WHOLE_CLIP_SUCCESS,
+                   help="robust whole-clip success thresholds (default 0.9,0.95; when whole clips are evaluated: below)")
+    p.add_argument("--no-whole-clip", action="store_true", help="race to the window thresholds only")
     p.add_argument("--sustain", type=int, default=2, help="evaluations in a row a threshold must hold (default 2)")
     p.add_argument("--json", type=Path, default=None, help="also write the result here (e.g. docs/bench/...json)")
     args, rest = p.parse_known_args(argv)
@@ -234,6 +272,9 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         problems.append(f"--budget-s must be a finite number of seconds > 0, got {args.budget_s}")
     if not all(0.0 < v <= 1.0 for v in args.success):
         problems.append(f"--success thresholds must lie in (0, 1], got {','.join(map(str, args.success))}")
+    if not all(0.0 < v <= 1.0 for v in args.whole_clip_success):
+        problems.append("--whole-clip-success thresholds must lie in (0, 1], got "
+                        f"{','.join(map(str, args.whole_clip_success))}")
     if not all(v > 0 for v in args.mpkpe_rel_mm):
         problems.append("--mpkpe-rel-mm thresholds must be > 0 mm")
     if args.sustain < 1:
@@ -265,12 +306,12 @@ def _refuse(problem: str) -> None:
         torch.distributed.barrier()  # rank 0 has printed
 
 
-def race_overrides(rest: list[str]) -> list[str]:
-    """The race's evaluation schedule and run name, unless the overrides set them."""
+def race_overrides(rest: list[str], whole_clip: bool = True) -> list[str]:
+    """The race's evaluation schedules (`whole_clip`: RACE_WHOLE_CLIP too) and run name, unless overridden."""
     keys = {a.split("=", 1)[0].lstrip("+") for a in rest if "=" in a}
-    extra = [f"{k}={v}" for k, v in (("eval.every_iters", RACE_EVAL_EVERY),
-                                     ("eval.episodes_per_bin", RACE_EPISODES_PER_BIN),
-                                     ("run_name", "race")) if k not in keys]
+    defaults = {"eval.every_iters": RACE_EVAL_EVERY, "eval.episodes_per_bin": RACE_EPISODES_PER_BIN, "run_name": "race",
+                **(RACE_WHOLE_CLIP if whole_clip else {})}
+    extra = [f"{k}={v}" for k, v in defaults.items() if k not in keys]
     return [*extra, *rest]
 
 
@@ -303,7 +344,8 @@ def _race(argv: list[str] | None) -> int:
         _refuse(str(e))
         return 2
     thresholds = ([Threshold("eval_success_rate", v) for v in args.success]
-                  + [Threshold("eval_mpkpe_rel_mm", v) for v in args.mpkpe_rel_mm])
+                  + [Threshold("eval_mpkpe_rel_mm", v) for v in args.mpkpe_rel_mm]
+                  + ([] if args.no_whole_clip else [Threshold(WHOLE_CLIP_METRIC, v) for v in args.whole_clip_success]))
     race = Race(thresholds, args.budget_s, args.sustain)
     result: dict = {}
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
@@ -330,7 +372,7 @@ def _race(argv: list[str] | None) -> int:
         return out
 
     saved = sys.argv
-    sys.argv = [saved[0], *race_overrides(rest)]
+    sys.argv = [saved[0], *race_overrides(rest, whole_clip=not args.no_whole_clip)]
     try:
         app()
     except SystemExit as e:  # launch's one-line refusals (exit 2) end the race the same way

@@ -23,7 +23,7 @@ from analysis.races import (
     read_races,
     summary_markdown,
 )
-from bmimic.race import Race, Threshold
+from bmimic.race import WHOLE_CLIP_METRIC, Race, Threshold
 from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -200,3 +200,18 @@ def test_the_committed_race_tables_rebuild_from_the_committed_race_jsons(tmp_pat
         assert main([*map(str, paths), "--out", str(tmp_path / folder.name)]) == 0
         rebuilt = (tmp_path / folder.name / "race_table.md").read_bytes()
         assert rebuilt == (folder / "race_table.md").read_bytes(), folder.name
+
+
+def test_a_whole_clip_threshold_gets_a_column_of_its_own(tmp_path):
+    race = Race([Threshold("eval_success_rate", 0.9), Threshold(WHOLE_CLIP_METRIC, 0.9)], budget_s=1e9,
+                launch_unix_s=100.0)
+    for i, whole in enumerate((None, 0.92, None, 0.95), start=1):
+        progress = SimpleNamespace(iteration=100 * i, env_steps=1000 * i, wall_time_s=10.0 * i)
+        trainer = SimpleNamespace(run_dir="RUN", learn_started_unix_s=120.0, eval_time_s=0.5 * i, progress=progress)
+        summary = {"eval_success_rate": 0.96, **({} if whole is None else {WHOLE_CLIP_METRIC: whole})}
+        race.on_evaluation(trainer, summary, now=120.0 + 10.0 * i)
+    path = tmp_path / "w.json"
+    path.write_text(json.dumps(race.to_json({"seed": 0, "eval": {"every_iters": 100}}, {"gpu": {"name": "H100"}})))
+    summary = race_summary(read_races([path]))
+    assert summary.loc[0, "90% robust whole-clip success"] == "40 s (it 200)"  # launch at 100 s
+    assert "90% robust whole-clip success" in summary_markdown(summary).splitlines()[0]

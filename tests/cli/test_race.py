@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from bmimic.race import Race, Threshold, parse_args, race_overrides
+from bmimic.race import WHOLE_CLIP_METRIC, Race, Threshold, parse_args, race_overrides
 from tests.conftest import TINY, cli_env
 
 RANKS = 3
@@ -85,6 +85,32 @@ def test_ranks_make_one_race_clocked_from_the_earliest_launch():
     assert single.gpus == 1 and not any("ranks" in line for line in single.lines())
 
 
+def test_whole_clip_thresholds_are_sustained_over_the_evaluations_that_measured_them():
+    """Whole clips are evaluated at every other window evaluation: 0.85 at 100, 0.92 at 200, 0.93 at 300
+    (window success 0.95-0.98 throughout): 90% is reached at 200, sustained at 300, where the race stops;
+    the windows' evaluations in between neither break nor extend the whole-clip streak."""
+    race = Race([Threshold("eval_success_rate", 0.9), Threshold(WHOLE_CLIP_METRIC, 0.9)], 1e9, 2, launch_unix_s=100.0)
+    summaries = [{"eval_success_rate": 0.95}, {"eval_success_rate": 0.96, WHOLE_CLIP_METRIC: 0.85},
+                 {"eval_success_rate": 0.97}, {"eval_success_rate": 0.97, WHOLE_CLIP_METRIC: 0.92},
+                 {"eval_success_rate": 0.98}, {"eval_success_rate": 0.98, WHOLE_CLIP_METRIC: 0.93}]
+    stops = [race.on_evaluation(_trainer(50 * k), s, now=110.0 + 50 * k) for k, s in enumerate(summaries, start=1)]
+    assert stops == [False] * 5 + [True]
+    windows, whole = race.thresholds
+    assert windows.reached_at["iteration"] == 50 and whole.reached_at["iteration"] == 200
+    assert whole.label == "robust whole-clip success >= 0.9"
+    assert [e.get(WHOLE_CLIP_METRIC) for e in race.evaluations] == [None, 0.85, None, 0.92, None, 0.93]
+    assert any(line.startswith("race: robust whole-clip success >= 0.9 at iteration 200") for line in race.lines())
+
+
+def test_the_race_evaluates_whole_clips_by_its_share_rule_unless_told_otherwise():
+    defaults = race_overrides(["seed=3"])
+    assert {"eval.whole_clip.conditions=[robust]", "eval.whole_clip.rollouts=128", "eval.whole_clip.after_success=0.95",
+            "eval.whole_clip.max_share=0.1"} <= set(defaults)
+    assert not any(a.startswith("eval.whole_clip") for a in race_overrides(["seed=3"], whole_clip=False))
+    mine = race_overrides(["eval.whole_clip.max_share=0.3"])
+    assert "eval.whole_clip.max_share=0.1" not in mine and mine[-1] == "eval.whole_clip.max_share=0.3"
+
+
 def test_one_evaluation_suffices_with_sustain_1():
     race = _race(sustain=1)
     assert _feed(race, [(0.995, 30)]) == 50
@@ -95,6 +121,7 @@ def test_one_evaluation_suffices_with_sustain_1():
     (["--budget-s", "nan"], "--budget-s must be a finite number of seconds > 0"),
     (["--success", "0.9,1.5"], "--success thresholds must lie in (0, 1]"),
     (["--sustain", "0"], "--sustain must be >= 1"),
+    (["--whole-clip-success", "0.9,1.5"], "--whole-clip-success thresholds must lie in (0, 1]"),
     (["-m", "seed=0,1"], "not -m"),
     (["resume=true"], "resume is not raced"),
     (["--json", "no/such/folder/r.json"], "must name a file in an existing folder"),
@@ -119,7 +146,7 @@ def test_a_tiny_race_on_the_cpu_stops_at_its_thresholds_and_writes_its_record(tm
 
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "race.json"
-    args = ["--success", "0.01", "--mpkpe-rel-mm", "1000", "--json", str(out),
+    args = ["--success", "0.01", "--mpkpe-rel-mm", "1000", "--no-whole-clip", "--json", str(out),
             *[a for a in TINY if not a.startswith("max_iterations")], "max_iterations=6", "eval.every_iters=1",
             f"hydra.run.dir={tmp_path / 'run'}", "logger=none"]
     assert main(args) == 0
@@ -146,7 +173,7 @@ def _torchrun_race(tmp_path, *args: str) -> subprocess.CompletedProcess:
 def test_a_torchrun_race_on_three_cpu_ranks_is_one_race_that_rank_zero_writes(tmp_path):
     run, out = tmp_path / "run", tmp_path / "race.json"
     # verbose: every rank logs, so each says where it stopped
-    done = _torchrun_race(tmp_path, "--success", "0.01", "--mpkpe-rel-mm", "1000", "--json", str(out),
+    done = _torchrun_race(tmp_path, "--success", "0.01", "--mpkpe-rel-mm", "1000", "--no-whole-clip", "--json", str(out),
                           *[a for a in TINY if not a.startswith("max_iterations")], "max_iterations=6",
                           "eval.every_iters=1", "eval.episodes_per_bin=1", "logger=none", "verbose=true",
                           f"hydra.run.dir={run}")
@@ -182,3 +209,23 @@ def test_a_torchrun_race_refuses_what_it_cannot_mean_in_one_line_and_writes_noth
     assert done.returncode != 0 and done.stderr.count("exitcode  : 2") + done.stderr.count("exitcode: 2") >= 1, \
         done.stderr[-3000:]
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_a_tiny_race_evaluates_whole_clips_and_records_them(tmp_path, monkeypatch):
+    """Whole clips at every evaluation (share 1, open from the first): a 2-iteration policy completes no
+    whole clip, so the whole-clip thresholds are censored while the window ones are reached."""
+    from bmimic.race import main
+
+    monkeypatch.chdir(tmp_path)
+    args = ["--success", "0.01", "--mpkpe-rel-mm", "1000", "--whole-clip-success", "0.5",
+            *[a for a in TINY if not a.startswith(("max_iterations", "motion"))], "motion=easy_only", "motion.duration_s=7",
+            "max_iterations=2", "eval.every_iters=1", "eval.whole_clip.rollouts=2", "eval.whole_clip.max_share=1.0",
+            "eval.whole_clip.after_success=0.001", f"hydra.run.dir={tmp_path / 'run'}", "logger=none"]
+    assert main(args) == 0
+    record = json.loads((tmp_path / "run" / "race.json").read_text())
+    assert [t["status"] for t in record["thresholds"]] == ["reached", "reached", "censored"]
+    assert record["thresholds"][2]["metric"] == WHOLE_CLIP_METRIC
+    measured = [e[WHOLE_CLIP_METRIC] for e in record["evaluations"]]
+    assert len(measured) == 2 and all(0 <= m <= 1 for m in measured)
+    assert (tmp_path / "run" / "whole_clip.parquet").exists()
