@@ -1,5 +1,5 @@
 """bmimic's own (MuJoCo-Warp) whole-clip success of the checkpoint sim2sim's whole-clip rollouts ran,
-read from the run folder, and the gap per condition and clip."""
+read from the run folder (its whole-clip evaluation first), and the gap per condition and clip."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bmimic.run_folder import EVAL_DIR, EVAL_TABLES, table_path
-from bmimic.run_schema import BIN, HORIZON_TRUNCATED, ITERATION
+from bmimic.run_folder import EVAL_DIR, EVAL_TABLES, WHOLE_CLIP_DIR, WHOLE_CLIP_FILES, table_path
+from bmimic.run_schema import BIN, CONDITION, HORIZON_TRUNCATED, ITERATION
 from bmimic.sim2sim.gap import readable
 from bmimic.sim2sim.spec import PolicySpec
 
@@ -35,22 +35,41 @@ def warp_whole_clip(run_dir: Path | None, label: str, iteration: int | None, spe
     """bmimic's own whole-clip outcome of this checkpoint, by condition, from what the run folder holds
     (the first source that has it):
 
-    1. RUN/eval/<label>/ (`bmimic.eval`) whose horizon reaches each clip's end: its episodes that
+    1. bmimic's whole-clip evaluation (bmimic.training.whole_clip), every condition it ran: RUN/eval/<label>/
+       whole_clip/ (`bmimic.eval --whole-clip`), else RUN/whole_clip.parquet at the checkpoint's iteration
+       (eval.whole_clip during training);
+    2. RUN/eval/<label>/ (`bmimic.eval`) whose horizon reaches each clip's end: its episodes that
        started in a clip's first bin and ran to the clip's end or failed, nominal (the stratified
        starts are a few frames after the clip's first frame);
-    2. RUN/clip_eval.parquet (phc, protomotions) at the checkpoint's iteration: one rollout per clip
-       from its first frame, nominal, where it was not cut short by `sampler.rollout_max_s`.
-
-    The hook for bmimic's whole-clip evaluation (issue 44 item 1: R rollouts per clip, nominal and
-    robust): once its tables are in the run folder, they are the first source, here."""
+    3. RUN/clip_eval.parquet (phc, protomotions) at the checkpoint's iteration: one rollout per clip
+       from its first frame, nominal, where it was not cut short by `sampler.rollout_max_s`."""
     if run_dir is None:
         return {}
     starts, ends = clip_spans(spec)
-    for source in (_from_eval_episodes, _from_clip_eval):
+    for source in (_from_whole_clip, _from_eval_episodes, _from_clip_eval):
         found = source(run_dir, label, iteration, starts, ends, spec)
         if found:
             return found
     return {}
+
+
+def _from_whole_clip(run_dir: Path, label: str, iteration, starts, ends, spec) -> dict[str, WarpWholeClip]:
+    folder = run_dir / EVAL_DIR / label / WHOLE_CLIP_DIR
+    clips_file, summary_file = folder / WHOLE_CLIP_FILES[0], folder / WHOLE_CLIP_FILES[-1]
+    if clips_file.is_file() and summary_file.is_file():
+        with readable(clips_file):
+            table = pd.read_csv(clips_file)[[CONDITION, "clip", "rollouts", "completed"]]
+        source = f"{folder} (bmimic.eval --whole-clip)"
+    else:
+        path = table_path(run_dir, "whole_clip")
+        if iteration is None or not path.is_file():
+            return {}
+        with readable(path):
+            table = pd.read_parquet(path)[[ITERATION, CONDITION, "clip", "rollouts", "completed"]]
+        table = table[table[ITERATION] == iteration]
+        source = f"{path} (iteration {iteration})"
+    return {str(condition): WarpWholeClip(f"{source}, {condition}", g[["clip", "rollouts", "completed"]].astype(
+        np.int64).reset_index(drop=True)) for condition, g in table.groupby(CONDITION, sort=False) if len(g) == len(starts)}
 
 
 def _from_eval_episodes(run_dir: Path, label: str, iteration, starts, ends, spec) -> dict[str, WarpWholeClip]:

@@ -269,3 +269,31 @@ def test_nominal_rollouts_repeat_exactly_in_native_mujoco(policy):
     rollout = sim2sim.Rollout(mjm, spec, ref, sim2sim.policy_session(path))
     a, b = (sim2sim.run_episode(rollout, 0, 60) for _ in range(2))
     assert np.array_equal(a.errors, b.errors) and a.row["steps"] == 60
+
+
+def test_bmimics_own_whole_clip_evaluation_is_the_gaps_first_source(tmp_path):
+    """bmimic.eval --whole-clip's tables (eval/<label>/whole_clip/) first, then training's whole_clip.parquet
+    at the checkpoint's iteration; each condition it has, robust too."""
+    from types import SimpleNamespace
+
+    from bmimic.run_folder import WHOLE_CLIP_DIR, WHOLE_CLIP_FILES, table_path
+    from bmimic.sim2sim.whole_clip_gap import warp_whole_clip
+
+    spec = SimpleNamespace(clip_starts=[0, 50], num_frames=120)
+    rows = pd.DataFrame({"condition": ["nominal", "nominal", "robust", "robust"], "clip": [0, 1, 0, 1],
+                         "rollouts": [1, 1, 8, 8], "completed": [1, 0, 6, 2]})
+    pd.concat([rows.assign(iteration=100, env_steps=0), rows.assign(iteration=200, env_steps=0, completed=[1, 1, 8, 7])]
+              ).to_parquet(table_path(tmp_path, "whole_clip"))
+    from_training = warp_whole_clip(tmp_path, "model_200", 200, spec)
+    assert sorted(from_training) == ["nominal", "robust"]
+    assert from_training["robust"].clips["completed"].tolist() == [8, 7] and "iteration 200" in from_training["robust"].source
+    assert warp_whole_clip(tmp_path, "model_300", 300, spec) == {}  # no evaluation at that iteration, nor any other source
+    folder = tmp_path / "eval" / "model_200" / WHOLE_CLIP_DIR
+    folder.mkdir(parents=True)
+    rows.to_csv(folder / WHOLE_CLIP_FILES[0], index=False)
+    (folder / WHOLE_CLIP_FILES[-1]).write_text("{}")
+    from_eval = warp_whole_clip(tmp_path, "model_200", 200, spec)
+    assert from_eval["robust"].clips["completed"].tolist() == [6, 2] and "bmimic.eval --whole-clip" in from_eval["robust"].source
+    gap = gap_table(pd.DataFrame({"condition": "robust", "clip": [0, 0], "clip_name": "c0", "completed": [True, False]}),
+                    from_eval).set_index("clip")
+    assert gap.loc[0, "warp_success_rate"] == pytest.approx(0.75) and gap.loc[0, "success_gap"] == pytest.approx(-0.25)
