@@ -12,7 +12,17 @@ import yaml
 
 from analysis import AnalysisError
 from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
-from bmimic.run_schema import CLIP_TIME_S, CONDITION, ENV_STEPS, FAILURE_RATE, LOGISTICS_KEYS, WALL_TIME_S
+from bmimic.run_schema import (
+    BIN_COLUMNS,
+    CLIP_TIME_S,
+    CONDITION,
+    ENV_STEPS,
+    ERROR_COLUMNS,
+    FAILURE_RATE,
+    LOGISTICS_KEYS,
+    SMOOTHNESS_COLUMNS,
+    WALL_TIME_S,
+)
 
 REQUIRED_COLUMNS = {
     "train_metrics": ["iteration", ENV_STEPS, WALL_TIME_S, "mean_episode_length", "mean_reward"],
@@ -26,6 +36,19 @@ REQUIRED_COLUMNS = {
     "whole_clip_failures": ["iteration", CONDITION, "clip", "failure_time_s", "transient"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""
+
+_EVAL_OPTIONAL = (*BIN_COLUMNS, "episodes", "segment", "clip", *ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
+REPORT_COLUMNS: dict[str, tuple[str, ...] | None] = {
+    "train_metrics": tuple(REQUIRED_COLUMNS["train_metrics"]),
+    "eval": (*REQUIRED_COLUMNS["eval"], *_EVAL_OPTIONAL),
+    "eval_robust": (*REQUIRED_COLUMNS["eval_robust"], *_EVAL_OPTIONAL),
+    "sampler": (*REQUIRED_COLUMNS["sampler"], "bin_start_s", "bin_end_s", "clip", "episodes", "failures",
+                "smoothed_failure_rate"),
+    "clip_eval": None, "whole_clip": None, "whole_clip_survival": None, "whole_clip_failures": None,
+}
+"""Every column the analysis reads from each table, the optional ones included (None: the whole table):
+what analysis.compact keeps of a committed run. ``episodes`` is the start count of evaluation tables
+written before per-visit accounting."""
 
 NEEDED_TABLES = ("train_metrics", "eval")
 """Tables a run must have to be included; ``sampler``, ``eval_robust`` (written with

@@ -1,0 +1,104 @@
+"""``python -m analysis.compact PATH [PATH ...]``: shrink run folders to what a report reads.
+
+A study's committed runs (docs/results/<study>/runs/) exist so that anyone can rebuild its report;
+training writes much more (losses, per-term rewards, timings) for the person watching the run. This
+rewrites each run's tables in place, atomically, keeping only REPORT_COLUMNS (the columns the analysis
+reads, analysis.run_files) and storing floating-point columns with Parquet's byte-stream-split encoding
+under zstd level 19: lossless, so a report rebuilt from the compacted runs is byte-identical, and
+about half the size. Rows are never dropped or thinned here (thinning sampler.parquet would change the
+sampling figures). Run it before committing a study's runs; ``--check`` only prints what it would save.
+
+STUDY_BUDGET_MB is the size a study's folder may take in the repository; STUDY_BUDGETS_MB records the
+studies allowed more, each with its reason. tests/test_results_size.py holds every folder of
+docs/results to its budget.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import sys
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from analysis import AnalysisError
+from analysis.run_files import REPORT_COLUMNS, find_run_dirs
+from bmimic.atomic_io import atomic_write_bytes
+from bmimic.run_folder import table_path
+
+STUDY_BUDGET_MB = 10.0
+"""Largest size of one study's folder under docs/results (runs, report.md, figures; not the report's CSVs,
+which git ignores), in MB."""
+
+STUDY_BUDGETS_MB = {
+    "peer_samplers": 16.0,  # 40 runs of 627 bins, committed (and thinned) before compaction existed: 15.1 MB
+    "design_choices_dance1": 17.5,  # 30 runs of 132 bins evaluated every 50 iterations: 16.9 MB compacted
+    "sensitivity_dance1": 18.0,  # 67 planned runs of ~0.25 MB (132 bins, evaluation every 100 iterations)
+}
+"""Studies allowed more than STUDY_BUDGET_MB, in MB, with why."""
+
+ZSTD_LEVEL = 19
+"""zstd level of compacted tables (slow to write, as fast to read as the default)."""
+
+
+def compact_table(table: pa.Table, keep: tuple[str, ...] | None) -> bytes:
+    """``table`` with only the columns of ``keep`` (all when None; absent ones are skipped), as Parquet
+    bytes: floats byte-stream-split, everything zstd ``ZSTD_LEVEL``; values unchanged."""
+    if keep is not None:
+        table = table.select([c for c in table.column_names if c in keep])
+    table = table.replace_schema_metadata(None)  # pandas' index metadata: the readers never use it
+    floats = [f.name for f in table.schema if pa.types.is_floating(f.type)]
+    buf = io.BytesIO()
+    pq.write_table(table, buf, compression="zstd", compression_level=ZSTD_LEVEL,
+                   use_byte_stream_split=floats or False,
+                   use_dictionary=[c for c in table.column_names if c not in floats] or False)
+    return buf.getvalue()
+
+
+def compact_run(run_dir: Path, write: bool = True) -> tuple[int, int]:
+    """Compact every table of ``run_dir`` that the analysis reads; returns (bytes before, after)."""
+    before = after = 0
+    for name, keep in REPORT_COLUMNS.items():
+        path = table_path(run_dir, name)
+        if not path.is_file():
+            continue
+        try:
+            table = pq.read_table(path)
+        except Exception as e:  # pyarrow raises several types for damaged files
+            raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
+        data = compact_table(table, keep)
+        if not pq.read_table(io.BytesIO(data)).equals(table.select([c for c in table.column_names
+                                                                    if keep is None or c in keep])
+                                                       .replace_schema_metadata(None)):
+            raise AnalysisError(f"{path}: compacting would change its values; left as it was")
+        before, after = before + path.stat().st_size, after + len(data)
+        if write and len(data) < path.stat().st_size:
+            atomic_write_bytes(path, data)
+    return before, after
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m analysis.compact", description=__doc__.split("\n\n")[0])
+    p.add_argument("paths", nargs="+", type=Path, help="run folders, or folders holding them")
+    p.add_argument("--check", action="store_true", help="print what it would save; write nothing")
+    args = p.parse_args(argv)
+    try:
+        runs = [r for path in args.paths for r in find_run_dirs(path)]
+        if not runs:
+            raise AnalysisError(f"no run folders under {[str(x) for x in args.paths]}")
+        before = after = 0
+        for run in runs:
+            b, a = compact_run(run, write=not args.check)
+            before, after = before + b, after + a
+    except AnalysisError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    verb = "would shrink" if args.check else "shrank"
+    print(f"{len(runs)} runs: tables {verb} from {before / 1e6:.2f} MB to {after / 1e6:.2f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,47 @@
+"""analysis.compact: a compacted run gives the same report, byte for byte, and keeps only what it reads."""
+
+from __future__ import annotations
+
+import shutil
+
+import pandas as pd
+import pyarrow.parquet as pq
+
+from analysis.compact import compact_run, main
+from analysis.report import build_report
+from analysis.run_files import REPORT_COLUMNS
+from tests.analysis.synthetic_runs import make_knob_study
+
+
+def test_compacted_runs_rebuild_the_same_report(tmp_path):
+    sweep = make_knob_study(tmp_path / "a")
+    for run in sweep.glob("*/seed=*"):  # a column no report reads, as training writes many
+        df = pd.read_parquet(run / "train_metrics.parquet")
+        df.assign(**{"loss/value": 1.5}).to_parquet(run / "train_metrics.parquet", index=False)
+    copy = tmp_path / "b" / "knobs"
+    shutil.copytree(sweep, copy)
+    assert main([str(copy)]) == 0
+    run = next(copy.glob("*/seed=0"))
+    assert set(pq.read_schema(run / "train_metrics.parquet").names) == set(REPORT_COLUMNS["train_metrics"])
+    assert pd.read_parquet(run / "eval.parquet").equals(pd.read_parquet(sweep / run.relative_to(copy) / "eval.parquet"))
+    a = build_report([sweep], out=tmp_path / "a" / "report")
+    b = build_report([copy], out=tmp_path / "b" / "report")
+    text_a = (a / "report.md").read_text().replace(str(sweep), "SWEEP")
+    assert text_a == (b / "report.md").read_text().replace(str(copy), "SWEEP")
+    for png in a.glob("*.png"):
+        assert png.read_bytes() == (b / png.name).read_bytes(), png.name
+
+
+def test_check_writes_nothing_and_a_bad_table_is_one_line(tmp_path, capsys):
+    sweep = make_knob_study(tmp_path)
+    run = next(sweep.glob("*/seed=0"))
+    before = (run / "train_metrics.parquet").read_bytes()
+    assert main([str(sweep), "--check"]) == 0
+    assert (run / "train_metrics.parquet").read_bytes() == before
+    assert "would shrink" in capsys.readouterr().out
+    (run / "eval.parquet").write_bytes(b"not parquet")
+    assert main([str(sweep)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "eval.parquet" in err[0]
+    b, a = compact_run(next(sweep.glob("*/seed=1")), write=False)
+    assert 0 < a < b

@@ -1,0 +1,40 @@
+"""The repository stays small: every study under docs/results keeps to its size budget
+(analysis.compact), and committed runs hold only what a report reads."""
+
+from __future__ import annotations
+
+import pyarrow.parquet as pq
+import pytest
+
+from analysis.compact import STUDY_BUDGET_MB, STUDY_BUDGETS_MB
+from analysis.run_files import REPORT_COLUMNS, find_run_dirs
+from bmimic.run_folder import table_path
+from tests.conftest import REPO
+
+RESULTS = REPO / "docs" / "results"
+STUDIES = sorted(p for p in RESULTS.iterdir() if p.is_dir())
+
+
+def tracked_size_mb(folder) -> float:
+    """Size of the files git keeps (the report's CSVs are ignored: docs/results/**/*.csv)."""
+    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file() and f.suffix != ".csv") / 1e6
+
+
+@pytest.mark.parametrize("study", STUDIES, ids=lambda p: p.name)
+def test_study_keeps_to_its_budget(study):
+    budget = STUDY_BUDGETS_MB.get(study.name, STUDY_BUDGET_MB)
+    assert tracked_size_mb(study) <= budget, f"{study.name}: over its {budget} MB budget (python -m analysis.compact)"
+
+
+def test_budgets_name_real_studies():
+    assert set(STUDY_BUDGETS_MB) <= {p.name for p in STUDIES} | {"sensitivity_dance1"}
+
+
+@pytest.mark.parametrize("study", [s for s in STUDIES if (s / "runs").is_dir()], ids=lambda p: p.name)
+def test_committed_runs_hold_only_report_columns(study):
+    for run in find_run_dirs(study / "runs"):
+        for name, keep in REPORT_COLUMNS.items():
+            path = table_path(run, name)
+            if keep is not None and path.is_file():
+                extra = set(pq.read_schema(path).names) - set(keep)
+                assert not extra, f"{path}: columns no report reads {sorted(extra)} (python -m analysis.compact)"
