@@ -126,6 +126,8 @@ class Motion:
                 "motion does not cover the robot model: missing joints "
                 f"{missing_j or 'none'}, missing bodies {missing_b or 'none'}"
             )
+        if self.joint_names == model_joints and self.body_names == model_bodies:
+            return self  # already in order (every cached clip): no copy, no second validation
         ji = [self.joint_names.index(n) for n in model_joints]
         bi = [self.body_names.index(n) for n in model_bodies]
         return dataclasses.replace(
