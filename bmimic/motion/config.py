@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 
 from bmimic.motion import builtin
-from bmimic.motion.motion import Motion, MotionDataError
+from bmimic.motion.motion import Motion, MotionDataError, Segment
 
 log = logging.getLogger(__name__)
 
@@ -213,6 +213,9 @@ def load_motion(
                 mjmodel,
                 lambda: convert_csv(path, mjmodel, float(cfg.fps_in), float(control_fps)),
             )
+            # The cache is keyed by content, so the entry may come from a file of another name: the one
+            # segment a CSV gets is named after this file, as convert_csv names it (a library's per-clip table).
+            motion.segments = [Segment(path.stem, 0.0, motion.duration_s, "unknown")]
         else:
             raise MotionDataError(f"motion.path: {path}: expected a .npz or .csv file")
     else:
