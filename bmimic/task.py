@@ -68,9 +68,10 @@ def build_task(cfg, device: str) -> Task:
     motion = load_any(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir,
                          control_fps=1.0 / (cfg.sim.timestep_s * cfg.sim.decimation))
     validate(cfg, motion.duration_s)
-    check_motion_speeds(motion, cfg.sim.max_abs_qvel)
+    names = clip_names(cfg.motion, motion)
+    check_motion_speeds(motion, cfg.sim.max_abs_qvel, names)
     layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device, clip_starts=motion.clip_starts,
-                        clip_names=clip_names(cfg.motion, motion))
+                        clip_names=names)
     return Task(cfg, device, mjm, robot, motion, layout)
 
 
@@ -188,16 +189,23 @@ def build_trainer(training: Training, evaluator, run_dir: str | Path, is_main_ra
                    logger, is_main_rank=is_main_rank, run_config=run_config)
 
 
-def check_motion_speeds(motion, max_abs_qvel: float) -> None:
+def check_motion_speeds(motion, max_abs_qvel: float, clip_names=None) -> None:
     """Refuse a motion whose velocities exceed sim.max_abs_qvel: every world started on it (reference
-    state initialisation) would break at once and the run would train on nothing."""
+    state initialisation) would break at once and the run would train on nothing. A library's message
+    names the clip (`clip_names`, one per clip) and its time."""
     import numpy as np
 
     for name in ("joint_vel", "body_lin_vel_w", "body_ang_vel_w"):
-        top = float(np.nanmax(np.abs(getattr(motion, name)))) if getattr(motion, name).size else 0.0
+        values = np.abs(getattr(motion, name))
+        top = float(np.nanmax(values)) if values.size else 0.0
         if not top <= max_abs_qvel:
-            raise ConfigError(f"motion: its {name} reaches {top:.3g}, above sim.max_abs_qvel={max_abs_qvel:g}: every "
-                              "world started on it would break (a non-physical motion, or a unit error)")
+            where = ""
+            if clip_names is not None and len(clip_names) > 1:
+                frame = int(np.argmax(np.nan_to_num(values, nan=np.inf).reshape(len(values), -1).max(axis=1)))
+                k = int(np.searchsorted(motion.clip_starts, frame, side="right") - 1)
+                where = f" in clip {clip_names[k]} at {(frame - int(motion.clip_starts[k])) / motion.fps:.2f} s"
+            raise ConfigError(f"motion: its {name} reaches {top:.3g}{where}, above sim.max_abs_qvel={max_abs_qvel:g}: "
+                              "every world started on it would break (a non-physical motion, or a unit error)")
 
 
 # --------------------------------------------------------------------------------------------- memory

@@ -54,13 +54,23 @@ class MotionConfig:
     """Label of this motion (run names, plots)."""
     source: str = "builtin"
     """"builtin" (generated in code, no data needed), "lafan" (the LAFAN1 G1 clip `clip` in
-    data.lafan_dir), "file" (an npz or a LAFAN1 G1 CSV at `path`) or "library" (the clips of `clips`
-    and `glob`, bmimic.motion.library)."""
+    data.lafan_dir), "file" (an npz or a LAFAN1 G1 CSV at `path`) or "library" (the clips of `clips`,
+    `glob` and `folder`, bmimic.motion.library)."""
     clips: Optional[List[Any]] = None
     """Source "library": the clips, each a mapping with one of `path` (CSV/npz), `clip` (LAFAN1 name) or
     `builtin` (with `seed`, `duration_s`), and optional `start_s`, `end_s`, `weight`, `name`."""
     glob: Optional[str] = None
     """Source "library": also every .csv/.npz file matching this pattern (relative to the launch folder)."""
+    folder: Optional[str] = None
+    """Source "library": also every .csv/.npz clip directly in this folder, in name order, each named after
+    its file (relative to the launch folder; `motion=lafan_folder` sets it to data.lafan_dir). A file that
+    cannot be a clip (unreadable, malformed, shorter than one time bin) is refused, never skipped."""
+    include: Optional[Any] = None
+    """Source "library": patterns (fnmatch, on the file name or its stem, e.g. `walk*`) that a file of
+    `folder` or `glob` must match one of to be a clip (null: every file). One that matches no file is refused."""
+    exclude: Optional[Any] = None
+    """Source "library": patterns a file of `folder` or `glob` must match none of. One that matches no
+    file is refused (a typo would otherwise train on clips meant to stay out)."""
     clip: Optional[str] = None
     """LAFAN1 clip for source "lafan", e.g. "dance1_subject1" (the CSV of that name in data.lafan_dir)."""
     path: Optional[str] = None

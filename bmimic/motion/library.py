@@ -9,14 +9,20 @@ Entries of `motion.clips` (a list of mappings) name exactly one source each:
 
 with an optional window (`start_s`, `end_s`, seconds within that clip), a `weight` (> 0, the clip's
 share under `sampler.clip_balance=clips`) and a `name` (default: the clip name, the file's stem, or
-"<builtin>_<seed>"). `motion.glob` adds every CSV/npz file matching a pattern (sorted by name).
-Each clip is converted and cached on its own (a changed clip re-converts only itself). A bad entry is
-one line naming it, e.g. `motion.clips[1].path: b.npz: file not found`.
+"<builtin>_<seed>"). `motion.glob` adds every CSV/npz file matching a pattern and `motion.folder`
+every CSV/npz file directly in a folder (`motion=lafan_folder`: data.lafan_dir), each sorted by name and
+named after its file; `motion.include` / `motion.exclude` (fnmatch patterns on the file name or stem)
+keep or drop some of those files. Each clip is converted and cached on its own (a changed clip
+re-converts only itself). A bad entry or file is one line naming it, e.g. `motion.clips[1].path: b.npz:
+file not found` or `motion.folder: g1/x.csv: row 3, column 37: found 38 columns, ...`; nothing is skipped:
+an empty folder, a pattern matching no file, a file of the folder that is unreadable, malformed or
+shorter than one time bin is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import glob as globlib
 import os
 from pathlib import Path
@@ -47,6 +53,12 @@ class ClipEntry:
     start_s: float | None = None
     end_s: float | None = None
     weight: float = 1.0
+    origin: str = ""
+    """Where the entry comes from, for messages: "motion.clips[k]", "motion.glob" or "motion.folder"."""
+
+
+CLIP_SUFFIXES = (".csv", ".npz")
+"""Files of `motion.glob` and `motion.folder` that are clips."""
 
 
 def _plain(x: Any) -> Any:
@@ -99,56 +111,130 @@ def _entry(k: int, raw: Any) -> ClipEntry:
     source = {"path": "file", "clip": "lafan", "builtin": "builtin"}[key]
     default_name = {"file": Path(value).stem, "lafan": Path(value).stem, "builtin": f"{value}_{seed}"}[source]
     name = raw.get("name") if raw.get("name") is not None else default_name
-    return ClipEntry(str(name), source, value, seed, duration, start, end, weight)
+    return ClipEntry(str(name), source, value, seed, duration, start, end, weight, origin=where)
+
+
+def _patterns(cfg: Any, key: str) -> list[str]:
+    raw = _plain(getattr(cfg, key, None))
+    if raw is None:
+        return []
+    items = [raw] if isinstance(raw, str) else raw
+    if not isinstance(items, list) or not all(isinstance(x, str) and x.strip() for x in items):
+        raise MotionDataError(f"motion.{key}: expected a pattern or a list of patterns like [walk*, run*], got {raw!r}")
+    return items
+
+
+def _matches(path: Path, pattern: str) -> bool:
+    return fnmatch.fnmatchcase(path.name, pattern) or fnmatch.fnmatchcase(path.stem, pattern)
+
+
+def _folder_files(folder: Any) -> list[Path]:
+    """The clip files directly in `folder` (hidden files are not clips, as for a shell's `*`)."""
+    from bmimic.motion.config import LAFAN_ENV, LAFAN_SOURCE, resolve_path
+
+    if folder is None or not str(folder).strip():
+        return []
+    path = resolve_path(str(folder))
+    if not path.is_dir():
+        raise MotionDataError(f"motion.folder: {path} is not a folder (motion=lafan_folder reads data.lafan_dir, "
+                              f"${LAFAN_ENV}: {LAFAN_SOURCE})")
+    try:
+        names = sorted(os.listdir(path))
+    except OSError as err:
+        raise MotionDataError(f"motion.folder: {path}: cannot list ({err.strerror or err})") from None
+    files = [path / n for n in names if not n.startswith(".") and Path(n).suffix.lower() in CLIP_SUFFIXES]
+    if not files:
+        raise MotionDataError(f"motion.folder: {path} holds no .csv or .npz file")
+    return files
+
+
+def _selected(files: list[tuple[str, Path]], cfg: Any) -> list[tuple[str, Path]]:
+    """`files` ((origin, path) of motion.glob and motion.folder) kept by motion.include / motion.exclude;
+    a pattern that matches none of them is refused, as is a selection that keeps none."""
+    include, exclude = _patterns(cfg, "include"), _patterns(cfg, "exclude")
+    if not files:
+        if include or exclude:
+            raise MotionDataError("motion.include/exclude: select among the files of motion.folder or motion.glob, "
+                                  "and neither is set")
+        return []
+    for key, patterns in (("include", include), ("exclude", exclude)):
+        for pattern in patterns:
+            if not any(_matches(p, pattern) for _, p in files):
+                raise MotionDataError(f"motion.{key}: {pattern!r} matches none of the {len(files)} files "
+                                      f"({', '.join(p.name for _, p in files[:4])}{', ...' if len(files) > 4 else ''})")
+    kept = [(o, p) for o, p in files if (not include or any(_matches(p, x) for x in include))
+            and not any(_matches(p, x) for x in exclude)]
+    if not kept:
+        raise MotionDataError(f"motion.exclude: leaves none of the {len(files)} files that motion.include selects")
+    return kept
 
 
 def library_entries(cfg: Any) -> list[ClipEntry]:
-    """The checked entries of a library config (`motion.clips`, then the files of `motion.glob`)."""
+    """The checked entries of a library config: `motion.clips`, then the files of `motion.glob`, then
+    those of `motion.folder` (both kept or dropped by `motion.include` / `motion.exclude`)."""
+    from bmimic.motion.config import LAFAN_ENV, LAFAN_SOURCE
+
     raw = _plain(getattr(cfg, "clips", None)) or []
     if not isinstance(raw, list):
         raise MotionDataError(f"motion.clips: expected a list of entries, got {raw!r}")
     entries = [_entry(k, r) for k, r in enumerate(raw)]
+    files: list[tuple[str, Path]] = []
     pattern = getattr(cfg, "glob", None)
     if pattern:
         from bmimic.motion.config import resolve_path
 
         base = resolve_path(".")
         full = str(pattern) if os.path.isabs(str(pattern)) else str(base / str(pattern))
-        files = sorted(p for p in globlib.glob(full) if Path(p).suffix.lower() in (".csv", ".npz"))
-        if not files:
+        found = sorted(p for p in globlib.glob(full) if Path(p).suffix.lower() in CLIP_SUFFIXES)
+        if not found:
             raise MotionDataError(f"motion.glob: {pattern!r} matches no .csv or .npz file")
-        entries += [ClipEntry(Path(f).stem, "file", f) for f in files]
+        files += [("motion.glob", Path(f)) for f in found]
+    files += [("motion.folder", p) for p in _folder_files(getattr(cfg, "folder", None))]
+    entries += [ClipEntry(p.stem, "file", str(p), origin=o) for o, p in _selected(files, cfg)]
     if not entries:
-        raise MotionDataError("motion.clips: a library needs at least one clip (motion.clips or motion.glob)")
+        # (a folder, when set, gave files or was refused above)
+        raise MotionDataError("motion.clips: a library needs at least one clip: motion.clips and motion.glob give "
+                              "none and motion.folder is not set (motion=lafan_folder sets it to data.lafan_dir: "
+                              f"download {LAFAN_SOURCE} and set {LAFAN_ENV}=/path/to/g1)")
     names = [e.name for e in entries]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
-        raise MotionDataError(f"motion.clips: clip names must be unique, {dupes} repeat; give entries a name")
+        raise MotionDataError(f"motion.clips: clip names must be unique, {dupes} repeat; give entries a name "
+                              "(or drop a file with motion.exclude)")
     return entries
 
 
 def load_library(cfg: Any, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike, lafan_dir: Any,
-                 control_fps: float) -> Motion:
+                 control_fps: float, min_file_s: float = 0.0) -> Motion:
     """Every clip of the library at the control rate, concatenated; each clip's segments are kept (a
-    clip without segments gets one named after the clip)."""
+    clip without segments gets one named after the clip). A file of `motion.glob` or `motion.folder`
+    shorter than `min_file_s` (one time bin) is refused: in a folder nobody listed by hand, that is a
+    truncated or misplaced file (an entry of `motion.clips` may be shorter: it becomes one bin)."""
     from bmimic.motion.config import MotionConfig, load_motion
 
     if getattr(cfg, "start_s", None) is not None or getattr(cfg, "end_s", None) is not None:
         raise MotionDataError("motion.start_s/end_s: a library windows each clip instead (motion.clips[k].start_s)")
     clips = []
-    for k, e in enumerate(library_entries(cfg)):
+    for e in library_entries(cfg):
         one = MotionConfig(name=e.name, source=e.source, start_s=e.start_s, end_s=e.end_s,
                            fps_in=float(getattr(cfg, "fps_in", 30.0)),
                            assume_model_order=bool(getattr(cfg, "assume_model_order", False)),
                            path=e.value if e.source == "file" else None, clip=e.value if e.source == "lafan" else None,
                            builtin=e.value if e.source == "builtin" else "graded", seed=e.seed, duration_s=e.duration_s)
+        # an entry of motion.clips is named by its key (motion.clips[1].path), a file of a folder or glob by
+        # its path, which the loader's message already starts with
+        where = (f"{e.origin}." + {"file": "path", "lafan": "clip", "builtin": "builtin"}[e.source]
+                 if e.origin.startswith("motion.clips") else e.origin)
         try:
             m = load_motion(one, mjmodel, cache_dir=cache_dir, bin_size_s=0.0, lafan_dir=lafan_dir,
                             control_fps=control_fps)
         except MotionDataError as err:
-            key = {"file": "path", "lafan": "clip", "builtin": "builtin"}[e.source]
             msg = str(err).replace("motion.path: ", "").replace("motion.start_s/end_s: ", "")
-            raise MotionDataError(f"motion.clips[{k}].{key}: {msg}") from None
+            raise MotionDataError(f"{where}: {msg}") from None
+        if not e.origin.startswith("motion.clips") and m.duration_s < min_file_s - 1e-9:
+            raise MotionDataError(f"{where}: {e.value}: {m.duration_s:.2f} s is shorter than one time bin of "
+                                  f"sampler.bin_size_seconds={min_file_s:g} s; drop it (motion.exclude=[{e.name}]) "
+                                  "or use smaller bins")
         if not m.segments:
             m = dataclasses.replace(m, segments=[Segment(e.name, 0.0, m.duration_s, "unknown")])
         clips.append(m)
@@ -164,7 +250,7 @@ def load_any(cfg: Any, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike = "
     if getattr(cfg, "source", None) != "library":
         return load_motion(cfg, mjmodel, cache_dir=cache_dir, bin_size_s=bin_size_s, lafan_dir=lafan_dir,
                            control_fps=control_fps)
-    motion = load_library(cfg, mjmodel, resolve_path(str(cache_dir)), lafan_dir, control_fps)
+    motion = load_library(cfg, mjmodel, resolve_path(str(cache_dir)), lafan_dir, control_fps, min_file_s=bin_size_s)
     check_two_bins(cfg, motion, bin_size_s)
     return motion
 
@@ -183,4 +269,4 @@ def clip_weights(motion_cfg: Any) -> list[float] | None:
     return [e.weight for e in library_entries(motion_cfg)]
 
 
-__all__ = ["ClipEntry", "ENTRY_KEYS", "clip_names", "clip_weights", "library_entries", "load_any", "load_library"]
+__all__ = ["CLIP_SUFFIXES", "ClipEntry", "ENTRY_KEYS", "clip_names", "clip_weights", "library_entries", "load_any", "load_library"]

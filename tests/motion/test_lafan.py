@@ -28,7 +28,8 @@ def _assert_guides(message: str, *fragments: str) -> None:
 
 
 def test_every_lafan_option_is_listed():
-    singles = [p.stem for p in (CONF / "motion").glob("lafan_*.yaml") if not p.stem.startswith("lafan_library")]
+    singles = [p.stem for p in (CONF / "motion").glob("lafan_*.yaml")
+               if not p.stem.startswith(("lafan_library", "lafan_folder"))]
     assert sorted(singles) == sorted(OPTIONS)
 
 
