@@ -81,7 +81,6 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     if world > 1:
         if torch.distributed.get_backend() == "nccl":
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
-        cfg.seed = cfg.seed + rank  # distinct worlds per rank; rsl-rl broadcasts the policy
     resolve_runtime(cfg, device)
     validate(cfg)
     if rank == 0:
@@ -108,6 +107,9 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         check_cpu_budget([cpu_training_s(cfg, done)], cfg.max_cpu_hours, describe_sizes([cfg]))
     if main_rank and not ctx.holds(plan.run_dir):
         ctx.lock(plan.run_dir)
+    # Distinct worlds per rank (rsl-rl broadcasts the policy), after the resume checks: the run's
+    # config, which its checkpoints record and every rank's resume compares with, holds the run's seed.
+    cfg.seed = cfg.seed + rank
     seed_everything(cfg.seed)
 
     task = build_task(cfg, device)
