@@ -128,6 +128,14 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         trainer = build_trainer(training, evaluator, run_dir, is_main_rank=main_rank, run_config=resolved)
     if plan.state is not None:
         trainer.restore(plan.state, plan.checkpoint, allowed)
+        if world > 1:
+            # A checkpoint holds rank 0's random state alone, which the restore gave every rank: each
+            # rank draws a stream of its own again (its worlds' resets, noise and actions), one that
+            # differs from every earlier segment's.
+            stream = (cfg.seed + 1_000_003 * trainer.progress.iteration) % 2**62
+            seed_everything(stream)
+            log.info("rank %d: random streams reseeded from %d (the run's seed + rank + 1000003 x %d iterations)",
+                     rank, stream, trainer.progress.iteration)
     trainer.after_evaluation = stop_rule
     trainer.whole_clip = whole_clip
     try:

@@ -94,17 +94,21 @@ def test_torchrun_time_limit_stops_every_rank_at_the_same_iteration(tmp_path):
 def test_a_torchrun_run_resumes_on_every_rank(tmp_path):
     """A run trained under torchrun continues under torchrun (the next sitting of a long run): every rank
     compares its config with the checkpoint's and restores it. Each rank seeds its worlds with seed + rank,
-    which the run's config must not record, or every rank but 0 refuses the resume as a changed seed."""
+    which the run's config must not record, or every rank but 0 refuses the resume as a changed seed; and
+    as the checkpoint holds rank 0's random state alone, each rank draws its own stream again after it."""
     run = tmp_path / "run"
     overrides = [a for a in TINY if not a.startswith("max_iterations")]
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={WORLD}",
-           "-m", "bmimic.train", *overrides, "logger=none", f"hydra.run.dir={run}", "seed=3", "resume=true"]
+           "-m", "bmimic.train", *overrides, "logger=none", f"hydra.run.dir={run}", "seed=3", "resume=true",
+           "verbose=true"]  # verbose: every rank logs
     for iterations in (2, 4):  # the first launch starts the pinned run (resume=true on an empty folder)
         out = subprocess.run([*cmd, f"max_iterations={iterations}"], cwd=tmp_path, capture_output=True, text=True,
                              timeout=600, env=cli_env())
         assert out.returncode == 0, (out.stdout + out.stderr)[-4000:]
     log = out.stdout + out.stderr
-    assert log.count("resumed from") == 1 and "at iteration 2" in log  # rank 0 speaks for every rank
+    assert log.count("resumed from") == WORLD and log.count("at iteration 2 (lr") == WORLD
+    streams = sorted(re.findall(r"rank (\d): random streams reseeded from (\d+)", log))
+    assert streams == [("0", str(3 + 2 * 1_000_003)), ("1", str(4 + 2 * 1_000_003))], streams
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["iterations"] == 4 and metrics["env_steps"] == 4 * 8 * 2 * WORLD
     (resume,) = json.loads((run / "resumes.json").read_text())
