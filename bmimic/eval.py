@@ -4,6 +4,8 @@
     python -m bmimic.eval outputs/runs/default/<stamp>/checkpoints/model_500.pt --episodes-per-bin 8
     python -m bmimic.eval RUN --horizon-s 4 --device cuda:1 eval.max_envs=1024
     python -m bmimic.eval RUN --whole-clip 128 --conditions nominal,robust
+    python -m bmimic.eval RUN motion=lafan_folder data.lafan_dir=/data/unseen     # clips it never saw
+    python -m bmimic.eval RUN motion=/data/unseen/fight2_subject2.csv              # a file or folder of clips
 
 The run's composed config (RUN_DIR/.hydra/config.yaml) is reloaded and its `auto`/null values are
 resolved for this machine exactly as training does; dotted `key=value` overrides are merged on top.
@@ -14,8 +16,10 @@ start at stratified frames of every bin and run for `horizon_s`; an episode that
 then (or, with eval.max_mpkpe_rel_mm, tracks worse than that on average) is a failure, charged to the
 bin where it happened (bmimic.training.evaluator). Tables go to RUN_DIR/eval/<checkpoint>/
 (latest.pt is named after its iteration, model_<it>, so re-evaluating after more training never
-overwrites an older result; evaluating the same checkpoint again replaces its folder with a warning,
-and is refused when sim2sim compared a gap against it, unless --force or --out says where):
+overwrites an older result; on a motion the checkpoint was not trained on, `motion=<option, file or
+folder>`, RUN_DIR/eval/<checkpoint>_on_<motion>-<digest>/ with the same tables; evaluating the same
+checkpoint again replaces its folder with a warning, and is refused when sim2sim compared a gap
+against it, unless --force or --out says where):
 
     eval_episodes.parquet  one row per episode (start, end and failure frame and bin, errors)
     eval_bins.parquet      one row per time bin: visits, failures, failure_rate, start counts, errors
@@ -54,7 +58,7 @@ from bmimic.console import quiet_warp
 from bmimic.evaluation.report import format_report
 from bmimic.evaluation.saved_run import (
     LoadedRun,
-    checkpoint_label,
+    evaluation_label,
     evaluation_record,
     load_run,
     load_run_checkpoint,
@@ -198,7 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from bmimic.training.checkpoints import load_checkpoint_file
 
             state = load_checkpoint_file(run.checkpoint, "cpu", args.trust_checkpoint)
-            out_dir = run.run_dir / EVAL_DIR / checkpoint_label(run.checkpoint, state)
+            out_dir = run.run_dir / EVAL_DIR / evaluation_label(run, state)
             out_dir = out_dir / WHOLE_CLIP_DIR if args.whole_clip is not None else out_dir
         else:
             out_dir = args.out

@@ -38,6 +38,10 @@ def format_report(result: EvalResult) -> str:
         f"{s['episodes_per_bin']} episodes, horizon {s['horizon_s']:g} s, deterministic policy",
         "",
     ]
+    if s.get("trained_on_motion") is False:
+        clips = s.get("motion_clips") or []
+        lines[-1:-1] = [f"motion {s.get('motion')}{f' ({len(clips)} clips)' if len(clips) > 1 else ''}: not the "
+                        "motion this policy was trained on (generalisation)"]
     seg = result.segments.assign(
         segment=[n or "(none)" for n in result.segments["segment"]],
         span=[f"{a:.1f}-{b:.1f}" if math.isfinite(a) else "" for a, b in zip(result.segments["start_s"],

@@ -51,10 +51,47 @@ def locate_run(path: str | Path) -> tuple[Path, Path]:
     return run_dir.resolve(), checkpoint.resolve()
 
 
-def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
-    """The run's composed config under the TrainConfig schema, with dotted `key=value` overrides merged."""
-    import yaml
+def motion_option(value: str):
+    """The `motion` node that the override `motion=<value>` selects: an option of conf/motion (composed as
+    training composes it: lafan_folder, lafan_dance1_full, file, ...), or a path: a .csv/.npz file
+    (`motion=file` with that path) or a folder of clips (`motion=library` with that `motion.folder`).
+    RunLoadError (one line) for anything else."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
+
+    from bmimic import CONF_DIR
+    from bmimic.motion.library import CLIP_SUFFIXES
+
+    options = sorted(p.stem for p in (CONF_DIR / "motion").glob("*.yaml"))
+    path = Path(value).expanduser()
+    if value not in options:
+        if path.is_dir():
+            value, extra = "library", {"name": path.resolve().name, "folder": str(path.resolve())}
+        elif path.is_file() and path.suffix.lower() in CLIP_SUFFIXES:
+            value, extra = "file", {"name": path.stem, "path": str(path.resolve())}
+        else:
+            raise RunLoadError(f"override motion={value}: neither a motion option ({', '.join(options)}) nor a "
+                               ".csv/.npz file or a folder of clips")
+    else:
+        extra = {}
+    import bmimic.config  # noqa: F401  (registers the config schemas)
+
+    GlobalHydra.instance().clear()  # a fresh composition, as the training command line makes it
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            node = compose("train", overrides=[f"motion={value}"]).motion
+    finally:
+        GlobalHydra.instance().clear()
+    return OmegaConf.merge(node, extra) if extra else node
+
+
+def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
+    """The run's composed config under the TrainConfig schema, with the overrides merged: `motion=<option
+    or path>` replaces the run's motion (motion_option) first, as Hydra applies a group choice before
+    values, then every dotted `key=value`."""
+    import yaml
+    from omegaconf import OmegaConf, open_dict
     from omegaconf.errors import OmegaConfBaseException
 
     from bmimic.config import TrainConfig
@@ -73,10 +110,16 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
     except (OmegaConfBaseException, OSError, ValueError, yaml.YAMLError) as e:
         raise RunLoadError(f"{path}: cannot be read as a bmimic config: {first_line(e)}") from None
     OmegaConf.set_struct(cfg, True)  # an override of a key that does not exist is an error, as in Hydra
+    groups = [item for item in overrides if item.partition("=")[0] == "motion"]
+    for item in groups[-1:]:  # the last choice wins, as on Hydra's command line
+        with open_dict(cfg):
+            cfg.motion = motion_option(item.partition("=")[2])
     for item in overrides:
         key, sep, _ = item.partition("=")
         if not sep or not key or key.startswith(("+", "~")):
             raise RunLoadError(f"override {item!r}: expected a dotted key=value (e.g. eval.horizon_s=3)")
+        if key == "motion":
+            continue
         try:
             cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
         except OmegaConfBaseException as e:
@@ -97,7 +140,7 @@ def anchor_relative_paths(cfg, run_dir: Path) -> None:
         launch_dir = Path(OmegaConf.load(run_dir / HYDRA_DIR / "hydra.yaml").hydra.runtime.cwd)
     except Exception:  # no hydra.yaml (a hand-made run folder): paths stay relative to here
         return
-    for group, key in (("motion", "path"), ("robot", "mjcf_path"), ("data", "lafan_dir")):
+    for group, key in (("motion", "path"), ("motion", "folder"), ("robot", "mjcf_path"), ("data", "lafan_dir")):
         value = (cfg.get(group) or {}).get(key)
         if value and not Path(value).expanduser().is_absolute() and not Path(value).exists():
             if (launch_dir / value).exists():
@@ -192,6 +235,33 @@ def checkpoint_label(checkpoint: Path, state: dict) -> str:
     return checkpoint.stem
 
 
+def trained_on(run: LoadedRun, state: dict) -> bool | None:
+    """Whether the run's task motion is the one the checkpoint was trained on (its meta's digest); None
+    for a checkpoint without meta (an older format)."""
+    from bmimic.training.checkpoints import motion_meta
+
+    meta = state.get("meta")
+    if not isinstance(meta, dict) or "motion_sha256" not in meta:
+        return None
+    return motion_meta(run.task.motion)["motion_sha256"] == meta["motion_sha256"]
+
+
+def evaluation_label(run: LoadedRun, state: dict) -> str:
+    """Folder name of an evaluation's results: checkpoint_label, and for a motion the checkpoint was not
+    trained on (`motion=...`) `<label>_on_<motion name>-<digest>`, so that it never replaces the evaluation
+    on the training motion (which sim2sim's gap compares against)."""
+    import re
+
+    from bmimic.training.checkpoints import motion_meta
+
+    label = checkpoint_label(run.checkpoint, state)
+    seen = trained_on(run, state)
+    if seen or (seen is None and not any(o.partition("=")[0].startswith("motion") for o in run.overrides)):
+        return label
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(run.task.cfg.motion.name)).strip("._") or "motion"
+    return f"{label}_on_{name}-{motion_meta(run.task.motion)['motion_sha256'][:8]}"
+
+
 def evaluation_record(run: LoadedRun, state: dict, overrides: Sequence[str]) -> dict:
     """What an evaluation summary says of where it comes from: the checkpoint, its iteration and env
     steps, the run, motion, seed and device, the overrides, when, and the results' label."""
@@ -211,5 +281,7 @@ def evaluation_record(run: LoadedRun, state: dict, overrides: Sequence[str]) -> 
         "device": run.task.device,
         "overrides": list(overrides),
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "label": checkpoint_label(run.checkpoint, state),
+        "motion_clips": list(getattr(run.task.layout, "clip_names", ())),
+        "trained_on_motion": trained_on(run, state),  # False: a motion the policy never saw (generalisation)
+        "label": evaluation_label(run, state),
     }

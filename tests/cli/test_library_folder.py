@@ -1,0 +1,78 @@
+"""One policy for a folder of clips, end to end on the CPU: trained with `motion=lafan_folder` (one clip
+held out), evaluated on the clip it never saw and on its own clips (`bmimic-eval RUN motion=...`).
+The clips are small CSVs in the LAFAN1 G1 format written by the test, never LAFAN1 data."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+
+from bmimic import eval as bm_eval
+from tests.conftest import TINY, train_in_process
+from tests.motion.test_motion import _csv_rows, _write_csv
+
+pytestmark = pytest.mark.slow
+CLIPS = {"walk_a": 90, "walk_b": 105, "held_out": 120}
+"""Rows at 30 Hz of each clip: 2.97, 3.47 and 3.97 s at 50 Hz (3, 4 and 4 one-second bins)."""
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    """(folder of the three clips, a tiny run trained on two of them)."""
+    root = tmp_path_factory.mktemp("library")
+    folder = root / "g1"
+    folder.mkdir()
+    for k, (name, rows) in enumerate(CLIPS.items()):
+        table = _csv_rows(rows)
+        table[:, 7 + 12] += 0.1 * k  # a different waist yaw per clip: different content, different cache entries
+        _write_csv(folder / f"{name}.csv", table)
+    run = train_in_process(root / "run", *[o for o in TINY if not o.startswith("motion=")], "motion=lafan_folder",
+                           f"data.lafan_dir={folder}", "motion.exclude=[held_out]", "eval.episodes_per_bin=1",
+                           "logger=none", cwd=root)
+    return folder, run
+
+
+def _summary(folder) -> dict:
+    return json.loads((folder / "eval_summary.json").read_text())
+
+
+def test_the_run_trains_on_the_selected_clips_with_bins_of_their_own(library):
+    _, run = library
+    ev = pd.read_parquet(run / "eval.parquet")
+    assert sorted(set(ev["clip"])) == ["walk_a", "walk_b"] and len(ev) == 3 + 4  # 2.97 s and 3.47 s in 1 s bins
+
+
+def test_eval_on_a_clip_the_policy_never_saw_is_one_command(library):
+    folder, run = library
+    assert bm_eval.main([str(run), f"motion={folder / 'held_out.csv'}"]) == 0
+    (out,) = (run / "eval").glob("model_2_on_held_out-*")
+    summary = _summary(out)
+    assert summary["trained_on_motion"] is False and summary["motion"] == "held_out"
+    assert summary["num_bins"] == 4 and summary["episodes"] == 4
+    bins = pd.read_parquet(out / "eval_bins.parquet")
+    assert list(bins["bin"]) == [0, 1, 2, 3] and set(bins["clip"]) == {"held_out"}
+    assert not (run / "eval" / "model_2").exists()  # the training motion's evaluation is another folder
+
+
+def test_eval_on_a_folder_and_on_the_training_clips(library):
+    folder, run = library
+    # every clip of the folder, the held-out one included: a library the policy saw two thirds of
+    assert bm_eval.main([str(run), "motion=lafan_folder", f"data.lafan_dir={folder}"]) == 0
+    (out,) = (run / "eval").glob("model_2_on_lafan_folder-*")
+    assert _summary(out)["trained_on_motion"] is False
+    assert _summary(out)["motion_clips"] == ["held_out", "walk_a", "walk_b"]
+    segments = pd.read_csv(out / "eval_segments.csv")
+    assert list(segments["segment"]) == ["held_out", "walk_a", "walk_b"]  # the per-clip table
+    # the same selection as in training is the training motion: its own folder, as without an override
+    assert bm_eval.main([str(run), "motion=lafan_folder", "motion.exclude=[held_out]",
+                         f"data.lafan_dir={folder}"]) == 0
+    assert _summary(run / "eval" / "model_2")["trained_on_motion"] is True
+
+
+def test_a_motion_override_that_names_nothing_is_one_line(library, capsys):
+    _, run = library
+    assert bm_eval.main([str(run), "motion=no_such_option"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [err[0]] and err[0].startswith("error: override motion=no_such_option: neither a motion option")
