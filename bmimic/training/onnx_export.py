@@ -18,8 +18,9 @@ strings: BeyondMimic's keys (lists are comma-separated, as the released exporter
 are written with enough digits to round-trip a float64 where it writes 3 decimals) plus the keys
 `bmimic.sim2sim` needs to rebuild the control loop without bmimic's training code (observation
 layout with per-term sizes and functions, termination terms, physics and control periods, armature
-and torque limits, motion frame rate, clips, segments and time bins). `METADATA_VERSION` names the
-set.
+and torque limits, motion frame rate, clips with their names and first frames, segments and time
+bins) and `time_step_input`, how `time_step` picks a clip and a frame of a library. `METADATA_VERSION`
+names the set.
 """
 
 from __future__ import annotations
@@ -34,8 +35,15 @@ import numpy as np
 from bmimic.run_folder import atomic_write, motion_policy_onnx_name, policy_onnx_name
 from bmimic.run_schema import ITERATION
 
-METADATA_VERSION = "2"
-"""Version of the metadata key set (1: today's keys only; 2: BeyondMimic keys + sim2sim keys)."""
+METADATA_VERSION = "3"
+"""Version of the metadata key set (1: today's keys only; 2: BeyondMimic keys + sim2sim keys; 3: + the
+clips' names and `time_step_input`)."""
+TIME_STEP_INPUT = ("frame index into the baked motion at motion_fps, one per control step; clip k (motion_clip_names[k]) "
+                   "is frames motion_clip_starts[k] to motion_clip_starts[k+1]-1 (the last to motion_num_frames-1), "
+                   "clamped to [0, motion_num_frames-1]; play one clip from its first frame to its last, never on "
+                   "into the next. The policy sees no clip id or phase: only the reference at time_step "
+                   "(observation terms motion_command, motion_anchor_pos_b, motion_anchor_ori_b)")
+"""How a controller gives the motion policy its clip and time (metadata `time_step_input`)."""
 MOTION_OUTPUTS = ("joint_pos", "joint_vel", "body_pos_w", "body_quat_w", "body_lin_vel_w", "body_ang_vel_w")
 """Reference outputs of the BeyondMimic-compatible file, after `actions`, in the released order."""
 
@@ -102,6 +110,9 @@ def policy_metadata(env, iteration: int | None = None, run_path: str = "") -> di
         "motion_fps": repr(float(motion.fps)),
         "motion_num_frames": str(int(motion.num_frames)),
         "motion_clip_starts": ",".join(str(int(s)) for s in np.asarray(motion.clip_starts).reshape(-1)),
+        # JSON, not a comma list: a clip is named after its file, which may hold a comma
+        "motion_clip_names": json.dumps(list(getattr(layout, "clip_names", ()))),
+        "time_step_input": TIME_STEP_INPUT,
         "motion_segments": json.dumps([s._asdict() for s in motion.segments]),
         "bin_layout": layout.kind,  # "time" (bin_size_s wide) or "released" (BeyondMimic's B = T // 50 + 1)
         # the released layout has no fixed width: its mean bin length, for the record

@@ -1,5 +1,6 @@
 """One policy for a folder of clips, end to end on the CPU: trained with `motion=lafan_folder` (one clip
-held out), evaluated on the clip it never saw and on its own clips (`bmimic-eval RUN motion=...`).
+held out), evaluated on the clip it never saw and on its own clips (`bmimic-eval RUN motion=...`), and
+its ONNX metadata saying how a clip and a frame are given to it.
 The clips are small CSVs in the LAFAN1 G1 format written by the test, never LAFAN1 data."""
 
 from __future__ import annotations
@@ -76,3 +77,15 @@ def test_a_motion_override_that_names_nothing_is_one_line(library, capsys):
     assert bm_eval.main([str(run), "motion=no_such_option"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [err[0]] and err[0].startswith("error: override motion=no_such_option: neither a motion option")
+
+
+def test_the_exported_policy_says_how_a_clip_and_a_frame_are_given(library):
+    from bmimic.sim2sim.spec import read_metadata
+
+    _, run = library
+    path = run / "checkpoints" / "motion_policy_2.onnx"
+    meta, inputs, _ = read_metadata(path)
+    assert inputs == ["obs", "time_step"]
+    assert json.loads(meta["motion_clip_names"]) == ["walk_a", "walk_b"]
+    assert meta["motion_clip_starts"] == "0,149" and meta["motion_num_frames"] == str(149 + 174)
+    assert "motion_clip_starts[k]" in meta["time_step_input"] and "no clip id" in meta["time_step_input"]

@@ -172,6 +172,9 @@ def test_metadata_has_beyondmimic_keys_in_its_formats(task):
         layout = json.loads(meta["observation_layout"])
         assert [t["dim"] for t in layout] == [58, 3, 6, 3, 3, 29, 29, 29]
         assert meta["iteration"] == "7" and meta["decimation"] == "4"
+        # a single motion is one clip, named as the motion option names it, played from frame 0
+        assert json.loads(meta["motion_clip_names"]) == ["easy_only"] and meta["motion_clip_starts"] == "0"
+        assert meta["time_step_input"].startswith("frame index into the baked motion")
     assert metadata(paths[1])["motion_baked_in"] == "true"
 
 
