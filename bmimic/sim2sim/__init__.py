@@ -4,6 +4,7 @@
     python -m bmimic.sim2sim RUN --model menagerie --episodes-per-bin 8 --workers 16
     python -m bmimic.sim2sim RUN/checkpoints/motion_policy_500.onnx --model path/to/g1.xml --video dance.mp4
     python -m bmimic.sim2sim RUN --whole-clip 16                          # whole clips, nominal and robust
+    python -m bmimic.sim2sim LIBRARY_RUN --clip walk1_subject1        # one clip of a library (its bins only)
 
 A second-simulator check before a robot: the BeyondMimic-compatible ONNX (`motion_policy_<it>.onnx`,
 written at every checkpoint or by `python -m bmimic.export RUN`) runs under onnxruntime in MuJoCo's C
@@ -68,6 +69,8 @@ from bmimic.sim2sim.spec import (
     ObsTerm,
     PolicySpec,
     Sim2SimError,
+    clip_frames,
+    clip_indices,
     policy_session,
     read_metadata,
     read_policy,
@@ -78,7 +81,7 @@ from bmimic.sim2sim.workers import run_episodes
 __all__ = [
     "ERROR_NAMES", "GAP_FILE", "MENAGERIE_ENV", "MODELS", "MOTION_FILE", "OBS_DIMS", "REFERENCE_OUTPUTS", "SETTINGS",
     "TERMINATIONS", "Episode", "ObsTerm", "PolicySpec", "Rollout", "Sim2SimError", "WarpEval", "build_model",
-    "checkpoint_label", "collect", "evaluate", "find_menagerie", "format_gap", "gap_table", "locate", "main",
+    "checkpoint_label", "clip_frames", "clip_indices", "collect", "evaluate", "find_menagerie", "format_gap", "gap_table", "locate", "main",
     "model_label", "parser", "policy_session", "read_metadata", "read_policy", "read_reference", "render_video",
     "run_episode", "run_episodes", "warp_eval",
 ]

@@ -25,17 +25,30 @@ from bmimic.sim2sim.gap import GAP_FILE, format_gap
 from bmimic.sim2sim.model import build_model, model_label
 from bmimic.sim2sim.native_eval import evaluate, locate
 from bmimic.sim2sim.rollout import Rollout, run_episode
-from bmimic.sim2sim.spec import Sim2SimError, first_line, policy_session, read_policy, read_reference
+from bmimic.sim2sim.spec import (
+    Sim2SimError,
+    clip_frames,
+    clip_indices,
+    first_line,
+    policy_session,
+    read_policy,
+    read_reference,
+)
 
 
 def render_video(policy_path: Path, run_dir: Path | None, model: str, joint_dynamics: str, out: Path,
-                 start_s: float, duration_s: float, width: int = 640, height: int = 480) -> Path:
-    """One episode from `start_s`, with the reference as a ghost, at the control rate (MP4 or GIF)."""
+                 start_s: float, duration_s: float, width: int = 640, height: int = 480,
+                 clip: str | None = None) -> Path:
+    """One episode from `start_s` (seconds into `clip`, a library's clip, when given), with the reference
+    as a ghost, at the control rate (MP4 or GIF)."""
     from bmimic.render import TrackingRenderer, annotate, write_video
 
     spec = read_policy(policy_path)
     session = policy_session(policy_path)
-    ref = read_reference(session, spec)
+    chosen = None if clip is None else clip_indices(spec, [clip])
+    ref = read_reference(session, spec, chosen)
+    first, last = (0, spec.num_frames - 1) if chosen is None else (clip_frames(spec, chosen[0])[0],
+                                                                  clip_frames(spec, chosen[0])[-1])
     mjm, _ = build_model(spec, model, run_dir, joint_dynamics)
     rollout = Rollout(mjm, spec, ref, session)
     renderer = TrackingRenderer(mjm, width, height)
@@ -47,7 +60,7 @@ def render_video(policy_path: Path, run_dir: Path | None, model: str, joint_dyna
         text = [f"sim2sim {model_label(model)}  t={r.frame / spec.fps:5.2f} s"] + (["terminated"] if terminated else [])
         frames.append(annotate(renderer.renderer.render(), text, alert=terminated))
 
-    start = min(max(0, int(round(start_s * spec.fps))), spec.num_frames - 1)
+    start = min(max(first, first + int(round(start_s * spec.fps))), last)
     try:
         run_episode(rollout, start, max(1, int(round(duration_s / spec.control_dt_s))), on_step=draw)
     finally:
@@ -72,8 +85,11 @@ def parser() -> argparse.ArgumentParser:
                    else os.cpu_count() or 1, help="worker processes (default: the CPU cores available)")
     p.add_argument("--joint-dynamics", choices=("model", "metadata"), default="model",
                    help="keep the model's armature/damping/friction loss (default) or use training's")
+    p.add_argument("--clip", type=lambda text: [c.strip() for c in text.split(",") if c.strip()],
+                   help="a library's clip (or several, comma-separated): evaluate only its bins, read only its frames")
     p.add_argument("--video", type=Path, help="also render one episode to this .mp4 (or .gif)")
-    p.add_argument("--video-start-s", type=float, default=0.0, help="where the video episode starts in the motion")
+    p.add_argument("--video-start-s", type=float, default=0.0,
+                   help="where the video episode starts in the motion (with --clip: in its first clip)")
     p.add_argument("--video-s", type=float, default=10.0, help="longest video episode in seconds")
     p.add_argument("--out", type=Path, help="folder for the tables (default RUN/sim2sim/<model>/<checkpoint>, "
                    f"with --whole-clip .../<checkpoint>/{SIM2SIM_WHOLE_CLIP})")
@@ -105,13 +121,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise Sim2SimError(f"{', '.join(whole_clip_only)}: only with --whole-clip R")
         policy_path, run_dir = locate(args.path)
         result, warp, gap = evaluate(policy_path, run_dir, args.model, args.episodes_per_bin, args.horizon_s,
-                                     args.workers, args.joint_dynamics, args.max_mpkpe_rel_mm)
-        out = args.out or (run_dir or policy_path.parent) / SIM2SIM_DIR / model_label(args.model) / result.summary["label"]
+                                     args.workers, args.joint_dynamics, args.max_mpkpe_rel_mm, clips=args.clip)
+        out = args.out or (run_dir or policy_path.parent) / SIM2SIM_DIR / model_label(args.model) / (
+            result.summary["label"] + clips_suffix(args.clip))
         _write(result, gap, out.resolve())
         video = None
         if args.video is not None:
             video = render_video(policy_path, run_dir, args.model, args.joint_dynamics, args.video,
-                                 args.video_start_s, args.video_s)
+                                 args.video_start_s, args.video_s, clip=None if args.clip is None else args.clip[0])
     except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)
         return 2
@@ -151,6 +168,19 @@ def _whole_clip(args: argparse.Namespace) -> int:
     print(format_whole_clip(result))
     print(f"tables: {written.out_dir}")
     return 0
+
+
+def clips_suffix(clips: Sequence[str] | None) -> str:
+    """How the tables' folder of a `--clip` evaluation is named after the checkpoint's: `_clip_<name>`,
+    for several clips `_clips_<n>-<digest>` (never the folder of the whole motion's evaluation)."""
+    import hashlib
+    import re
+
+    if clips is None:
+        return ""
+    if len(clips) == 1:
+        return "_clip_" + (re.sub(r"[^A-Za-z0-9_.-]+", "_", clips[0]).strip("._") or "clip")
+    return f"_clips_{len(clips)}-{hashlib.sha256(','.join(sorted(clips)).encode()).hexdigest()[:8]}"
 
 
 def _write(result, gap, out_dir: Path, tables: dict | None = None) -> None:

@@ -35,7 +35,8 @@ class WarpEval:
     source: str
     """Where it was read."""
     bins: object
-    """pandas DataFrame: bin, visits, failures, success_rate (1 - failures / visits), mpkpe_rel_mm."""
+    """pandas DataFrame: bin, visits, failures, success_rate (1 - failures / visits), mpkpe_rel_mm, and
+    where the table has them start_episodes and eval_steps."""
     success_rate: float
     """Overall success rate (episodes that did not fail / episodes)."""
     mpkpe_rel_mm: float
@@ -53,6 +54,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     if run_dir is None:
         return None
     columns = ["bin", "visits", "failures", "success_rate", MPKPE_REL_MM]
+    extra = ["start_episodes", "eval_steps"]  # for restrict(); tables written before them lack them
     folder = run_dir / EVAL_DIR / label
     summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
     if summary_file.is_file() and bins_file.is_file():
@@ -63,7 +65,8 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
             bins = pd.read_parquet(bins_file)
         if "visits" in bins:
             with readable(bins_file):
-                return WarpEval(str(folder), bins[columns], success, mpkpe, {k: s[k] for k in SETTINGS if k in s})
+                return WarpEval(str(folder), bins[columns + [c for c in extra if c in bins]], success, mpkpe,
+                                {k: s[k] for k in SETTINGS if k in s})
         log.warning("%s: tables of the old start-bin accounting, not compared (evaluate again with python -m "
                     "bmimic.eval)", folder)
     table = table_path(run_dir, "eval")
@@ -83,7 +86,8 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
         settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
         config = _run_eval_config(run_dir)
         settings |= {k: config[k] for k in SETTINGS[1:] if k in config}
-        return WarpEval(f"{table} (iteration {iteration})", rows.assign(success_rate=1.0 - rows[FAILURE_RATE])[columns],
+        return WarpEval(f"{table} (iteration {iteration})",
+                        rows.assign(success_rate=1.0 - rows[FAILURE_RATE])[columns + [c for c in extra if c in rows]],
                         overall["eval_success_rate"], overall["eval_mpkpe_rel_mm"], settings)
 
 
@@ -139,6 +143,19 @@ def setting_differences(ours: dict, warp: WarpEval) -> list[str]:
     return out
 
 
+def restrict(warp: WarpEval, bins) -> WarpEval:
+    """The MuJoCo-Warp evaluation over `bins` alone (sim2sim --clip): its overall success and MPKPE
+    recomputed from those bins (failures / started episodes; MPKPE weighted by the steps taken)."""
+    import numpy as np
+
+    rows = warp.bins[warp.bins[BIN].isin(bins)].reset_index(drop=True)
+    steps = rows["eval_steps"].to_numpy(dtype=float) if "eval_steps" in rows else np.zeros(len(rows))
+    started = float(rows["start_episodes"].sum()) if "start_episodes" in rows else 0.0
+    success = 1.0 - float(rows["failures"].sum()) / started if started else math.nan
+    mpkpe = float(np.nansum(rows[MPKPE_REL_MM].to_numpy(dtype=float) * steps) / steps.sum()) if steps.sum() else math.nan
+    return WarpEval(f"{warp.source}, {len(rows)} of its bins", rows, success, mpkpe, warp.settings)
+
+
 def gap_table(bins, warp: WarpEval):
     """Per bin: MuJoCo-Warp and sim2sim visits, failures (where they happened), success rate per visit
     and anchor-relative MPKPE, and the differences."""
@@ -146,7 +163,7 @@ def gap_table(bins, warp: WarpEval):
                  "success_rate", MPKPE_REL_MM]]
     names = ["visits", "failures", "success_rate", MPKPE_REL_MM]
     out = ours.rename(columns={c: f"sim2sim_{c}" for c in names})
-    out = out.merge(warp.bins.rename(columns={c: f"warp_{c}" for c in names}), on=BIN, how="left")
+    out = out.merge(warp.bins[[BIN, *names]].rename(columns={c: f"warp_{c}" for c in names}), on=BIN, how="left")
     out["success_gap"] = out["sim2sim_success_rate"] - out["warp_success_rate"]
     out["mpkpe_rel_gap_mm"] = out["sim2sim_mpkpe_rel_mm"] - out["warp_mpkpe_rel_mm"]
     return out

@@ -12,11 +12,18 @@ import numpy as np
 
 from bmimic.run_folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
 from bmimic.run_folder import checkpoint_label as run_checkpoint_label
-from bmimic.run_schema import HORIZON_TRUNCATED, ITERATION
-from bmimic.sim2sim.gap import eval_settings, gap_table, setting_differences, warp_eval
+from bmimic.run_schema import BIN, HORIZON_TRUNCATED, ITERATION
+from bmimic.sim2sim.gap import eval_settings, gap_table, restrict, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.rollout import Episode
-from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, policy_session, read_policy, read_reference
+from bmimic.sim2sim.spec import (
+    PolicySpec,
+    Sim2SimError,
+    clip_indices,
+    policy_session,
+    read_policy,
+    read_reference,
+)
 from bmimic.sim2sim.workers import run_episodes
 
 log = logging.getLogger("bmimic.sim2sim")
@@ -67,32 +74,45 @@ def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int
     return Rollouts(rows, pd.DataFrame(sums, columns=["steps", *measured]))
 
 
+def clip_bins(layout, spec: PolicySpec, clips: Sequence[int]) -> np.ndarray:
+    """The bins (ids of the whole motion's layout) of the clips `clips`."""
+    first = layout.bin_first_frame.cpu().numpy()
+    clip_of_bin = np.searchsorted(spec.clip_starts, first, side="right") - 1
+    return np.flatnonzero(np.isin(clip_of_bin, clips))
+
+
 def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,
              horizon_s: float | None = None, workers: int = 1, joint_dynamics: str = "model",
-             max_mpkpe_rel_mm: float | None = None):
+             max_mpkpe_rel_mm: float | None = None, clips: Sequence[str] | None = None):
     """Run the sim2sim evaluation; returns (bmimic.evaluation.tables.EvalResult, WarpEval or None, gap table or None).
 
-    Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like."""
+    Settings not given are the MuJoCo-Warp evaluation's (eval_settings), so the gap compares like with like.
+    `clips` (names of a library's clips): only their bins, with the library's bin numbers, compared with
+    the same bins of the MuJoCo-Warp evaluation."""
     from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table
     from bmimic.sampling.layouts import make_layout
     from bmimic.task import check_evaluation_fits
     from bmimic.training.evaluator import stratified_start_frames, summarize
 
     spec = read_policy(policy_path)
+    chosen = clip_indices(spec, clips)
     label = checkpoint_label(spec)
     warp = warp_eval(run_dir, label, spec.iteration)
     settings = eval_settings(run_dir, warp, episodes_per_bin, horizon_s, max_mpkpe_rel_mm)
     per_bin = settings["episodes_per_bin"]
-    ref = read_reference(policy_session(policy_path), spec)
+    ref = read_reference(policy_session(policy_path), spec, None if clips is None else chosen)
     mjm, model_note = build_model(spec, model, run_dir, joint_dynamics)
     layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s, clip_starts=spec.clip_starts)
-    check_evaluation_fits(layout.num_bins, per_bin, "--episodes-per-bin")
-    frames = stratified_start_frames(layout.bin_first_frame.numpy(), layout.bin_num_frames.numpy(), per_bin)
+    run_bins = clip_bins(layout, spec, chosen)
+    check_evaluation_fits(len(run_bins), per_bin, "--episodes-per-bin")
+    frames = stratified_start_frames(layout.bin_first_frame.numpy()[run_bins], layout.bin_num_frames.numpy()[run_bins],
+                                     per_bin)
     horizon_steps = max(1, int(round(settings["horizon_s"] / spec.control_dt_s)))
-    log.info("sim2sim %s on %s: %d bins x %d episodes, horizon %g s, %d workers", policy_path.name, model_note,
-             layout.num_bins, per_bin, settings["horizon_s"], workers)
+    log.info("sim2sim %s on %s: %d bins%s x %d episodes, horizon %g s, %d workers", policy_path.name, model_note,
+             len(run_bins), "" if clips is None else f" of {', '.join(spec.clip_names[k] for k in chosen)}", per_bin,
+             settings["horizon_s"], workers)
     runs, wall = run_episodes(policy_path, mjm, spec, ref, frames, horizon_steps, workers, settings["max_mpkpe_rel_mm"])
-    rollouts = collect(runs, np.repeat(np.arange(layout.num_bins), per_bin), spec.num_frames)
+    rollouts = collect(runs, np.repeat(run_bins, per_bin), spec.num_frames)
 
     raw = rollouts.episodes
     iteration = -1 if spec.iteration is None else spec.iteration
@@ -101,6 +121,13 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
     episodes["end_bin"] = layout.frame_to_bin.numpy()[episodes["end_frame"].to_numpy()]
     episodes["diverged"] = raw["diverged"].to_numpy()
     bins = bin_table(rollouts, episodes, layout, ref.segments)
+    segments = segment_table(rollouts, episodes, ref)
+    if clips is not None:  # the chosen clips' rows (the other bins and segments were never visited)
+        bins = bins[bins[BIN].isin(run_bins)].reset_index(drop=True)
+        inside = np.isin(np.searchsorted(spec.clip_starts, np.round(segments["start_s"].to_numpy() * spec.fps),
+                                         side="right") - 1, chosen)
+        segments = segments[inside].reset_index(drop=True)
+        warp = None if warp is None else restrict(warp, run_bins)
     steps = int(raw["steps"].sum())
     worker_s = float(raw["wall_s"].sum())
     summary = {
@@ -108,7 +135,8 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
         "episodes": int(len(episodes)),
         "failures": int(episodes["failed"].sum()),
         "diverged": int(episodes["diverged"].sum()),
-        "num_bins": int(layout.num_bins),
+        "num_bins": int(len(run_bins)),
+        "clips": [spec.clip_names[k] for k in chosen],
         **settings,
         "horizon_truncated_bins": int(bins[HORIZON_TRUNCATED].sum()),
         "checkpoint": str(policy_path),
@@ -135,7 +163,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
                        gap_success_rate=summary["eval_success_rate"] - warp.success_rate,
                        gap_mpkpe_rel_mm=summary["eval_mpkpe_rel_mm"] - warp.mpkpe_rel_mm,
                        gap_setting_differences=setting_differences(settings, warp))
-    result = EvalResult(episodes, bins, segment_table(rollouts, episodes, ref), summary)
+    result = EvalResult(episodes, bins, segments, summary)
     return result, warp, gap
 
 

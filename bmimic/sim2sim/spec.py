@@ -10,7 +10,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -94,6 +94,8 @@ class PolicySpec:
     """Reference frames baked into the file."""
     clip_starts: np.ndarray
     """First frame of each clip of the motion."""
+    clip_names: list[str]
+    """Name of each clip (files exported before the names were recorded: clip0, clip1, ...)."""
     segments: list
     """Labelled time ranges of the motion (bmimic.motion.Segment)."""
     bin_layout: str
@@ -216,6 +218,8 @@ def read_policy(path: str | Path) -> PolicySpec:
         fps=scalar("motion_fps"),
         num_frames=scalar("motion_num_frames", int),
         clip_starts=numbers("motion_clip_starts", len(names("motion_clip_starts"))).astype(np.int64),
+        clip_names=[str(n) for n in json.loads(meta["motion_clip_names"])] if meta.get("motion_clip_names")
+        else [f"clip{k}" for k in range(len(names("motion_clip_starts")))],
         segments=segments(),
         bin_layout=meta.get("bin_layout", "time"),  # files exported before the released layout existed
         bin_size_s=scalar("bin_size_s"),
@@ -261,6 +265,9 @@ def _check_spec(spec: PolicySpec) -> None:
         raise policy_error(path, f"metadata motion_fps={spec.fps:g} is not the control rate "
                                   f"1 / control_dt_s = {1.0 / spec.control_dt_s:g} Hz (one reference frame per "
                                   "control step): the bins and horizon would be counted in the wrong frames")
+    if len(spec.clip_names) != len(spec.clip_starts) or len(set(spec.clip_names)) != len(spec.clip_names):
+        raise policy_error(path, f"metadata motion_clip_names ({len(spec.clip_names)} names) must name each of the "
+                                  f"{len(spec.clip_starts)} clips of motion_clip_starts once")
     frame_bytes = 4 * (2 * nj + 13 * nb)  # the baked reference: float32 joints and body poses/velocities
     if spec.num_frames * frame_bytes > path.stat().st_size:
         raise policy_error(path, f"metadata motion_num_frames={spec.num_frames} cannot be right: that many frames "
@@ -299,19 +306,43 @@ def policy_session(path: Path):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def read_reference(session, spec: PolicySpec) -> Motion:
+def clip_frames(spec: PolicySpec, k: int) -> range:
+    """The frames of clip `k` of the baked motion."""
+    ends = [*spec.clip_starts[1:].tolist(), spec.num_frames]
+    return range(int(spec.clip_starts[k]), int(ends[k]))
+
+
+def clip_indices(spec: PolicySpec, names: Sequence[str] | None) -> list[int]:
+    """The clips called `names` (None: every clip), in the motion's order; Sim2SimError (one line) for a
+    name the file does not hold."""
+    if names is None:
+        return list(range(len(spec.clip_names)))
+    unknown = [n for n in names if n not in spec.clip_names]
+    if unknown or not names:
+        shown = ", ".join(spec.clip_names[:8]) + (", ..." if len(spec.clip_names) > 8 else "")
+        raise policy_error(spec.path, f"--clip {','.join(names)}: {'no clip ' + repr(unknown[0]) if unknown else 'no name'}"
+                                      f" in its motion ({len(spec.clip_names)} clips: {shown})")
+    return sorted({spec.clip_names.index(n) for n in names})
+
+
+def read_reference(session, spec: PolicySpec, clips: Sequence[int] | None = None) -> Motion:
     """The motion baked into the file (tracked bodies only), read by evaluating its reference outputs at
-    every time step 0..T-1, as a deployment controller plays it."""
+    every time step 0..T-1, as a deployment controller plays it. `clips`: read only those clips' frames
+    (a library of hours takes minutes to read whole); the others hold the first frame read, and nothing
+    may start or run there (an episode stops at its clip's end)."""
     from bmimic.motion.motion import Motion, MotionDataError
 
     obs = np.zeros((1, spec.obs_dim), dtype=np.float32)
-    out = {name: [] for name in REFERENCE_OUTPUTS}
-    for t in range(spec.num_frames):
+    frames = [t for k in (range(len(spec.clip_starts)) if clips is None else clips) for t in clip_frames(spec, k)]
+    out: dict[str, np.ndarray] = {}
+    for t in frames:
         values = session.run(list(REFERENCE_OUTPUTS), {"obs": obs, "time_step": np.array([[t]], dtype=np.float32)})
         for name, v in zip(REFERENCE_OUTPUTS, values):
-            out[name].append(v[0])
+            if name not in out:  # filled with the first frame read, each frame then with its own
+                out[name] = np.repeat(v, spec.num_frames, axis=0)
+            out[name][t] = v[0]
     try:
-        return Motion(fps=spec.fps, **{k: np.asarray(v) for k, v in out.items()}, joint_names=spec.joint_names,
+        return Motion(fps=spec.fps, **out, joint_names=spec.joint_names,
                       body_names=spec.body_names, segments=spec.segments, clip_starts=spec.clip_starts)
     except MotionDataError as e:
         raise policy_error(spec.path, f"the baked-in motion does not fit the metadata: {e}") from None

@@ -1,12 +1,13 @@
 """One policy for a folder of clips, end to end on the CPU: trained with `motion=lafan_folder` (one clip
-held out), evaluated on the clip it never saw and on its own clips (`bmimic-eval RUN motion=...`), and
-its ONNX metadata saying how a clip and a frame are given to it.
+held out), evaluated on the clip it never saw and on its own clips (`bmimic-eval RUN motion=...`), its
+ONNX metadata saying how a clip and a frame are given to it, and sim2sim on one clip of it (`--clip`).
 The clips are small CSVs in the LAFAN1 G1 format written by the test, never LAFAN1 data."""
 
 from __future__ import annotations
 
 import json
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -80,7 +81,7 @@ def test_a_motion_override_that_names_nothing_is_one_line(library, capsys):
 
 
 def test_the_exported_policy_says_how_a_clip_and_a_frame_are_given(library):
-    from bmimic.sim2sim.spec import read_metadata
+    from bmimic.sim2sim.spec import read_metadata, read_policy
 
     _, run = library
     path = run / "checkpoints" / "motion_policy_2.onnx"
@@ -89,3 +90,29 @@ def test_the_exported_policy_says_how_a_clip_and_a_frame_are_given(library):
     assert json.loads(meta["motion_clip_names"]) == ["walk_a", "walk_b"]
     assert meta["motion_clip_starts"] == "0,149" and meta["motion_num_frames"] == str(149 + 174)
     assert "motion_clip_starts[k]" in meta["time_step_input"] and "no clip id" in meta["time_step_input"]
+    spec = read_policy(path)
+    assert spec.clip_names == ["walk_a", "walk_b"] and spec.clip_starts.tolist() == [0, 149]
+
+
+def test_sim2sim_runs_one_clip_of_the_library(library, capsys):
+    from bmimic.sim2sim import main as sim2sim_main
+
+    _, run = library
+    assert bm_eval.main([str(run)]) == 0  # the MuJoCo-Warp evaluation the gap compares against
+    assert sim2sim_main([str(run), "--clip", "walk_b", "--workers", "1"]) == 0
+    out = run / "sim2sim" / "project" / "model_2_clip_walk_b"
+    summary = _summary(out)
+    assert summary["clips"] == ["walk_b"] and summary["num_bins"] == 4 and summary["episodes"] == 4
+    episodes = pd.read_parquet(out / "eval_episodes.parquet")
+    assert episodes["start_frame"].between(149, 149 + 174 - 1).all()  # only walk_b's frames
+    assert sorted(episodes["bin"]) == [3, 4, 5, 6]  # the library's bin numbers
+    gap = pd.read_csv(out / "sim2sim_gap_bins.csv")
+    assert list(gap["bin"]) == [3, 4, 5, 6] and (gap["warp_visits"] > 0).all()
+    assert "4 of its bins" in summary["warp_source"]
+    warp_bins = pd.read_parquet(run / "eval" / "model_2" / "eval_bins.parquet").set_index("bin").loc[[3, 4, 5, 6]]
+    assert summary["warp_success_rate"] == pytest.approx(1 - warp_bins["failures"].sum() / 4)
+    assert not np.isnan(summary["gap_success_rate"])
+    # an unknown clip is one line naming the clips there are
+    capsys.readouterr()
+    assert sim2sim_main([str(run), "--clip", "walk_c", "--workers", "1"]) == 2
+    assert "--clip walk_c: no clip 'walk_c' in its motion (2 clips: walk_a, walk_b)" in capsys.readouterr().err

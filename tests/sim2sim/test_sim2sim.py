@@ -179,6 +179,18 @@ def test_metadata_has_beyondmimic_keys_in_its_formats(task):
 
 
 # ============================================================================================ equivalence
+def test_a_clip_is_chosen_by_name_and_only_its_frames_are_read(task):
+    _, _, paths = task
+    spec = sim2sim.read_policy(paths[1])
+    assert spec.clip_names == ["easy_only"] and sim2sim.clip_indices(spec, ["easy_only"]) == [0]
+    assert sim2sim.clip_indices(spec, None) == [0] and sim2sim.clip_frames(spec, 0) == range(spec.num_frames)
+    with pytest.raises(sim2sim.Sim2SimError, match=r"--clip walk: no clip 'walk' in its motion \(1 clips: easy_only\)"):
+        sim2sim.clip_indices(spec, ["walk"])
+    session = sim2sim.policy_session(paths[1])
+    whole, chosen = sim2sim.read_reference(session, spec), sim2sim.read_reference(session, spec, [0])
+    np.testing.assert_array_equal(whole.body_pos_w, chosen.body_pos_w)
+
+
 def test_sim2sim_observation_equals_the_training_envs(task):
     env, _, paths = task
     assert observation_gap(env, paths[1]) < OBS_TOL
