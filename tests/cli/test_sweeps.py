@@ -63,11 +63,14 @@ STUDIES = {
     "sensitivity_alpha": (3 * 3, {"sampler.alpha_smooth"}),
     "confirm_hybrid_dance1": (2 * 10, {"sampler"}),
     "hybrid_factorial_dance1": (2 ** 3 * 3, {"sampler.accounting.attribution", "sampler.gamma", "sampler.K"}),
+    "lafan36_library": (5 * 2, {"sampler"}),
 }
 # One knob of a study at a time: these files write into the study's folder (one report covers every
 # knob) and estimate effect sizes on 3 seeds per level, beside the study's 5-seed reference arms.
 FACTORIALS = {"hybrid_factorial_dance1"}  # effects read from cell means: 3 seeds per cell
 KNOB_FILES = {f"sensitivity_{knob}": "sensitivity_dance1" for knob in ("gamma", "lambda", "kernel", "bin_size", "alpha")}
+# Each job an hour on 4 GPUs over several sittings: 2 seeds, the issue's floor for the design and the best arm.
+TWO_SEED_STUDIES = {"lafan36_library"}
 
 
 def compose_study(study: str, *overrides: str):
@@ -101,7 +104,8 @@ def test_study_composes_and_expands(study):
     assert int(params.max_iterations) > 0
     # Arms are compared at equal iterations, with at least the 5 seeds bootstrap intervals need.
     assert "time_limit_s" not in params and cfg.time_limit_s is None
-    assert len(str(params.seed).split(",")) >= (3 if study in KNOB_FILES or study in FACTORIALS else 5)
+    fewest = 3 if study in KNOB_FILES or study in FACTORIALS else 2 if study in TWO_SEED_STUDIES else 5
+    assert len(str(params.seed).split(",")) >= fewest
     for key, value in params.items():  # every key is a real config key or group option (typo guard)
         if (CONF_DIR / key).is_dir():
             for option in str(value).split(","):
@@ -128,6 +132,21 @@ def test_knob_files_share_their_study_protocol():
             assert OmegaConf.select(cfg, key) == OmegaConf.select(base, key), (study, key)
         params = cfg.hydra.sweeper.params
         assert (params.motion, int(params.max_iterations), params.sampler) == ("lafan_dance1_full", 1500, "adaptive")
+
+
+def test_the_library_study_runs_as_single_torchrun_jobs_with_its_protocol(tmp_path, hydra_config_restored):
+    """lafan36_library's jobs run one at a time under torchrun, without -m: the study file alone (no
+    sweeper params) must give them the motion, MDP and budget its multirun jobs get, and a job pinned to
+    its multirun folder is that job (launch list, the report's arms)."""
+    cfg = compose_study("lafan36_library", "sampler=uniform", "seed=1")
+    params = cfg.hydra.sweeper.params
+    assert cfg.motion.name == params.motion == "lafan_folder" and cfg.max_iterations == int(params.max_iterations)
+    assert cfg.env.rewards.action_rate.weight == -0.01 and cfg.sampler.name == "uniform"
+    assert (cfg.num_envs, cfg.eval.every_iters, cfg.sampler.log_every) == (8192, 500, 500)
+    header = (SWEEPS / "lafan36_library.yaml").read_text()
+    assert 'RUN="outputs/sweeps/lafan36_library/motion=lafan_folder,sampler=$A/seed=$S"' in header
+    _, jobs = list_jobs(["+sweep=lafan36_library", f"hydra.sweep.dir={tmp_path}"])
+    assert jobs[0].run_dir == tmp_path / "motion=lafan_folder,sampler=adaptive" / "seed=0"  # the header's RUN
 
 
 def test_confirmatory_study_uses_fresh_seeds():
