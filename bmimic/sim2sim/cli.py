@@ -86,7 +86,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--joint-dynamics", choices=("model", "metadata"), default="model",
                    help="keep the model's armature/damping/friction loss (default) or use training's")
     p.add_argument("--clip", type=lambda text: [c.strip() for c in text.split(",") if c.strip()],
-                   help="a library's clip (or several, comma-separated): evaluate only its bins, read only its frames")
+                   help="a library's clip (or several, comma-separated): evaluate only its bins (with --whole-clip: "
+                        "only it), read only its frames")
     p.add_argument("--video", type=Path, help="also render one episode to this .mp4 (or .gif)")
     p.add_argument("--video-start-s", type=float, default=0.0,
                    help="where the video episode starts in the motion (with --clip: in its first clip)")
@@ -160,9 +161,9 @@ def _whole_clip(args: argparse.Namespace) -> int:
         raise Sim2SimError(f"{', '.join(window_only)}: the window evaluation's; --whole-clip runs every clip whole")
     policy_path, run_dir = locate(args.path)
     result = run_whole_clip(policy_path, run_dir, args.whole_clip, conditions, args.model, args.workers,
-                            args.joint_dynamics, args.max_mpkpe_rel_mm, args.seed or 0)
+                            args.joint_dynamics, args.max_mpkpe_rel_mm, args.seed or 0, clips=args.clip)
     out = args.out or ((run_dir or policy_path.parent) / SIM2SIM_DIR / model_label(args.model)
-                       / result.summary["label"] / SIM2SIM_WHOLE_CLIP)
+                       / (result.summary["label"] + clips_suffix(args.clip)) / SIM2SIM_WHOLE_CLIP)
     written = EvalResult(result.rollouts, result.bins, result.segments, result.summary)
     _write(written, None, out.resolve(), {WHOLE_CLIP_SURVIVAL: result.survival, SIM2SIM_WHOLE_CLIP_GAP: result.gap})
     print(format_whole_clip(result))

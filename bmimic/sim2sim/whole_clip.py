@@ -46,6 +46,7 @@ from bmimic.sim2sim.perturb import Perturbations, perturbations_from_env
 from bmimic.sim2sim.spec import (
     PolicySpec,
     Sim2SimError,
+    clip_indices,
     first_line,
     policy_session,
     read_policy,
@@ -94,12 +95,13 @@ def run_config_section(run_dir: Path | None, key: str) -> tuple[dict | None, str
     return (section, f"{composed} ({key})") if isinstance(section, dict) else (None, "")
 
 
-def clip_names(run_dir: Path | None, num_clips: int) -> list[str]:
-    """The run's motion name for a single clip, else clip0, clip1, ... (the ONNX holds no clip names)."""
+def clip_names(run_dir: Path | None, spec: PolicySpec) -> list[str]:
+    """The clips' names as the file records them (motion_clip_names); a file exported before it holds
+    clip0, clip1, ..., and a single clip of it is named after the run's motion."""
     motion = run_config_section(run_dir, "motion")[0] or {}
-    if num_clips == 1 and motion.get("name"):
+    if spec.clip_names == ["clip0"] and motion.get("name"):
         return [str(motion["name"])]
-    return [f"clip{c}" for c in range(num_clips)]
+    return list(spec.clip_names)
 
 
 def robust_perturbations(run_dir: Path | None, spec: PolicySpec) -> Perturbations:
@@ -193,19 +195,21 @@ class WholeClipResult:
 def run_whole_clip(policy_path: Path, run_dir: Path | None, rollouts_per_clip: int,
                    conditions: Sequence[str] = WHOLE_CLIP_CONDITIONS, model: str = "project", workers: int = 1,
                    joint_dynamics: str = "model", max_mpkpe_rel_mm: float | None = None, seed: int = 0,
-                   ) -> WholeClipResult:
-    """R whole-clip rollouts per clip and condition (module docstring)."""
+                   clips: Sequence[str] | None = None) -> WholeClipResult:
+    """R whole-clip rollouts per clip and condition (module docstring); `clips`: of those clips of a
+    library alone (only their frames are read; each rollout draws what it would in a run of every clip)."""
     from bmimic.evaluation.tables import bin_table, episode_table, segment_table
     from bmimic.sampling.layouts import make_layout
 
     check_rollouts(rollouts_per_clip)
     spec = read_policy(policy_path)
+    chosen = np.asarray(clip_indices(spec, clips), dtype=np.int64)
     label = checkpoint_label(spec)
-    ref = read_reference(policy_session(policy_path), spec)
+    ref = read_reference(policy_session(policy_path), spec, None if clips is None else chosen.tolist())
     mjm, model_note = build_model(spec, model, run_dir, joint_dynamics)
     layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s, clip_starts=spec.clip_starts)
     starts, ends = clip_spans(spec)
-    names = clip_names(run_dir, len(starts))
+    names = clip_names(run_dir, spec)
     durations_s = (ends - 1 - starts) / spec.fps
     iteration = -1 if spec.iteration is None else spec.iteration
     robust = robust_perturbations(run_dir, spec) if "robust" in conditions else None
@@ -215,18 +219,19 @@ def run_whole_clip(policy_path: Path, run_dir: Path | None, rollouts_per_clip: i
     per_condition, wall_s = {}, {}
     for condition in conditions:
         per_clip = 1 if condition == "nominal" else rollouts_per_clip  # nominal is deterministic
-        clips = np.repeat(np.arange(len(starts)), per_clip)
-        rollout = np.tile(np.arange(per_clip), len(starts))
+        clip_of = np.repeat(chosen, per_clip)  # the library's clip numbers: a clip's draws never depend on --clip
+        rollout = np.tile(np.arange(per_clip), len(chosen))
         tasks = [EpisodeTask(int(starts[c]), max(1, int(ends[c] - starts[c]) - 1),
                              None if condition == "nominal" else (int(seed), int(c), int(r)))
-                 for c, r in zip(clips, rollout)]
+                 for c, r in zip(clip_of, rollout)]
         log.info("sim2sim whole clip, %s: %d clip(s) x %d rollout(s), %s control steps each, on %s, %d workers",
-                 condition, len(starts), per_clip, "/".join(str(t) for t in (ends - starts - 1)), model_note, workers)
+                 condition, len(chosen), per_clip, "/".join(str(t) for t in (ends - starts - 1)[chosen]), model_note,
+                 workers)
         runs, wall_s[condition] = run_tasks(policy_path, mjm, spec, ref, tasks, workers, max_mpkpe_rel_mm,
                                             robust if condition == "robust" else None)
-        collected = collect(runs, layout.frame_to_bin.numpy()[starts[clips]], spec.num_frames)
+        collected = collect(runs, layout.frame_to_bin.numpy()[starts[clip_of]], spec.num_frames)
         episodes = episode_table(collected.episodes, layout, ref, spec.control_dt_s, iteration)
-        rows = rollout_table(episodes, collected.episodes, condition, clips, names, starts, ends, spec.fps)
+        rows = rollout_table(episodes, collected.episodes, condition, clip_of, names, starts, ends, spec.fps)
         tables["rollouts"].append(rows)
         tables["bins"].append(bin_table(collected, episodes, layout, ref.segments).assign(condition=condition))
         tables["segments"].append(segment_table(collected, episodes, ref).assign(condition=condition))
@@ -240,14 +245,16 @@ def run_whole_clip(policy_path: Path, run_dir: Path | None, rollouts_per_clip: i
     for condition, s in per_condition.items():
         w = warp.get(condition)
         if w is not None:
-            total, done = int(w.clips["rollouts"].sum()), int(w.clips["completed"].sum())
+            ours = w.clips[w.clips["clip"].isin(chosen)]  # the same clips (all of them without --clip)
+            total, done = int(ours["rollouts"].sum()), int(ours["completed"].sum())
             s.update(warp_source=w.source, warp_rollouts=total, warp_success_rate=done / total,
                      success_gap=s["success_rate"] - done / total)
     summary = {
         "label": label, ITERATION: iteration, "checkpoint": str(policy_path), "run_dir": str(run_dir) if run_dir else "",
         "model": model, "model_description": model_note, "joint_dynamics": joint_dynamics, "workers": int(workers),
         "seed": int(seed), "rollouts_per_clip": int(rollouts_per_clip), "max_mpkpe_rel_mm": max_mpkpe_rel_mm,
-        "start_transient_s": START_TRANSIENT_S, "clips": names, "clip_duration_s": durations_s.tolist(),
+        "start_transient_s": START_TRANSIENT_S, "clips": [names[c] for c in chosen],
+        "clip_duration_s": durations_s[chosen].tolist(),
         "conditions": per_condition,
         **({"robust_perturbations": {"applied": robust.applied, "skipped": robust.skipped, "source": robust.source}}
            if robust is not None else {}),

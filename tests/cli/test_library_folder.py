@@ -36,8 +36,8 @@ def library(tmp_path_factory):
     return folder, run
 
 
-def _summary(folder) -> dict:
-    return json.loads((folder / "eval_summary.json").read_text())
+def _summary(folder, name: str = "eval_summary.json") -> dict:
+    return json.loads((folder / name).read_text())
 
 
 def test_the_run_trains_on_the_selected_clips_with_bins_of_their_own(library):
@@ -116,3 +116,20 @@ def test_sim2sim_runs_one_clip_of_the_library(library, capsys):
     capsys.readouterr()
     assert sim2sim_main([str(run), "--clip", "walk_c", "--workers", "1"]) == 2
     assert "--clip walk_c: no clip 'walk_c' in its motion (2 clips: walk_a, walk_b)" in capsys.readouterr().err
+
+
+def test_whole_clips_of_an_unseen_clip_and_of_one_clip_in_native_mujoco(library):
+    from bmimic.sim2sim import main as sim2sim_main
+
+    folder, run = library
+    assert bm_eval.main([str(run), "--whole-clip", "1", "--conditions", "robust", f"motion={folder / 'held_out.csv'}"]) == 0
+    (out,) = (run / "eval").glob("model_2_on_held_out-*/whole_clip")
+    assert _summary(out, "whole_clip_summary.json")["trained_on_motion"] is False
+    assert list(pd.read_csv(out / "whole_clip.csv")["clip_name"]) == ["held_out"]
+    # sim2sim's whole clips of one clip of the library: its name from the ONNX metadata, its library number
+    assert sim2sim_main([str(run), "--whole-clip", "1", "--conditions", "nominal", "--clip", "walk_b",
+                         "--workers", "1"]) == 0
+    native = run / "sim2sim" / "project" / "model_2_clip_walk_b" / "whole_clip"
+    assert _summary(native)["clips"] == ["walk_b"]
+    rollouts = pd.read_parquet(native / "eval_episodes.parquet")
+    assert list(zip(rollouts["clip"], rollouts["clip_name"], rollouts["start_frame"])) == [(1, "walk_b", 149)]
