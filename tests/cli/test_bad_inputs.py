@@ -619,7 +619,7 @@ def cases() -> list[Case]:
              check=lambda ws, r: _resumed_to(3)(ws, r) and "sampler.gamma" in (ws.run / "resumes.json").read_text(),
              slow=True))
     # ---------------------------------------------------------------- eval
-    ev = [("missing folder", lambda ws: ["/nonexistent/run"], "no such run"),
+    ev = [("missing folder", lambda ws: [str(ws.root / "no_such_folder" / "run")], "no such run"),
           ("not a run folder", lambda ws: [str(ws.data)], "not a run folder"),
           ("crafted checkpoint", lambda ws: [str(_in_run(ws, "evil_eval", ws.evil_checkpoint("model_9.pt")))],
            "refused"),
@@ -668,8 +668,9 @@ def cases() -> list[Case]:
         ("OUT not .npz", lambda ws: [str(ws.csv("a")), str(ws.data / "a.out")], ".npz"),
         ("OUT exists", lambda ws: [str(ws.csv("b")), str(ws.npz("exists"))], "--force"),
         ("OUT is a folder", lambda ws: [str(ws.csv("c")), str(_dir_npz(ws))], "folder"),
-        ("OUT in a missing folder", lambda ws: [str(ws.csv("d")), "/nonexistent/x.npz"], "does not exist"),
-        ("IN missing", lambda ws: ["/nonexistent.csv", str(ws.data / "o1.npz")], "not found"),
+        ("OUT in a missing folder", lambda ws: [str(ws.csv("d")), str(ws.root / "no_such_folder" / "x.npz")],
+         "does not exist"),
+        ("IN missing", lambda ws: [str(ws.root / "no_such_file.csv"), str(ws.data / "o1.npz")], "not found"),
         ("IN is a folder", lambda ws: [str(ws.data), str(ws.data / "o2.npz")], "not found"),
         ("IN with a header", lambda ws: [str(ws.csv("h2", "a,b\n1,2\n")), str(ws.data / "o3.npz")], "column"),
         ("--fps-in 0", lambda ws: [str(ws.csv("e")), str(ws.data / "o4.npz"), "--fps-in", "0"], "fps"),
