@@ -241,6 +241,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="under torchrun: time full PPO iterations on every rank and merge the total env steps/s "
                         "into PATH (one row per GPU count and env count, scaling against the 1-GPU row)")
     args = p.parse_args(argv)
+    from bmimic.config import check_overrides
+
+    try:  # Hydra's refusals of the overrides as one line (bmimic.config.override_error), before any timing
+        check_overrides(overrides)
+    except BmimicError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if args.multigpu_json:
         try:
             return multigpu(args, overrides)

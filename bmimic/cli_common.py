@@ -25,3 +25,4 @@ def add_trust_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trust-checkpoint", action="store_true",
                    help="also read bmimic checkpoint format 1 (pickled numpy RNG state), still weights-only: "
                         "numpy arrays are admitted, any other global is refused")
+

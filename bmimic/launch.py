@@ -31,7 +31,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from omegaconf.errors import OmegaConfBaseException
 
     from bmimic import BmimicError
-    from bmimic.config import check_additions
+    from bmimic.config import check_additions, override_error
     from bmimic.extras import check_launcher
 
     try:
@@ -39,7 +39,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_additions(args.overrides)
         sweep_dir, jobs = list_jobs(args.overrides)
     except (SweepListError, HydraException, OmegaConfBaseException, BmimicError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        # Hydra's and OmegaConf's refusals as bmimic.train words them (bmimic.config.override_error)
+        text = str(e) if isinstance(e, BmimicError) else override_error(e, args.overrides)
+        msg = text.strip().splitlines()[0] if text.strip() else type(e).__name__
         if "sweep" in msg and "Could not" in msg:
             msg += f" (studies: {', '.join(available_studies())})"
         print(f"error: {msg}", file=sys.stderr)

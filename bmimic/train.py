@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 
 import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver of the launchers)
 from bmimic import CONF_DIR
-from bmimic.config import ConfigError, check_additions, hydra_overrides
+from bmimic.config import ConfigError, check_overrides
 from bmimic.extras import MissingExtraError, check_launcher
 from bmimic.job import launch
 from bmimic.runtime import exit_rank
@@ -62,11 +62,16 @@ def cli() -> None:
     """`bmimic-train` and `python -m bmimic.train`: the Hydra app with bmimic's checks around it."""
     try:
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
-        check_additions(hydra_overrides(sys.argv[1:]))  # before OmegaConf's bare assertion can fire
+        # Hydra's own report of overrides that do not compose is a 5-7 line block and exit 1, and it
+        # suggests `+key=...` for a typo; bmimic names the override in one line (exit 2).
+        check_overrides(sys.argv[1:])
+        argv = inspect_sweep_argv(sys.argv)
+        if argv != sys.argv:  # --cfg, --help or --info of a sweep: its first job's overrides, without -m
+            sys.argv = argv
+            check_overrides(argv[1:])
     except (MissingExtraError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
-    sys.argv = inspect_sweep_argv(sys.argv)
     main()
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         exit_rank(0)  # a torchrun rank whose run is written: no interpreter teardown (runtime.exit_rank)

@@ -6,7 +6,6 @@ including which jobs are already done.
 
 from __future__ import annotations
 
-import contextlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +14,7 @@ from typing import Any, Sequence
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bmimic import CONF_DIR, BmimicError
+from bmimic.config import config_loader, override_error
 from bmimic.run_folder import lock_held, read_status
 from bmimic.run_schema import ITERATION
 
@@ -49,20 +49,6 @@ def available_studies() -> list[str]:
     return sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml"))
 
 
-@contextlib.contextmanager
-def _config_loader(config_dir: str | os.PathLike, config_name: str):
-    """Hydra's config loader for `config_dir`, initialised as for `python -m bmimic.train`."""
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    import bmimic.config  # noqa: F401  (registers the config schemas and the bmimic.arm_dir resolver)
-    import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver)
-
-    with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3",
-                               job_name=config_name):
-        yield GlobalHydra.instance().config_loader()
-
-
 def _expand(loader, config_name: str, overrides: Sequence[str]) -> tuple[DictConfig, list[list[str]]]:
     """(master config, each job's overrides) as `-m` would make them: the sweeper params crossed
     with the command line, where a command-line key replaces the params' entry (BasicSweeper)."""
@@ -92,7 +78,7 @@ def sweep_overrides(overrides: Sequence[str], config_dir: str | os.PathLike = CO
                     config_name: str = "train") -> list[list[str]]:
     """Each job's overrides for `python -m bmimic.train -m <overrides>`, in launch order (cheap:
     composes the primary config once)."""
-    with _config_loader(config_dir, config_name) as loader:
+    with config_loader(config_dir, config_name) as loader:
         return _expand(loader, config_name, overrides)[1]
 
 
@@ -104,7 +90,7 @@ def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR
     its first job (bmimic.launch_guard), so what is listed is what the sweep runs: a job that would be
     refused, or two jobs sharing a folder, fail here with the same line.
     """
-    with _config_loader(config_dir, config_name) as loader:
+    with config_loader(config_dir, config_name) as loader:
         master, _ = _expand(loader, config_name, overrides)
         jobs = expand_jobs(loader, master)
         check_jobs(jobs)
@@ -139,9 +125,9 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
                     checked.add(arm)
                 run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
             except Exception as e:  # noqa: BLE001 - Hydra, OmegaConf and bmimic errors alike: one line
-                text = str(e).strip()
-                msg = text.splitlines()[0] if text else type(e).__name__
-                raise SweepListError(f"job {num} ({' '.join(job_overrides)}): {msg}") from None
+                msg = str(e) if isinstance(e, BmimicError) else override_error(e, job_overrides)
+                raise SweepListError(f"job {num} ({' '.join(job_overrides)}): "
+                                     f"{(msg.strip().splitlines() or [type(e).__name__])[0]}") from None
             status = read_status(run_dir)
             state = status.get("status")
             if state == "running" and not lock_held(run_dir):
