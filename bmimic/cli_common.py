@@ -15,7 +15,7 @@ def first_line(e: BaseException) -> str:
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that mean bad input (printed as one line, exit status 2)."""
     from bmimic import BmimicError
-    from bmimic.motion.motion import MotionDataError
+    from bmimic.motion.segments import MotionDataError
 
     return (BmimicError, MotionDataError)
 

@@ -14,10 +14,16 @@ import argparse
 import sys
 from typing import Sequence
 
+from bmimic.deferred import defer
 from bmimic.sweeping.jobs import SweepListError, available_studies, format_jobs, list_jobs
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if argv is None:  # this process is the command: nothing else will need them (bmimic.deferred)
+        # The config checks import the env terms and sampler classes, whose modules import torch (and
+        # mujoco) at their top, for their signatures and checks alone.
+        for name in ("torch", "mujoco"):
+            defer(name)
     parser = argparse.ArgumentParser(
         prog="python -m bmimic.launch",
         description="Dry run of a sweep: list the jobs `python -m bmimic.train -m OVERRIDES` would run, "

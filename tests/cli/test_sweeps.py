@@ -197,6 +197,26 @@ def test_dry_run_cli(capsys, hydra_config_restored):
     assert err.startswith("error: ") and "sampler_ablation" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("study", ["sampler_ablation", "design_choices_dance1"])
+def test_the_dry_run_composes_one_job_per_arm_and_gets_every_jobs_config(study, tmp_path, hydra_config_restored):
+    """An arm's other seeds are its first job's config with their seed (bmimic.sweeping.jobs): the
+    same config and folder as composing each job as the launcher does."""
+    from bmimic.config import config_loader
+
+    with config_loader() as loader:
+        master, _ = sweep_jobs._expand(loader, "train", [f"+sweep={study}", f"hydra.sweep.dir={tmp_path}"])
+        jobs = sweep_jobs.expand_jobs(loader, master)
+        for job in jobs:
+            cfg = loader.load_sweep_config(master, list(job.overrides))
+            with open_dict(cfg):
+                cfg.hydra.job.num = job.num
+                cfg.hydra.job.id = f"{cfg.hydra.job.name}_{job.num}"
+            HydraConfig.instance().set_config(cfg)
+            assert str(job.run_dir) == f"{cfg.hydra.sweep.dir}/{cfg.hydra.sweep.subdir}"
+            task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+            assert OmegaConf.to_yaml(job.config) == OmegaConf.to_yaml(task), job.overrides
+
+
 # --------------------------------------------------------------------------------------------- GPU slots
 def test_slot_arithmetic_known_answers():
     assert slot_order(0, 4) == [0, 1, 2, 3]
