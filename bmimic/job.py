@@ -203,6 +203,27 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     return float(metrics["final_eval_failure_rate"])
 
 
+def done_run_differences(cfg: DictConfig, run_dir: Path) -> str | bool:
+    """Whether a sweep job may skip the done run in its folder: False (the same job: skip it), True
+    (other settings that a resume may change, and the job says resume=true: continue it), or the
+    one-line reason it must not touch it (a run of other settings, e.g. a smoke run's budget).
+    Compared on this job's device, as the job would train (bmimic.sweeping.jobs.recorded_differences)."""
+    from bmimic.sweeping.jobs import describe_differences, recorded_differences
+    from bmimic.training.resume import RESUME_FREE_KEYS, key_allowed
+
+    task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    differs = recorded_differences(run_dir, task, resolve_device(cfg.device))
+    if not differs:
+        return False
+    allowed = (*RESUME_FREE_KEYS, *(cfg.resume_allow_changes or []))
+    extendable = all(key_allowed(k, allowed) for k in differs)
+    if extendable and resume_request(cfg.get("resume")) is not None:
+        return True
+    return (f"holds a run done with other settings ({describe_differences(differs)}); this job leaves it as it "
+            "is" + ("; resume=true continues it with this job's budget" if extendable else "")
+            + " (a smoke test or variant belongs under its own sweep_name=...)")
+
+
 def robust_evaluation(trainer, evaluator) -> dict:
     """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
     on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
@@ -273,11 +294,16 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
         stop.__enter__()  # from here a signal ends the current iteration, not the process (interrupts.py)
         check_config(cfg)
         if multirun:
-            previous = read_status(launch_dir)
-            if previous.get("status") == "done" and resume_request(cfg.get("resume")) is None:
-                log.info("skipping %s: already done", launch_dir)
-                outcome = "done before"
-                return float(read_metrics(launch_dir).get("final_eval_failure_rate", math.nan))
+            if read_status(launch_dir).get("status") == "done":
+                differs = done_run_differences(cfg, launch_dir)
+                if not differs:
+                    log.info("skipping %s: already done", launch_dir)
+                    outcome = "done before"
+                    return float(read_metrics(launch_dir).get("final_eval_failure_rate", math.nan))
+                if differs is not True:  # a run of other settings: never taken for this job's result
+                    outcome, message = "refused", differs
+                    print(f"error: {launch_dir}: {message}", file=sys.stderr)
+                    return math.nan
             try:
                 ctx.lock(launch_dir)
             except RunLockedError as e:

@@ -15,7 +15,7 @@ import sys
 from typing import Sequence
 
 from bmimic.deferred import defer
-from bmimic.sweeping.jobs import SweepListError, available_studies, format_jobs, list_jobs
+from bmimic.sweeping.jobs import SweepListError, available_studies, check_job_runs, format_jobs, list_jobs
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -53,6 +53,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {msg}", file=sys.stderr)
         return 2
     print(format_jobs(sweep_dir, jobs))
+    try:  # after the listing: which folders hold runs of other settings shows above
+        check_job_runs(jobs)
+    except SweepListError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     return 0
 
 
