@@ -245,7 +245,8 @@ def check_resume_changes(plan: RunPlan, new_config: dict, allowed: list[str] | t
         return {}
     if fill_defaults is not None:
         old = fill_defaults(old)
-    changes = config_changes(old, new_config)
+    # `resume` itself (null -> "true") and its companions describe this launch, not the run: no change.
+    changes = {k: v for k, v in config_changes(old, new_config).items() if not key_allowed(k, LAUNCH_KEYS)}
     refused = refused_changes(changes, allowed)
     if refused:
         shown = ", ".join(f"{k} ({_short(changes[k][0])} -> {_short(changes[k][1])})" for k in refused[:8])
