@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
 from bmimic.cli_common import first_line, user_errors
-from bmimic.config import resolve_runtime, with_schema_defaults
+from bmimic.config import ConfigError, resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.run_folder import (
@@ -73,6 +73,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     ctx = ctx if ctx is not None else RunContext(launch_dir)
     requested = cfg.device
     smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
+    default_budget = cfg.max_iterations is None
     quiet_warp(cfg.verbose)
     device = resolve_device(requested)
     rank, world = init_distributed()
@@ -83,6 +84,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
     resolve_runtime(cfg, device)
     validate(cfg)
+    if stop_rule is not None:  # bmimic.race: it times evaluations, so one must run before the budget ends
+        check_evaluates(cfg, default_budget and not device.startswith("cuda"))
     if rank == 0:
         for note in advisories(cfg):
             log.warning(note)
@@ -222,6 +225,18 @@ def done_run_differences(cfg: DictConfig, run_dir: Path) -> str | bool:
     return (f"holds a run done with other settings ({describe_differences(differs)}); this job leaves it as it "
             "is" + ("; resume=true continues it with this job's budget" if extendable else "")
             + " (a smoke test or variant belongs under its own sweep_name=...)")
+
+
+def check_evaluates(cfg: DictConfig, cpu_default: bool) -> None:
+    """A race (training with a stopping rule after each periodic evaluation) needs one within its budget,
+    else it would train and have nothing to time: on a CPU the smoke-scale max_iterations=4 is below the
+    race's every-100 evaluations (`cpu_default`: that budget came from the CPU default). ConfigError."""
+    every, budget = int(cfg.eval.every_iters), int(cfg.max_iterations)
+    if not 0 < every <= budget:
+        where = " (the smoke-scale default on a CPU)" if cpu_default else ""
+        raise ConfigError(f"a race times evaluations, and with max_iterations={budget}{where} and eval.every_iters="
+                          f"{every} none would run; set max_iterations >= eval.every_iters >= 1 (on a CPU with "
+                          "max_cpu_hours=<h>), or train with bmimic-train instead")
 
 
 def robust_evaluation(trainer, evaluator) -> dict:

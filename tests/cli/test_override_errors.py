@@ -65,3 +65,10 @@ def test_every_entry_point_refuses_in_one_line_with_status_2(tmp_path, argv):
     assert bad.split("=")[0] in lines[0] and "HYDRA_FULL_ERROR" not in out.stderr
     assert not (tmp_path / "outputs").exists()  # refused before anything was written
 
+
+def test_a_race_that_could_time_no_evaluation_is_refused_before_it_trains(tmp_path):
+    out = _run(tmp_path, "bmimic.race", "device=cpu")  # the CPU's smoke-scale 4 iterations, an evaluation every 100
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert out.stderr.startswith("error: a race times evaluations, and with max_iterations=4 (the smoke-scale "
+                                 "default on a CPU) and eval.every_iters=100 none would run")
+    assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "outputs").exists()
