@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
-from bmimic.cli_common import first_line, user_errors
+from bmimic.cli_common import first_line, shell_arg, user_errors
 from bmimic.config import ConfigError, resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
@@ -201,8 +201,10 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
              metrics[WALL_TIME_S], metrics["final_eval_failure_rate"],
              f"; {broken} broken world-steps were reset" if broken else "", run_dir)
     if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
-        log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", run_dir, run_dir,
-                 f", tensorboard --logdir {run_dir / TENSORBOARD_DIR} (curves)" if cfg.logger == "tensorboard" else "")
+        folder = shell_arg(run_dir)  # pasted back into a shell: a folder with a space stays one argument
+        log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", folder, folder,
+                 f", tensorboard --logdir {shell_arg(run_dir / TENSORBOARD_DIR)} (curves)" if cfg.logger == "tensorboard"
+                 else "")
     return float(metrics["final_eval_failure_rate"])
 
 

@@ -22,6 +22,7 @@ from omegaconf import DictConfig
 
 import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver of the launchers)
 from bmimic import CONF_DIR
+from bmimic.cli_common import shell_arg
 from bmimic.config import ConfigError, check_overrides, config_loader
 from bmimic.extras import MissingExtraError, check_launcher
 
@@ -51,10 +52,10 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
     except Exception:  # overrides that do not compose: Hydra reports them below, in its own words
         jobs = [args.overrides]
     if args.cfg:
-        print(f"# -m: {len(jobs)} jobs (python -m bmimic.launch list {' '.join(args.overrides)} lists their "
+        print(f"# -m: {len(jobs)} jobs (python -m bmimic.launch list {' '.join(map(shell_arg, args.overrides))} lists their "
               "folders and status); the config of job 0 follows")
         for i, job in enumerate(jobs):
-            print(f"#   job {i}: {' '.join(job)}")
+            print(f"#   job {i}: {' '.join(map(shell_arg, job))}")
     rest = [a for a in argv[1:] if a not in ("-m", "--multirun", *args.overrides)]
     return [argv[0], *rest, *jobs[0]]
 
