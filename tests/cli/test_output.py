@@ -74,6 +74,12 @@ def test_the_commands_printed_paste_back_as_one_argument(tmp_path, capsys):
         assert parser.parse_override(word).value() == str(folder)
 
 
+def test_pyopengls_missing_accelerator_line_is_not_printed():
+    import bmimic.render  # noqa: F401  (sets it before OpenGL is imported)
+
+    assert logging.getLogger("OpenGL.acceleratesupport").getEffectiveLevel() >= logging.WARNING
+
+
 def _evaluated(run, label="model_2"):
     (run / EVAL_DIR / label).mkdir(parents=True)
     (run / EVAL_DIR / label / EVAL_SUMMARY).write_text(json.dumps({"label": label}))
