@@ -54,7 +54,7 @@ STUDIES = {
     "dance1_full": (2 * 5, {"sampler"}),
     "mdp_action_rate": (2 * 5, {"env"}),
     "library_lafan": (2 * 5, {"sampler.clip_balance"}),
-    "peer_samplers": (7 * 5, {"sampler"}),
+    "peer_samplers": (8 * 5, {"sampler"}),  # the field's seven samplers and adaptive_hybrid (issue 32)
     "sensitivity_dance1": (2 * 5, {"sampler"}),
     "sensitivity_gamma": (5 * 3, {"sampler.gamma"}),
     "sensitivity_lambda": (4 * 3, {"sampler.lambda_uniform"}),
