@@ -569,8 +569,9 @@ def test_rerun_leaves_done_jobs_byte_identical_and_failures_exit_non_zero(tmp_pa
     assert ".hydra/config.yaml" in before and "train_metrics.parquet" in before
     run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1")
     assert tree_hash(job, skip=("train.log",)) == before  # skipped: not even its .hydra/ is rewritten
-    refused = run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1", "resume=true", rc=1)
-    assert "done at iteration 1" in refused.stderr and tree_hash(job, skip=("train.log",)) == before
+    # resume=true continues what is unfinished: a job done at this very budget is skipped, untouched.
+    resumed = run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1", "resume=true")
+    assert "already done" in resumed.stdout + resumed.stderr and tree_hash(job, skip=("train.log",)) == before
     # A sweep whose jobs would be refused is refused whole, before any job runs (issue 36).
     bad = run_sweep(sweep, "sampler=uniform", "seed=0,1", "max_iterations=1", "+sampler.gama=0.5", rc=2)
     assert "error: job 0" in bad.stderr and "sampler.gama" in bad.stderr
