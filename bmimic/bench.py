@@ -90,7 +90,9 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     training = build_training(cfg, device)
     env, layout, motion = training.env, training.task.layout, training.task.motion
     setup_s = time.perf_counter() - t0
-    out: dict = {"num_envs": num_envs, "num_bins": layout.num_bins, "motion_s": motion.duration_s,
+    # What was timed, beside how fast: the sampler and motion (the environment's commit is environment_info's).
+    out: dict = {"sampler": str(cfg.sampler.name), "motion": str(cfg.motion.name),
+                 "num_envs": num_envs, "num_bins": layout.num_bins, "motion_s": motion.duration_s,
                  "setup_s": setup_s, "cuda_graph": bool(env.sim.use_graph),
                  "compile_env_step": bool(cfg.sim.compile_env_step)}
     n = num_envs
@@ -241,6 +243,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="under torchrun: time full PPO iterations on every rank and merge the total env steps/s "
                         "into PATH (one row per GPU count and env count, scaling against the 1-GPU row)")
     args = p.parse_args(argv)
+    from bmimic.config import check_overrides
+
+    try:  # Hydra's refusals of the overrides as one line (bmimic.config.override_error), before any timing
+        check_overrides(overrides)
+    except BmimicError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if args.multigpu_json:
         try:
             return multigpu(args, overrides)
@@ -252,6 +261,9 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     only = set(args.only.split(","))
     results = {"environment": environment_info(device), "overrides": overrides, "runs": []}
+    if results["environment"]["git_commit"] is None:  # a copy of the tree without .git (a lent machine)
+        print("warning: no git commit found for this code; set BMIMIC_SOURCE_COMMIT=<commit> so that the results "
+              "record which code they measured", file=sys.stderr)
     for n in [int(x) for x in args.envs.split(",")]:
         r = bench_one(n, device, args.iters, only, overrides)
         results["runs"].append(r)

@@ -336,10 +336,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _race(argv: list[str] | None) -> int:
     args, rest = parse_args(sys.argv[1:] if argv is None else argv)
-    from bmimic.config import ConfigError, check_additions, hydra_overrides
+    from bmimic.config import ConfigError, check_overrides
 
-    try:
-        check_additions(hydra_overrides(rest))
+    try:  # before anything trains: overrides that do not compose (one line, as bmimic.train)
+        check_overrides(race_overrides(rest, whole_clip=not args.no_whole_clip))
     except ConfigError as e:
         _refuse(str(e))
         return 2

@@ -294,3 +294,16 @@ def test_a_full_disk_during_a_resume_ends_in_one_line(tmp_path, monkeypatch) -> 
     code, out = run_train(*TINY, "max_iterations=2", f"hydra.run.dir={run}", "resume=true", cwd=tmp_path)
     assert code != 0 and "No space left" in one_error(out)
     assert json.loads((run / "status.json").read_text())["status"] != "running"
+
+
+def test_resumes_json_lists_changes_of_the_run_not_of_the_launch() -> None:
+    # resume: null -> "True" (and resume_allow_changes, trust_checkpoint) say how this launch treats the
+    # run; they are no change of what the run trains.
+    from bmimic.training.resume import RunPlan, check_resume_changes
+
+    old = {"resume": None, "resume_allow_changes": [], "trust_checkpoint": False, "max_iterations": 4,
+           "sampler": {"gamma": 0.9}}
+    new = {**old, "resume": "True", "resume_allow_changes": ["sampler.gamma"], "trust_checkpoint": True,
+           "max_iterations": 6, "sampler": {"gamma": 0.5}}
+    plan = RunPlan(Path("run"), Path("run"), Path("run/checkpoints/latest.pt"), {"config": json.dumps(old)}, True)
+    assert check_resume_changes(plan, new, ["sampler.gamma"]) == {"max_iterations": (4, 6), "sampler.gamma": (0.9, 0.5)}
