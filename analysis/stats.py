@@ -33,6 +33,7 @@ All randomness comes from fixed seeds, so the same runs always give the same rep
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import warnings
@@ -214,11 +215,42 @@ def permutation_pvalue(a, b, statistic: Callable | None = None, n_resamples: int
     if min(len(a), len(b)) < 2:
         # scipy refuses a group of one value; the exact test is still defined (few splits).
         return _exact_permutation_pvalue(a, b, statistic)
+    if splits <= EXACT_PERMUTATIONS:
+        return _enumerated_pvalue(a, b, statistic)
     res = sps.permutation_test(
         (a, b), statistic, permutation_type="independent", alternative="two-sided", vectorized=True,
-        n_resamples=np.inf if splits <= EXACT_PERMUTATIONS else n_resamples, rng=np.random.default_rng(seed),
+        n_resamples=n_resamples, rng=np.random.default_rng(seed),
     )
     return float(min(1.0, res.pvalue))
+
+
+@functools.lru_cache(maxsize=4)
+def _all_splits(n_a: int, n_b: int) -> np.ndarray:
+    """Every split of n_a + n_b pooled positions into groups of n_a and n_b, one row each: the first
+    group's positions ascending, then the rest ascending (the order scipy enumerates them in, so the
+    null distribution is the same numbers bit for bit). 10 v 10: 184,756 x 20 int8, 3.7 MB."""
+    n = n_a + n_b
+    first = np.fromiter(itertools.chain.from_iterable(itertools.combinations(range(n), n_a)), dtype=np.int8)
+    first = first.reshape(-1, n_a)
+    rest = np.ones((len(first), n), dtype=bool)
+    rest[np.arange(len(first))[:, None], first] = False
+    out = np.concatenate([first, np.nonzero(rest)[1].astype(np.int8).reshape(len(first), n_b)], axis=1)
+    out.setflags(write=False)
+    return out
+
+
+def _enumerated_pvalue(a: np.ndarray, b: np.ndarray, statistic: Callable) -> float:
+    """scipy.stats.permutation_test's exact two-sided p-value (every split, values within 100 float
+    eps of the observed statistic counted as equal to it), from one vectorized pass over a cached
+    table of the splits: scipy builds its splits in Python for every call (about a second for 10 v
+    10), which a report of many comparisons repeats hundreds of times."""
+    pooled = np.concatenate([a, b])[_all_splits(len(a), len(b))]
+    null = np.asarray(statistic(pooled[:, :len(a)], pooled[:, len(a):], axis=-1), dtype=float)
+    observed = float(statistic(a, b, axis=-1))
+    gamma = abs(np.finfo(float).eps * 100 * observed)
+    less = np.count_nonzero(null <= observed + gamma) / len(null)
+    greater = np.count_nonzero(null >= observed - gamma) / len(null)
+    return float(min(1.0, 2.0 * min(less, greater)))
 
 
 def _exact_permutation_pvalue(a: np.ndarray, b: np.ndarray, statistic: Callable) -> float:
