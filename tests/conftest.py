@@ -16,6 +16,19 @@ SHARED_MOTIONS = Path(os.environ.get("BMIMIC_LAFAN_DIR") or REPO.parent / "share
 three; tests using them skip without them."""
 if SHARED_MOTIONS.is_dir():  # data.lafan_dir defaults to $BMIMIC_LAFAN_DIR; subprocesses inherit it
     os.environ.setdefault("BMIMIC_LAFAN_DIR", str(SHARED_MOTIONS))
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    # pytest-xdist (`-n auto` in pyproject) already keeps every core busy with one worker each: a worker's
+    # torch, and the CLIs it starts, oversubscribe the cores with more than one thread each.
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+MAX_WORKERS = 4
+"""Workers for `-n auto`: each imports torch, Warp and MuJoCo (~1 GB); beyond 4 the suite is bound by
+its longest tests."""
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    return max(1, min(MAX_WORKERS, os.cpu_count() or 1))
 
 # Tiny sizes for end-to-end runs of the real command line on a CPU.
 TINY = [

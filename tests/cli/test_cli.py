@@ -40,7 +40,9 @@ def test_field_docs_known_answer():
 
 @pytest.mark.slow
 def test_help_lists_options_and_documented_keys():
-    out = _run("-m", "bmimic.train", "--help", "sampler=uniform")
+    # The option lists wrap at the terminal's width (60-110 columns; COLUMNS under pytest-xdist is the
+    # worker's): at the widest, each group's options a reader looks for share a line.
+    out = _run("-m", "bmimic.train", "--help", "sampler=uniform", env={"COLUMNS": "110"})
     assert out.returncode == 0, out.stderr[-2000:]
     text = out.stdout
     assert "_schema" not in text and "== Config ==" not in text  # no schemas, no config dump
