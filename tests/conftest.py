@@ -146,3 +146,45 @@ def _no_hydra_state_between_tests():
 
     HydraConfig.instance().cfg = None
     GlobalHydra.instance().clear()
+
+
+# ------------------------------------------------------------------------------------ the quick tier
+DURATIONS = Path(__file__).with_name("durations.json")
+"""{test id: seconds of setup + call} as last recorded with `pytest --record-durations` on the 2-core
+development machine (tests under 0.5 s are left out)."""
+
+QUICK_LIMIT_S = 2.0
+"""A test recorded at this many seconds or more is marked slow, so `pytest -m "not slow"` (the quick
+tier) keeps the many fast checks and leaves the cold command-line runs and long simulations to the
+full suite, which runs everything."""
+
+_recorded: dict[str, float] = {}
+
+
+def pytest_addoption(parser) -> None:
+    parser.addoption("--record-durations", action="store_true",
+                     help="update tests/durations.json (the quick tier's source) with this session's times")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    recorded = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    for item in items:
+        if recorded.get(item.nodeid, 0.0) >= QUICK_LIMIT_S:
+            item.add_marker(pytest.mark.slow)
+
+
+def pytest_runtest_logreport(report) -> None:
+    if report.when in ("setup", "call"):
+        _recorded[report.nodeid] = _recorded.get(report.nodeid, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session) -> None:
+    # The controller (not an xdist worker) writes: it receives every worker's reports.
+    if not session.config.getoption("--record-durations") or hasattr(session.config, "workerinput"):
+        return
+    merged = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    merged.update({k: round(v, 1) for k, v in _recorded.items()})
+    kept = {k: v for k, v in sorted(merged.items()) if v >= 0.5}
+    tmp = DURATIONS.with_suffix(".tmp")
+    tmp.write_text(json.dumps(kept, indent=0) + "\n")
+    os.replace(tmp, DURATIONS)
