@@ -25,12 +25,12 @@ from analysis import AnalysisError
 from analysis.files import write_csv
 from analysis.load import load_runs
 from analysis.run_files import find_run_dirs
-from bmimic.run_folder import lock_held, read_metrics, read_provenance
+from bmimic.run_folder import MULTIRUN_RECORD, SWEEP_INDEX, lock_held, read_metrics, read_provenance
 from bmimic.run_schema import ENV_STEPS, WALL_TIME_S
 
 log = logging.getLogger("analysis.index")
 
-INDEX_NAME = "index.csv"
+INDEX_NAME = SWEEP_INDEX
 LOCK_NAME = ".index.lock"
 
 METRIC_KEYS = (
@@ -99,6 +99,10 @@ def write_index(sweep_dir: str | Path) -> Path:
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise AnalysisError(f"{sweep_dir}: sweep folder does not exist")
+    if (any(sweep_dir.iterdir()) and not any((sweep_dir / name).is_file() for name in (MULTIRUN_RECORD, SWEEP_INDEX))
+            and not find_run_dirs(sweep_dir)):
+        raise AnalysisError(f"{sweep_dir}: holds files but is not a sweep folder (no {MULTIRUN_RECORD}, {SWEEP_INDEX} "
+                            "or run folders); nothing is written there")
     with _lock(sweep_dir):
         return write_csv(sweep_dir / INDEX_NAME, build_index(sweep_dir))
 

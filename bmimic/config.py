@@ -112,8 +112,12 @@ def register_configs() -> None:
 
 
 def _arm_dir(override_dirname: str) -> str:
-    """Folder name of a sweep arm: Hydra's override_dirname, or `base` when only the seed varies."""
-    return override_dirname if override_dirname else "base"
+    """Folder name of a sweep arm: Hydra's override_dirname, or `base` when only the seed varies. A '/'
+    in a value makes sub-folders, but a `.` or `..` part of one (`motion.path=../x.npz`) is spelled
+    `%2E` / `%2E%2E`, so that a job's folder always lies in its arm's folder under its sweep."""
+    if not override_dirname:
+        return "base"
+    return "/".join(part.replace(".", "%2E") if part in (".", "..") else part for part in override_dirname.split("/"))
 
 
 def _train_help(*, _root_) -> str:

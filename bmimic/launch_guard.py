@@ -95,7 +95,7 @@ class LaunchGuard(Callback):
             check_visible_devices()  # before the budget check, which would blame the CPU
             _folder_name(config, "sweep_name")
             jobs = expand_jobs(GlobalHydra.instance().config_loader(), config)
-            check_jobs(jobs)
+            check_jobs(jobs, str(config.hydra.sweep.dir), f"{config.hydra.job.name}.log")
             check_sweep(jobs)  # a sweep that would train for a day or more on this CPU
         except BmimicError as e:
             _refuse(e)

@@ -70,11 +70,12 @@ def test_claim_refuses_a_pinned_folder_holding_a_run_without_resume(tmp_path) ->
 
 def test_release_keeps_what_the_folder_held_before_the_launch(tmp_path) -> None:
     from bmimic.run_claim import claim
-    from bmimic.run_folder import LOCK, lock_run
+    from bmimic.run_folder import LOCK, lock_run, write_status
 
     (tmp_path / "train.log").write_text("earlier lines\n")
+    write_status(tmp_path, "failed", 0)  # a run: its owner's notes stay
     (tmp_path / "notes.log").write_text("mine\n")
-    c = claim(tmp_path, pinned=True, resume=False, log_name="train.log")
+    c = claim(tmp_path, pinned=True, resume=True, log_name="train.log")
     with open(tmp_path / "train.log", "a") as f:
         f.write("this launch\n")
     held = lock_run(tmp_path)
@@ -83,6 +84,32 @@ def test_release_keeps_what_the_folder_held_before_the_launch(tmp_path) -> None:
     assert (tmp_path / "train.log").read_text() == "earlier lines\n" and (tmp_path / "notes.log").exists()
     assert not (tmp_path / LOCK).exists()  # created and held by this launch: removed
     held.close()
+
+
+def test_claim_refuses_a_pinned_folder_of_someone_elses_files_even_with_resume(tmp_path) -> None:
+    """Issue 47: a folder holding a user's own metrics.json, provenance.json and checkpoints/policy_1.onnx
+    (no status.json, no .hydra) was written into with exit status 0. A launch writes only into a new or
+    empty folder or its own run; what a killed launch leaves (its lock, its log) does not count."""
+    from bmimic.run_claim import ClaimError, check_sweep_folder, claim
+    from bmimic.run_folder import LOCK
+
+    mine = tmp_path / "mine"
+    (mine / "checkpoints").mkdir(parents=True)
+    for name in ("metrics.json", "provenance.json", "checkpoints/policy_1.onnx"):
+        (mine / name).write_text("the user's\n")
+    for resume in (False, True):
+        with pytest.raises(ClaimError, match=r"holds files that are not a bmimic run \(checkpoints, metrics.json, "):
+            claim(mine, pinned=True, resume=resume, log_name="train.log")
+    assert sorted(p.name for p in mine.rglob("*")) == ["checkpoints", "metrics.json", "policy_1.onnx", "provenance.json"]
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / LOCK).touch()
+    (killed / "train.log").write_text("a launch killed before it wrote anything\n")
+    assert claim(killed, pinned=True, resume=False, log_name="train.log").created == []
+    with pytest.raises(ClaimError, match="hydra.sweep.dir=.*holds files that are not a bmimic sweep"):
+        check_sweep_folder(mine)
+    (mine / "multirun.yaml").write_text("{}\n")
+    check_sweep_folder(mine)  # a sweep's own folder
 
 
 def test_a_lock_is_never_removed_by_a_process_that_does_not_hold_it(tmp_path) -> None:
