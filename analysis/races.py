@@ -75,7 +75,25 @@ def read_race(path: str | Path) -> dict:
         missing = [k for k in EVALUATION_KEYS if not isinstance(e, dict) or k not in e]
         if missing:
             raise AnalysisError(f"{path}: evaluation {i} lacks {', '.join(missing)}")
+        bad = [k for k in EVALUATION_KEYS if not _number_or_null(e[k])]
+        if bad or not (isinstance(e[ITERATION], int) and not isinstance(e[ITERATION], bool) and e[ITERATION] >= 0):
+            key = bad[0] if bad else ITERATION
+            raise AnalysisError(f"{path}: evaluation {i}: {key} is {e[key]!r}, not a number"
+                                f"{'' if bad else ' of iterations (an integer >= 0)'}")
+    thresholds = data.get("thresholds") or []
+    if not isinstance(thresholds, list) or not all(
+            isinstance(t, dict) and _number_or_null(t.get("threshold")) and t.get("threshold") is not None
+            and all(_number_or_null(t.get(k)) for k in THRESHOLD_KEYS[3:]) for t in thresholds):
+        raise AnalysisError(f"{path}: 'thresholds' must be a list of objects with a numeric threshold and "
+                            "numeric (or null) times")
+    if not isinstance(data["config"].get("overrides", []), list):
+        raise AnalysisError(f"{path}: config 'overrides' is not a list")
     return data
+
+
+def _number_or_null(value) -> bool:
+    """A JSON number (not a boolean) or null (a value that was not a number when written)."""
+    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
 
 
 def config_label(config: dict) -> str:
@@ -159,7 +177,7 @@ def race_summary(races: list[tuple[str, dict]]) -> pd.DataFrame:
     rows = []
     for name, data in races:
         last = data["evaluations"][-1] if data["evaluations"] else {}
-        end = float(last.get("wall_from_launch_s", math.nan))
+        end = float(last.get("wall_from_launch_s") if last.get("wall_from_launch_s") is not None else math.nan)
         per_it = (float(last["training_s"]) / last[ITERATION]
                   if last.get("training_s") is not None and last.get(ITERATION) else math.nan)
         row = {**_identity(name, data), "startup_s": data.get("startup_s"), "training_s_per_iteration": per_it,

@@ -277,7 +277,8 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
             if previous.get("status") == "done" and resume_request(cfg.get("resume")) is None:
                 log.info("skipping %s: already done", launch_dir)
                 outcome = "done before"
-                return float(read_metrics(launch_dir).get("final_eval_failure_rate", math.nan))
+                failure = read_metrics(launch_dir).get("final_eval_failure_rate")
+                return float(failure) if isinstance(failure, int | float) else math.nan
             try:
                 ctx.lock(launch_dir)
             except RunLockedError as e:
