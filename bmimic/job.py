@@ -186,6 +186,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         "num_envs": cfg.num_envs,
         "device": device,
         **trainer.total_resets,
+        "overflow_world_steps": trainer.overflow_world_steps,
     })
     if not main_rank:
         log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
@@ -194,9 +195,12 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     write_metrics(run_dir, metrics)
     write_status(run_dir, "done", trainer.progress.iteration)
     broken = sum(trainer.total_resets.values())
-    log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s -> %s", metrics["iterations"],
+    overflow = trainer.overflow_world_steps
+    log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s%s -> %s", metrics["iterations"],
              metrics[WALL_TIME_S], metrics["final_eval_failure_rate"],
-             f"; {broken} broken world-steps were reset" if broken else "", run_dir)
+             f"; {broken} broken world-steps were reset" if broken else "",
+             f"; {overflow} world-steps overflowed the contact/constraint buffers (raise sim.nconmax / sim.njmax)"
+             if overflow else "", run_dir)
     if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
         log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", run_dir, run_dir,
                  f", tensorboard --logdir {run_dir / TENSORBOARD_DIR} (curves)" if cfg.logger == "tensorboard" else "")

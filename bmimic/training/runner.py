@@ -89,6 +89,8 @@ class Trainer:
         self.record = RunRecord(self.run_dir, enabled=is_main_rank)
         """The run's tables (train_metrics, sampler, eval, clip_eval): rows, resume truncation, flushes."""
         self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
+        self.overflow_world_steps = 0
+        """World-steps whose contact or constraint buffers overflowed, over the run (metrics.json)."""
         # A stopping rule after each evaluation (its summary -> True: stop; bmimic.race), when learn()
         # began (time.time()) and the wall time the evaluations took.
         self.after_evaluation: Callable[[Trainer, dict], bool] | None = None
@@ -303,6 +305,7 @@ class Trainer:
                 row["metrics/" + k.split("/", 1)[1]] = v
         for key in self.total_resets:
             self.total_resets[key] += int(stats[key])
+        self.overflow_world_steps += int(stats["overflow_worlds"])
         self.record.append("train_metrics", row)
         self.health.check(it, row, self.ppo_cfg.learning_rate, self.runner.is_distributed, self.device)
         sampler_table = it % self._sampler_every == 0 or last
