@@ -11,7 +11,15 @@ import pyarrow.parquet as pq
 import yaml
 
 from analysis import AnalysisError
-from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
+from bmimic.run_folder import (
+    CHECKPOINTS_DIR,
+    HYDRA_DIR,
+    RESOLVED_CONFIG,
+    RunFolderError,
+    is_run_folder,
+    load_json,
+    table_path,
+)
 from bmimic.run_schema import (
     BIN_COLUMNS,
     CLIP_TIME_S,
@@ -100,7 +108,22 @@ def read_config(run_dir: Path) -> dict:
         raise AnalysisError(f"{path}: not valid YAML ({e})") from e
     if not isinstance(cfg, dict):
         raise AnalysisError(f"{path}: expected a mapping at the top level, got {type(cfg).__name__}")
-    return cfg
+    resolved = read_json(run_dir / RESOLVED_CONFIG)
+    return _with_values(cfg, resolved) if isinstance(resolved, dict) else cfg
+
+
+def _with_values(cfg: dict, resolved: dict) -> dict:
+    """`cfg` with each value written as an interpolation (`seed: ${oc.env:SLURM_ARRAY_TASK_ID}`, in runs
+    recorded before bmimic recorded values) replaced by the run's resolved value (resolved_config.json)."""
+    out = {}
+    for key, value in cfg.items():
+        if isinstance(value, dict):
+            out[key] = _with_values(value, resolved.get(key) if isinstance(resolved.get(key), dict) else {})
+        elif isinstance(value, str) and "${" in value and key in resolved:
+            out[key] = resolved[key]
+        else:
+            out[key] = value
+    return out
 
 
 def read_overrides(run_dir: Path) -> dict[str, str]:
