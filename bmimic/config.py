@@ -209,3 +209,36 @@ def with_schema_defaults(config: dict) -> dict:
         except BmimicError:
             pass
     return filled
+
+
+
+READER_ENV_KEYS = ("data.lafan_dir",)
+"""Keys whose ${oc.env:...} is meant to be the reader's (the LAFAN1 folder on this machine): the run
+record keeps them as written."""
+
+
+def interpolated_keys(tree: Any, prefix: str = "") -> list[str]:
+    """Dotted keys of the leaves (a list counts as one) of a plain container written with `${...}`
+    (OmegaConf.to_container(cfg, resolve=False)), READER_ENV_KEYS aside."""
+    if isinstance(tree, dict):
+        return [k for key, value in tree.items() for k in interpolated_keys(value, f"{prefix}{key}.")]
+    key = prefix[:-1]
+    return [key] if key and "${" in str(tree) and key not in READER_ENV_KEYS else []
+
+
+def recorded_config(composed: dict, resolved: dict) -> dict:
+    """The config a run records (.hydra/config.yaml): `composed` (as composed, `auto`/null values kept)
+    with each interpolation (`seed=${oc.env:SLURM_ARRAY_TASK_ID}`, `seed=${num_envs}`) replaced by the
+    value it had when the run trained (`resolved`: the runtime-resolved config), READER_ENV_KEYS aside.
+    The tools that read the run (eval, the report) then see its values, not the reader's environment."""
+    import copy
+
+    out = copy.deepcopy(composed)
+    for key in interpolated_keys(composed):
+        *parents, leaf = key.split(".")
+        source, target = resolved, out
+        for part in parents:
+            source, target = (source or {}).get(part) if isinstance(source, dict) else None, target[part]
+        if isinstance(source, dict) and leaf in source:
+            target[leaf] = copy.deepcopy(source[leaf])
+    return out

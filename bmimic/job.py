@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
 from bmimic.cli_common import first_line, user_errors
-from bmimic.config import resolve_runtime, with_schema_defaults
+from bmimic.config import interpolated_keys, recorded_config, resolve_runtime, with_schema_defaults
 from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.run_folder import (
@@ -89,6 +89,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     smoke = not device.startswith("cuda") and smoke_defaults
     main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
     resolved = OmegaConf.to_container(cfg, resolve=True)
+    ctx.hydra_record = record_values(ctx.hydra_record, ctx.composed_config, resolved)
     allowed = list(cfg.resume_allow_changes or [])
     plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint),
                     pinned=ctx.claim is not None and ctx.claim.pinned, config=resolved, allowed=allowed,
@@ -251,12 +252,21 @@ def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: boo
 
 
 def hydra_record(cfg: DictConfig) -> dict[str, str] | None:
-    """The .hydra files of this launch, from the config as composed (before runtime resolution)."""
+    """The .hydra files of this launch, from the config as composed (before runtime resolution); train()
+    records the values of its interpolations (record_values)."""
     if not HydraConfig.initialized():
         return None
     hc = HydraConfig.instance().cfg
     return {"config.yaml": OmegaConf.to_yaml(cfg), "hydra.yaml": OmegaConf.to_yaml(hc),
             "overrides.yaml": OmegaConf.to_yaml(hc.hydra.overrides.task)}
+
+
+def record_values(record: dict[str, str] | None, composed: dict, resolved: dict) -> dict[str, str] | None:
+    """The .hydra record with config.yaml's interpolations replaced by the values the run trained with
+    (bmimic.config.recorded_config); unchanged when the config interpolates nothing."""
+    if record is None or not interpolated_keys(composed):
+        return record
+    return {**record, "config.yaml": OmegaConf.to_yaml(OmegaConf.create(recorded_config(composed, resolved)))}
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -271,6 +281,7 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
     multirun = hc.mode == RunMode.MULTIRUN
     ctx = RunContext(launch_dir)
     ctx.hydra_record = hydra_record(cfg)
+    ctx.composed_config = OmegaConf.to_container(cfg, resolve=False)
     outcome, message = "failed", None
     stop = StopSignals()
     try:

@@ -52,6 +52,8 @@ class RunContext:
         """The run folder this launch writes; None until committed."""
         self.hydra_record: dict[str, str] | None = None
         """This launch's .hydra files (written at commit into a new run)."""
+        self.composed_config: dict = {}
+        """The config as composed, unresolved (its interpolations get their values in hydra_record)."""
         self.claim: RunClaim | None = current_claim(launch_dir)
         """What the launch found and created at launch_dir (bmimic.run_claim; None for a sweep job)."""
         self._locks: dict[Path, object] = {}

@@ -321,3 +321,28 @@ def test_a_full_disk_during_a_resume_ends_in_one_line(tmp_path, monkeypatch) -> 
     code, out = run_train(*TINY, "max_iterations=2", f"hydra.run.dir={run}", "resume=true", cwd=tmp_path)
     assert code != 0 and "No space left" in one_error(out)
     assert json.loads((run / "status.json").read_text())["status"] != "running"
+
+
+@pytest.mark.slow
+def test_interpolated_values_are_recorded_as_the_values_the_run_trained_with(tmp_path) -> None:
+    """Issue 47: `seed=${oc.env:SLURM_ARRAY_TASK_ID}` or `seed=${num_envs}` trained, but the report
+    tracebacked and bmimic-eval refused the project's own run (the reader's environment, not the run's
+    values). .hydra/config.yaml now holds the values the run trained with (the override stays in
+    overrides.yaml); data.lafan_dir, the reader's own folder, stays as written."""
+    import yaml
+
+    from analysis.report import main as report_main
+    from bmimic import eval as bm_eval
+
+    code, out = run_train(*TINY, "max_iterations=1", "seed=${oc.env:BMIMIC_TEST_TASK_ID}", "hydra.run.dir=env",
+                          cwd=tmp_path, env={"BMIMIC_TEST_TASK_ID": "3"})
+    assert code == 0, out[-3000:]
+    train_ok(tmp_path, "max_iterations=1", "seed=${num_envs}", "hydra.run.dir=key")
+    for run, seed in (("env", 3), ("key", 2)):
+        folder = tmp_path / run
+        config = yaml.safe_load((folder / ".hydra" / "config.yaml").read_text())
+        assert config["seed"] == seed and config["data"]["lafan_dir"].startswith("${oc.env:BMIMIC_LAFAN_DIR")
+        assert any(o.startswith("seed=${") for o in yaml.safe_load((folder / ".hydra" / "overrides.yaml").read_text()))
+        assert bm_eval.main([str(folder), "--episodes-per-bin", "1"]) == 0
+        assert report_main([str(folder)]) == 0
+        assert pd.read_csv(folder / "report" / "runs.csv")["seed"].tolist() == [seed]
