@@ -310,14 +310,14 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
 
 def multigpu(args: argparse.Namespace, overrides: list[str]) -> int:
     """`--multigpu-json`: full PPO iterations on every rank of this torchrun, rank 0 merges the rows."""
-    from bmimic.runtime import exit_rank, init_distributed, resolve_device
+    from bmimic.runtime import exit_rank, init_distributed, resolve_device, torchrun_env
 
     path = Path(args.multigpu_json)
     read_multigpu_rows(path)  # a malformed file stops the run here, before any measurement
     rank, world = init_distributed()
     device = resolve_device(args.device)
     if world > 1 and torch.distributed.get_backend() == "nccl":
-        device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        device = f"cuda:{torchrun_env()[2]}"
     rows = []
     try:
         for n in [int(x) for x in args.envs.split(",")]:

@@ -8,9 +8,9 @@ written into a run folder before every check has passed.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
-import os
 import sys
 import traceback
 from pathlib import Path
@@ -36,7 +36,7 @@ from bmimic.run_folder import (
 )
 from bmimic.run_record import metrics as run_metrics
 from bmimic.run_schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
-from bmimic.runtime import init_distributed, resolve_device, seed_everything
+from bmimic.runtime import init_distributed, process_rank, resolve_device, seed_everything, torchrun_env
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import (
     build_evaluator,
@@ -46,7 +46,7 @@ from bmimic.task import (
     build_whole_clip,
     check_num_envs_fit,
 )
-from bmimic.training.interrupts import StopSignals, TrainingInterrupted
+from bmimic.training.interrupts import StopNow, StopSignals, TrainingInterrupted
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
 from bmimic.training.schedule import whole_clip_wanted
 from bmimic.training.session import RunContext, commit, record_failure
@@ -71,6 +71,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     from bmimic.sampling.config import describe as describe_sampler
 
     ctx = ctx if ctx is not None else RunContext(launch_dir)
+    if stop is not None:  # nothing is written until commit: a signal ends the set-up at once (StopNow)
+        stop.begin_at_once()
     requested = cfg.device
     smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
     quiet_warp(cfg.verbose)
@@ -80,7 +82,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         logging.getLogger().setLevel(logging.WARNING)
     if world > 1:
         if torch.distributed.get_backend() == "nccl":
-            device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+            device = f"cuda:{torchrun_env()[2]}"
     resolve_runtime(cfg, device)
     validate(cfg)
     if rank == 0:
@@ -140,31 +142,35 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     trainer.after_evaluation = stop_rule
     trainer.whole_clip = whole_clip
     try:
-        if stop is not None and stop.requested:  # during the build (a first start compiles for minutes)
-            raise TrainingInterrupted(stop, None, run_dir)
+        if stop is not None:
+            stop.end_at_once()  # from here the run has something to save: a signal ends the iteration
         if main_rank:
             commit(ctx, plan, resolved, device, changes, task.motion)
-        trainer.learn(signals=stop)
+        try:
+            trainer.learn(signals=stop)
+            if not trainer.interrupted:
+                final = trainer.progress.last_eval
+                # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
+                # their graphs and leave the process group meanwhile, and return NaN.
+                if not main_rank:
+                    final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
+                elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
+                    # (a resume of a run that reached max_iterations already holds its final evaluation)
+                    final = trainer.evaluate()
+                robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
+                    cfg.eval.robust and main_rank) else {}
+                if whole_clip is not None and cfg.eval.whole_clip.at_end and (
+                        trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
+                    trainer.evaluate_whole_clip()
+                if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
+                    robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
+        except StopNow:  # a signal during an evaluation (bmimic.training.interrupts): the iteration is kept
+            trainer.interrupted = True
         if trainer.interrupted:
             if main_rank:
                 trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
                 write_status(run_dir, "interrupted", trainer.progress.iteration)
             raise TrainingInterrupted(stop, trainer.progress.iteration, run_dir)
-        final = trainer.progress.last_eval
-        # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
-        # their graphs and leave the process group meanwhile, and return NaN.
-        if not main_rank:
-            final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
-        elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
-            # (a resume of a run that reached max_iterations already holds its final evaluation)
-            final = trainer.evaluate()
-        robust = robust_evaluation(trainer, build_evaluator(task, robust=True)) if (
-            cfg.eval.robust and main_rank) else {}
-        if whole_clip is not None and cfg.eval.whole_clip.at_end and (
-                trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
-            trainer.evaluate_whole_clip()
-        if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
-            robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
         if main_rank:
             trainer.save_checkpoint()
     finally:
@@ -208,7 +214,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     return float(metrics["final_eval_failure_rate"])
 
 
-def robust_evaluation(trainer, evaluator) -> dict:
+def robust_evaluation(trainer, evaluator, stop: StopSignals | None = None) -> dict:
     """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
     on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
     from bmimic.training.evaluator import summarize
@@ -216,7 +222,8 @@ def robust_evaluation(trainer, evaluator) -> dict:
     policy = trainer.alg.get_policy()
     policy.eval()
     p = trainer.progress
-    per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
+    with stop.at_once() if stop is not None else contextlib.nullcontext():  # a signal ends it at once
+        per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
     trainer.record.write_table("eval_robust", per_bin)
     evaluator.env.close()
     summary = summarize(per_bin, prefix="robust_eval")
@@ -306,19 +313,21 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
         result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx, stop_rule=stop_rule, stop=stop)
         outcome = "done"
         return result
-    except TrainingInterrupted as e:  # the run has its checkpoint, tables and status; a sweep stops here too
+    except (TrainingInterrupted, StopNow) as e:  # the run has its checkpoint, tables and status; a sweep stops too
+        if isinstance(e, StopNow):  # during the set-up: nothing was written
+            e = TrainingInterrupted(stop, None, launch_dir)
         outcome, message = "interrupted", str(e)
-        if e.iteration is None and not multirun and int(os.environ.get("RANK", "0")) == 0:
+        if e.iteration is None and not multirun and process_rank() == 0:
             ctx.discard()  # nothing was written: the launch removes what it created, as a refusal does
             ctx.release()
-        if int(os.environ.get("RANK", "0")) == 0:
+        if process_rank() == 0:
             print(message, file=sys.stderr)
         stop.chain()  # a launcher's handler of this signal (submitit: requeue the job, then exit)
         sys.exit(e.exit_code)
     except user_errors() as e:
         message = first_line(e)
         record_failure(ctx, multirun, message)
-        if int(os.environ.get("RANK", "0")) == 0:  # under torchrun every rank refuses alike: one line
+        if process_rank() == 0:  # under torchrun every rank refuses alike: one line
             print(f"error: {message}", file=sys.stderr)
         if multirun:
             return math.nan

@@ -51,12 +51,13 @@ class LaunchGuard(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         from bmimic.run_claim import claim, observe
+        from bmimic.runtime import process_rank
         from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.training.resume import resume_request
 
         template = str(OmegaConf.to_container(config.hydra.run, resolve=False).get("dir", ""))
         pinned = "${now:" not in template
-        if int(os.environ.get("RANK", "0")) != 0:
+        if process_rank() != 0:
             with contextlib.suppress(Exception):  # under torchrun rank 0 owns the (pinned) folder
                 observe(str(config.hydra.run.dir), pinned)
             return

@@ -286,6 +286,12 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
             problems.append("a race times one job from its launch: run seeds or arms as separate commands, not -m")
     if any(a.split("=", 1)[0].lstrip("+~") == "resume" for a in rest):
         problems.append("a race measures a run from its launch: resume is not raced")
+    from bmimic.runtime import DistributedSetupError, torchrun_env
+
+    try:
+        torchrun_env()  # malformed torchrun variables: one line before anything starts
+    except DistributedSetupError as e:
+        problems.append(str(e))
     if problems:
         _refuse(problems[0])
         raise SystemExit(2)

@@ -14,7 +14,6 @@ outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/. Returns the final evaluate
 
 from __future__ import annotations
 
-import os
 import sys
 
 import hydra
@@ -25,7 +24,7 @@ from bmimic import CONF_DIR
 from bmimic.config import ConfigError, check_additions, hydra_overrides
 from bmimic.extras import MissingExtraError, check_launcher
 from bmimic.job import launch
-from bmimic.runtime import exit_rank
+from bmimic.runtime import DistributedSetupError, exit_rank, rendezvous_timeout_s, torchrun_env
 from bmimic.sweeping.jobs import sweep_overrides
 
 
@@ -61,14 +60,16 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
 def cli() -> None:
     """`bmimic-train` and `python -m bmimic.train`: the Hydra app with bmimic's checks around it."""
     try:
+        _, world, _ = torchrun_env()  # torchrun's variables, before Hydra claims a folder with them
+        rendezvous_timeout_s()
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
         check_additions(hydra_overrides(sys.argv[1:]))  # before OmegaConf's bare assertion can fire
-    except (MissingExtraError, ConfigError) as e:
+    except (MissingExtraError, ConfigError, DistributedSetupError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     sys.argv = inspect_sweep_argv(sys.argv)
     main()
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+    if world > 1:
         exit_rank(0)  # a torchrun rank whose run is written: no interpreter teardown (runtime.exit_rank)
 
 
