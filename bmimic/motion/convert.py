@@ -21,6 +21,7 @@ import mujoco
 import numpy as np
 
 from bmimic.motion.kinematics import kinematic_motion
+from bmimic.motion.limits import check_motion_size, check_plausible
 from bmimic.motion.math import output_times, quat_slerp
 from bmimic.motion.model import find_joint_limit_violation
 from bmimic.motion.motion import Motion
@@ -165,6 +166,7 @@ def convert_csv(
         raise MotionDataError(f"{path}: fps_in and fps_out must be positive, got {fps_in} and {fps_out}")
     data, rows = read_lafan_csv(path, frames)
     check_joint_limits(path, data, rows, mjmodel)
+    check_motion_size(mjmodel, (data.shape[0] - 1) / fps_in, fps_out, f"{path}: --fps-out {fps_out:g}")
     if data.shape[0] < 2 or len(output_times(data.shape[0], fps_in, fps_out)) < 2:
         raise MotionDataError(
             f"{path}: {data.shape[0]} rows at {fps_in} fps give fewer than 2 frames at {fps_out} fps"
@@ -211,6 +213,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--mjcf", type=Path, default=None, help="robot MJCF instead of the built-in G1")
     parser.add_argument("--force", action="store_true", help="replace OUT when it exists")
+    parser.add_argument("--allow-implausible", action="store_true",
+                        help="write a motion that is not a plausible reference (root upside down at the first "
+                             "frame, feet far from the ground) instead of refusing it")
     args = parser.parse_args(argv)
     problem = check_output_path(args.input, args.output, args.force)
     if problem:
@@ -230,6 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.fps_out,
             None if args.frames is None else tuple(args.frames),
         )
+        if not args.allow_implausible:
+            check_plausible(motion, str(args.input), "pass --allow-implausible", mjmodel)
         motion.save(args.output)
     except (MotionDataError, RobotModelError) as err:
         print(f"error: {err}", file=sys.stderr)
