@@ -38,6 +38,7 @@ from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
 from analysis.plots import arm_colors
 from bmimic import BmimicError
+from bmimic.cli_common import path_arg
 from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
 
 EVALUATION_KEYS = (ITERATION, ENV_STEPS, "wall_from_launch_s", SUCCESS_RATE, MPKPE_REL_MM)
@@ -264,8 +265,8 @@ def write_race_curves(paths, out: str | Path) -> list[Path]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m analysis.races", description=__doc__.splitlines()[0])
-    parser.add_argument("paths", nargs="+", type=Path, help="race JSONs (python -m bmimic.race --json)")
-    parser.add_argument("--out", type=Path, required=True, help="folder for the CSVs and race_curves.png")
+    parser.add_argument("paths", nargs="+", type=path_arg, help="race JSONs (python -m bmimic.race --json)")
+    parser.add_argument("--out", type=path_arg, required=True, help="folder for the CSVs and race_curves.png")
     args = parser.parse_args(argv)
     try:
         written = write_race_curves(args.paths, args.out)

@@ -20,6 +20,7 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
+from bmimic.cli_common import path_arg
 from bmimic.motion.kinematics import kinematic_motion
 from bmimic.motion.limits import check_motion_size, check_plausible
 from bmimic.motion.math import output_times, quat_slerp
@@ -204,14 +205,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m bmimic.motion.convert", description=__doc__.split("\n\n")[0]
     )
-    parser.add_argument("input", type=Path, help="LAFAN1 G1 CSV (no header, 36 columns)")
-    parser.add_argument("output", type=Path, help="motion npz to write")
+    parser.add_argument("input", type=path_arg, help="LAFAN1 G1 CSV (no header, 36 columns)")
+    parser.add_argument("output", type=path_arg, help="motion npz to write")
     parser.add_argument("--fps-in", type=float, default=30.0, help="frame rate of the CSV (default 30)")
     parser.add_argument("--fps-out", type=float, default=50.0, help="frame rate to write (default 50)")
     parser.add_argument(
         "--frames", type=int, nargs=2, metavar=("A", "B"), help="keep CSV rows A..B (1-indexed, inclusive)"
     )
-    parser.add_argument("--mjcf", type=Path, default=None, help="robot MJCF instead of the built-in G1")
+    parser.add_argument("--mjcf", type=path_arg, default=None, help="robot MJCF instead of the built-in G1")
     parser.add_argument("--force", action="store_true", help="replace OUT when it exists")
     parser.add_argument("--allow-implausible", action="store_true",
                         help="write a motion that is not a plausible reference (root upside down at the first "
