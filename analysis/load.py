@@ -25,6 +25,7 @@ from analysis.run_files import (
     REQUIRED_COLUMNS,
     config_value,
     find_run_dirs,
+    missing_columns,
     parse_value,
     read_config,
     read_json,
@@ -262,7 +263,7 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
             table = pd.read_parquet(path)
         except Exception as e:  # pyarrow raises several types for truncated or foreign files
             raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
-        missing = [c for c in REQUIRED_COLUMNS[name] if c not in table.columns]
+        missing = missing_columns(name, table.columns)
         if missing:
             raise AnalysisError(f"{path}: missing columns {missing}")
         check_table(path, name, table, run.run_dir)  # ranges, bins, rows: one line naming file and column

@@ -19,6 +19,7 @@ from bmimic.run_folder import METRICS, MOTION_SEGMENTS, read_json
 from bmimic.run_schema import (
     BIN,
     BIN_COLUMNS,
+    CONDITION,
     ENV_STEPS,
     FAILURE_RATE,
     HORIZON_TRUNCATED,
@@ -32,6 +33,8 @@ sampler's `smoothed_failure_rate` is an EMA of counts, which may exceed 1.)"""
 COUNT_COLUMNS = (*(c for c in BIN_COLUMNS if c not in (BIN, FAILURE_RATE, HORIZON_TRUNCATED)), "episodes",
                  "steps", "start_frame", "end_frame")
 """Columns that hold counts: >= 0 (NaN where nothing was measured)."""
+TEXT_COLUMNS = ("segment", "clip", "clip_name", "difficulty", CONDITION)
+"""The only columns that hold text (labels); every other column of a run table holds numbers or flags."""
 MEASURED = {
     "train_metrics": (ITERATION, ENV_STEPS, WALL_TIME_S),
     "eval": (ITERATION, ENV_STEPS, WALL_TIME_S, BIN, FAILURE_RATE),
@@ -40,6 +43,8 @@ MEASURED = {
     "clip_eval": (ITERATION,),
 }
 """Per table, the columns the report computes from: each must hold at least one number."""
+BINNED = ("eval", "eval_robust", "sampler")
+"""The tables that hold every bin of the run once per evaluation (whole_clip_failures names one bin a row)."""
 TIME_TOLERANCE_S = 1e-6
 """Slack on a bin's end against the motion's duration (float rounding of the bin edges)."""
 PROBABILITY_TOLERANCE = 1e-3
@@ -69,9 +74,9 @@ def check_table(path: Path, name: str, table: pd.DataFrame, run_dir: str | Path)
         raise AnalysisError(f"{path}: has no rows (bmimic writes a table only once it has rows): the file is "
                             "damaged; move the run aside or train it again")
     for column in table.columns:
-        if column in (*MEASURED[name], *RATE_COLUMNS, *COUNT_COLUMNS) and not _numeric(table[column]):
+        if column not in TEXT_COLUMNS and not _numeric(table[column]):
             raise AnalysisError(f"{path}: column {column} holds {_show(_example(table[column]))}, not numbers")
-    for column in MEASURED[name]:
+    for column in MEASURED.get(name, ()):
         if column in table.columns and not np.isfinite(table[column].to_numpy(dtype=float)).any():
             raise AnalysisError(f"{path}: column {column} has no finite value in {len(table)} rows")
     _check_key(path, table, ITERATION)
@@ -86,7 +91,7 @@ def check_table(path: Path, name: str, table: pd.DataFrame, run_dir: str | Path)
     for column in RATE_COLUMNS:
         if column in table.columns:
             _check_range(path, table[column], column, 0.0, 1.0)
-    if BIN in table.columns:
+    if BIN in table.columns and name in BINNED:
         _check_bins(path, name, table, run_dir)
 
 

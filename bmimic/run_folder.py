@@ -180,7 +180,7 @@ def read_json(path: str | os.PathLike, default: Any = None) -> Any:
     try:
         with open(path) as f:
             return json.load(f)
-    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError, IsADirectoryError):
+    except (OSError, ValueError):  # absent, a folder, a loop of links, not JSON, not UTF-8
         return default
 
 

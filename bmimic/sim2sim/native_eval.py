@@ -46,7 +46,11 @@ def locate(path: str | Path) -> tuple[Path, Path | None]:
     if not found:
         raise Sim2SimError(f"{p}: no checkpoints/motion_policy_<it>.onnx (the BeyondMimic-compatible export); "
                            f"write it with: python -m bmimic.export {p}")
-    return max(found)[1].resolve(), p.resolve()
+    policy = max(found)[1]
+    try:
+        return policy.resolve(strict=True), p.resolve()
+    except (OSError, RuntimeError) as e:  # a dangling link, a loop of links
+        raise Sim2SimError(f"{policy}: cannot be read ({e})") from None
 
 
 def checkpoint_label(spec: PolicySpec) -> str:
