@@ -15,6 +15,7 @@ from typing import Any, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from bmimic import BmimicError
 from bmimic.envs.config import EnvConfig
@@ -140,12 +141,36 @@ _UNSET = object()
 
 def hydra_overrides(argv: list[str]) -> list[str]:
     """The overrides of a Hydra command line (its flags and their values left out)."""
+    args = _hydra_args(argv)
+    return list(args.overrides) if args is not None else []
+
+
+def _hydra_args(argv: list[str]):
+    """Hydra's parse of a command line, or None when argparse refuses it: quietly, since Hydra prints
+    that refusal when it parses the same line (printed here too, it was said twice)."""
+    import contextlib
+    import io
+
     from hydra._internal.utils import get_args_parser
 
     try:
-        return list(get_args_parser().parse_args(argv).overrides)
-    except SystemExit:  # a malformed flag: Hydra reports it when it parses the same line
-        return []
+        with contextlib.redirect_stderr(io.StringIO()):
+            return get_args_parser().parse_args(argv)
+    except SystemExit:
+        return None
+
+
+def check_hydra_flags(argv: list[str]) -> None:
+    """Refuse, in one line, the flag combinations Hydra itself refuses with a traceback (its checks run
+    outside its own error reporting): --resolve without --cfg or --help, and more than one of --run,
+    -m, --cfg, --info and --shell-completion. Argparse's own errors are left to Hydra's parser."""
+    args = _hydra_args(argv)
+    if args is None:  # argparse's usage line follows when Hydra parses the same command line
+        return
+    if args.resolve and args.cfg is None and not args.help:
+        raise ConfigError("--resolve: only with --cfg or --help")
+    if args.run + (args.cfg is not None) + args.multirun + args.shell_completion + (args.info is not None) > 1:
+        raise ConfigError("only one of --run, --multirun (-m), --cfg, --info and --shell-completion at a time")
 
 
 def check_additions(overrides: list[str]) -> None:
@@ -169,7 +194,11 @@ def check_additions(overrides: list[str]) -> None:
         parts = override.lstrip("+").split("=", 1)[0].split(".")
         for i in range(1, len(parts)):
             parent = ".".join(parts[:i])
-            if OmegaConf.select(cfg, parent, default=_UNSET) is None:
+            try:
+                value = OmegaConf.select(cfg, parent, default=_UNSET)
+            except OmegaConfBaseException:  # an interpolation that does not resolve (`${oc.env:UNSET}`): its
+                break  # own error, in Hydra's or validate's words, not a traceback here
+            if value is None:
                 raise ConfigError(f"{override}: {parent} is null in the config, so nothing can be added under it; "
                                   f"set {parent} itself (e.g. {parent}=[...] or {parent}={{...}})")
 
@@ -194,9 +223,6 @@ def resolve_runtime(cfg, device: str) -> None:
 def with_schema_defaults(config: dict) -> dict:
     """A plain (resolved) config with the schema's defaults for the keys it lacks, e.g. one saved by
     an earlier bmimic before an option existed; unchanged when it does not fit the schema."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
     try:
         filled = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(TrainConfig), config), resolve=True)
     except (OmegaConfBaseException, ValueError, TypeError):

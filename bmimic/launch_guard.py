@@ -89,10 +89,13 @@ class LaunchGuard(Callback):
         from hydra.core.global_hydra import GlobalHydra
 
         from bmimic.budget import check_sweep
+        from bmimic.extras import require_slurm
         from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.sweeping.jobs import check_jobs, expand_jobs
 
         try:
+            if str(OmegaConf.select(config, "hydra.launcher._target_") or "").endswith("SlurmLauncher"):
+                require_slurm("the sweep's SLURM launcher")  # (one set in a sweep file, not on the command line)
             check_visible_devices()  # before the budget check, which would blame the CPU
             _folder_name(config, "sweep_name")
             jobs = expand_jobs(GlobalHydra.instance().config_loader(), config)

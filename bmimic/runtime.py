@@ -107,6 +107,15 @@ def process_rank() -> int:
         return 0
 
 
+def process_world() -> int:
+    """This process's torchrun world size (1 without torchrun, or when the variables are malformed, which
+    torchrun_env refuses before anything runs; for the paths that decide how to refuse)."""
+    try:
+        return torchrun_env()[1]
+    except DistributedSetupError:
+        return 1
+
+
 def rendezvous_timeout_s() -> float:
     """RENDEZVOUS_TIMEOUT_S, or `$BMIMIC_RENDEZVOUS_TIMEOUT_S` (seconds > 0)."""
     text = os.environ.get("BMIMIC_RENDEZVOUS_TIMEOUT_S")

@@ -17,11 +17,14 @@ from __future__ import annotations
 import sys
 
 import hydra
+from hydra.errors import HydraException
 from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
 
 import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver of the launchers)
 from bmimic import CONF_DIR
-from bmimic.config import ConfigError, check_additions, hydra_overrides
+from bmimic.cli_common import first_line
+from bmimic.config import ConfigError, check_additions, check_hydra_flags, hydra_overrides
 from bmimic.extras import MissingExtraError, check_launcher
 from bmimic.job import launch
 from bmimic.runtime import DistributedSetupError, exit_rank, rendezvous_timeout_s, torchrun_env
@@ -68,7 +71,15 @@ def cli() -> None:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     sys.argv = inspect_sweep_argv(sys.argv)
-    main()
+    try:
+        check_hydra_flags(sys.argv[1:])  # (after -m with --cfg became the first job's --cfg)
+        main()
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    except (HydraException, OmegaConfBaseException) as e:  # --help and --info compose outside Hydra's error report
+        print(f"error: {first_line(e)}", file=sys.stderr)
+        sys.exit(2)
     if world > 1:
         exit_rank(0)  # a torchrun rank whose run is written: no interpreter teardown (runtime.exit_rank)
 
