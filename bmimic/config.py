@@ -185,11 +185,21 @@ def check_additions(overrides: list[str]) -> None:
     from bmimic import CONF_DIR
 
     register_configs()
-    try:
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose("train", overrides=[o for o in overrides if o not in adds and not o.startswith("hydra")])
-    except Exception:  # noqa: BLE001 - anything else: Hydra reports it in its own words when it composes
+    others = [o for o in overrides if o not in adds and not o.startswith("hydra")]
+    # When the other overrides do not compose (a wrong type elsewhere), Hydra would still meet the bare
+    # AssertionError first: the check then reads the chosen groups' defaults, except where an override sets a parent.
+    groups, set_keys = [o for o in others if "." not in o.split("=", 1)[0]], {o.split("=", 1)[0] for o in others}
+    cfg = None
+    for attempt in (others, groups):
+        try:
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+                cfg = compose("train", overrides=attempt)
+            break
+        except Exception:  # noqa: BLE001 - anything else: Hydra reports it in its own words when it composes
+            continue
+    if cfg is None:
         return
+    fallback = attempt is groups and groups != others
     for override in adds:
         parts = override.lstrip("+").split("=", 1)[0].split(".")
         for i in range(1, len(parts)):
@@ -198,7 +208,7 @@ def check_additions(overrides: list[str]) -> None:
                 value = OmegaConf.select(cfg, parent, default=_UNSET)
             except OmegaConfBaseException:  # an interpolation that does not resolve (`${oc.env:UNSET}`): its
                 break  # own error, in Hydra's or validate's words, not a traceback here
-            if value is None:
+            if value is None and not (fallback and parent in set_keys):
                 raise ConfigError(f"{override}: {parent} is null in the config, so nothing can be added under it; "
                                   f"set {parent} itself (e.g. {parent}=[...] or {parent}={{...}})")
 
