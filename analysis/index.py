@@ -31,8 +31,10 @@ from bmimic.run_folder import (
     SWEEP_INDEX,
     is_run_folder,
     lock_held,
+    read_hydra_config,
     read_metrics,
     read_provenance,
+    read_resolved_config,
 )
 from bmimic.run_schema import ENV_STEPS, WALL_TIME_S
 
@@ -47,9 +49,13 @@ METRIC_KEYS = (
 )
 """metrics.json keys copied into the index (absent keys stay empty, e.g. for running jobs)."""
 
+BUDGET_COLUMNS = ("max_iterations", "num_envs", "time_limit_s")
+"""The budget each job trained under (its resolved config, else its composed one): budgets stay out of
+job folder names, so this is where a smoke run's 4 iterations show beside a study's 10,000."""
+
 INDEX_COLUMNS = [
     "job", "arm", "seed", "status", "error", "iteration", "sampler", "overrides", "included", "problem",
-    *METRIC_KEYS, "git_commit", "git_dirty",
+    *METRIC_KEYS, *BUDGET_COLUMNS, "git_commit", "git_dirty",
 ]
 """Columns of index.csv; ``job`` is the run folder relative to the sweep (e.g. ``sampler=uniform/seed=0``)."""
 
@@ -69,6 +75,7 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
     for run in runs.itertuples(index=False):
         run_dir = Path(run.run_dir)
         metrics = read_metrics(run_dir)  # {} when absent or broken: the run's status says why
+        config = read_resolved_config(run_dir) or read_hydra_config(run_dir) or {}
         provenance = read_provenance(run_dir)
         git = provenance.get("git") if isinstance(provenance.get("git"), dict) else {}
         dead = run.status == "running" and not lock_held(run_dir)  # killed: no process holds its lock
@@ -78,11 +85,12 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
                                              "overrides", "included", "problem")},
             **({"status": "dead"} if dead else {}),
             **{k: metrics.get(k) for k in METRIC_KEYS},
+            **{k: config.get(k) for k in BUDGET_COLUMNS},
             "git_commit": provenance.get("git_commit", git.get("commit")),
             "git_dirty": provenance.get("git_dirty", git.get("dirty")),
         })
     index = pd.DataFrame(rows, columns=INDEX_COLUMNS)
-    for key in METRIC_KEYS:  # numbers, also where no job has the key yet (e.g. no robust evaluation)
+    for key in (*METRIC_KEYS, *BUDGET_COLUMNS):  # numbers, also where no job has the key yet (e.g. no robust evaluation)
         index[key] = pd.to_numeric(index[key], errors="coerce")
     return index
 

@@ -16,6 +16,11 @@ from bmimic.run_schema import ITERATION
 
 BIN_KEYS = ("sampler.bins", "sampler.bin_size_seconds")
 """Config keys that define a run's time bins (with its motion)."""
+BUDGET_KEYS = ("max_iterations", "num_envs", "time_limit_s")
+"""Config keys that set how much a run trains: no sweep can make arms of them (they stay out of job
+folder names), so runs that differ in them are not one study's arms (a smoke run of 4 iterations is
+not a seed of a 10,000-iteration study), and arms compared at equal iterations would be cut to the
+shortest."""
 MIXED_FLAG = "--allow-mixed"
 
 
@@ -37,26 +42,39 @@ def check_comparable(rows: list[dict], allow_mixed: bool = False) -> list[str]:
         return []
     first = used[0]
     notes = []
-    for what, keys in (("motion", None), ("bin layout", BIN_KEYS)):
+    for what, keys in (("motion", None), ("bin layout", BIN_KEYS), ("budget", BUDGET_KEYS)):
         def signature(r, _keys=keys):
             cfg = r["_cfg"]
             if _keys is None:
                 return _flat(cfg.get("motion") or {}, "motion.")
+            if _keys is BUDGET_KEYS:  # as trained: a resume that raised max_iterations updated resolved_config.json
+                cfg = r.get("_resolved") or cfg
             return {k: config_value(cfg, k) for k in _keys}
         base = signature(first)
         for r in used[1:]:
             other = signature(r)
-            differ = sorted(k for k in set(base) | set(other) if base.get(k) != other.get(k))
+            differ = sorted(k for k in set(base) | set(other) if _differs(what, k, base.get(k), other.get(k)))
             if differ:
                 k = differ[0]
                 line = (f"{_name(first)} and {_name(r)} were trained on different {what}s ({k}: "
                         f"{base.get(k)!r} vs {other.get(k)!r})")
                 if not allow_mixed:
-                    raise AnalysisError(f"{line}; a report compares arms on one motion and one bin layout (per-bin "
-                                        f"tables match bins by number); pass {MIXED_FLAG} to compare them anyway")
+                    why = ("(per-bin tables match bins by number)" if what != "budget" else
+                           "(a smoke run is not a seed of a study, and arms compared at equal iterations would be cut "
+                           "to the shortest run)")
+                    raise AnalysisError(f"{line}; a report compares arms on one motion, one bin layout and one "
+                                        f"training budget {why}; pass {MIXED_FLAG} to compare them anyway")
                 notes.append(line)
                 break
     return notes
+
+
+def _differs(what: str, key: str, a, b) -> bool:
+    if a == b:
+        return False
+    # A budget key left null in a composed config (num_envs, max_iterations: the machine's default) is
+    # unknown there, not a difference; time_limit_s null means no limit.
+    return not (what == "budget" and key != "time_limit_s" and None in (a, b))
 
 
 def _name(row: dict) -> str:

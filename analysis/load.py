@@ -34,7 +34,14 @@ from analysis.run_files import (
     table_problem,
 )
 from analysis.table_checks import check_table
-from bmimic.run_folder import EVALUATION_TABLES, MOTION_SEGMENTS, STATUS, TABLES, table_path
+from bmimic.run_folder import (
+    EVALUATION_TABLES,
+    MOTION_SEGMENTS,
+    STATUS,
+    TABLES,
+    read_resolved_config,
+    table_path,
+)
 from bmimic.run_schema import ITERATION
 
 log = logging.getLogger("analysis")
@@ -77,6 +84,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
     row["overrides"] = ",".join(f"{k}={v}" for k, v in sorted(overrides.items()))
     row["_overrides"] = overrides
     row["_cfg"] = cfg
+    row["_resolved"] = read_resolved_config(run_dir)  # the budget as trained (analysis.inputs)
 
     # Sweep jobs: the arm is the override_dirname folder (relative to the sweep, in case a value
     # held a '/'); a sweep without overrides puts seed=* at its root and falls back to the sampler.
@@ -195,9 +203,9 @@ def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
       value (e.g. a config-group choice such as ``param.sampler``), else missing.
 
     Raises AnalysisError when a path does not exist or no run folder is found under any path, and
-    (analysis.inputs) when included runs differ in motion or bin layout unless ``allow_mixed``; a run
-    whose tables are byte-identical to another's is left out (``problem`` says so), and so is every run
-    but one of a seed that appears more than once in an arm (analysis.inputs.collapse_duplicate_seeds).
+    (analysis.inputs) when included runs differ in motion, bin layout or budget unless ``allow_mixed``; a
+    run whose tables are byte-identical to another's is left out (``problem`` says so), and so is every
+    run but one of a seed that appears more than once in an arm (analysis.inputs.collapse_duplicate_seeds).
     """
     if isinstance(paths, str | Path):
         paths = [paths]

@@ -40,7 +40,7 @@ def default_out(paths: list[Path]) -> Path:
 def build_report(paths, out: str | Path | None = None, opts: ReportOptions | None = None,
                  allow_mixed: bool = False) -> Path:
     """Load the runs under ``paths``, write every figure, table and report.md to ``out``; return ``out``.
-    ``allow_mixed``: compare runs of different motions or bin layouts (else refused). The numbers are
+    ``allow_mixed``: compare runs of different motions, bin layouts or budgets (else refused). The numbers are
     analysis.report_compute's, the files analysis.report_files', the words analysis.report_views'."""
     opts = opts or ReportOptions()
     paths = [Path(p) for p in ([paths] if isinstance(paths, str | Path) else paths)]
@@ -74,8 +74,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="read every run only up to this many iterations (a common budget for runs that went "
                              "further)")
     parser.add_argument(MIXED_FLAG, action="store_true",
-                        help="compare runs trained on different motions or bin layouts (refused without it: "
-                             "per-bin tables match bins by number)")
+                        help="compare runs trained on different motions, bin layouts or budgets (max_iterations, "
+                             "num_envs, time_limit_s; refused without it: per-bin tables match bins by number, "
+                             "and a smoke run is not a study's seed)")
     args = parser.parse_args(argv)
     try:
         check_options(args.mastery_threshold, args.success_threshold, args.resamples, args.mastery_persist)

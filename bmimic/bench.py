@@ -91,7 +91,9 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     training = build_training(cfg, device)
     env, layout, motion = training.env, training.task.layout, training.task.motion
     setup_s = time.perf_counter() - t0
-    out: dict = {"num_envs": num_envs, "num_bins": layout.num_bins, "motion_s": motion.duration_s,
+    # What was timed, beside how fast: the sampler and motion (the environment's commit is environment_info's).
+    out: dict = {"sampler": str(cfg.sampler.name), "motion": str(cfg.motion.name),
+                 "num_envs": num_envs, "num_bins": layout.num_bins, "motion_s": motion.duration_s,
                  "setup_s": setup_s, "cuda_graph": bool(env.sim.use_graph),
                  "compile_env_step": bool(cfg.sim.compile_env_step)}
     n = num_envs
@@ -253,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {first_line(e)}", file=sys.stderr)
         return 2
     results = {"environment": environment_info(device), "overrides": overrides, "runs": []}
+    if results["environment"]["git_commit"] is None:  # a copy of the tree without .git (a lent machine)
+        print("warning: no git commit found for this code; set BMIMIC_SOURCE_COMMIT=<commit> so that the results "
+              "record which code they measured", file=sys.stderr)
     for n in envs:
         r = bench_one(n, device, args.iters, only, overrides)
         results["runs"].append(r)

@@ -23,7 +23,7 @@ def checked_args(args: argparse.Namespace, overrides: list[str]) -> tuple[list[i
     import bmimic.config  # noqa: F401  (the config schemas)
     from bmimic import CONF_DIR
     from bmimic.cli_common import check_output_file, first_line
-    from bmimic.config import resolve_runtime
+    from bmimic.config import check_overrides, resolve_runtime
     from bmimic.config_checks import check_composed, validate
     from bmimic.robot import load_mjmodel
     from bmimic.runtime import resolve_device, torchrun_env
@@ -41,6 +41,7 @@ def checked_args(args: argparse.Namespace, overrides: list[str]) -> tuple[list[i
     for flag in ("--json", "--multigpu-json"):
         if getattr(args, flag[2:].replace("-", "_")) is not None:
             check_output_file(flag, getattr(args, flag[2:].replace("-", "_")))
+    check_overrides(overrides)  # Hydra's refusals as one line naming the override (bmimic.config.override_error)
     torchrun_env()
     device = resolve_device(args.device)
     try:

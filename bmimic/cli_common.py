@@ -1,10 +1,13 @@
 """What every command line shares: which errors are the user's (one line, exit status 2), the
---trust-checkpoint flag and the check of a file a command is told to write."""
+--trust-checkpoint flag, the check of a path argument or of a file a command is told to write, and how
+a printed command quotes its arguments so that it pastes back."""
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
+import shlex
 from pathlib import Path
 
 
@@ -17,7 +20,7 @@ def first_line(e: BaseException) -> str:
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that mean bad input (printed as one line, exit status 2)."""
     from bmimic import BmimicError
-    from bmimic.motion.motion import MotionDataError
+    from bmimic.motion.segments import MotionDataError
 
     return (BmimicError, MotionDataError)
 
@@ -60,3 +63,23 @@ def path_arg(text: str) -> Path:
     except ValueError as e:  # an embedded NUL byte (not possible from a shell, from another program)
         raise argparse.ArgumentTypeError(f"{text[:60]!r}: {e}") from None
     return Path(text)
+
+
+def shell_arg(value: str | os.PathLike) -> str:
+    """`value` as one shell word (quoted only when it must be: a folder with a space, `$`, `;`...)."""
+    return shlex.quote(str(value))
+
+
+_PLAIN_OVERRIDE_VALUE = re.compile(r"[\w./:+-]+")
+"""Characters Hydra's override grammar reads as a plain value (no `=`, `,`, spaces, quotes, brackets)."""
+
+
+def override_arg(key: str, value: str | os.PathLike) -> str:
+    """`key=value` as one shell word Hydra reads back as that value: a path holding `=` or `,` (a sweep
+    job's folder) or a space is quoted for Hydra too (`resume='outputs/sweeps/s/a=1,b=2/seed=0'`)."""
+    text = str(value)
+    if _PLAIN_OVERRIDE_VALUE.fullmatch(text):
+        return shell_arg(f"{key}={text}")
+    word = f"{key}='" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
+    # Hydra's quotes inside the shell's double quotes, when nothing there is special to the shell.
+    return f'"{word}"' if not any(c in word for c in '$`"\\!') else shell_arg(word)

@@ -67,6 +67,7 @@ def train_help(root: Any, schema: type, loader: Any = None) -> str:
     (bmimic.config.TrainConfig, which calls this); `loader` is Hydra's config loader (default: the
     running Hydra's)."""
     from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.object_type import ObjectType
 
     if loader is None:
         loader = GlobalHydra.instance().config_loader()
@@ -77,7 +78,11 @@ def train_help(root: Any, schema: type, loader: Any = None) -> str:
     except Exception:  # composed without the hydra node
         choices = {}
     fields = {f.name: f for f in dataclasses.fields(schema) if f.name != "defaults"}
-    groups = [g for g in fields if g in loader.list_groups("")]
+    # The loader's own listing copies its whole repository per call (Hydra 1.3): ask the repository.
+    repository = getattr(loader, "repository", None)
+    lister = repository if hasattr(repository, "get_group_options") else loader
+    top_groups = set(lister.get_group_options("", ObjectType.GROUP))
+    groups = [g for g in fields if g in top_groups]
     lines = [
         "python -m bmimic.train [group=option ...] [key=value ...]: train a motion-tracking policy.",
         "",
@@ -88,7 +93,7 @@ def train_help(root: Any, schema: type, loader: Any = None) -> str:
         "== Config groups: group=option (* = current choice) ==",
     ]
     for group in [*groups, *EXTRA_GROUPS]:
-        options = sorted(o for o in loader.get_group_options(group) if not o.endswith(SCHEMA_SUFFIX))
+        options = sorted(o for o in lister.get_group_options(group, ObjectType.CONFIG) if not o.endswith(SCHEMA_SUFFIX))
         if not options:
             continue
         current = choices.get(group)

@@ -10,8 +10,12 @@ naming the key.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
 from dataclasses import dataclass, field
-from typing import Any, List, Optional
+from pathlib import Path
+from typing import Any, List, Optional, Sequence
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
@@ -148,7 +152,6 @@ def hydra_overrides(argv: list[str]) -> list[str]:
 def _hydra_args(argv: list[str]):
     """Hydra's parse of a command line, or None when argparse refuses it: quietly, since Hydra prints
     that refusal when it parses the same line (printed here too, it was said twice)."""
-    import contextlib
     import io
 
     from hydra._internal.utils import get_args_parser
@@ -173,33 +176,13 @@ def check_hydra_flags(argv: list[str]) -> None:
         raise ConfigError("only one of --run, --multirun (-m), --cfg, --info and --shell-completion at a time")
 
 
-def check_additions(overrides: list[str]) -> None:
-    """Refuse, in one line, a `+a.b.c=v` whose parent (`a.b`) is null in the composed config: OmegaConf
-    cannot add under None and fails with a bare AssertionError inside Hydra's composition (a traceback
-    on the command line). Composes the config only when such a dotted addition is present."""
-    adds = [o for o in overrides if o.startswith("+") and "=" in o and "." in o.split("=", 1)[0]]
-    if not adds:
-        return
-    from hydra import compose, initialize_config_dir
+def _dotted_additions(overrides: Sequence[str]) -> list[str]:
+    return [o for o in overrides if o.startswith("+") and "=" in o and "." in o.split("=", 1)[0]]
 
-    from bmimic import CONF_DIR
 
-    register_configs()
-    others = [o for o in overrides if o not in adds and not o.startswith("hydra")]
-    # When the other overrides do not compose (a wrong type elsewhere), Hydra would still meet the bare
-    # AssertionError first: the check then reads the chosen groups' defaults, except where an override sets a parent.
-    groups, set_keys = [o for o in others if "." not in o.split("=", 1)[0]], {o.split("=", 1)[0] for o in others}
-    cfg = None
-    for attempt in (others, groups):
-        try:
-            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-                cfg = compose("train", overrides=attempt)
-            break
-        except Exception:  # noqa: BLE001 - anything else: Hydra reports it in its own words when it composes
-            continue
-    if cfg is None:
-        return
-    fallback = attempt is groups and groups != others
+def _refuse_additions_under_null(cfg, adds: Sequence[str], set_elsewhere: Sequence[str] = ()) -> None:
+    """ConfigError for the first of `adds` whose parent is null in `cfg`; a parent in `set_elsewhere` (an
+    override sets it, but `cfg` was composed without that override) is left to the full composition."""
     for override in adds:
         parts = override.lstrip("+").split("=", 1)[0].split(".")
         for i in range(1, len(parts)):
@@ -208,9 +191,130 @@ def check_additions(overrides: list[str]) -> None:
                 value = OmegaConf.select(cfg, parent, default=_UNSET)
             except OmegaConfBaseException:  # an interpolation that does not resolve (`${oc.env:UNSET}`): its
                 break  # own error, in Hydra's or validate's words, not a traceback here
-            if value is None and not (fallback and parent in set_keys):
+            if value is None and parent not in set_elsewhere:
                 raise ConfigError(f"{override}: {parent} is null in the config, so nothing can be added under it; "
                                   f"set {parent} itself (e.g. {parent}=[...] or {parent}={{...}})")
+
+
+def check_additions(overrides: list[str]) -> None:
+    """Refuse, in one line, a `+a.b.c=v` whose parent (`a.b`) is null in the composed config: OmegaConf
+    cannot add under None and fails with a bare AssertionError inside Hydra's composition (a traceback
+    on the command line). Composes the config only when such a dotted addition is present. When the
+    other overrides do not compose either (a wrong type elsewhere), Hydra would still meet the bare
+    AssertionError first: the check then reads the chosen groups' defaults, except where an override
+    sets a parent."""
+    from hydra.types import RunMode
+
+    adds = _dotted_additions(overrides)
+    if not adds:
+        return
+    others = [o for o in overrides if o not in adds and not o.startswith("hydra")]
+    groups = [o for o in others if "." not in o.split("=", 1)[0]]
+    for attempt in (others, groups):
+        try:
+            with config_loader() as loader:
+                cfg = loader.load_configuration("train", attempt, run_mode=RunMode.RUN)
+        except Exception:  # noqa: BLE001 - anything else: check_overrides (or Hydra) reports it in its own words
+            continue
+        fallback = attempt is groups and groups != others
+        _refuse_additions_under_null(cfg, adds, [o.split("=", 1)[0] for o in others] if fallback else ())
+        return
+
+
+@contextlib.contextmanager
+def config_loader(config_dir: str | os.PathLike | None = None, config_name: str = "train"):
+    """Hydra's config loader for `config_dir` (default: bmimic's conf/), initialised as for `python -m
+    bmimic.train`, outside a running Hydra app."""
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver of the launchers)
+    from bmimic import CONF_DIR
+
+    register_configs()
+    with initialize_config_dir(config_dir=str(Path(config_dir or CONF_DIR).resolve()), version_base="1.3",
+                               job_name=config_name):
+        yield GlobalHydra.instance().config_loader()
+
+
+OWN_CONFIG_FLAGS = ("--config-path", "-cp", "--config-name", "-cn", "--config-dir", "-cd")
+"""Hydra flags that point a command at another config tree: its overrides are then Hydra's to check."""
+
+
+def check_overrides(argv: Sequence[str], multirun: bool | None = None, loader=None):
+    """Compose conf/train.yaml with the overrides of the Hydra command line `argv` as the command will
+    (Hydra's config loader, the `hydra` node included) and return the config; every refusal of Hydra's
+    grammar, its config groups or the schema's keys and types raises ConfigError with one line naming
+    the override and the problem (override_error), where Hydra would print its 5-7 line block and exit 1.
+    `multirun` (default: whether argv has -m) composes the sweep's master config, whose swept values
+    each job checks (bmimic.sweeping.jobs). Returns None, checking nothing, for a command line that
+    names another config tree (OWN_CONFIG_FLAGS) or has a malformed flag (Hydra reports it). `loader`: a
+    config loader to compose with (default: a fresh one, config_loader)."""
+    from hydra.types import RunMode
+
+    args = _hydra_args(list(argv))
+    if args is None:
+        return None
+    if any(a == flag or a.startswith(flag + "=") for a in argv for flag in OWN_CONFIG_FLAGS):
+        return None
+    overrides = list(args.overrides)
+    multirun = args.multirun if multirun is None else multirun
+    adds = _dotted_additions(overrides)
+    with contextlib.nullcontext(loader) if loader is not None else config_loader() as loader:
+        mode = RunMode.MULTIRUN if multirun else RunMode.RUN
+        if adds:  # composed without them first: an addition under a null node is OmegaConf's bare assertion
+            try:
+                base = loader.load_configuration("train", [o for o in overrides if o not in adds], run_mode=mode)
+            except Exception as e:  # noqa: BLE001 - Hydra's, OmegaConf's or a value's error alike: one line
+                raise ConfigError(override_error(e, overrides)) from None
+            _refuse_additions_under_null(base, adds)
+        try:
+            return loader.load_configuration("train", overrides, run_mode=mode)
+        except Exception as e:  # noqa: BLE001 - Hydra's, OmegaConf's or a value's error alike: one line
+            raise ConfigError(override_error(e, overrides)) from None
+
+
+def override_error(e: BaseException, overrides: Sequence[str] = ()) -> str:
+    """One line naming the override (or key) and the problem, for an error Hydra or OmegaConf raised
+    while composing `overrides`: an unknown key (never Hydra's `+key` suggestion, which bmimic refuses
+    as an unknown key too), a value of the wrong type, an unknown group option, an override Hydra's
+    grammar cannot parse (a non-ASCII value must be quoted)."""
+    from hydra.errors import MissingConfigException, OverrideParseException
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
+
+    from bmimic.cli_help import SCHEMA_SUFFIX
+
+    text = str(e).strip()
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if isinstance(e, OverrideParseException):
+        override = str(getattr(e, "override", "") or "")
+        if any(ord(c) > 127 for c in override):
+            key, _, value = override.partition("=")
+            return (f"{override}: Hydra's override grammar takes a value with non-ASCII characters only in quotes: "
+                    f"\"{key}='{value}'\" (the outer quotes are the shell's)")
+        problem = lines[0] if lines else type(e).__name__
+        return f"{override or 'override'}: not a valid override: {problem} (https://hydra.cc/docs/advanced/override_grammar/basic/)"
+    if isinstance(e, MissingConfigException) and getattr(e, "options", None) is not None:
+        group, _, option = str(e.missing_cfg_file or "").rpartition("/")
+        options = sorted(o for o in e.options if not o.endswith(SCHEMA_SUFFIX))
+        return f"{group}={option}: no such option of the config group {group}; options: {', '.join(options)}"
+    if isinstance(e, MissingConfigException):  # its further lines are Hydra's search path
+        return lines[0] if lines else type(e).__name__
+    ambiguous = re.match(r"Ambiguous value for argument '(([^=']+)=([^']*))'", text)
+    if ambiguous:
+        override, key, value = ambiguous.groups()
+        return (f"{override}: several values: a list is {key}=[{value}], a string {key}='{value}', a sweep over them "
+                "needs -m")
+    cause = e.__cause__ if isinstance(e.__cause__, OmegaConfBaseException) else e
+    if isinstance(cause, OmegaConfBaseException):
+        key = getattr(cause, "full_key", None) or ""
+        msg = (getattr(cause, "msg", None) or str(cause)).strip().splitlines()
+        problem = msg[0] if msg else type(cause).__name__
+        if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and "not in" in problem:
+            return f"{key or 'config'}: unknown key ({problem}); check the spelling, `--cfg job` prints every key"
+        given = next((o for o in overrides if o.split("=", 1)[0].lstrip("+~") == key), None)
+        return f"{given or key or 'config'}: {problem}"
+    return "; ".join(lines) if lines else type(e).__name__
 
 
 def resolve_runtime(cfg, device: str) -> None:

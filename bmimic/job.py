@@ -22,8 +22,14 @@ from omegaconf import DictConfig, OmegaConf
 
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
-from bmimic.cli_common import first_line, user_errors
-from bmimic.config import interpolated_keys, recorded_config, resolve_runtime, with_schema_defaults
+from bmimic.cli_common import first_line, shell_arg, user_errors
+from bmimic.config import (
+    ConfigError,
+    interpolated_keys,
+    recorded_config,
+    resolve_runtime,
+    with_schema_defaults,
+)
 from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.run_folder import (
@@ -75,6 +81,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         stop.begin_at_once()
     requested = cfg.device
     smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
+    default_budget = cfg.max_iterations is None
     quiet_warp(cfg.verbose)
     device = resolve_device(requested)
     rank, world = init_distributed()
@@ -85,6 +92,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             device = f"cuda:{torchrun_env()[2]}"
     resolve_runtime(cfg, device)
     validate(cfg)
+    if stop_rule is not None:  # bmimic.race: it times evaluations, so one must run before the budget ends
+        check_evaluates(cfg, default_budget and not device.startswith("cuda"))
     if rank == 0:
         for note in advisories(cfg):
             log.warning(note)
@@ -209,9 +218,44 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
              f"; {overflow} world-steps overflowed the contact/constraint buffers (raise sim.nconmax / sim.njmax)"
              if overflow else "", run_dir)
     if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
-        log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", run_dir, run_dir,
-                 f", tensorboard --logdir {run_dir / TENSORBOARD_DIR} (curves)" if cfg.logger == "tensorboard" else "")
+        folder = shell_arg(run_dir)  # pasted back into a shell: a folder with a space stays one argument
+        log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", folder, folder,
+                 f", tensorboard --logdir {shell_arg(run_dir / TENSORBOARD_DIR)} (curves)" if cfg.logger == "tensorboard"
+                 else "")
     return float(metrics["final_eval_failure_rate"])
+
+
+def done_run_differences(cfg: DictConfig, run_dir: Path) -> str | bool:
+    """Whether a sweep job may skip the done run in its folder: False (the same job: skip it), True
+    (other settings that a resume may change, and the job says resume=true: continue it), or the
+    one-line reason it must not touch it (a run of other settings, e.g. a smoke run's budget).
+    Compared on this job's device, as the job would train (bmimic.sweeping.jobs.recorded_differences)."""
+    from bmimic.sweeping.jobs import describe_differences, recorded_differences
+    from bmimic.training.resume import RESUME_FREE_KEYS, key_allowed
+
+    task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    differs = recorded_differences(run_dir, task, resolve_device(cfg.device))
+    if not differs:
+        return False
+    allowed = (*RESUME_FREE_KEYS, *(cfg.resume_allow_changes or []))
+    extendable = all(key_allowed(k, allowed) for k in differs)
+    if extendable and resume_request(cfg.get("resume")) is not None:
+        return True
+    return (f"holds a run done with other settings ({describe_differences(differs)}); this job leaves it as it "
+            "is" + ("; resume=true continues it with this job's budget" if extendable else "")
+            + " (a smoke test or variant belongs under its own sweep_name=...)")
+
+
+def check_evaluates(cfg: DictConfig, cpu_default: bool) -> None:
+    """A race (training with a stopping rule after each periodic evaluation) needs one within its budget,
+    else it would train and have nothing to time: on a CPU the smoke-scale max_iterations=4 is below the
+    race's every-100 evaluations (`cpu_default`: that budget came from the CPU default). ConfigError."""
+    every, budget = int(cfg.eval.every_iters), int(cfg.max_iterations)
+    if not 0 < every <= budget:
+        where = " (the smoke-scale default on a CPU)" if cpu_default else ""
+        raise ConfigError(f"a race times evaluations, and with max_iterations={budget}{where} and eval.every_iters="
+                          f"{every} none would run; set max_iterations >= eval.every_iters >= 1 (on a CPU with "
+                          "max_cpu_hours=<h>), or train with bmimic-train instead")
 
 
 def robust_evaluation(trainer, evaluator, stop: StopSignals | None = None) -> dict:
@@ -295,12 +339,17 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
         stop.__enter__()  # from here a signal ends the current iteration, not the process (interrupts.py)
         check_config(cfg)
         if multirun:
-            previous = read_status(launch_dir)
-            if previous.get("status") == "done" and resume_request(cfg.get("resume")) is None:
-                log.info("skipping %s: already done", launch_dir)
-                outcome = "done before"
-                failure = read_metrics(launch_dir).get("final_eval_failure_rate")
-                return float(failure) if isinstance(failure, int | float) else math.nan
+            if read_status(launch_dir).get("status") == "done":
+                differs = done_run_differences(cfg, launch_dir)
+                if not differs:
+                    log.info("skipping %s: already done", launch_dir)
+                    outcome = "done before"
+                    failure = read_metrics(launch_dir).get("final_eval_failure_rate")  # null: not a number
+                    return float(failure) if isinstance(failure, int | float) else math.nan
+                if differs is not True:  # a run of other settings: never taken for this job's result
+                    outcome, message = "refused", differs
+                    print(f"error: {launch_dir}: {message}", file=sys.stderr)
+                    return math.nan
             try:
                 ctx.lock(launch_dir)
             except RunLockedError as e:

@@ -14,10 +14,16 @@ import argparse
 import sys
 from typing import Sequence
 
-from bmimic.sweeping.jobs import SweepListError, available_studies, format_jobs, list_jobs
+from bmimic.deferred import defer
+from bmimic.sweeping.jobs import SweepListError, available_studies, check_job_runs, format_jobs, list_jobs
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if argv is None:  # this process is the command: nothing else will need them (bmimic.deferred)
+        # The config checks import the env terms and sampler classes, whose modules import torch (and
+        # mujoco) at their top, for their signatures and checks alone.
+        for name in ("torch", "mujoco"):
+            defer(name)
     parser = argparse.ArgumentParser(
         prog="python -m bmimic.launch",
         description="Dry run of a sweep: list the jobs `python -m bmimic.train -m OVERRIDES` would run, "
@@ -31,7 +37,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from omegaconf.errors import OmegaConfBaseException
 
     from bmimic import BmimicError
-    from bmimic.config import check_additions
+    from bmimic.config import check_additions, override_error
     from bmimic.extras import check_launcher
 
     try:
@@ -39,12 +45,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_additions(args.overrides)
         sweep_dir, jobs = list_jobs(args.overrides)
     except (SweepListError, HydraException, OmegaConfBaseException, BmimicError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        # Hydra's and OmegaConf's refusals as bmimic.train words them (bmimic.config.override_error)
+        text = str(e) if isinstance(e, BmimicError) else override_error(e, args.overrides)
+        msg = text.strip().splitlines()[0] if text.strip() else type(e).__name__
         if "sweep" in msg and "Could not" in msg:
             msg += f" (studies: {', '.join(available_studies())})"
         print(f"error: {msg}", file=sys.stderr)
         return 2
     print(format_jobs(sweep_dir, jobs))
+    try:  # after the listing: which folders hold runs of other settings shows above
+        check_job_runs(jobs)
+    except SweepListError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -7,8 +7,9 @@ creates or writes anything.
 - A multirun (`on_multirun_start`): `sweep_name` is a plain name (the sweep folder stays under
   outputs/sweeps/), and every job is expanded, composed and checked as `python -m bmimic.launch list`
   does (bmimic.sweeping.jobs.check_jobs): a job that would be refused, or two jobs that map to one
-  folder, stop the sweep before any job runs; so does a sweep whose jobs would train longer on this
-  CPU than max_cpu_hours (bmimic.budget).
+  folder, stop the sweep before any job runs; so does a job folder that holds a run trained with
+  other settings (a smoke run's budget: bmimic.sweeping.jobs.check_job_runs), and a sweep whose jobs
+  would train longer on this CPU than max_cpu_hours (bmimic.budget).
 - Both: a CUDA_VISIBLE_DEVICES that names a GPU twice (CUDA then sees none) is refused first.
 
 A refusal is one `error:` line and exit status 2; nothing has been written.
@@ -91,7 +92,7 @@ class LaunchGuard(Callback):
         from bmimic.budget import check_sweep
         from bmimic.extras import require_slurm
         from bmimic.sweeping.gpu_slots import check_visible_devices
-        from bmimic.sweeping.jobs import check_jobs, expand_jobs
+        from bmimic.sweeping.jobs import check_job_runs, check_jobs, expand_jobs
 
         try:
             if str(OmegaConf.select(config, "hydra.launcher._target_") or "").endswith("SlurmLauncher"):
@@ -100,6 +101,7 @@ class LaunchGuard(Callback):
             _folder_name(config, "sweep_name")
             jobs = expand_jobs(GlobalHydra.instance().config_loader(), config)
             check_jobs(jobs, str(config.hydra.sweep.dir), f"{config.hydra.job.name}.log")
+            check_job_runs(jobs)  # a smoke run's folder is not the study's job
             check_sweep(jobs)  # a sweep that would train for a day or more on this CPU
         except BmimicError as e:
             _refuse(e)

@@ -168,11 +168,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def _race(argv: list[str] | None) -> int:
     args, rest = parse_args(sys.argv[1:] if argv is None else argv)
-    from bmimic.config import ConfigError, check_additions, check_hydra_flags, hydra_overrides
+    from bmimic.config import ConfigError, check_hydra_flags, check_overrides
 
-    try:
-        check_hydra_flags(rest)
-        check_additions(hydra_overrides(rest))
+    try:  # before anything trains: flags Hydra refuses with a traceback, overrides that do not compose (one
+        check_hydra_flags(rest)  # line each, as bmimic.train)
+        check_overrides(race_overrides(rest, whole_clip=not args.no_whole_clip))
     except ConfigError as e:
         _refuse(str(e))
         return 2

@@ -22,6 +22,9 @@ import numpy as np
 from bmimic import BmimicError
 
 log = logging.getLogger(__name__)
+# PyOpenGL logs "No OpenGL_accelerate module loaded" at INFO when its optional C speed-up is absent: not
+# a problem of the render (bmimic draws a few frames per step), so not a line on the console.
+logging.getLogger("OpenGL.acceleratesupport").setLevel(logging.WARNING)
 
 GL_BACKENDS = ("egl", "osmesa")
 """Headless backends tried, in order, when MUJOCO_GL is unset."""

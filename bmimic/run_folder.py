@@ -288,6 +288,17 @@ def write_hydra_record(run_dir: str | os.PathLike, record: dict[str, str] | None
         atomic_write_text(Path(run_dir) / HYDRA_DIR / name, text)
 
 
+def read_hydra_config(run_dir: str | os.PathLike) -> dict | None:
+    """.hydra/config.yaml, the composed config of the run's launch (None when absent or unreadable)."""
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((Path(run_dir) / HYDRA_DIR / "config.yaml").read_text(encoding="utf-8"))
+    except (OSError, ValueError, yaml.YAMLError):
+        return None
+    return cfg if isinstance(cfg, dict) else None
+
+
 def has_hydra_record(run_dir: str | os.PathLike) -> bool:
     """The run holds .hydra/config.yaml (what eval, play and export reload)."""
     return (Path(run_dir) / HYDRA_DIR / "config.yaml").is_file()

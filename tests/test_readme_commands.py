@@ -10,6 +10,7 @@ machine. A line that is neither fails the test: a new README command needs a dec
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -87,8 +88,26 @@ class Workspace:
         arg = re.sub(r"RUN/checkpoints/model_\d+\.pt", str(checkpoints[-1]), arg)
         arg = re.sub(r"RUN/checkpoints/motion_policy_\d+\.onnx", str(onnx[-1]) if onnx else arg, arg)
         arg = re.sub(r"outputs/runs/default/(<timestamp>|2026-01-01_12-00-00)", str(run), arg)
-        arg = arg.replace("outputs/runs/a/<t1>", str(self.runs[0])).replace("outputs/runs/b/<t2>", str(self.runs[-1]))
+        if "<t1>" in arg or "<t2>" in arg:
+            a, b = self.comparable_pair()
+            arg = arg.replace("outputs/runs/a/<t1>", str(a)).replace("outputs/runs/b/<t2>", str(b))
         return str(run) if arg == "RUN" else arg
+
+    def comparable_pair(self) -> tuple[Path, Path]:
+        """Two runs a report may compare, as a reader's two arms would be: one motion, one budget (the
+        README's first run was resumed to a longer budget than the examples)."""
+        from bmimic.run_folder import read_resolved_config
+
+        def key(run: Path) -> str:
+            cfg = read_resolved_config(run) or {}
+            return json.dumps([cfg.get(k) for k in ("motion", "max_iterations", "num_envs")], sort_keys=True)
+
+        by_key: dict[str, list[Path]] = {}
+        for run in self.runs:
+            by_key.setdefault(key(run), []).append(run)
+        pairs = [runs for runs in by_key.values() if len(runs) > 1]
+        assert pairs, "the README compares two runs, but no two of its runs share a motion and a budget"
+        return pairs[0][0], pairs[0][-1]
 
 
 SCRIPTS = {name: target.split(":")[0] for name, target in

@@ -8,8 +8,9 @@ submodule imported with the package would make `python -m bmimic.motion.convert`
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from bmimic.deferred import names_on_first_use
 
 _SOURCES = {
     "BUILTIN_MOTIONS": "bmimic.motion.builtin",
@@ -43,11 +44,4 @@ if TYPE_CHECKING:
     from bmimic.motion.convert import convert_csv
     from bmimic.motion.motion import Motion, MotionDataError, Segment
 
-
-def __getattr__(name: str) -> Any:
-    source = _SOURCES.get(name)
-    if source is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(source), name)
-    globals()[name] = value  # later lookups skip this function
-    return value
+__getattr__ = names_on_first_use(__name__, _SOURCES, globals())

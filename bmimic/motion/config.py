@@ -15,14 +15,16 @@ import hashlib
 import logging
 import os
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import TYPE_CHECKING, Any, List, Optional
 
-import mujoco
 import numpy as np
 
-from bmimic.motion import builtin
-from bmimic.motion.limits import check_motion_size, check_plausible, implausibility
-from bmimic.motion.motion import Motion, MotionDataError, Segment
+from bmimic.motion.segments import MotionDataError, Segment
+
+if TYPE_CHECKING:  # the schema imports without mujoco (composing a config needs none); load_motion imports it
+    import mujoco
+
+    from bmimic.motion.motion import Motion
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +158,8 @@ def model_fingerprint(mjmodel: mujoco.MjModel) -> str:
 
 
 def _cached(cache_file: Path, mjmodel: mujoco.MjModel, make) -> Motion:
+    from bmimic.motion.motion import Motion
+
     if cache_file.is_file():
         try:
             return Motion.load(cache_file, mjmodel)
@@ -186,6 +190,10 @@ def load_motion(
     Raises MotionDataError (one line naming the field or file) for bad settings or data, including a
     window shorter than two time bins of `bin_size_s`.
     """
+    from bmimic.motion import builtin
+    from bmimic.motion.limits import check_motion_size, check_plausible, implausibility
+    from bmimic.motion.motion import Motion
+
     cache = resolve_path(str(cache_dir))
     if cfg.source == "builtin":
         check_motion_size(mjmodel, float(cfg.duration_s), builtin.FPS, "motion.duration_s", generated=True)

@@ -10,12 +10,14 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import TYPE_CHECKING, Dict, List, Optional
 
-import mujoco
 import numpy as np
 
 from bmimic import BmimicError
+
+if TYPE_CHECKING:
+    import mujoco
 
 
 class RobotModelError(BmimicError, ValueError):
@@ -197,10 +199,14 @@ def default_joint_positions(cfg: RobotConfig, joint_names: list[str]) -> np.ndar
 
 def hinge_joint_names(model: mujoco.MjModel) -> list[str]:
     """Names of the model's hinge joints in model order."""
+    import mujoco
+
     return [model.joint(j).name for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]
 
 
 def _body_id(model: mujoco.MjModel, name: str, field_name: str) -> int:
+    import mujoco
+
     body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
     if body_id < 0:
         raise RobotModelError(f"robot.{field_name}: body {name!r} is not in the model")

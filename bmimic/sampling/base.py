@@ -15,8 +15,9 @@ ERROR_COMPONENTS = ("body_pos_m", "body_ori_rad", "body_lin_vel_m_per_s", "max_b
 """The per-env tracking errors the sampler's feedback sums per bin for samplers that declare
 ``TRACKING_ERRORS``: the mean over tracked bodies of the position (anchor-relative reference),
 orientation and linear-velocity errors, and the largest body position error."""
-DTYPE = torch.float64
-"""Probabilities and state: float64, so 10^6 updates at alpha=0.001 accumulate no visible rounding."""
+# Probabilities and state are torch.float64, so 10^6 updates at alpha=0.001 accumulate no visible rounding
+# (written out where used: a module-level torch value would import torch with the config checks, which
+# read the sampler classes' checks, bmimic.sampling.config).
 METHODS = ("inverse_cdf", "multinomial")
 
 
@@ -63,7 +64,7 @@ class BinSampler:
         self.num_bins = num_bins
         self.device = torch.device(device)
         self.method = method
-        self._probs = torch.full((num_bins,), 1.0 / num_bins, dtype=DTYPE, device=self.device)
+        self._probs = torch.full((num_bins,), 1.0 / num_bins, dtype=torch.float64, device=self.device)
         self._cdf = torch.empty_like(self._probs)
         self._num_clips = 1
         self._balance_clip: torch.Tensor | None = None  # clip of each bin, when clip_balance is "clips"
@@ -84,14 +85,14 @@ class BinSampler:
             raise SamplerConfigError(f"sampler set_clips: bin_clip must have shape ({self.num_bins},)")
         self._num_clips = int(num_clips)
         if clip_balance == "clips" and self._num_clips > 1:
-            w = torch.ones(self._num_clips, dtype=DTYPE) if clip_weights is None else torch.as_tensor(
-                clip_weights, dtype=DTYPE)
+            w = torch.ones(self._num_clips, dtype=torch.float64) if clip_weights is None else torch.as_tensor(
+                clip_weights, dtype=torch.float64)
             if w.shape != (self._num_clips,) or not bool((w > 0).all()) or not bool(torch.isfinite(w).all()):
                 raise SamplerConfigError(f"clip weights must be {self._num_clips} finite numbers > 0, got "
                                          f"{w.tolist()}")
             w = (w / w.sum()).to(self.device)
-            size = torch.zeros(self._num_clips, dtype=DTYPE, device=self.device).index_add_(
-                0, bin_clip, torch.ones(self.num_bins, dtype=DTYPE, device=self.device))
+            size = torch.zeros(self._num_clips, dtype=torch.float64, device=self.device).index_add_(
+                0, bin_clip, torch.ones(self.num_bins, dtype=torch.float64, device=self.device))
             self._balance_clip = bin_clip
             self._bin_clip_size = size[bin_clip]
             self._bin_clip_share = w[bin_clip]
@@ -105,7 +106,7 @@ class BinSampler:
     def _refresh_cdf(self) -> None:
         if self._balance_clip is not None:
             c = self._balance_clip
-            mass = torch.zeros(self._num_clips, dtype=DTYPE, device=self.device).index_add_(0, c, self._probs)[c]
+            mass = torch.zeros(self._num_clips, dtype=torch.float64, device=self.device).index_add_(0, c, self._probs)[c]
             within = torch.where(mass > 0, self._probs / mass, 1.0 / self._bin_clip_size)
             torch.mul(within, self._bin_clip_share, out=self._probs)
         cdf = torch.cumsum(self._probs, 0)
@@ -122,7 +123,7 @@ class BinSampler:
             if n == 0:
                 return torch.empty(0, dtype=torch.long, device=self.device)
             return torch.multinomial(self._probs, n, replacement=True, generator=generator)
-        u = torch.rand(n, generator=generator, dtype=DTYPE, device=self.device)
+        u = torch.rand(n, generator=generator, dtype=torch.float64, device=self.device)
         # right=True: bin i holds u in [cdf[i-1], cdf[i]), so zero-probability bins are never drawn.
         return torch.searchsorted(self._cdf, u, right=True).clamp_(max=self.num_bins - 1)
 
@@ -174,7 +175,7 @@ class BinSampler:
             raise SamplerConfigError(
                 f"sampler update_counts: {name} must have shape ({self.num_bins},), got {tuple(x.shape)}"
             )
-        return x.to(DTYPE)
+        return x.to(torch.float64)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         raise NotImplementedError
@@ -228,4 +229,4 @@ class BinSampler:
         return f"{type(self).__name__}(num_bins={self.num_bins}{', ' if args else ''}{args})"
 
 
-__all__ = ["DTYPE", "ERROR_COMPONENTS", "METHODS", "BinSampler", "bin_counts"]
+__all__ = ["ERROR_COMPONENTS", "METHODS", "BinSampler", "bin_counts"]

@@ -31,7 +31,7 @@ from typing import Any, Optional
 
 import torch
 
-from bmimic.sampling.base import DTYPE, BinSampler
+from bmimic.sampling.base import BinSampler
 from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, check_positive, fail
 from bmimic.sampling.feedback import CLIP_OUTCOMES
 from bmimic.sampling.registry import register_sampler
@@ -58,7 +58,7 @@ class GroupSampler(BinSampler):
     def _set_groups(self, bin_clip: torch.Tensor) -> None:
         group = self._groups_of(bin_clip.cpu().long())
         self.num_groups = int(group.max()) + 1
-        size = torch.bincount(group, minlength=self.num_groups).to(DTYPE)
+        size = torch.bincount(group, minlength=self.num_groups).to(torch.float64)
         self._group = group.to(self.device)
         self._bin_group_size = size.to(self.device)[self._group]
 
@@ -101,8 +101,8 @@ class PHCSampler(GroupSampler):
         super().__init__(num_bins, device=device)
         self.mode = mode
         self.rollout_max_s = None if rollout_max_s is None else float(rollout_max_s)
-        self._failures = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
-        self._last_failed = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
+        self._failures = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
+        self._last_failed = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
 
     @classmethod
     def check_config(cls, cfg: Any) -> None:
@@ -116,8 +116,8 @@ class PHCSampler(GroupSampler):
         return cls(num_bins, mode=cfg.mode, rollout_max_s=cfg.rollout_max_s, device=device)
 
     def observe_eval(self, clip_failed: torch.Tensor, iterations: int) -> None:
-        failed = torch.zeros(self.num_bins, dtype=DTYPE, device=self.device)
-        failed[: len(clip_failed)] = torch.as_tensor(clip_failed, device=self.device).to(DTYPE)
+        failed = torch.zeros(self.num_bins, dtype=torch.float64, device=self.device)
+        failed[: len(clip_failed)] = torch.as_tensor(clip_failed, device=self.device).to(torch.float64)
         self._failures += failed
         self._last_failed.copy_(failed)
         self._recompute()
@@ -152,7 +152,7 @@ class ProtoMotionsSampler(GroupSampler):
         self.success_decay, self.failure_decay = float(success_decay), float(failure_decay)
         self.min_weight = None if min_weight is None else float(min_weight)
         self.rollout_max_s = None if rollout_max_s is None else float(rollout_max_s)
-        self._weight = torch.ones(num_bins, dtype=DTYPE, device=self.device)
+        self._weight = torch.ones(num_bins, dtype=torch.float64, device=self.device)
 
     @classmethod
     def check_config(cls, cfg: Any) -> None:

@@ -34,7 +34,7 @@ from typing import Any
 import torch
 
 from bmimic.run_schema import ITERATION
-from bmimic.sampling.base import DTYPE, BinSampler
+from bmimic.sampling.base import BinSampler
 from bmimic.sampling.checks import check_fraction, check_int_at_least, check_nonnegative, check_positive, fail
 from bmimic.sampling.feedback import EPISODE_OUTCOMES, TRACKING_ERRORS
 from bmimic.sampling.peer_clips import GroupSampler
@@ -62,10 +62,10 @@ class EGMSampler(BinSampler):
         self.power = tuple(float(p) for p in power)
         self.uniform = tuple(float(u) for u in uniform)
         self.schedule_iterations = int(schedule_iterations)
-        self._w = torch.tensor(self.weights, dtype=DTYPE, device=self.device)
-        self._error = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
-        self._seen = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
-        self._iteration = torch.zeros((), dtype=DTYPE, device=self.device)
+        self._w = torch.tensor(self.weights, dtype=torch.float64, device=self.device)
+        self._error = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
+        self._seen = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
+        self._iteration = torch.zeros((), dtype=torch.float64, device=self.device)
 
     @classmethod
     def check_config(cls, cfg: Any) -> None:
@@ -92,7 +92,7 @@ class EGMSampler(BinSampler):
         pass  # EGM learns from tracking errors only
 
     def update_errors(self, error_sums: torch.Tensor, steps: torch.Tensor) -> None:
-        mean = (self._w @ error_sums[:3].to(DTYPE)) / steps.clamp(min=1.0)
+        mean = (self._w @ error_sums[:3].to(torch.float64)) / steps.clamp(min=1.0)
         visited = steps > 0
         target = torch.where(self._seen > 0, self._error.lerp(mean, self.ema), mean)
         self._error.copy_(torch.where(visited, target, self._error))
@@ -142,8 +142,8 @@ class GMTSampler(GroupSampler):
         self.initial_level, self.completion_decay, self.min_level = float(initial_level), float(completion_decay), \
             float(min_level)
         self.error_scale_m, self.error_power = float(error_scale_m), float(error_power)
-        self._level = torch.full((num_bins,), self.initial_level, dtype=DTYPE, device=self.device)
-        self._max_error = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
+        self._level = torch.full((num_bins,), self.initial_level, dtype=torch.float64, device=self.device)
+        self._max_error = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._recompute()
 
     @classmethod
@@ -179,8 +179,8 @@ class GMTSampler(GroupSampler):
         self._recompute()
 
     def update_errors(self, error_sums: torch.Tensor, steps: torch.Tensor) -> None:
-        steps_g = self.group_sums(steps.to(DTYPE))
-        mean = self.group_sums(error_sums[3].to(DTYPE)) / steps_g.clamp(min=1.0)
+        steps_g = self.group_sums(steps.to(torch.float64))
+        mean = self.group_sums(error_sums[3].to(torch.float64)) / steps_g.clamp(min=1.0)
         self._max_error.copy_(torch.where(steps_g > 0, mean, self._max_error))
         self._recompute()
 

@@ -87,7 +87,7 @@ from typing import Any
 
 import torch
 
-from bmimic.sampling.base import DTYPE, BinSampler
+from bmimic.sampling.base import BinSampler
 from bmimic.sampling.checks import check_choice, check_fraction, check_int_at_least, check_positive
 from bmimic.sampling.feedback import EPISODE_OUTCOMES, EPISODE_RETURNS
 from bmimic.sampling.registry import register_sampler
@@ -96,9 +96,9 @@ from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, LowReturn
 EMPTY_BINS = ("decay", "hold")
 
 
-def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype = DTYPE, device: Any = "cpu") -> torch.Tensor:
-    """Normalised kernel k_u = gamma^u / sum_v gamma^v, u = 0..K-1."""
-    k = torch.tensor([gamma**u for u in range(K)], dtype=dtype, device=device)
+def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype | None = None, device: Any = "cpu") -> torch.Tensor:
+    """Normalised kernel k_u = gamma^u / sum_v gamma^v, u = 0..K-1 (float64 unless `dtype`)."""
+    k = torch.tensor([gamma**u for u in range(K)], dtype=dtype or torch.float64, device=device)
     return k / k.sum()
 
 
@@ -121,7 +121,7 @@ class UniformSampler(BinSampler):
         pass
 
     def smoothed_failure(self) -> torch.Tensor:
-        return torch.full((self.num_bins,), float("nan"), dtype=DTYPE, device=self.device)
+        return torch.full((self.num_bins,), float("nan"), dtype=torch.float64, device=self.device)
 
 
 class _LookaheadSampler(BinSampler):
@@ -189,7 +189,7 @@ class AdaptiveSampler(_LookaheadSampler):
         super().__init__(num_bins, gamma, K, empty_bins, device, method)
         self.lambda_uniform = float(lambda_uniform)
         self.alpha_smooth = float(alpha_smooth)
-        self._rate = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
+        self._rate = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
 
     @classmethod
     def check_config(cls, cfg: Any) -> None:
@@ -255,7 +255,7 @@ class BeyondMimicSampler(_LookaheadSampler):
         super().__init__(num_bins, gamma, K, empty_bins, device, method)
         self.alpha = float(alpha)
         self.uniform_ratio = float(uniform_ratio)
-        self._count = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
+        self._count = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._recompute()
 
     @classmethod
@@ -305,7 +305,7 @@ class LowReturnSampler(BinSampler):
         check_fraction("lambda_uniform", lambda_uniform, closed_below=True)
         super().__init__(num_bins, device=device, method=method)
         self.ema, self.temperature, self.lambda_uniform = float(ema), float(temperature), float(lambda_uniform)
-        self._return = torch.zeros(num_bins, dtype=DTYPE, device=self.device)
+        self._return = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._seen = torch.zeros(num_bins, dtype=torch.bool, device=self.device)
 
     @classmethod
@@ -325,7 +325,7 @@ class LowReturnSampler(BinSampler):
     def update_returns(self, sums: torch.Tensor, episodes: torch.Tensor) -> None:
         """One iteration's summed returns [1, S] of the episodes finished per start bin, and their number [S]."""
         visited = episodes > 0
-        mean = sums[0].to(DTYPE) / episodes.to(DTYPE).clamp(min=1.0)
+        mean = sums[0].to(torch.float64) / episodes.to(torch.float64).clamp(min=1.0)
         self._return.copy_(torch.where(visited, torch.where(self._seen, self._return.lerp(mean, self.ema), mean),
                                        self._return))
         self._seen |= visited

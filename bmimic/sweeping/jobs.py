@@ -6,8 +6,9 @@ including which jobs are already done.
 
 from __future__ import annotations
 
-import contextlib
+import copy
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -15,6 +16,7 @@ from typing import Any, Sequence
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bmimic import CONF_DIR, BmimicError
+from bmimic.config import config_loader, override_error
 from bmimic.run_folder import lock_held, read_status
 from bmimic.run_schema import ITERATION
 
@@ -38,6 +40,9 @@ class Job:
     """Last iteration recorded in status.json (None for new jobs)."""
     config: Any = field(default=None, compare=False, repr=False)
     """The job's composed config, without its `hydra` node (bmimic.budget estimates from it)."""
+    differs: dict = field(default_factory=dict, compare=False)
+    """{key: (recorded, this job's)} where the run already in the folder was trained with other
+    settings that change results (a smoke run's budget, another motion...): it is not this job."""
 
 
 class SweepListError(BmimicError):
@@ -47,20 +52,6 @@ class SweepListError(BmimicError):
 def available_studies() -> list[str]:
     """Study names in sweeps/ (the options of `+sweep=`)."""
     return sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml"))
-
-
-@contextlib.contextmanager
-def _config_loader(config_dir: str | os.PathLike, config_name: str):
-    """Hydra's config loader for `config_dir`, initialised as for `python -m bmimic.train`."""
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    import bmimic.config  # noqa: F401  (registers the config schemas and the bmimic.arm_dir resolver)
-    import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver)
-
-    with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3",
-                               job_name=config_name):
-        yield GlobalHydra.instance().config_loader()
 
 
 def _expand(loader, config_name: str, overrides: Sequence[str]) -> tuple[DictConfig, list[list[str]]]:
@@ -92,7 +83,7 @@ def sweep_overrides(overrides: Sequence[str], config_dir: str | os.PathLike = CO
                     config_name: str = "train") -> list[list[str]]:
     """Each job's overrides for `python -m bmimic.train -m <overrides>`, in launch order (cheap:
     composes the primary config once)."""
-    with _config_loader(config_dir, config_name) as loader:
+    with config_loader(config_dir, config_name) as loader:
         return _expand(loader, config_name, overrides)[1]
 
 
@@ -104,7 +95,7 @@ def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR
     its first job (bmimic.launch_guard), so what is listed is what the sweep runs: a job that would be
     refused, or two jobs sharing a folder, fail here with the same line.
     """
-    with _config_loader(config_dir, config_name) as loader:
+    with config_loader(config_dir, config_name) as loader:
         master, _ = _expand(loader, config_name, overrides)
         jobs = expand_jobs(loader, master)
         sweep_dir = Path(str(master.hydra.sweep.dir))
@@ -123,36 +114,57 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
     batch = _batch(loader, master)
     saved = HydraConfig.instance().cfg
     jobs = []
-    checked: set[tuple[str, ...]] = set()
+    arms: dict[tuple[str, ...], DictConfig] = {}
     try:
         for num, job_overrides in enumerate(batch):
+            arm = tuple(o for o in job_overrides if not o.startswith("seed="))
             try:
-                cfg = loader.load_sweep_config(master, list(job_overrides))
+                seed = _plain_seed(job_overrides)
+                if arm in arms and seed is not None:
+                    # An arm's jobs differ only in the seed: its first job's config with this seed (composing
+                    # each job again costs ~0.4 s on a small machine and yields the same config), and the
+                    # other checks hold for all of them.
+                    cfg = copy.deepcopy(arms[arm])
+                    OmegaConf.set_readonly(cfg.hydra, None)  # (set_config below made it read-only)
+                    cfg.hydra.overrides.task = list(job_overrides)
+                    cfg.seed = seed
+                else:
+                    cfg = loader.load_sweep_config(master, list(job_overrides))
                 with open_dict(cfg):
                     cfg.hydra.job.num = num
                     cfg.hydra.job.id = f"{cfg.hydra.job.name}_{num}"
                 HydraConfig.instance().set_config(cfg)  # as the launcher does: subdir may use ${hydra:...}
-                arm = tuple(o for o in job_overrides if not o.startswith("seed="))
-                if arm in checked:  # an arm's jobs differ only in the seed: the other checks hold for all
+                if arm in arms:
                     check_seed(cfg)
                 else:
                     check_job(cfg)
-                    checked.add(arm)
+                    arms[arm] = cfg
                 run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
             except Exception as e:  # noqa: BLE001 - Hydra, OmegaConf and bmimic errors alike: one line
-                text = str(e).strip()
-                msg = text.splitlines()[0] if text else type(e).__name__
-                raise SweepListError(f"job {num} ({' '.join(job_overrides)}): {msg}") from None
+                msg = str(e) if isinstance(e, BmimicError) else override_error(e, job_overrides)
+                raise SweepListError(f"job {num} ({' '.join(job_overrides)}): "
+                                     f"{(msg.strip().splitlines() or [type(e).__name__])[0]}") from None
             status = read_status(run_dir)
             state = status.get("status")
             if state == "running" and not lock_held(run_dir):
                 state = "dead"  # its status says running, but no process holds its lock: killed
+            task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+            differs = recorded_differences(run_dir, task) if state != "missing" else {}
             jobs.append(Job(num, tuple(job_overrides), run_dir, "new" if state == "missing" else state,
-                            status.get(ITERATION), OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])))
+                            status.get(ITERATION), task, differs))
     finally:
         if saved is not None:
             HydraConfig.instance().cfg = saved
     return jobs
+
+
+def _plain_seed(job_overrides: Sequence[str]) -> int | None:
+    """The job's `seed=<n>` as an int when it is a plain decimal integer (what a sweep's seeds are), else
+    None (the job is then composed as Hydra would, with its own errors)."""
+    values = [o.split("=", 1)[1].strip() for o in job_overrides if o.startswith("seed=")]
+    if len(values) != 1 or not re.fullmatch(r"0|[1-9][0-9]*", values[0]):
+        return None
+    return int(values[0])
 
 
 def check_job(cfg: DictConfig) -> None:
@@ -165,7 +177,82 @@ def check_job(cfg: DictConfig) -> None:
     task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
     device = str(task.device) if str(task.device).startswith("cuda") else "cpu"
     resolve_runtime(task, device)
-    validate(task)
+    validate(task, composed_checked=True)
+
+
+def recorded_differences(run_dir: Path, task: DictConfig, device: str | None = None) -> dict[str, tuple[Any, Any]]:
+    """{key: (recorded, this job's)} of the settings that change results in which the run in a job's
+    folder differs from the job (`task`: its composed config without `hydra`); {} for the same job.
+
+    The run's resolved_config.json (kept current by accepted resume changes) is compared with the
+    job's config resolved for `device`, by default the kind of device the run trained on, so keys
+    left to the machine (num_envs: null) compare as that run saw them (the job itself compares again
+    on its own device before it skips a done run, bmimic.job); a run without one (an earlier
+    bmimic's) is compared by its composed .hydra/config.yaml."""
+    from bmimic.config import resolve_runtime
+    from bmimic.run_folder import read_hydra_config, read_resolved_config
+    from bmimic.training.resume import job_differences
+
+    recorded = read_resolved_config(run_dir)
+    if recorded is not None:
+        resolved = copy.deepcopy(task)
+        kind = device or ("cuda" if str(recorded.get("device", "")).startswith("cuda") else "cpu")
+        resolve_runtime(resolved, kind)
+        new = OmegaConf.to_container(resolved, resolve=True)
+    else:
+        recorded = read_hydra_config(run_dir)
+        new = OmegaConf.to_container(task, resolve=False)
+    return job_differences(recorded, new)
+
+
+def describe_differences(differs: dict[str, tuple[Any, Any]], limit: int = 4) -> str:
+    """`key recorded -> this`, for the first `limit` keys (the budget's first: what a smoke run changes)."""
+    from bmimic.training.resume import BUDGET_KEYS
+
+    keys = sorted(differs, key=lambda k: (k not in ("max_iterations", "num_envs", *BUDGET_KEYS), k))
+    shown = [f"{k} {_short(differs[k][0])} -> {_short(differs[k][1])}" for k in keys[:limit]]
+    return ", ".join(shown) + (f" and {len(keys) - limit} more" if len(keys) > limit else "")
+
+
+def _short(value: Any) -> str:
+    text = "null" if value is None else str(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def check_job_runs(jobs: Sequence[Job]) -> None:
+    """Refuse a multirun in which a job's folder already holds a run trained with other settings
+    (Job.differs): a smoke run of 4 iterations, say, would be skipped as done by the study and
+    reported as one of its seeds. With resume=true a run whose differences a resume may make (its
+    budget, the job's resume_allow_changes) is continued to this sweep's settings instead, as
+    `resume=true max_iterations=N` continues a single run. SweepListError (one line) names the
+    first such job, its folder, the keys and the ways out."""
+    refused = [j for j in jobs if j.differs and not _continues(j)]
+    if not refused:
+        return
+    first = refused[0]
+    more = f" (and {len(refused) - 1} more job folder{'s' if len(refused) > 2 else ''})" if len(refused) > 1 else ""
+    ways = "give a smoke test or variant its own sweep_name=..., or move that folder away"
+    if _extendable(first):
+        ways += ", or add resume=true to continue those runs with this sweep's budget"
+    raise SweepListError(
+        f"job {first.num} ({' '.join(first.overrides)}): its folder {first.run_dir} holds a run "
+        f"({first.status}{'' if first.iteration is None else f' at iteration {first.iteration}'}) trained with other "
+        f"settings ({describe_differences(first.differs)}){more}, which this sweep would take for its own; {ways}")
+
+
+def _extendable(job: Job) -> bool:
+    """Every way the run in the job's folder differs is one a resume may make (its budget)."""
+    from bmimic.training.resume import RESUME_FREE_KEYS, key_allowed
+
+    allowed = (*RESUME_FREE_KEYS, *(OmegaConf.select(job.config, "resume_allow_changes") or []))
+    return all(key_allowed(k, allowed) for k in job.differs)
+
+
+def _continues(job: Job) -> bool:
+    """The job continues the run of other settings in its folder (resume=true, _extendable)."""
+    from bmimic.training.resume import resume_request
+
+    return resume_request(OmegaConf.select(job.config, "resume")) is not None and _extendable(job)
 
 
 def check_jobs(jobs: Sequence[Job], sweep_dir: str | os.PathLike | None = None, log_name: str | None = None) -> None:
@@ -212,12 +299,18 @@ def format_jobs(sweep_dir: Path, jobs: Sequence[Job]) -> str:
     for job in jobs:
         rel = job.run_dir.relative_to(sweep_dir) if job.run_dir.is_relative_to(sweep_dir) else job.run_dir
         it = "" if job.iteration is None else str(job.iteration)
-        lines.append(f"{job.num:>4}  {job.status:<8} {it:>6}  {rel}")
+        other = f"  (holds a run with other settings: {describe_differences(job.differs, 2)})" if job.differs else ""
+        lines.append(f"{job.num:>4}  {job.status:<8} {it:>6}  {rel}{other}")
     counts: dict[str, int] = {}
     for job in jobs:
         counts[job.status] = counts.get(job.status, 0) + 1
-    done = counts.get("done", 0)
+    done = sum(1 for job in jobs if job.status == "done" and not job.differs)
     summary = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-    lines.append(f"{len(jobs)} job{'' if len(jobs) == 1 else 's'} ({summary}); a run would train {len(jobs) - done} "
-                 f"and skip {done} done")
+    refused = sum(1 for job in jobs if job.differs and not _continues(job))
+    continued = sum(1 for job in jobs if job.differs and _continues(job))
+    outcome = (f"a run would refuse to start: {refused} job folder{'s hold runs' if refused > 1 else ' holds a run'} "
+               "with other settings" if refused else
+               f"a run would train {len(jobs) - done} and skip {done} done"
+               + (f" (continuing {continued} run{'s' if continued > 1 else ''} with this budget)" if continued else ""))
+    lines.append(f"{len(jobs)} job{'' if len(jobs) == 1 else 's'} ({summary}); {outcome}")
     return "\n".join(lines)

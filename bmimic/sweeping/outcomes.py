@@ -18,6 +18,7 @@ from typing import Any, Sequence
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from bmimic.cli_common import shell_arg
 from bmimic.run_folder import atomic_write_json
 
 log = logging.getLogger("bmimic.launch")
@@ -99,7 +100,8 @@ class SweepOutcomesCallback(Callback):
         if not outcomes:
             return
         line, failed = outcome_summary(outcomes, sweep_dir)
-        print(f"{line} -> {sweep_dir}; next: bmimic-report {sweep_dir}")  # the one closing line of a multirun
+        # The one closing line of a multirun; its command pastes back into a shell (shell_arg).
+        print(f"{line} -> {sweep_dir}; next: bmimic-report {shell_arg(sweep_dir)}")
         if failed:
             print(f"{len(failed)} job(s) failed or were refused:", *failed, sep="\n", file=sys.stderr)
             sys.exit(1)

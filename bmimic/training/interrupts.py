@@ -24,6 +24,8 @@ import signal
 import threading
 from typing import Any, Iterator
 
+from bmimic.cli_common import override_arg
+
 log = logging.getLogger("bmimic.train")
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -133,7 +135,7 @@ class TrainingInterrupted(Exception):
             message = f"interrupted by {stop.name} before training started; nothing was written"
         else:
             message = (f"interrupted by {stop.name} after iteration {iteration}: checkpoint and tables written to "
-                       f"{run_dir}; continue with resume={run_dir} (a sweep: run the same command again)")
+                       f"{run_dir}; continue with {override_arg('resume', run_dir)} (a sweep: run the same command again)")
         super().__init__(message)
 
 

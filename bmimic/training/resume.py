@@ -26,9 +26,17 @@ from bmimic.run_folder import (
 )
 from bmimic.training.checkpoints import is_latest, load_checkpoint_file, load_newest_intact
 
-RESUME_FREE_KEYS = ("resume", "resume_allow_changes", "trust_checkpoint", "device", "progress_bar", "logger", "max_cpu_hours",
-                    "wandb_project", "max_iterations", "time_limit_s", "run_name", "sweep_name", "ppo.save_interval",
-                    "eval.every_iters")
+LAUNCH_KEYS = ("resume", "resume_allow_changes", "trust_checkpoint")
+"""Keys that say how a launch treats an existing run, not how the run trains: never a change of the
+run (resumes.json does not list them)."""
+RESULT_NEUTRAL_KEYS = (*LAUNCH_KEYS, "device", "progress_bar", "verbose", "logger", "max_cpu_hours", "wandb_project",
+                       "run_name", "sweep_name", "ppo.save_interval", "data.lafan_dir")
+"""Keys that say where and how a run is launched and logged, never what it trains or for how long:
+runs that differ only in these are the same job (bmimic.sweeping.jobs)."""
+BUDGET_KEYS = ("max_iterations", "time_limit_s", "eval.every_iters")
+"""How long a run trains and how often it is evaluated: its results depend on them (a smoke run of 4
+iterations is not a study's job), but a resume may change them (to extend a run)."""
+RESUME_FREE_KEYS = tuple(k for k in (*RESULT_NEUTRAL_KEYS, *BUDGET_KEYS) if k not in ("verbose", "data.lafan_dir"))
 """Keys a resume may change without naming them in resume_allow_changes: where and how long to run
 and how to log, not what is trained. Changes are still recorded in resumes.json."""
 
@@ -66,6 +74,18 @@ def _same_value(x: Any, y: Any) -> bool:
     if isinstance(x, (int, float)) and isinstance(y, (int, float)):
         return x == y or (isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y))
     return x == y
+
+
+def job_differences(old: dict | None, new: dict) -> dict[str, tuple[Any, Any]]:
+    """{key: (old, new)} of every key but RESULT_NEUTRAL_KEYS that the config a run was trained with
+    (`old`; None: nothing recorded, so nothing to tell) records and `new` sets otherwise: two configs
+    that differ in none train the same job. A key the record lacks is not compared: an earlier bmimic
+    had no such option, and a new option keeps the old behaviour by default."""
+    if old is None:
+        return {}
+    recorded = flatten_config(old)
+    return {k: v for k, v in config_changes(old, new).items()
+            if k in recorded and not key_allowed(k, RESULT_NEUTRAL_KEYS)}
 
 
 def refused_changes(changes: dict[str, tuple[Any, Any]], allowed: list[str] | tuple[str, ...]) -> list[str]:
@@ -225,7 +245,8 @@ def check_resume_changes(plan: RunPlan, new_config: dict, allowed: list[str] | t
         return {}
     if fill_defaults is not None:
         old = fill_defaults(old)
-    changes = config_changes(old, new_config)
+    # `resume` itself (null -> "true") and its companions describe this launch, not the run: no change.
+    changes = {k: v for k, v in config_changes(old, new_config).items() if not key_allowed(k, LAUNCH_KEYS)}
     refused = refused_changes(changes, allowed)
     if refused:
         shown = ", ".join(f"{k} ({_short(changes[k][0])} -> {_short(changes[k][1])})" for k in refused[:8])

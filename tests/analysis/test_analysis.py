@@ -686,3 +686,34 @@ def test_the_report_has_a_per_clip_table_for_a_library(tmp_path):
     # one clip: no per-clip section
     assert clip_failure(pd.DataFrame({"bin": [0], "clip": ["a"]}), pd.DataFrame(), pd.DataFrame(), pd.DataFrame(),
                         None).empty
+
+
+# --------------------------------------------------------------------------------------------- budgets
+def _set_budget(run_dir: Path, max_iterations: int, resolved: int | None = None) -> None:
+    """Give a planted run the budget its .hydra/config.yaml records (and, as after a resume that raised
+    it, the one its resolved_config.json records)."""
+    import json
+
+    import yaml
+
+    path = Path(run_dir) / ".hydra" / "config.yaml"
+    cfg = yaml.safe_load(path.read_text())
+    path.write_text(yaml.safe_dump({**cfg, "max_iterations": max_iterations, "num_envs": 8}))
+    if resolved is not None:
+        (Path(run_dir) / "resolved_config.json").write_text(json.dumps({**cfg, "max_iterations": resolved,
+                                                                         "num_envs": 8}))
+
+
+def test_a_report_refuses_runs_of_different_budgets_unless_told(tmp_path):
+    sweep = make_sweep(tmp_path)
+    runs = sorted(p for p in sweep.rglob("seed=*") if (p / ".hydra").is_dir())
+    for run in runs:
+        _set_budget(run, 60)
+    _set_budget(runs[0], 4)  # a smoke run in the study's folder
+    with pytest.raises(AnalysisError, match=r"different budgets \(max_iterations: .*--allow-mixed"):
+        load_runs(sweep)
+    assert len(load_runs(sweep, allow_mixed=True)) > 0
+    _set_budget(runs[0], 4, resolved=60)  # extended by a resume to the study's budget: one study again
+    load_runs(sweep)
+    index = build_index(sweep)
+    assert set(index["max_iterations"].dropna()) == {60} and "num_envs" in index.columns

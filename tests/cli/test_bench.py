@@ -24,6 +24,7 @@ def test_bench_cli_on_cpu(tmp_path):
     result = json.loads(out.read_text())
     run = result["runs"][0]
     assert run["num_envs"] == 2 and not run["cuda_graph"]
+    assert (run["sampler"], run["motion"]) == ("adaptive", "easy_only")  # what was timed, not only how fast
     # Structure only: every measurement is there and is a positive, finite number. Speed itself is
     # what benchmarks measure (docs/benchmarks.md); timings taken on a shared CI machine prove nothing.
     for key in ("physics_steps_per_s", "collect_steps_per_s", "train_steps_per_s", "collect_over_physics",

@@ -52,6 +52,34 @@ def test_a_multirun_closes_with_one_line_naming_the_report(tmp_path, monkeypatch
     assert OUTCOMES_ENV not in __import__("os").environ
 
 
+def test_the_commands_printed_paste_back_as_one_argument(tmp_path, capsys):
+    import shlex
+
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from bmimic.cli_common import override_arg
+
+    sweep = tmp_path / "my sweeps" / "it's $HOME"
+    config = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}})
+    callback = SweepOutcomesCallback()
+    callback.on_multirun_start(config)
+    record_job_outcome(sweep / "job0", "done")
+    callback.on_multirun_end(config)
+    line = capsys.readouterr().out.strip()
+    assert shlex.split(line.split("next: ", 1)[1]) == ["bmimic-report", str(sweep)]
+    # A resume hint: one shell word that Hydra reads back as the folder, `=` and `,` of a job folder included.
+    parser = OverridesParser.create()
+    for folder in (sweep / "motion=default,sampler=uniform" / "seed=0", tmp_path / "plain_run"):
+        (word,) = shlex.split(override_arg("resume", folder))
+        assert parser.parse_override(word).value() == str(folder)
+
+
+def test_pyopengls_missing_accelerator_line_is_not_printed():
+    import bmimic.render  # noqa: F401  (sets it before OpenGL is imported)
+
+    assert logging.getLogger("OpenGL.acceleratesupport").getEffectiveLevel() >= logging.WARNING
+
+
 def _evaluated(run, label="model_2"):
     (run / EVAL_DIR / label).mkdir(parents=True)
     (run / EVAL_DIR / label / EVAL_SUMMARY).write_text(json.dumps({"label": label}))

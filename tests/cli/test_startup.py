@@ -1,6 +1,7 @@
-"""The command line answers before the heavy libraries load: composing a config, `--help` and `--cfg job`
-import neither torch nor Warp (nor MuJoCo-Warp); the sweep dry run, which validates every job's env
-terms as the job will, imports torch but not the simulator. Their start-up times are a
+"""The command line answers before the heavy libraries load: composing a config, `--help`, `--cfg job`
+and the sweep dry run import neither torch nor Warp (nor MuJoCo-Warp, nor MuJoCo for the config
+alone); the dry run, which validates every job's env terms and sampler checks as the job will, reads
+their modules with torch deferred (bmimic.deferred), and never runs it. Their start-up times are a
 benchmark (docs/benchmarks.md), not a test; what a test can hold is that the slow imports stay out."""
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import pytest
 
 from tests.conftest import REPO
 
-HEAVY = ("torch", "warp", "mujoco_warp")
+HEAVY = ("torch", "warp", "mujoco_warp", "mujoco", "pandas")
 
 
 def _run(code: str, cwd) -> subprocess.CompletedProcess:
@@ -27,7 +28,9 @@ def _loaded(out: subprocess.CompletedProcess) -> list[str]:
     return [line.split(" ", 1)[1] for line in out.stdout.splitlines() if line.startswith("LOADED ")]
 
 
-REPORT = f"import sys; print(*('LOADED ' + m for m in {HEAVY!r} if m in sys.modules), sep='\\n')"
+# A module deferred by bmimic.deferred sits in sys.modules without having run: not loaded.
+LOADED = f"[m for m in {HEAVY!r} if m in sys.modules and type(sys.modules[m]).__name__ != 'DeferredModule']"
+REPORT = f"import sys; print(*('LOADED ' + m for m in {LOADED}), sep='\\n')"
 
 
 def test_composing_a_config_imports_neither_torch_nor_warp(tmp_path):
@@ -52,16 +55,15 @@ def test_help_cfg_and_the_dry_run_import_neither_torch_nor_warp(tmp_path, argv):
     # The command runs as `python -m` would run it; what it imported is read at interpreter exit.
     code = f"""
 import atexit, runpy, sys
-atexit.register(lambda: print(*('LOADED ' + m for m in {HEAVY!r} if m in sys.modules), sep='\\n'))
+atexit.register(lambda: print(*('LOADED ' + m for m in {LOADED}), sep='\\n'))
 sys.argv = {argv!r}
 runpy.run_module("{argv[0]}", run_name="__main__", alter_sys=True)
 """
     out = _run(code, tmp_path)
     assert "sampler" in out.stdout or "jobs" in out.stdout, out.stdout[-2000:]
-    # The dry run validates every job as the job will, its env terms included (their modules use
-    # torch); the simulator it never needs.
-    allowed = ["torch"] if argv[0] == "bmimic.launch" else []
-    assert [m for m in _loaded(out) if m not in allowed] == []
+    # The dry run validates every job as the job will, its env terms included (their modules import
+    # torch and mujoco, deferred there and never run); the simulator it never needs.
+    assert _loaded(out) == []
     assert not (tmp_path / "outputs").exists()  # nothing written by a look at the config
 
 
@@ -77,3 +79,20 @@ print("BUILT", type(s.AdaptiveSampler(3)).__name__)
 """
     out = _run(code, tmp_path)
     assert _loaded(out) == [] and "BUILT AdaptiveSampler" in out.stdout
+
+
+def test_a_deferred_module_runs_on_first_use_and_is_then_the_module_itself(tmp_path):
+    code = """
+import sys, types
+from bmimic.deferred import defer, is_deferred
+defer("colorsys"); defer("email"); defer("no_such_module_anywhere")
+import colorsys, email                                  # an import statement binds the stand-in
+assert is_deferred("colorsys") and is_deferred("email") and "no_such_module_anywhere" not in sys.modules
+assert colorsys.rgb_to_hsv(1.0, 0.0, 0.0) == (0.0, 1.0, 1.0)   # the first use runs it
+assert not is_deferred("colorsys") and type(sys.modules["colorsys"]) is types.ModuleType
+import email.utils                                      # a submodule of a deferred package
+assert email.utils.parseaddr("a <b@c.d>") == ("a", "b@c.d") and sys.modules["email"] is email
+print("OK")
+"""
+    out = _run(code, tmp_path)
+    assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]

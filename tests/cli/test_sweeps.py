@@ -54,7 +54,7 @@ STUDIES = {
     "dance1_full": (2 * 5, {"sampler"}),
     "mdp_action_rate": (2 * 5, {"env"}),
     "library_lafan": (2 * 5, {"sampler.clip_balance"}),
-    "peer_samplers": (7 * 5, {"sampler"}),
+    "peer_samplers": (8 * 5, {"sampler"}),  # the field's seven samplers and adaptive_hybrid (issue 32)
     "sensitivity_dance1": (2 * 5, {"sampler"}),
     "sensitivity_gamma": (5 * 3, {"sampler.gamma"}),
     "sensitivity_lambda": (4 * 3, {"sampler.lambda_uniform"}),
@@ -195,6 +195,127 @@ def test_dry_run_cli(capsys, hydra_config_restored):
     assert launch.main(["list", "+sweep=no_such_study"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "sampler_ablation" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("study", ["sampler_ablation", "design_choices_dance1"])
+def test_the_dry_run_composes_one_job_per_arm_and_gets_every_jobs_config(study, tmp_path, hydra_config_restored):
+    """An arm's other seeds are its first job's config with their seed (bmimic.sweeping.jobs): the
+    same config and folder as composing each job as the launcher does."""
+    from bmimic.config import config_loader
+
+    with config_loader() as loader:
+        master, _ = sweep_jobs._expand(loader, "train", [f"+sweep={study}", f"hydra.sweep.dir={tmp_path}"])
+        jobs = sweep_jobs.expand_jobs(loader, master)
+        for job in jobs:
+            cfg = loader.load_sweep_config(master, list(job.overrides))
+            with open_dict(cfg):
+                cfg.hydra.job.num = job.num
+                cfg.hydra.job.id = f"{cfg.hydra.job.name}_{job.num}"
+            HydraConfig.instance().set_config(cfg)
+            assert str(job.run_dir) == f"{cfg.hydra.sweep.dir}/{cfg.hydra.sweep.subdir}"
+            task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+            assert OmegaConf.to_yaml(job.config) == OmegaConf.to_yaml(task), job.overrides
+
+
+# ------------------------------------------------------------------------ a job folder of other settings
+def _done_run(tmp_path: Path, *overrides: str) -> Path:
+    """The first job's folder of `+sweep=sampler_ablation seed=0` as a run with `overrides` left it
+    (done, on a CPU: its resolved_config.json as bmimic.job writes it)."""
+    from bmimic.config import resolve_runtime
+
+    _, jobs = list_jobs(["+sweep=sampler_ablation", "seed=0", f"hydra.sweep.dir={tmp_path}", *overrides])
+    job = jobs[0]
+    resolve_runtime(job.config, "cpu")
+    job.run_dir.mkdir(parents=True)
+    (job.run_dir / "status.json").write_text(json.dumps({"status": "done", "iteration": 4, "error": None}))
+    (job.run_dir / "resolved_config.json").write_text(json.dumps(OmegaConf.to_container(job.config, resolve=True)))
+    return job.run_dir
+
+
+def test_every_key_left_out_of_job_folder_names_is_result_neutral_or_a_budget():
+    from bmimic.run_schema import LOGISTICS_KEYS
+    from bmimic.training.resume import BUDGET_KEYS, RESULT_NEUTRAL_KEYS
+
+    # The seed and the study name make the folder; num_envs changes results and no resume may change it.
+    # Every other key out of the names is classified, so a job folder's run is compared on the rest.
+    assert set(LOGISTICS_KEYS) - {"seed", "sweep", "+sweep", "num_envs"} <= {*RESULT_NEUTRAL_KEYS, *BUDGET_KEYS}
+
+
+@pytest.mark.parametrize("study", ["mdp_action_rate", "design_choices_dance1", "peer_samplers",
+                                   "confirm_hybrid_dance1"])
+def test_a_studys_committed_runs_are_its_jobs_for_todays_bmimic(study, tmp_path, hydra_config_restored):
+    """Run again, a study would take its committed runs (docs/results/<study>/runs) as done, not as runs
+    of other settings: a default that changes what a study trains must be pinned in its sweep file.
+    (dance1_full's runs predate `motion` in its job folder names.)"""
+    runs = REPO / "docs" / "results" / study / "runs"
+    seed = min(int(p.name.split("=", 1)[1]) for p in runs.glob("*/seed=*"))
+    _, jobs = list_jobs([f"+sweep={study}", f"seed={seed}", f"hydra.sweep.dir={runs}"])
+    assert jobs and all(j.status == "done" for j in jobs), [(j.run_dir, j.status) for j in jobs]
+    assert [j.differs for j in jobs] == [{}] * len(jobs)
+
+
+def test_a_smoke_runs_folder_is_not_the_studys_job(tmp_path, hydra_config_restored):
+    smoke = _done_run(tmp_path, "max_iterations=4")
+    study = ["+sweep=sampler_ablation", "seed=0", f"hydra.sweep.dir={tmp_path}"]
+    # The smoke command itself sees its own job, done.
+    _, same = list_jobs([*study, "max_iterations=4"])
+    assert same[0].differs == {} and "skip 1 done" in sweep_jobs.format_jobs(tmp_path, same)
+    sweep_jobs.check_job_runs(same)
+    # The study (10000 iterations) does not: its first job's folder holds a run of another budget.
+    _, jobs = list_jobs(study)
+    assert jobs[0].run_dir == smoke and jobs[0].differs == {"max_iterations": (4, 10000)}
+    assert jobs[1].differs == {}
+    text = sweep_jobs.format_jobs(tmp_path, jobs)
+    assert "max_iterations 4 -> 10000" in text and "a run would refuse to start" in text
+    with pytest.raises(sweep_jobs.SweepListError, match=r"job 0 .*max_iterations 4 -> 10000.*sweep_name=.*resume=true"):
+        sweep_jobs.check_job_runs(jobs)
+    # resume=true continues it with the study's budget (a budget key: a resume may change it).
+    _, extend = list_jobs([*study, "resume=true"])
+    sweep_jobs.check_job_runs(extend)
+    assert "continuing 1 run with this budget" in sweep_jobs.format_jobs(tmp_path, extend)
+
+
+def test_a_run_of_other_settings_than_its_budget_is_refused_even_with_resume(tmp_path, hydra_config_restored):
+    _done_run(tmp_path, "num_envs=4")  # not a key a resume may change
+    _, jobs = list_jobs(["+sweep=sampler_ablation", "seed=0", f"hydra.sweep.dir={tmp_path}", "resume=true"])
+    assert jobs[0].differs == {"num_envs": (4, 8)}  # (8: this CPU's default, as the run saw it)
+    with pytest.raises(sweep_jobs.SweepListError, match="num_envs") as refused:
+        sweep_jobs.check_job_runs(jobs)
+    assert "add resume=true" not in str(refused.value)
+
+
+def test_the_dry_run_cli_lists_then_refuses_a_folder_of_other_settings(tmp_path, capsys, hydra_config_restored):
+    _done_run(tmp_path, "max_iterations=4")
+    assert launch.main(["list", "+sweep=sampler_ablation", "seed=0", f"hydra.sweep.dir={tmp_path}"]) == 2
+    out, err = capsys.readouterr()
+    assert "holds a run with other settings: max_iterations 4 -> 10000" in out
+    assert err.startswith("error: job 0") and len(err.strip().splitlines()) == 1
+
+
+def test_a_sweep_over_a_smoke_runs_folder_refuses_before_any_job_and_writes_nothing(tmp_path):
+    smoke = _done_run(tmp_path / "sweep", "max_iterations=4")
+    before = {p: p.read_bytes() for p in (tmp_path / "sweep").rglob("*") if p.is_file()}
+    out = subprocess.run([sys.executable, "-m", "bmimic.train", "-m", "+sweep=sampler_ablation", "seed=0",
+                          f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert out.stderr.startswith("error: job 0") and len(out.stderr.strip().splitlines()) == 1
+    assert str(smoke) in out.stderr and "max_iterations 4 -> 10000" in out.stderr
+    after = {p: p.read_bytes() for p in (tmp_path / "sweep").rglob("*") if p.is_file()}
+    assert after == before  # nothing written, nothing removed
+
+
+def test_a_job_compares_a_done_run_on_its_own_device(tmp_path, hydra_config_restored):
+    from bmimic.job import done_run_differences
+
+    run = _done_run(tmp_path, "max_iterations=4")
+    cfg = compose_study("sampler_ablation", "seed=0", "sampler=uniform", "motion=default", "max_iterations=10000")
+    assert done_run_differences(cfg, run).startswith("holds a run done with other settings (max_iterations 4 -> 10000")
+    with read_write(cfg):
+        cfg.max_iterations = 4
+        assert done_run_differences(cfg, run) is False  # the same job: skipped as done
+        cfg.max_iterations, cfg.resume = 6, "true"
+        assert done_run_differences(cfg, run) is True  # resume=true: continued with the longer budget
 
 
 # --------------------------------------------------------------------------------------------- GPU slots
@@ -448,8 +569,9 @@ def test_rerun_leaves_done_jobs_byte_identical_and_failures_exit_non_zero(tmp_pa
     assert ".hydra/config.yaml" in before and "train_metrics.parquet" in before
     run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1")
     assert tree_hash(job, skip=("train.log",)) == before  # skipped: not even its .hydra/ is rewritten
-    refused = run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1", "resume=true", rc=1)
-    assert "done at iteration 1" in refused.stderr and tree_hash(job, skip=("train.log",)) == before
+    # resume=true continues what is unfinished: a job done at this very budget is skipped, untouched.
+    resumed = run_sweep(sweep, "sampler=uniform", "seed=0", "max_iterations=1", "resume=true")
+    assert "already done" in resumed.stdout + resumed.stderr and tree_hash(job, skip=("train.log",)) == before
     # A sweep whose jobs would be refused is refused whole, before any job runs (issue 36).
     bad = run_sweep(sweep, "sampler=uniform", "seed=0,1", "max_iterations=1", "+sampler.gama=0.5", rc=2)
     assert "error: job 0" in bad.stderr and "sampler.gama" in bad.stderr

@@ -1,0 +1,74 @@
+"""Overrides that Hydra refuses are one `error:` line naming the override and exit status 2, from every
+command that takes them (train, race, bench, launch list), where Hydra alone prints a 5-7 line block,
+exits 1 and suggests `+key=...` for a typo, which bmimic then refuses as an unknown key."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from bmimic.config import ConfigError, check_overrides
+from tests.conftest import REPO
+
+# override -> what its one line must say
+BAD = {
+    "sampler.gamm=0.5": "sampler.gamm: unknown key",
+    "seed=1.5": "seed=1.5: Value '1.5' of type 'float' could not be converted to Integer",
+    "progress_bar=maybe": "progress_bar=maybe: Value 'maybe' is not a valid bool",
+    "run_name=dansé": "run_name=dansé: Hydra's override grammar takes a value with non-ASCII characters only in quotes",
+    "motion=lafan_dance2": "motion=lafan_dance2: no such option of the config group motion; options: ",
+    "seed=0,1": "seed=0,1: several values: a list is seed=[0,1]",
+}
+
+
+@pytest.mark.parametrize("override", sorted(BAD))
+def test_a_refused_override_is_one_line_naming_it(override):
+    with pytest.raises(ConfigError) as refused:
+        check_overrides([override])
+    message = str(refused.value)
+    assert message.startswith(BAD[override]) and "\n" not in message
+    assert "+sampler.gamm" not in message and "_schema" not in message  # no `+` advice, no schema entries
+
+
+def test_what_composes_passes_and_a_quoted_non_ascii_value_is_read():
+    cfg = check_overrides(["sampler=uniform", "motion.name='dansé'", "seed=3"])
+    assert (cfg.sampler.name, cfg.motion.name, cfg.seed) == ("uniform", "dansé", 3)
+    assert check_overrides(["-m", "seed=0,1"]) is not None  # a sweep's values: each job checks its own
+    assert check_overrides(["--config-dir", "/elsewhere", "seed=1.5"]) is None  # another config tree: Hydra's
+
+
+def _run(tmp_path, *argv: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run([sys.executable, "-m", *argv], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.mark.parametrize("argv", [
+    ("bmimic.train", "sampler.gamm=0.5"),
+    ("bmimic.train", "seed=1.5", "--cfg", "job"),
+    ("bmimic.train", "progress_bar=maybe", "--help"),
+    ("bmimic.train", "run_name=dansé"),
+    ("bmimic.train", "-m", "+sweep=sampler_ablation", "seed=1.5,2"),
+    ("bmimic.launch", "list", "+sweep=sampler_ablation", "progress_bar=maybe"),
+    ("bmimic.race", "seed=1.5"),
+    ("bmimic.bench", "--envs", "2", "--", "sampler.gamm=0.5"),
+])
+def test_every_entry_point_refuses_in_one_line_with_status_2(tmp_path, argv):
+    out = _run(tmp_path, *argv)
+    assert out.returncode == 2, (out.returncode, out.stderr[-2000:])
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), out.stderr
+    bad = next(a for a in argv if "=" in a and not a.startswith("+sweep"))
+    assert bad.split("=")[0] in lines[0] and "HYDRA_FULL_ERROR" not in out.stderr
+    assert not (tmp_path / "outputs").exists()  # refused before anything was written
+
+
+def test_a_race_that_could_time_no_evaluation_is_refused_before_it_trains(tmp_path):
+    out = _run(tmp_path, "bmimic.race", "device=cpu")  # the CPU's smoke-scale 4 iterations, an evaluation every 100
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert out.stderr.startswith("error: a race times evaluations, and with max_iterations=4 (the smoke-scale "
+                                 "default on a CPU) and eval.every_iters=100 none would run")
+    assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "outputs").exists()
