@@ -25,7 +25,11 @@ from analysis import AnalysisError
 from analysis.files import write_csv
 from analysis.load import load_runs
 from analysis.run_files import find_run_dirs
+from bmimic.cli_common import path_arg
 from bmimic.run_folder import (
+    MULTIRUN_RECORD,
+    SWEEP_INDEX,
+    is_run_folder,
     lock_held,
     read_hydra_config,
     read_metrics,
@@ -36,7 +40,7 @@ from bmimic.run_schema import ENV_STEPS, WALL_TIME_S
 
 log = logging.getLogger("analysis.index")
 
-INDEX_NAME = "index.csv"
+INDEX_NAME = SWEEP_INDEX
 LOCK_NAME = ".index.lock"
 
 METRIC_KEYS = (
@@ -111,6 +115,12 @@ def write_index(sweep_dir: str | Path) -> Path:
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise AnalysisError(f"{sweep_dir}: sweep folder does not exist")
+    if is_run_folder(sweep_dir):
+        raise AnalysisError(f"{sweep_dir}: is a run folder, not a sweep folder (give the folder that holds the jobs)")
+    if (any(sweep_dir.iterdir()) and not any((sweep_dir / name).is_file() for name in (MULTIRUN_RECORD, SWEEP_INDEX))
+            and not find_run_dirs(sweep_dir)):
+        raise AnalysisError(f"{sweep_dir}: holds files but is not a sweep folder (no {MULTIRUN_RECORD}, {SWEEP_INDEX} "
+                            "or run folders); nothing is written there")
     with _lock(sweep_dir):
         return write_csv(sweep_dir / INDEX_NAME, build_index(sweep_dir))
 
@@ -148,12 +158,14 @@ def _status_summary(index_csv: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1 or argv[0].startswith("-"):
-        print("usage: python -m analysis.index SWEEP_DIR", file=sys.stderr)
-        return 2
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m analysis.index", description="Rebuild a sweep's index.csv "
+                                     "from its job folders.")
+    parser.add_argument("sweep", type=path_arg, help="the sweep folder (outputs/sweeps/<sweep_name>)")
+    args = parser.parse_args(argv)
     try:
-        path = write_index(argv[0])
+        path = write_index(args.sweep)
     except AnalysisError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

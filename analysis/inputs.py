@@ -12,6 +12,7 @@ from pathlib import Path
 from analysis import AnalysisError
 from analysis.run_files import NEEDED_TABLES, config_value
 from bmimic.run_folder import table_path
+from bmimic.run_schema import ITERATION
 
 BIN_KEYS = ("sampler.bins", "sampler.bin_size_seconds")
 """Config keys that define a run's time bins (with its motion)."""
@@ -99,6 +100,35 @@ def mark_copies(rows: list[dict]) -> None:
             r["problem"] = f"its tables are byte-identical to {seen[key]}'s (a copy): counted once"
         else:
             seen[key] = r["run_dir"]
+
+
+def collapse_duplicate_seeds(rows: list[dict]) -> list[str]:
+    """One run per (arm, seed): a seed launched again (a re-run, a run copied and then resumed) is one
+    sample, not several, or the report would count one seed as five and draw intervals and p-values
+    from it. The run that trained the most iterations (then the last by path: the newest timestamp) is
+    kept; the others are left out with a problem naming it. Returns one line per collapsed seed."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        if r.get("included") and r.get("seed") is not None:
+            groups.setdefault((r["arm"], r["seed"]), []).append(r)
+    notes = []
+    for (arm, seed), group in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1])):
+        if len(group) < 2:
+            continue
+        keep = max(group, key=lambda r: (_iterations(r), r["run_dir"]))
+        for r in group:
+            if r is not keep:
+                r["included"] = False
+                r["problem"] = (f"seed {seed} of arm {arm} again (one seed counts once): the report uses "
+                                f"{_name(keep)}")
+        notes.append(f"arm {arm}: seed {seed} appears in {len(group)} runs; counted once ({_name(keep)}, the one "
+                     "that trained longest, then the newest): give each run its own seed")
+    return notes
+
+
+def _iterations(row: dict) -> int:
+    value = row.get(ITERATION)
+    return int(value) if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) else -1
 
 
 def check_options(mastery_threshold: float, success_threshold: float, resamples: int, mastery_persist: int) -> None:

@@ -19,12 +19,13 @@ from pathlib import Path
 import pandas as pd
 
 from analysis import AnalysisError
-from analysis.inputs import MIXED_FLAG, check_comparable, mark_copies
+from analysis.inputs import MIXED_FLAG, check_comparable, collapse_duplicate_seeds, mark_copies
 from analysis.run_files import (
     NEEDED_TABLES,
     REQUIRED_COLUMNS,
     config_value,
     find_run_dirs,
+    missing_columns,
     parse_value,
     read_config,
     read_json,
@@ -32,6 +33,7 @@ from analysis.run_files import (
     seed_from_name,
     table_problem,
 )
+from analysis.table_checks import check_table
 from bmimic.run_folder import (
     EVALUATION_TABLES,
     MOTION_SEGMENTS,
@@ -74,7 +76,10 @@ def _read_run(run_dir: Path, root: Path) -> dict:
         problems.append("no status.json")
 
     seed = cfg.get("seed", seed_from_name(run_dir))
-    row["seed"] = int(seed) if isinstance(seed, int | float) else None
+    whole = (isinstance(seed, int) and not isinstance(seed, bool)) or (isinstance(seed, float) and seed.is_integer())
+    row["seed"] = int(seed) if whole else None
+    if row["seed"] is None:
+        problems.append(f"its seed {seed!r} is not a whole number (.hydra/config.yaml)")
     row["sampler"] = config_value(cfg, "sampler.name")
     row["overrides"] = ",".join(f"{k}={v}" for k, v in sorted(overrides.items()))
     row["_overrides"] = overrides
@@ -198,8 +203,9 @@ def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
       value (e.g. a config-group choice such as ``param.sampler``), else missing.
 
     Raises AnalysisError when a path does not exist or no run folder is found under any path, and
-    (analysis.inputs) when included runs differ in motion, bin layout or budget unless ``allow_mixed``; a run
-    whose tables are byte-identical to another's is left out (``problem`` says so).
+    (analysis.inputs) when included runs differ in motion, bin layout or budget unless ``allow_mixed``; a
+    run whose tables are byte-identical to another's is left out (``problem`` says so), and so is every
+    run but one of a seed that appears more than once in an arm (analysis.inputs.collapse_duplicate_seeds).
     """
     if isinstance(paths, str | Path):
         paths = [paths]
@@ -219,6 +225,8 @@ def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
     for note in check_comparable(rows, allow_mixed):
         log.warning("%s (%s)", note, MIXED_FLAG)
     _single_run_arms(rows)
+    for note in collapse_duplicate_seeds(rows):
+        log.warning("warning: %s", note)
     rows += _missing_jobs(rows)
 
     keys = sorted({k for r in rows for k in r["_overrides"]})
@@ -246,7 +254,8 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
 
     ``name`` is a key of bmimic.run_folder.TABLES (schemas in docs/architecture.md). Runs without the file are skipped
     (only possible for the optional tables); a file
-    that is unreadable or lacks a needed column raises AnalysisError naming it. With no rows, an
+    that is unreadable, lacks a needed column or breaks the run record's contract (analysis.table_checks:
+    no rows, values out of range, bins the run does not have) raises AnalysisError naming it. With no rows, an
     empty frame with the needed columns is returned.
     """
     if name not in TABLES:
@@ -262,9 +271,10 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
             table = pd.read_parquet(path)
         except Exception as e:  # pyarrow raises several types for truncated or foreign files
             raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
-        missing = [c for c in REQUIRED_COLUMNS[name] if c not in table.columns]
+        missing = missing_columns(name, table.columns)
         if missing:
             raise AnalysisError(f"{path}: missing columns {missing}")
+        check_table(path, name, table, run.run_dir)  # ranges, bins, rows: one line naming file and column
         if max_iteration is not None and ITERATION in table.columns:
             done = table[ITERATION] if name in EVALUATION_TABLES else table[ITERATION] + 1
             table = table[done <= max_iteration]

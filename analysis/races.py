@@ -38,6 +38,7 @@ from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
 from analysis.plots import arm_colors
 from bmimic import BmimicError
+from bmimic.cli_common import path_arg
 from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
 
 EVALUATION_KEYS = (ITERATION, ENV_STEPS, "wall_from_launch_s", SUCCESS_RATE, MPKPE_REL_MM)
@@ -75,7 +76,25 @@ def read_race(path: str | Path) -> dict:
         missing = [k for k in EVALUATION_KEYS if not isinstance(e, dict) or k not in e]
         if missing:
             raise AnalysisError(f"{path}: evaluation {i} lacks {', '.join(missing)}")
+        bad = [k for k in EVALUATION_KEYS if not _number_or_null(e[k])]
+        if bad or not (isinstance(e[ITERATION], int) and not isinstance(e[ITERATION], bool) and e[ITERATION] >= 0):
+            key = bad[0] if bad else ITERATION
+            raise AnalysisError(f"{path}: evaluation {i}: {key} is {e[key]!r}, not a number"
+                                f"{'' if bad else ' of iterations (an integer >= 0)'}")
+    thresholds = data.get("thresholds") or []
+    if not isinstance(thresholds, list) or not all(
+            isinstance(t, dict) and _number_or_null(t.get("threshold")) and t.get("threshold") is not None
+            and all(_number_or_null(t.get(k)) for k in THRESHOLD_KEYS[3:]) for t in thresholds):
+        raise AnalysisError(f"{path}: 'thresholds' must be a list of objects with a numeric threshold and "
+                            "numeric (or null) times")
+    if not isinstance(data["config"].get("overrides", []), list):
+        raise AnalysisError(f"{path}: config 'overrides' is not a list")
     return data
+
+
+def _number_or_null(value) -> bool:
+    """A JSON number (not a boolean) or null (a value that was not a number when written)."""
+    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
 
 
 def config_label(config: dict) -> str:
@@ -159,7 +178,7 @@ def race_summary(races: list[tuple[str, dict]]) -> pd.DataFrame:
     rows = []
     for name, data in races:
         last = data["evaluations"][-1] if data["evaluations"] else {}
-        end = float(last.get("wall_from_launch_s", math.nan))
+        end = float(last.get("wall_from_launch_s") if last.get("wall_from_launch_s") is not None else math.nan)
         per_it = (float(last["training_s"]) / last[ITERATION]
                   if last.get("training_s") is not None and last.get(ITERATION) else math.nan)
         row = {**_identity(name, data), "startup_s": data.get("startup_s"), "training_s_per_iteration": per_it,
@@ -246,8 +265,8 @@ def write_race_curves(paths, out: str | Path) -> list[Path]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m analysis.races", description=__doc__.splitlines()[0])
-    parser.add_argument("paths", nargs="+", type=Path, help="race JSONs (python -m bmimic.race --json)")
-    parser.add_argument("--out", type=Path, required=True, help="folder for the CSVs and race_curves.png")
+    parser.add_argument("paths", nargs="+", type=path_arg, help="race JSONs (python -m bmimic.race --json)")
+    parser.add_argument("--out", type=path_arg, required=True, help="folder for the CSVs and race_curves.png")
     args = parser.parse_args(argv)
     try:
         written = write_race_curves(args.paths, args.out)

@@ -27,6 +27,7 @@ from analysis.report_files import write_files
 from analysis.report_views import body, header
 from analysis.tables import ReportOptions
 from bmimic import BmimicError
+from bmimic.cli_common import path_arg
 
 
 def default_out(paths: list[Path]) -> Path:
@@ -47,12 +48,13 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     if out.exists() and not out.is_dir():
         raise AnalysisError(f"--out {out}: is a file, not a folder")
     r = read_runs(paths, opts, allow_mixed)
+    # Every table is read (and checked) before the first file is written: a refused report writes nothing.
+    data = compute(r.runs, r.opts) if r.runs["included"].any() else None
     write_csv(out / "runs.csv", r.runs)
     md = header(paths, r)
-    if not r.runs["included"].any():
+    if data is None:
         md += ["No run has usable tables yet; nothing else to report."]
     else:
-        data = compute(r.runs, r.opts)
         md += body(data, write_files(data, out), r.coverage)
     write_text(out / "report.md", "\n".join(md) + "\n")
     return out
@@ -60,8 +62,8 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m analysis.report", description=__doc__.splitlines()[0])
-    parser.add_argument("paths", nargs="+", type=Path, help="sweep folder, run folder(s), or folders holding runs")
-    parser.add_argument("--out", type=Path, default=None, help="report folder (default: <PATH>/report)")
+    parser.add_argument("paths", nargs="+", type=path_arg, help="sweep folder, run folder(s), or folders holding runs")
+    parser.add_argument("--out", type=path_arg, default=None, help="report folder (default: <PATH>/report)")
     parser.add_argument("--mastery-threshold", type=float, default=0.1, help="bin mastered when failure < this")
     parser.add_argument("--mastery-persist", type=int, default=2,
                         help="consecutive evaluations a bin must stay mastered (or to the end of the run)")

@@ -11,7 +11,15 @@ import pyarrow.parquet as pq
 import yaml
 
 from analysis import AnalysisError
-from bmimic.run_folder import CHECKPOINTS_DIR, HYDRA_DIR, RunFolderError, is_run_folder, load_json, table_path
+from bmimic.run_folder import (
+    CHECKPOINTS_DIR,
+    HYDRA_DIR,
+    RESOLVED_CONFIG,
+    RunFolderError,
+    is_run_folder,
+    load_json,
+    table_path,
+)
 from bmimic.run_schema import (
     BIN_COLUMNS,
     CLIP_TIME_S,
@@ -26,9 +34,9 @@ from bmimic.run_schema import (
 
 REQUIRED_COLUMNS = {
     "train_metrics": ["iteration", ENV_STEPS, WALL_TIME_S, "mean_episode_length", "mean_reward"],
-    "eval": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE],
+    "eval": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE, "failures"],
     "sampler": ["iteration", "bin", "probability"],
-    "eval_robust": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE],
+    "eval_robust": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE, "failures"],
     "clip_eval": ["iteration", "clip", "failed"],
     "whole_clip": ["iteration", CONDITION, "clip", "clip_duration_s", "rollouts", "completed", "transient_failures",
                    "later_failures"],
@@ -36,6 +44,18 @@ REQUIRED_COLUMNS = {
     "whole_clip_failures": ["iteration", CONDITION, "clip", "failure_time_s", "transient"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""
+ONE_OF_COLUMNS = {"eval": ("start_episodes", "episodes"), "eval_robust": ("start_episodes", "episodes")}
+"""Columns of which a table needs one: the episodes started per bin (`episodes` in tables written before
+the per-visit accounting), what the overall failure rate divides by."""
+
+
+def missing_columns(name: str, columns) -> list[str]:
+    """The columns the analysis needs that table `name` lacks (its header is `columns`)."""
+    missing = [c for c in REQUIRED_COLUMNS[name] if c not in columns]
+    either = ONE_OF_COLUMNS.get(name, ())
+    if either and not any(c in columns for c in either):
+        missing.append(" or ".join(either))
+    return missing
 
 _EVAL_OPTIONAL = (*BIN_COLUMNS, "episodes", "segment", "clip", *ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
 REPORT_COLUMNS: dict[str, tuple[str, ...] | None] = {
@@ -96,11 +116,26 @@ def read_config(run_dir: Path) -> dict:
         return {}
     try:
         cfg = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as e:
+    except (OSError, ValueError, yaml.YAMLError) as e:  # ValueError: not UTF-8
         raise AnalysisError(f"{path}: not valid YAML ({e})") from e
     if not isinstance(cfg, dict):
         raise AnalysisError(f"{path}: expected a mapping at the top level, got {type(cfg).__name__}")
-    return cfg
+    resolved = read_json(run_dir / RESOLVED_CONFIG)
+    return _with_values(cfg, resolved) if isinstance(resolved, dict) else cfg
+
+
+def _with_values(cfg: dict, resolved: dict) -> dict:
+    """`cfg` with each value written as an interpolation (`seed: ${oc.env:SLURM_ARRAY_TASK_ID}`, in runs
+    recorded before bmimic recorded values) replaced by the run's resolved value (resolved_config.json)."""
+    out = {}
+    for key, value in cfg.items():
+        if isinstance(value, dict):
+            out[key] = _with_values(value, resolved.get(key) if isinstance(resolved.get(key), dict) else {})
+        elif isinstance(value, str) and "${" in value and key in resolved:
+            out[key] = resolved[key]
+        else:
+            out[key] = value
+    return out
 
 
 def read_overrides(run_dir: Path) -> dict[str, str]:
@@ -113,7 +148,7 @@ def read_overrides(run_dir: Path) -> dict[str, str]:
         return {}
     try:
         items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
-    except (OSError, yaml.YAMLError) as e:
+    except (OSError, ValueError, yaml.YAMLError) as e:  # ValueError: not UTF-8
         raise AnalysisError(f"{path}: not valid YAML ({e})") from e
     if not isinstance(items, list):
         raise AnalysisError(f"{path}: expected a list of 'key=value' strings")
@@ -172,7 +207,7 @@ def table_problem(run_dir: Path, name: str) -> str | None:
         columns = set(pq.read_schema(path).names)
     except Exception as e:  # pyarrow raises several types for truncated or foreign files
         return f"{path.name} unreadable ({type(e).__name__})"
-    missing = [c for c in REQUIRED_COLUMNS[name] if c not in columns]
+    missing = missing_columns(name, columns)
     if missing:
         return f"{path.name} lacks columns {missing}"
     return None

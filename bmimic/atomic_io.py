@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -106,9 +107,28 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def json_values(obj: Any) -> Any:
+    """`obj` with every float that is not finite (NaN, infinity; numpy's too) as None: JSON has no NaN,
+    and a file holding a bare `NaN` is refused by strict readers (other languages, jq, browsers)."""
+    if isinstance(obj, dict):
+        return {k: json_values(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_values(v) for v in obj]
+    if isinstance(obj, float) or (hasattr(obj, "dtype") and getattr(obj, "ndim", None) == 0):
+        try:
+            value = float(obj)
+        except (TypeError, ValueError):
+            return obj
+        if isinstance(obj, float) or getattr(obj.dtype, "kind", "") == "f":
+            return value if math.isfinite(value) else None
+    return obj
+
+
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write `obj` as indented, key-sorted JSON to `path` atomically."""
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
+    """Write `obj` as indented, key-sorted JSON to `path` atomically; a number that is not finite is
+    written as null (json_values), so the file is valid JSON."""
+    text = json.dumps(json_values(obj), indent=2, sort_keys=True, default=str, allow_nan=False)
+    return atomic_write_text(path, text + "\n")
 
 
 def atomic_write_parquet(path: str | os.PathLike, df) -> Path:

@@ -35,6 +35,7 @@ from pathlib import Path
 import torch
 
 from bmimic import BmimicError
+from bmimic.cli_common import path_arg
 
 
 def _sync(device: str) -> None:
@@ -238,33 +239,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=5, help="PPO iterations timed per measurement")
     p.add_argument("--device", default="auto")
     p.add_argument("--only", default="sim,collect,train,breakdown", help="subset of sim,collect,train,breakdown")
-    p.add_argument("--json", default=None, help="write the results here")
-    p.add_argument("--multigpu-json", default=None, metavar="PATH",
+    p.add_argument("--json", type=path_arg, default=None, help="write the results here")
+    p.add_argument("--multigpu-json", type=path_arg, default=None, metavar="PATH",
                    help="under torchrun: time full PPO iterations on every rank and merge the total env steps/s "
                         "into PATH (one row per GPU count and env count, scaling against the 1-GPU row)")
     args = p.parse_args(argv)
-    from bmimic.config import check_overrides
+    from bmimic.bench_checks import checked_args
+    from bmimic.cli_common import first_line, user_errors
 
-    try:  # Hydra's refusals of the overrides as one line (bmimic.config.override_error), before any timing
-        check_overrides(overrides)
-    except BmimicError as e:
-        print(f"error: {e}", file=sys.stderr)
+    try:
+        envs, only, device = checked_args(args, overrides)
+        if args.multigpu_json:
+            return multigpu(args, overrides, envs)
+    except user_errors() as e:
+        print(f"error: {first_line(e)}", file=sys.stderr)
         return 2
-    if args.multigpu_json:
-        try:
-            return multigpu(args, overrides)
-        except BmimicError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-    from bmimic.runtime import resolve_device
-
-    device = resolve_device(args.device)
-    only = set(args.only.split(","))
     results = {"environment": environment_info(device), "overrides": overrides, "runs": []}
     if results["environment"]["git_commit"] is None:  # a copy of the tree without .git (a lent machine)
         print("warning: no git commit found for this code; set BMIMIC_SOURCE_COMMIT=<commit> so that the results "
               "record which code they measured", file=sys.stderr)
-    for n in [int(x) for x in args.envs.split(",")]:
+    for n in envs:
         r = bench_one(n, device, args.iters, only, overrides)
         results["runs"].append(r)
         print(json.dumps(r), flush=True)
@@ -320,19 +314,19 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
     return out
 
 
-def multigpu(args: argparse.Namespace, overrides: list[str]) -> int:
+def multigpu(args: argparse.Namespace, overrides: list[str], envs: list[int]) -> int:
     """`--multigpu-json`: full PPO iterations on every rank of this torchrun, rank 0 merges the rows."""
-    from bmimic.runtime import exit_rank, init_distributed, resolve_device
+    from bmimic.runtime import exit_rank, init_distributed, resolve_device, torchrun_env
 
     path = Path(args.multigpu_json)
     read_multigpu_rows(path)  # a malformed file stops the run here, before any measurement
     rank, world = init_distributed()
     device = resolve_device(args.device)
     if world > 1 and torch.distributed.get_backend() == "nccl":
-        device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        device = f"cuda:{torchrun_env()[2]}"
     rows = []
     try:
-        for n in [int(x) for x in args.envs.split(",")]:
+        for n in envs:
             r = bench_one(n, device, args.iters, {"train"}, overrides, rank=rank)
             # Every rank steps its own n envs; the iteration time is the slowest rank's.
             rows.append({"gpus": world, "num_envs_per_gpu": n, "env_steps_per_s": world * r["train_steps_per_s"]})

@@ -1,5 +1,6 @@
 """What every command line shares: which errors are the user's (one line, exit status 2), the
---trust-checkpoint flag, and how a printed command quotes its arguments so that it pastes back."""
+--trust-checkpoint flag, the check of a path argument or of a file a command is told to write, and how
+a printed command quotes its arguments so that it pastes back."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import argparse
 import os
 import re
 import shlex
+from pathlib import Path
 
 
 def first_line(e: BaseException) -> str:
@@ -28,6 +30,39 @@ def add_trust_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trust-checkpoint", action="store_true",
                    help="also read bmimic checkpoint format 1 (pickled numpy RNG state), still weights-only: "
                         "numpy arrays are admitted, any other global is refused")
+
+
+def check_output_file(flag: str, path: str | os.PathLike) -> Path:
+    """A file a command is told to write (`--json PATH`): a file name in a folder that exists, not a
+    folder itself; raises BmimicError (one line naming `flag`), so that a typo never creates folders."""
+    from bmimic import BmimicError
+
+    out = Path(path)
+    try:
+        bad = not str(path) or "\0" in str(path) or out.is_dir() or not out.parent.is_dir()
+    except OSError:  # a name too long for the filesystem
+        bad = True
+    if bad:
+        raise BmimicError(f"{flag} {path}: must name a file in an existing folder")
+    return out
+
+
+def path_arg(text: str) -> Path:
+    """argparse `type=` of a path argument: refuses, as argparse's one-line usage error, a path no file
+    can have (empty, a name longer than the filesystem allows, a loop of links), which the commands'
+    checks would otherwise meet as an OSError (a traceback) or as the working directory ('')."""
+    import errno
+
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path (an unset shell variable?)")
+    try:
+        os.stat(text)
+    except OSError as e:
+        if e.errno in (errno.ENAMETOOLONG, errno.ELOOP, errno.EILSEQ):
+            raise argparse.ArgumentTypeError(f"{text[:60]}{'...' if len(text) > 60 else ''}: {e.strerror}") from None
+    except ValueError as e:  # an embedded NUL byte (not possible from a shell, from another program)
+        raise argparse.ArgumentTypeError(f"{text[:60]!r}: {e}") from None
+    return Path(text)
 
 
 def shell_arg(value: str | os.PathLike) -> str:

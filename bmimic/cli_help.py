@@ -124,9 +124,10 @@ def train_help(root: Any, schema: type, loader: Any = None) -> str:
 
 
 def _is_node(root: Any, name: str) -> bool:
-    from omegaconf import DictConfig
+    from omegaconf import OmegaConf
 
-    return isinstance(root.get(name), DictConfig)
+    # (not root.get(name): that resolves a value, and `seed=${oc.env:UNSET}` would end --help in a traceback)
+    return isinstance(OmegaConf.to_container(root, resolve=False).get(name), dict)
 
 
 def _node_docs(schema: type, name: str, node: Any) -> dict[str, str]:

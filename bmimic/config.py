@@ -19,6 +19,7 @@ from typing import Any, List, Optional, Sequence
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from bmimic import BmimicError
 from bmimic.envs.config import EnvConfig
@@ -116,8 +117,12 @@ def register_configs() -> None:
 
 
 def _arm_dir(override_dirname: str) -> str:
-    """Folder name of a sweep arm: Hydra's override_dirname, or `base` when only the seed varies."""
-    return override_dirname if override_dirname else "base"
+    """Folder name of a sweep arm: Hydra's override_dirname, or `base` when only the seed varies. A '/'
+    in a value makes sub-folders, but a `.` or `..` part of one (`motion.path=../x.npz`) is spelled
+    `%2E` / `%2E%2E`, so that a job's folder always lies in its arm's folder under its sweep."""
+    if not override_dirname:
+        return "base"
+    return "/".join(part.replace(".", "%2E") if part in (".", "..") else part for part in override_dirname.split("/"))
 
 
 def _train_help(*, _root_) -> str:
@@ -140,24 +145,53 @@ _UNSET = object()
 
 def hydra_overrides(argv: list[str]) -> list[str]:
     """The overrides of a Hydra command line (its flags and their values left out)."""
+    args = _hydra_args(argv)
+    return list(args.overrides) if args is not None else []
+
+
+def _hydra_args(argv: list[str]):
+    """Hydra's parse of a command line, or None when argparse refuses it: quietly, since Hydra prints
+    that refusal when it parses the same line (printed here too, it was said twice)."""
+    import io
+
     from hydra._internal.utils import get_args_parser
 
     try:
-        return list(get_args_parser().parse_args(argv).overrides)
-    except SystemExit:  # a malformed flag: Hydra reports it when it parses the same line
-        return []
+        with contextlib.redirect_stderr(io.StringIO()):
+            return get_args_parser().parse_args(argv)
+    except SystemExit:
+        return None
+
+
+def check_hydra_flags(argv: list[str]) -> None:
+    """Refuse, in one line, the flag combinations Hydra itself refuses with a traceback (its checks run
+    outside its own error reporting): --resolve without --cfg or --help, and more than one of --run,
+    -m, --cfg, --info and --shell-completion. Argparse's own errors are left to Hydra's parser."""
+    args = _hydra_args(argv)
+    if args is None:  # argparse's usage line follows when Hydra parses the same command line
+        return
+    if args.resolve and args.cfg is None and not args.help:
+        raise ConfigError("--resolve: only with --cfg or --help")
+    if args.run + (args.cfg is not None) + args.multirun + args.shell_completion + (args.info is not None) > 1:
+        raise ConfigError("only one of --run, --multirun (-m), --cfg, --info and --shell-completion at a time")
 
 
 def _dotted_additions(overrides: Sequence[str]) -> list[str]:
     return [o for o in overrides if o.startswith("+") and "=" in o and "." in o.split("=", 1)[0]]
 
 
-def _refuse_additions_under_null(cfg, adds: Sequence[str]) -> None:
+def _refuse_additions_under_null(cfg, adds: Sequence[str], set_elsewhere: Sequence[str] = ()) -> None:
+    """ConfigError for the first of `adds` whose parent is null in `cfg`; a parent in `set_elsewhere` (an
+    override sets it, but `cfg` was composed without that override) is left to the full composition."""
     for override in adds:
         parts = override.lstrip("+").split("=", 1)[0].split(".")
         for i in range(1, len(parts)):
             parent = ".".join(parts[:i])
-            if OmegaConf.select(cfg, parent, default=_UNSET) is None:
+            try:
+                value = OmegaConf.select(cfg, parent, default=_UNSET)
+            except OmegaConfBaseException:  # an interpolation that does not resolve (`${oc.env:UNSET}`): its
+                break  # own error, in Hydra's or validate's words, not a traceback here
+            if value is None and parent not in set_elsewhere:
                 raise ConfigError(f"{override}: {parent} is null in the config, so nothing can be added under it; "
                                   f"set {parent} itself (e.g. {parent}=[...] or {parent}={{...}})")
 
@@ -165,19 +199,26 @@ def _refuse_additions_under_null(cfg, adds: Sequence[str]) -> None:
 def check_additions(overrides: list[str]) -> None:
     """Refuse, in one line, a `+a.b.c=v` whose parent (`a.b`) is null in the composed config: OmegaConf
     cannot add under None and fails with a bare AssertionError inside Hydra's composition (a traceback
-    on the command line). Composes the config only when such a dotted addition is present."""
+    on the command line). Composes the config only when such a dotted addition is present. When the
+    other overrides do not compose either (a wrong type elsewhere), Hydra would still meet the bare
+    AssertionError first: the check then reads the chosen groups' defaults, except where an override
+    sets a parent."""
+    from hydra.types import RunMode
+
     adds = _dotted_additions(overrides)
     if not adds:
         return
-    try:
-        with config_loader() as loader:
-            from hydra.types import RunMode
-
-            cfg = loader.load_configuration("train", [o for o in overrides if o not in adds and not o.startswith("hydra")],
-                                            run_mode=RunMode.RUN)
-    except Exception:  # noqa: BLE001 - anything else: check_overrides (or Hydra) reports it in its own words
+    others = [o for o in overrides if o not in adds and not o.startswith("hydra")]
+    groups = [o for o in others if "." not in o.split("=", 1)[0]]
+    for attempt in (others, groups):
+        try:
+            with config_loader() as loader:
+                cfg = loader.load_configuration("train", attempt, run_mode=RunMode.RUN)
+        except Exception:  # noqa: BLE001 - anything else: check_overrides (or Hydra) reports it in its own words
+            continue
+        fallback = attempt is groups and groups != others
+        _refuse_additions_under_null(cfg, adds, [o.split("=", 1)[0] for o in others] if fallback else ())
         return
-    _refuse_additions_under_null(cfg, adds)
 
 
 @contextlib.contextmanager
@@ -209,12 +250,10 @@ def check_overrides(argv: Sequence[str], multirun: bool | None = None, loader=No
     each job checks (bmimic.sweeping.jobs). Returns None, checking nothing, for a command line that
     names another config tree (OWN_CONFIG_FLAGS) or has a malformed flag (Hydra reports it). `loader`: a
     config loader to compose with (default: a fresh one, config_loader)."""
-    from hydra._internal.utils import get_args_parser
     from hydra.types import RunMode
 
-    try:
-        args = get_args_parser().parse_args(list(argv))
-    except SystemExit:
+    args = _hydra_args(list(argv))
+    if args is None:
         return None
     if any(a == flag or a.startswith(flag + "=") for a in argv for flag in OWN_CONFIG_FLAGS):
         return None
@@ -298,9 +337,6 @@ def resolve_runtime(cfg, device: str) -> None:
 def with_schema_defaults(config: dict) -> dict:
     """A plain (resolved) config with the schema's defaults for the keys it lacks, e.g. one saved by
     an earlier bmimic before an option existed; unchanged when it does not fit the schema."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
     try:
         filled = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(TrainConfig), config), resolve=True)
     except (OmegaConfBaseException, ValueError, TypeError):
@@ -313,3 +349,36 @@ def with_schema_defaults(config: dict) -> dict:
         except BmimicError:
             pass
     return filled
+
+
+
+READER_ENV_KEYS = ("data.lafan_dir",)
+"""Keys whose ${oc.env:...} is meant to be the reader's (the LAFAN1 folder on this machine): the run
+record keeps them as written."""
+
+
+def interpolated_keys(tree: Any, prefix: str = "") -> list[str]:
+    """Dotted keys of the leaves (a list counts as one) of a plain container written with `${...}`
+    (OmegaConf.to_container(cfg, resolve=False)), READER_ENV_KEYS aside."""
+    if isinstance(tree, dict):
+        return [k for key, value in tree.items() for k in interpolated_keys(value, f"{prefix}{key}.")]
+    key = prefix[:-1]
+    return [key] if key and "${" in str(tree) and key not in READER_ENV_KEYS else []
+
+
+def recorded_config(composed: dict, resolved: dict) -> dict:
+    """The config a run records (.hydra/config.yaml): `composed` (as composed, `auto`/null values kept)
+    with each interpolation (`seed=${oc.env:SLURM_ARRAY_TASK_ID}`, `seed=${num_envs}`) replaced by the
+    value it had when the run trained (`resolved`: the runtime-resolved config), READER_ENV_KEYS aside.
+    The tools that read the run (eval, the report) then see its values, not the reader's environment."""
+    import copy
+
+    out = copy.deepcopy(composed)
+    for key in interpolated_keys(composed):
+        *parents, leaf = key.split(".")
+        source, target = resolved, out
+        for part in parents:
+            source, target = (source or {}).get(part) if isinstance(source, dict) else None, target[part]
+        if isinstance(source, dict) and leaf in source:
+            target[leaf] = copy.deepcopy(source[leaf])
+    return out

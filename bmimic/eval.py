@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import Sequence
 
 from bmimic import BmimicError
-from bmimic.cli_common import add_trust_flag, first_line, user_errors
+from bmimic.cli_common import add_trust_flag, first_line, path_arg, user_errors
 from bmimic.console import quiet_warp
 from bmimic.evaluation.report import format_report
 from bmimic.evaluation.saved_run import (
@@ -149,11 +149,13 @@ def flag_overrides(args: argparse.Namespace) -> list[str]:
 
 
 def check_flags(args: argparse.Namespace) -> None:
-    """The whole-clip flags' values (UsageError, one line), before anything is read."""
+    """The whole-clip flags' values and --out (UsageError, one line), before anything is read."""
     if args.conditions is not None and args.whole_clip is None:
         raise UsageError("--conditions: only with --whole-clip")
     if isinstance(args.whole_clip, int) and args.whole_clip < 1:
         raise UsageError(f"--whole-clip {args.whole_clip}: the rollouts per clip must be >= 1")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out}: is a file, not a folder")  # before the evaluation's minutes
     if args.conditions is not None:
         unknown = [c for c in args.conditions if c not in WHOLE_CLIP_CONDITIONS]
         if unknown or not args.conditions or len(set(args.conditions)) != len(args.conditions):
@@ -171,13 +173,13 @@ def parser() -> argparse.ArgumentParser:
         description="Sampler-independent evaluation of a trained policy (deterministic actions).",
         epilog="Tables: RUN_DIR/eval/<checkpoint>/{" + ",".join(EVAL_TABLES) + "}",
     )
-    p.add_argument("path", help="a run folder (evaluates checkpoints/latest.pt) or a checkpoint file in one")
+    p.add_argument("path", type=path_arg, help="a run folder (evaluates checkpoints/latest.pt) or a checkpoint file in one")
     p.add_argument("overrides", nargs="*", help="dotted config overrides key=value, e.g. eval.horizon_s=3")
     p.add_argument("--episodes-per-bin", type=int, help="episodes started per time bin (eval.episodes_per_bin)")
     p.add_argument("--horizon-s", type=float, help="seconds an episode must survive (eval.horizon_s)")
     p.add_argument("--num-envs", type=int, help="most simultaneous evaluation worlds (eval.max_envs)")
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
-    p.add_argument("--out", type=Path, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
+    p.add_argument("--out", type=path_arg, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
     p.add_argument("--whole-clip", nargs="?", type=int, const=..., metavar="R",  # ...: R from the config
                    help="instead of the windows: R rollouts per clip from its first frame to its last, per condition "
                         "(nominal is deterministic: one per clip); R: eval.whole_clip.rollouts (128 on a GPU, 2 on a "

@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from bmimic.cli_common import add_trust_flag, first_line, user_errors
+from bmimic.cli_common import add_trust_flag, first_line, path_arg, user_errors
 from bmimic.run_folder import checkpoints_dir, make_folder
 
 log = logging.getLogger("bmimic.export")
@@ -46,8 +46,8 @@ def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = Fals
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bmimic.export", description=__doc__.splitlines()[0].split(": ", 1)[1])
-    p.add_argument("path", help="a run folder (its latest checkpoint) or a checkpoint file in one")
-    p.add_argument("--out", type=Path, help="folder for the files (default RUN_DIR/checkpoints)")
+    p.add_argument("path", type=path_arg, help="a run folder (its latest checkpoint) or a checkpoint file in one")
+    p.add_argument("--out", type=path_arg, help="folder for the files (default RUN_DIR/checkpoints)")
     add_trust_flag(p)
     return p
 

@@ -31,7 +31,7 @@ LAUNCHER_EXTRAS = {"joblib_gpus": "parallel", "joblib": "parallel", "slurm": "sl
 
 
 class MissingExtraError(BmimicError):
-    """A command needs an optional extra that is not installed."""
+    """A command needs an optional extra that is not installed (or, a launcher, the system it drives)."""
 
 
 def _importable(module: str) -> bool:
@@ -66,12 +66,24 @@ def require_extra(extra: str, what: str) -> None:
 
 def check_launcher(overrides: Sequence[str]) -> None:
     """`hydra/launcher=<name>` among the command line's overrides: its extra must be installed (Hydra
-    itself would fail composing the launcher's config, without naming the package)."""
+    itself would fail composing the launcher's config, without naming the package), and the SLURM
+    launcher needs SLURM (submitit fails with a traceback on a machine without `srun`)."""
     for arg in overrides:
         key, _, value = arg.lstrip("+~").partition("=")
         if key == "hydra/launcher" and value in LAUNCHER_EXTRAS:
             require_extra(LAUNCHER_EXTRAS[value], f"hydra/launcher={value}")
+            if value in ("slurm", "submitit_slurm"):
+                require_slurm(f"hydra/launcher={value}")
+
+
+def require_slurm(what: str) -> None:
+    """MissingExtraError (one line naming `what`) on a machine without SLURM (`srun` not on PATH)."""
+    import shutil
+
+    if shutil.which("srun") is None:
+        raise MissingExtraError(f"{what}: this machine has no SLURM (srun is not on PATH); launch from a SLURM login "
+                                "node, or leave out hydra/launcher=slurm to run the jobs here")
 
 
 __all__ = ["EXTRAS", "LAUNCHER_EXTRAS", "MissingExtraError", "check_launcher", "install_command", "missing_packages",
-           "require_extra"]
+           "require_extra", "require_slurm"]

@@ -8,9 +8,9 @@ written into a run folder before every check has passed.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
-import os
 import sys
 import traceback
 from pathlib import Path
@@ -23,7 +23,13 @@ from omegaconf import DictConfig, OmegaConf
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
 from bmimic.cli_common import first_line, shell_arg, user_errors
-from bmimic.config import ConfigError, resolve_runtime, with_schema_defaults
+from bmimic.config import (
+    ConfigError,
+    interpolated_keys,
+    recorded_config,
+    resolve_runtime,
+    with_schema_defaults,
+)
 from bmimic.config_checks import advisories, check_composed, validate
 from bmimic.console import quiet_stdout, quiet_warp, summary_block
 from bmimic.run_folder import (
@@ -36,7 +42,7 @@ from bmimic.run_folder import (
 )
 from bmimic.run_record import metrics as run_metrics
 from bmimic.run_schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
-from bmimic.runtime import init_distributed, resolve_device, seed_everything
+from bmimic.runtime import init_distributed, process_rank, resolve_device, seed_everything, torchrun_env
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import (
     build_evaluator,
@@ -46,7 +52,7 @@ from bmimic.task import (
     build_whole_clip,
     check_num_envs_fit,
 )
-from bmimic.training.interrupts import StopSignals, TrainingInterrupted
+from bmimic.training.interrupts import StopNow, StopSignals, TrainingInterrupted
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
 from bmimic.training.schedule import whole_clip_wanted
 from bmimic.training.session import RunContext, commit, record_failure
@@ -71,6 +77,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     from bmimic.sampling.config import describe as describe_sampler
 
     ctx = ctx if ctx is not None else RunContext(launch_dir)
+    if stop is not None:  # nothing is written until commit: a signal ends the set-up at once (StopNow)
+        stop.begin_at_once()
     requested = cfg.device
     smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
     default_budget = cfg.max_iterations is None
@@ -81,7 +89,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         logging.getLogger().setLevel(logging.WARNING)
     if world > 1:
         if torch.distributed.get_backend() == "nccl":
-            device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+            device = f"cuda:{torchrun_env()[2]}"
     resolve_runtime(cfg, device)
     validate(cfg)
     if stop_rule is not None:  # bmimic.race: it times evaluations, so one must run before the budget ends
@@ -92,6 +100,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     smoke = not device.startswith("cuda") and smoke_defaults
     main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
     resolved = OmegaConf.to_container(cfg, resolve=True)
+    ctx.hydra_record = record_values(ctx.hydra_record, ctx.composed_config, resolved)
     allowed = list(cfg.resume_allow_changes or [])
     plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint),
                     pinned=ctx.claim is not None and ctx.claim.pinned, config=resolved, allowed=allowed,
@@ -142,31 +151,35 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     trainer.after_evaluation = stop_rule
     trainer.whole_clip = whole_clip
     try:
-        if stop is not None and stop.requested:  # during the build (a first start compiles for minutes)
-            raise TrainingInterrupted(stop, None, run_dir)
+        if stop is not None:
+            stop.end_at_once()  # from here the run has something to save: a signal ends the iteration
         if main_rank:
             commit(ctx, plan, resolved, device, changes, task.motion)
-        trainer.learn(signals=stop)
+        try:
+            trainer.learn(signals=stop)
+            if not trainer.interrupted:
+                final = trainer.progress.last_eval
+                # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
+                # their graphs and leave the process group meanwhile, and return NaN.
+                if not main_rank:
+                    final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
+                elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
+                    # (a resume of a run that reached max_iterations already holds its final evaluation)
+                    final = trainer.evaluate()
+                robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
+                    cfg.eval.robust and main_rank) else {}
+                if whole_clip is not None and cfg.eval.whole_clip.at_end and (
+                        trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
+                    trainer.evaluate_whole_clip()
+                if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
+                    robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
+        except StopNow:  # a signal during an evaluation (bmimic.training.interrupts): the iteration is kept
+            trainer.interrupted = True
         if trainer.interrupted:
             if main_rank:
                 trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
                 write_status(run_dir, "interrupted", trainer.progress.iteration)
             raise TrainingInterrupted(stop, trainer.progress.iteration, run_dir)
-        final = trainer.progress.last_eval
-        # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
-        # their graphs and leave the process group meanwhile, and return NaN.
-        if not main_rank:
-            final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
-        elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
-            # (a resume of a run that reached max_iterations already holds its final evaluation)
-            final = trainer.evaluate()
-        robust = robust_evaluation(trainer, build_evaluator(task, robust=True)) if (
-            cfg.eval.robust and main_rank) else {}
-        if whole_clip is not None and cfg.eval.whole_clip.at_end and (
-                trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
-            trainer.evaluate_whole_clip()
-        if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
-            robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
         if main_rank:
             trainer.save_checkpoint()
     finally:
@@ -189,6 +202,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         "num_envs": cfg.num_envs,
         "device": device,
         **trainer.total_resets,
+        "overflow_world_steps": trainer.overflow_world_steps,
     })
     if not main_rank:
         log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
@@ -197,9 +211,12 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     write_metrics(run_dir, metrics)
     write_status(run_dir, "done", trainer.progress.iteration)
     broken = sum(trainer.total_resets.values())
-    log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s -> %s", metrics["iterations"],
+    overflow = trainer.overflow_world_steps
+    log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s%s -> %s", metrics["iterations"],
              metrics[WALL_TIME_S], metrics["final_eval_failure_rate"],
-             f"; {broken} broken world-steps were reset" if broken else "", run_dir)
+             f"; {broken} broken world-steps were reset" if broken else "",
+             f"; {overflow} world-steps overflowed the contact/constraint buffers (raise sim.nconmax / sim.njmax)"
+             if overflow else "", run_dir)
     if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
         folder = shell_arg(run_dir)  # pasted back into a shell: a folder with a space stays one argument
         log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", folder, folder,
@@ -241,7 +258,7 @@ def check_evaluates(cfg: DictConfig, cpu_default: bool) -> None:
                           "max_cpu_hours=<h>), or train with bmimic-train instead")
 
 
-def robust_evaluation(trainer, evaluator) -> dict:
+def robust_evaluation(trainer, evaluator, stop: StopSignals | None = None) -> dict:
     """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
     on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
     from bmimic.training.evaluator import summarize
@@ -249,7 +266,8 @@ def robust_evaluation(trainer, evaluator) -> dict:
     policy = trainer.alg.get_policy()
     policy.eval()
     p = trainer.progress
-    per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
+    with stop.at_once() if stop is not None else contextlib.nullcontext():  # a signal ends it at once
+        per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
     trainer.record.write_table("eval_robust", per_bin)
     evaluator.env.close()
     summary = summarize(per_bin, prefix="robust_eval")
@@ -285,12 +303,21 @@ def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: boo
 
 
 def hydra_record(cfg: DictConfig) -> dict[str, str] | None:
-    """The .hydra files of this launch, from the config as composed (before runtime resolution)."""
+    """The .hydra files of this launch, from the config as composed (before runtime resolution); train()
+    records the values of its interpolations (record_values)."""
     if not HydraConfig.initialized():
         return None
     hc = HydraConfig.instance().cfg
     return {"config.yaml": OmegaConf.to_yaml(cfg), "hydra.yaml": OmegaConf.to_yaml(hc),
             "overrides.yaml": OmegaConf.to_yaml(hc.hydra.overrides.task)}
+
+
+def record_values(record: dict[str, str] | None, composed: dict, resolved: dict) -> dict[str, str] | None:
+    """The .hydra record with config.yaml's interpolations replaced by the values the run trained with
+    (bmimic.config.recorded_config); unchanged when the config interpolates nothing."""
+    if record is None or not interpolated_keys(composed):
+        return record
+    return {**record, "config.yaml": OmegaConf.to_yaml(OmegaConf.create(recorded_config(composed, resolved)))}
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -305,6 +332,7 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
     multirun = hc.mode == RunMode.MULTIRUN
     ctx = RunContext(launch_dir)
     ctx.hydra_record = hydra_record(cfg)
+    ctx.composed_config = OmegaConf.to_container(cfg, resolve=False)
     outcome, message = "failed", None
     stop = StopSignals()
     try:
@@ -316,7 +344,8 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
                 if not differs:
                     log.info("skipping %s: already done", launch_dir)
                     outcome = "done before"
-                    return float(read_metrics(launch_dir).get("final_eval_failure_rate", math.nan))
+                    failure = read_metrics(launch_dir).get("final_eval_failure_rate")  # null: not a number
+                    return float(failure) if isinstance(failure, int | float) else math.nan
                 if differs is not True:  # a run of other settings: never taken for this job's result
                     outcome, message = "refused", differs
                     print(f"error: {launch_dir}: {message}", file=sys.stderr)
@@ -333,19 +362,21 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
         result = train(cfg, launch_dir, sweep_job=multirun, ctx=ctx, stop_rule=stop_rule, stop=stop)
         outcome = "done"
         return result
-    except TrainingInterrupted as e:  # the run has its checkpoint, tables and status; a sweep stops here too
+    except (TrainingInterrupted, StopNow) as e:  # the run has its checkpoint, tables and status; a sweep stops too
+        if isinstance(e, StopNow):  # during the set-up: nothing was written
+            e = TrainingInterrupted(stop, None, launch_dir)
         outcome, message = "interrupted", str(e)
-        if e.iteration is None and not multirun and int(os.environ.get("RANK", "0")) == 0:
+        if e.iteration is None and not multirun and process_rank() == 0:
             ctx.discard()  # nothing was written: the launch removes what it created, as a refusal does
             ctx.release()
-        if int(os.environ.get("RANK", "0")) == 0:
+        if process_rank() == 0:
             print(message, file=sys.stderr)
         stop.chain()  # a launcher's handler of this signal (submitit: requeue the job, then exit)
         sys.exit(e.exit_code)
     except user_errors() as e:
         message = first_line(e)
         record_failure(ctx, multirun, message)
-        if int(os.environ.get("RANK", "0")) == 0:  # under torchrun every rank refuses alike: one line
+        if process_rank() == 0:  # under torchrun every rank refuses alike: one line
             print(f"error: {message}", file=sys.stderr)
         if multirun:
             return math.nan

@@ -52,12 +52,13 @@ class LaunchGuard(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         from bmimic.run_claim import claim, observe
+        from bmimic.runtime import process_rank
         from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.training.resume import resume_request
 
         template = str(OmegaConf.to_container(config.hydra.run, resolve=False).get("dir", ""))
         pinned = "${now:" not in template
-        if int(os.environ.get("RANK", "0")) != 0:
+        if process_rank() != 0:
             with contextlib.suppress(Exception):  # under torchrun rank 0 owns the (pinned) folder
                 observe(str(config.hydra.run.dir), pinned)
             return
@@ -89,14 +90,17 @@ class LaunchGuard(Callback):
         from hydra.core.global_hydra import GlobalHydra
 
         from bmimic.budget import check_sweep
+        from bmimic.extras import require_slurm
         from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.sweeping.jobs import check_job_runs, check_jobs, expand_jobs
 
         try:
+            if str(OmegaConf.select(config, "hydra.launcher._target_") or "").endswith("SlurmLauncher"):
+                require_slurm("the sweep's SLURM launcher")  # (one set in a sweep file, not on the command line)
             check_visible_devices()  # before the budget check, which would blame the CPU
             _folder_name(config, "sweep_name")
             jobs = expand_jobs(GlobalHydra.instance().config_loader(), config)
-            check_jobs(jobs)
+            check_jobs(jobs, str(config.hydra.sweep.dir), f"{config.hydra.job.name}.log")
             check_job_runs(jobs)  # a smoke run's folder is not the study's job
             check_sweep(jobs)  # a sweep that would train for a day or more on this CPU
         except BmimicError as e:

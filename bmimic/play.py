@@ -26,7 +26,7 @@ from typing import Sequence
 
 import numpy as np
 
-from bmimic.cli_common import add_trust_flag, first_line, user_errors
+from bmimic.cli_common import add_trust_flag, first_line, path_arg, user_errors
 from bmimic.run_folder import VIDEOS_DIR
 
 log = logging.getLogger("bmimic.play")
@@ -35,11 +35,11 @@ log = logging.getLogger("bmimic.play")
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bmimic.play",
                                 description="Render a trained policy tracking its reference motion (ghost).")
-    p.add_argument("path", help="a run folder (uses checkpoints/latest.pt) or a checkpoint file in one")
+    p.add_argument("path", type=path_arg, help="a run folder (uses checkpoints/latest.pt) or a checkpoint file in one")
     p.add_argument("overrides", nargs="*", help="dotted config overrides key=value (as in bmimic.eval)")
     p.add_argument("--seconds", type=float, default=10.0, help="length of the video in seconds (default 10)")
     p.add_argument("--start-s", type=float, default=0.0, help="motion time to start at, in seconds (default 0)")
-    p.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default RUN_DIR/videos/...)")
+    p.add_argument("--out", type=path_arg, help="video file, .mp4 or .gif (default RUN_DIR/videos/...)")
     p.add_argument("--width", type=int, default=640, help="image width in pixels (default 640)")
     p.add_argument("--height", type=int, default=480, help="image height in pixels (default 480)")
     p.add_argument("--fps", type=float, default=50.0, help="video frame rate (default 50 = the control rate)")
@@ -122,12 +122,15 @@ def check_video_fits(seconds: float, fps: float, width: int, height: int) -> Non
 
 def play(args: argparse.Namespace) -> Path:
     """Build the run's single-world eval environment and policy, render, write the video."""
+    from bmimic.cli_common import check_output_file
     from bmimic.evaluation.saved_run import checkpoint_label, load_run, load_run_checkpoint
     from bmimic.render import RenderError, TrackingRenderer, video_path, write_video
     from bmimic.task import build_evaluator
     from bmimic.training.policy import build_policy
 
     check_video_fits(args.seconds, args.fps, args.width, args.height)
+    if args.out is not None:  # before minutes of rendering: a file in an existing folder
+        check_output_file("--out", video_path(Path(args.out)))
     # eval.max_envs=1: build_evaluator then makes exactly one world.
     overrides = [*args.overrides, "eval.max_envs=1", *([f"device={args.device}"] if args.device else [])]
     run = load_run(args.path, overrides, trust=args.trust_checkpoint)

@@ -42,39 +42,21 @@ one every 15 minutes of racing, so whole-clip times are that coarse (docs/benchm
 
 from __future__ import annotations
 
-import os
-import time
+import argparse
+import math
+import sys
+from pathlib import Path
 
-
-def _process_start_unix_s() -> float:
-    """When this process started (Linux: /proc, 10 ms resolution); else now (this module's import)."""
-    try:
-        with open("/proc/self/stat") as f:
-            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
-        with open("/proc/stat") as f:
-            boot = next(int(line.split()[1]) for line in f if line.startswith("btime "))
-        return boot + start_ticks / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError, StopIteration):
-        return time.time()
-
-
-LAUNCH_UNIX_S = _process_start_unix_s()
-"""The race's clock starts here, before any heavy import."""
-
-import argparse  # noqa: E402
-import math  # noqa: E402
-import sys  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-from bmimic.run_schema import (  # noqa: E402
-    ENV_STEPS,
-    ITERATION,
-    MPKPE_REL_MM,
-    RACE_KIND,
-    SUCCESS_RATE,
-    summary_key,
-    whole_clip_key,
+from bmimic import BmimicError
+from bmimic.cli_common import check_output_file, first_line, path_arg
+from bmimic.race_record import LAUNCH_UNIX_S, WHOLE_CLIP_METRIC, Race, Threshold
+from bmimic.runtime import (
+    exit_rank,
+    gather_floats,
+    init_distributed,
+    process_rank,
+    process_world,
+    torchrun_env,
 )
 
 RACE_EVAL_EVERY = 100
@@ -85,160 +67,10 @@ RACE_EPISODES_PER_BIN = 16
 DEFAULT_SUCCESS = (0.90, 0.95, 0.98, 0.99)
 DEFAULT_MPKPE_REL_MM = (40.0, 35.0)
 DEFAULT_WHOLE_CLIP_SUCCESS = (0.90, 0.95)
-WHOLE_CLIP_METRIC = whole_clip_key("robust", "success_rate")
-"""The whole-clip finish line's measure: robust whole-clip success (bmimic.training.whole_clip)."""
 RACE_WHOLE_CLIP = {"eval.whole_clip.conditions": "[robust]", "eval.whole_clip.rollouts": 128,
                    "eval.whole_clip.after_success": 0.95, "eval.whole_clip.max_share": 0.10}
 """The race's whole-clip evaluation unless the overrides set it: robust, 128 rollouts (one latency-bound wave on
 a GPU), from 95% window success, whenever all evaluations stay within 10% of the wall time (module docstring)."""
-
-
-@dataclass
-class Threshold:
-    """One finish line: `metric` (eval_success_rate, reached when >=; eval_mpkpe_rel_mm, when <=)."""
-
-    metric: str
-    value: float
-    streak: int = 0
-    """Evaluations in a row that met it, up to the latest."""
-    reached_at: dict | None = None
-    """The evaluation record where the sustained run began (None: not yet)."""
-    first: dict | None = None
-    """The evaluation record where the current streak began."""
-
-    def met(self, summary: dict) -> bool:
-        x = float(summary.get(self.metric, math.nan))
-        return x >= self.value if self.metric.endswith("success_rate") else x <= self.value
-
-    @property
-    def label(self) -> str:
-        if self.metric == "eval_success_rate":
-            return f"success >= {self.value:g}"
-        if self.metric == WHOLE_CLIP_METRIC:
-            return f"robust whole-clip success >= {self.value:g}"
-        return f"root-relative MPKPE <= {self.value:g} mm"
-
-
-@dataclass
-class Race:
-    """The stopping rule and the record: `on_evaluation` is bmimic.train's stop_rule."""
-
-    thresholds: list[Threshold]
-    budget_s: float
-    sustain: int = 2
-    launch_unix_s: float = LAUNCH_UNIX_S
-    evaluations: list[dict] = field(default_factory=list)
-    stopped: str = "max_iterations"
-    run_dir: str | None = None
-    first_iteration_unix_s: float | None = None
-    eval_time_s: float = 0.0
-    rank_launch_unix_s: list[float] = field(default_factory=list)
-    """Under torchrun: every rank's launch, in rank order (`launch_unix_s` is the earliest); else empty."""
-
-    def join_ranks(self, launches: list[float]) -> None:
-        """One race over the ranks whose launch times these are: the clock starts at the earliest."""
-        self.rank_launch_unix_s = list(launches)
-        self.launch_unix_s = min(launches)
-
-    @property
-    def gpus(self) -> int:
-        """Ranks in the race (one GPU each under NCCL)."""
-        return max(1, len(self.rank_launch_unix_s))
-
-    def on_evaluation(self, trainer, summary: dict, now: float | None = None) -> bool:
-        """Record this evaluation; True once every threshold is reached or the budget is spent."""
-        now = time.time() if now is None else now
-        self.run_dir = str(trainer.run_dir)
-        self.first_iteration_unix_s = trainer.learn_started_unix_s
-        self.eval_time_s = float(trainer.eval_time_s)
-        p = trainer.progress
-        record = {
-            ITERATION: int(p.iteration), ENV_STEPS: int(p.env_steps),
-            "wall_from_launch_s": now - self.launch_unix_s,
-            "wall_from_first_iteration_s": now - (self.first_iteration_unix_s or self.launch_unix_s),
-            "training_s": float(p.wall_time_s), "evaluation_s": self.eval_time_s,
-            SUCCESS_RATE: float(summary.get("eval_success_rate", math.nan)),
-            MPKPE_REL_MM: float(summary.get(summary_key(MPKPE_REL_MM), math.nan)),
-        }
-        if WHOLE_CLIP_METRIC in summary:
-            record[WHOLE_CLIP_METRIC] = float(summary[WHOLE_CLIP_METRIC])
-        self.evaluations.append(record)
-        for t in self.thresholds:
-            if t.metric not in summary:  # not measured this time (whole clips run less often): the streak waits
-                continue
-            t.streak = t.streak + 1 if t.met(summary) else 0
-            t.first = (record if t.streak == 1 else t.first) if t.streak else None
-            if t.reached_at is None and t.streak >= self.sustain:
-                t.reached_at = t.first
-        if all(t.reached_at is not None for t in self.thresholds):
-            self.stopped = "every threshold reached"
-            return True
-        if record["wall_from_launch_s"] >= self.budget_s:
-            self.stopped = f"wall budget of {self.budget_s:g} s from launch"
-            return True
-        return False
-
-    def lines(self) -> list[str]:
-        """One line per threshold, then where the time went."""
-        last = self.evaluations[-1] if self.evaluations else None
-        out = []
-        for t in self.thresholds:
-            r = t.reached_at
-            if r is not None:
-                out.append(f"race: {t.label} at iteration {r[ITERATION]} ({r[ENV_STEPS]:.3g} env steps): "
-                           f"{r['wall_from_launch_s']:.0f} s from launch, {r['wall_from_first_iteration_s']:.0f} s "
-                           "from the first iteration")
-            elif last is not None:
-                out.append(f"race: {t.label} not reached by iteration {last[ITERATION]} "
-                           f"({last['wall_from_launch_s']:.0f} s from launch; censored)")
-            else:
-                out.append(f"race: {t.label} not reached (no evaluation ran)")
-        summary = self.summary()
-        if self.gpus > 1:
-            out.append(f"race: one race over {self.gpus} ranks, launched within "
-                       f"{max(self.rank_launch_unix_s) - self.launch_unix_s:.1f} s; the clock starts at the earliest")
-        if summary["startup_s"] is not None:
-            out.append(f"race: start-up {summary['startup_s']:.0f} s (launch to the first iteration); evaluations "
-                       f"{summary['evaluation_s']:.0f} s, {100 * summary['eval_overhead']:.1f}% of the wall time "
-                       f"after start-up; stopped: {self.stopped}")
-        return out
-
-    def summary(self) -> dict:
-        last = self.evaluations[-1] if self.evaluations else {}
-        after_start = last.get("wall_from_first_iteration_s", math.nan)
-        return {
-            "startup_s": (self.first_iteration_unix_s - self.launch_unix_s) if self.first_iteration_unix_s else None,
-            "evaluation_s": self.eval_time_s,
-            "eval_overhead": self.eval_time_s / after_start if after_start and after_start > 0 else math.nan,
-            "wall_total_s": last.get("wall_from_launch_s", math.nan),
-            "stopped": self.stopped,
-        }
-
-    def ranks(self, num_envs_per_gpu) -> dict:
-        """Under torchrun: the race's GPUs (ranks), envs per GPU and in all, and the launches' spread."""
-        if self.gpus == 1:
-            return {}  # a single process's race.json is as it always was
-        total = num_envs_per_gpu * self.gpus if isinstance(num_envs_per_gpu, int) else None
-        return {"gpus": self.gpus, "num_envs_per_gpu": num_envs_per_gpu, "num_envs_total": total,
-                "rank_launch_spread_s": max(self.rank_launch_unix_s) - self.launch_unix_s}
-
-    def to_json(self, config: dict, provenance: dict | None) -> dict:
-        return {
-            "kind": RACE_KIND,
-            "run_dir": self.run_dir,
-            "sustain": self.sustain,
-            "budget_s": self.budget_s,
-            "config": config,
-            "machine": provenance,
-            **self.ranks(config.get("num_envs")),
-            **self.summary(),
-            "thresholds": [{"metric": t.metric, "threshold": t.value,
-                            "status": "reached" if t.reached_at else "censored",
-                            **({k: t.reached_at[k] for k in ("iteration", ENV_STEPS, "wall_from_launch_s",
-                                                              "wall_from_first_iteration_s")}
-                               if t.reached_at else {})} for t in self.thresholds],
-            "evaluations": self.evaluations,
-        }
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -265,7 +97,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
                    help="robust whole-clip success thresholds (default 0.9,0.95; when whole clips are evaluated: below)")
     p.add_argument("--no-whole-clip", action="store_true", help="race to the window thresholds only")
     p.add_argument("--sustain", type=int, default=2, help="evaluations in a row a threshold must hold (default 2)")
-    p.add_argument("--json", type=Path, default=None, help="also write the result here (e.g. docs/bench/...json)")
+    p.add_argument("--json", type=path_arg, default=None, help="also write the result here (e.g. docs/bench/...json)")
     args, rest = p.parse_known_args(argv)
     problems = []
     if not (math.isfinite(args.budget_s) and args.budget_s > 0):
@@ -279,8 +111,12 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         problems.append("--mpkpe-rel-mm thresholds must be > 0 mm")
     if args.sustain < 1:
         problems.append(f"--sustain must be >= 1, got {args.sustain}")
-    if args.json is not None and (args.json.is_dir() or not args.json.parent.is_dir()):
-        problems.append(f"--json {args.json}: must name a file in an existing folder")
+    try:
+        if args.json is not None:
+            check_output_file("--json", args.json)
+        torchrun_env()  # malformed torchrun variables: one line before anything starts
+    except BmimicError as e:
+        problems.append(str(e))
     for flag in ("-m", "--multirun"):
         if flag in rest:
             problems.append("a race times one job from its launch: run seeds or arms as separate commands, not -m")
@@ -295,12 +131,10 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
 def _refuse(problem: str) -> None:
     """The `error:` line of a refusal (exit status 2). Under torchrun every rank refuses alike and rank 0
     alone prints; the ranks then leave together, since torchrun stops the others as soon as one exits."""
-    if int(os.environ.get("RANK", "0")) == 0:
+    if process_rank() == 0:
         print(f"error: {problem}", file=sys.stderr, flush=True)
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+    if process_world() > 1:
         import torch
-
-        from bmimic.runtime import init_distributed
 
         init_distributed()
         torch.distributed.barrier()  # rank 0 has printed
@@ -318,7 +152,7 @@ def race_overrides(rest: list[str], whole_clip: bool = True) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     """The race; under torchrun (WORLD_SIZE > 1) every rank runs it and the rank ends without the
     interpreter's teardown, as bmimic.train's do (bmimic.runtime.exit_rank)."""
-    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+    if process_world() <= 1:
         return _race(argv)
     import torch
 
@@ -328,17 +162,16 @@ def main(argv: list[str] | None = None) -> int:
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     if torch.distributed.is_initialized():  # a launch refused before training: training destroys it otherwise
         torch.distributed.destroy_process_group()
-    from bmimic.runtime import exit_rank
-
     exit_rank(code)
     return code  # not reached
 
 
 def _race(argv: list[str] | None) -> int:
     args, rest = parse_args(sys.argv[1:] if argv is None else argv)
-    from bmimic.config import ConfigError, check_overrides
+    from bmimic.config import ConfigError, check_hydra_flags, check_overrides
 
-    try:  # before anything trains: overrides that do not compose (one line, as bmimic.train)
+    try:  # before anything trains: flags Hydra refuses with a traceback, overrides that do not compose (one
+        check_hydra_flags(rest)  # line each, as bmimic.train)
         check_overrides(race_overrides(rest, whole_clip=not args.no_whole_clip))
     except ConfigError as e:
         _refuse(str(e))
@@ -348,14 +181,14 @@ def _race(argv: list[str] | None) -> int:
                   + ([] if args.no_whole_clip else [Threshold(WHOLE_CLIP_METRIC, v) for v in args.whole_clip_success]))
     race = Race(thresholds, args.budget_s, args.sustain)
     result: dict = {}
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        from bmimic.runtime import gather_floats, init_distributed
-
+    if process_world() > 1:
         init_distributed()  # the process group training would join: joined now, to gather the launch times
         race.join_ranks(gather_floats(LAUNCH_UNIX_S))
 
     import hydra
+    from hydra.errors import HydraException
     from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
 
     from bmimic import CONF_DIR
     from bmimic.job import launch
@@ -378,11 +211,14 @@ def _race(argv: list[str] | None) -> int:
     except SystemExit as e:  # launch's one-line refusals (exit 2) end the race the same way
         if e.code not in (0, None):
             return int(e.code) if isinstance(e.code, int) else 2
+    except (HydraException, OmegaConfBaseException) as e:  # --help and --info compose outside Hydra's error report
+        _refuse(first_line(e))
+        return 2
     finally:
         sys.argv = saved
     if any(a in rest for a in ("--cfg", "-c", "--info", "-i", "--hydra-help", "--resolve")):
         return 0  # Hydra printed what was asked; nothing ran
-    if int(os.environ.get("RANK", "0")) != 0:
+    if process_rank() != 0:
         return 0  # rank 0 evaluated and writes the race
     if race.run_dir is None:
         print("error: the race ran no evaluation (eval.every_iters=0, or max_iterations below it)", file=sys.stderr)

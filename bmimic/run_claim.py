@@ -6,7 +6,9 @@ code runs, so `bmimic.launch_guard.LaunchGuard` (a Hydra callback) claims the fo
 - a generated folder (the default `outputs/runs/<run_name>/<timestamp>`) is created here, exclusively:
   a second launch in the same second gets `<timestamp>_1`, and so on, never the first one's folder;
 - a folder the user pinned (`hydra.run.dir=...`) that holds a run (started, failed or finished) is
-  refused without `resume`, and so is one that another process is training;
+  refused without `resume`, and so is one that another process is training; one that holds anything
+  else (a user's own files: a launch writes metrics.json, provenance.json, checkpoints/ ...) is refused
+  even with `resume`: a launch writes only into a new or empty folder, or into its own run;
 - what the launch created (folders, its log file, the lock file) is recorded in a `RunClaim`, so that
   a refused launch removes exactly that and nothing else, and a launch that continues another run
   carries over only the log lines it wrote itself.
@@ -24,6 +26,8 @@ from pathlib import Path
 from bmimic import BmimicError
 from bmimic.run_folder import (
     LOCK,
+    MULTIRUN_RECORD,
+    SWEEP_INDEX,
     checkpoint_files,
     checkpoints_dir,
     holds_lock,
@@ -132,11 +136,15 @@ def claim(run_dir: str | os.PathLike, pinned: bool, resume: bool, log_name: str 
     if pinned:
         if path.exists() and not path.is_dir():
             raise ClaimError(f"hydra.run.dir={run_dir}: is a file, not a folder")
-        if path.is_dir() and not resume:
-            held = holds_run(path)
-            if held:
-                raise ClaimError(f"hydra.run.dir={run_dir}: already holds a run ({held}); add resume=true to "
-                                 "continue it, or choose another folder")
+        held = holds_run(path) if path.is_dir() else ""
+        if held and not resume:
+            raise ClaimError(f"hydra.run.dir={run_dir}: already holds a run ({held}); add resume=true to "
+                             "continue it, or choose another folder")
+        foreign = [] if held or not path.is_dir() else foreign_entries(path, log_name)
+        if foreign:
+            raise ClaimError(f"hydra.run.dir={run_dir}: holds files that are not a bmimic run ("
+                             f"{', '.join(foreign[:4])}{', ...' if len(foreign) > 4 else ''}); a launch writes only "
+                             "into a new or empty folder, or continues its own run: choose another folder")
         if path.is_dir():
             probe = lock_run(path) if (path / LOCK).exists() else True
             if probe is None:
@@ -174,6 +182,34 @@ def observe(run_dir: str | os.PathLike, pinned: bool) -> RunClaim:
     global _CURRENT
     _CURRENT = RunClaim(Path(os.path.abspath(run_dir)), pinned)
     return _CURRENT
+
+
+def foreign_entries(path: Path, log_name: str | None = None) -> list[str]:
+    """The entries of the folder `path` that no launch left there (sorted): everything but a launch's
+    lock file and its log (`log_name`, which a launch only appends to), which a launch killed before it
+    wrote anything leaves behind."""
+    try:
+        names = sorted(os.listdir(path))
+    except OSError as e:
+        return [f"(its entries cannot be listed: {e.strerror or e})"]
+    return [n for n in names if n not in (LOCK, log_name)]
+
+
+def check_sweep_folder(sweep_dir: str | os.PathLike) -> None:
+    """A multirun's folder (`hydra.sweep.dir`) is new, empty or a sweep's (Hydra's multirun.yaml or the
+    sweep's index.csv at its root); ClaimError otherwise: Hydra writes multirun.yaml there and the jobs
+    their folders, so a folder of the user's own files is never written into."""
+    path = Path(sweep_dir)
+    if path.exists() and not path.is_dir():
+        raise ClaimError(f"hydra.sweep.dir={sweep_dir}: is a file, not a folder")
+    if not path.is_dir() or any((path / name).is_file() for name in (MULTIRUN_RECORD, SWEEP_INDEX)):
+        return
+    foreign = foreign_entries(path)
+    if foreign:
+        raise ClaimError(f"hydra.sweep.dir={sweep_dir}: holds files that are not a bmimic sweep ("
+                         f"{', '.join(foreign[:4])}{', ...' if len(foreign) > 4 else ''}; no {MULTIRUN_RECORD} or "
+                         f"{SWEEP_INDEX}); a sweep writes only into a new or empty folder or its own: choose another "
+                         "sweep_name or hydra.sweep.dir")
 
 
 def holds_run(path: Path) -> str:

@@ -49,6 +49,10 @@ RESOLVED_CONFIG = "resolved_config.json"
 RESUMES = "resumes.json"
 MOTION_SEGMENTS = "motion_segments.json"
 ERRORS_LOG = "errors.log"
+SWEEP_INDEX = "index.csv"
+"""A sweep's table of its jobs, at the sweep's root (analysis.index writes it)."""
+MULTIRUN_RECORD = "multirun.yaml"
+"""Hydra's record of a multirun, at the sweep's root."""
 LOCK = ".bmimic.lock"
 """Empty; flock-ed while a process trains the run (the lock dies with the process)."""
 TENSORBOARD_DIR = "tensorboard"
@@ -176,7 +180,7 @@ def read_json(path: str | os.PathLike, default: Any = None) -> Any:
     try:
         with open(path) as f:
             return json.load(f)
-    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError, IsADirectoryError):
+    except (OSError, ValueError):  # absent, a folder, a loop of links, not JSON, not UTF-8
         return default
 
 

@@ -155,8 +155,10 @@ FINAL_METRICS = tuple(f"final_{summary_key(k)}" for k in ("failure_rate", "succe
                                                            "bins_mastered_frac"))
 """The final evaluation's numbers every metrics.json holds first."""
 RUN_METRICS = ("iterations", "env_steps", "wall_time_s", "mean_episode_length", "max_episode_length", "num_bins",
-               "num_envs", "device", "nonfinite_resets", "out_of_bounds_resets")
-"""The rest of metrics.json: the run's budget, scale and broken-world totals."""
+               "num_envs", "device", "nonfinite_resets", "out_of_bounds_resets", "overflow_world_steps")
+"""The rest of metrics.json: the run's budget, scale, broken-world totals and the world-steps whose
+contact/constraint buffers overflowed (sim.nconmax / sim.njmax too small). A value that is not a
+number (no episode ended: no mean length) is null."""
 
 # --------------------------------------------------------------------------------------------- mastery
 MASTERED_BELOW = 0.1

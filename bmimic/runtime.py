@@ -51,21 +51,148 @@ def resolve_device(device: str) -> str:
     return f"cuda:{index}"
 
 
+class DistributedSetupError(BmimicError):
+    """torchrun's variables are malformed, or its ranks cannot meet (one line)."""
+
+
+RENDEZVOUS_TIMEOUT_S = 300.0
+"""How long a torchrun rank waits for the others to meet (`$BMIMIC_RENDEZVOUS_TIMEOUT_S` sets it): a
+rank started alone (WORLD_SIZE=2 without its peer) ends with one line instead of waiting forever."""
+
+
+def _whole(name: str, default: int, low: int) -> int:
+    text = os.environ.get(name)
+    if text is None:
+        return default
+    try:
+        value = int(text.strip())
+    except ValueError:
+        value = low - 1
+    if value < low:
+        raise DistributedSetupError(f"{name}={text!r}: must be a whole number >= {low} (torchrun sets it; unset it to "
+                                    "run one process)")
+    return value
+
+
+def torchrun_env() -> tuple[int, int, int]:
+    """(rank, world size, local rank) from torchrun's RANK, WORLD_SIZE and LOCAL_RANK ((0, 1, 0) without
+    them), checked: whole numbers, the rank below the world size, and with more than one rank the
+    rendezvous address (MASTER_ADDR, MASTER_PORT). DistributedSetupError (one line) otherwise."""
+    world = _whole("WORLD_SIZE", 1, 1)
+    rank = _whole("RANK", 0, 0)
+    local = _whole("LOCAL_RANK", 0, 0)
+    if rank >= world:
+        raise DistributedSetupError(f"RANK={rank} with WORLD_SIZE={world}: a rank must be below the world size "
+                                    "(torchrun sets both; unset them to run one process)")
+    if world > 1:
+        if "RANK" not in os.environ:
+            raise DistributedSetupError(f"WORLD_SIZE={world} without RANK: start the ranks with torchrun (or unset "
+                                        "WORLD_SIZE to run one process)")
+        for name in ("MASTER_ADDR", "MASTER_PORT"):
+            if not os.environ.get(name, "").strip():
+                raise DistributedSetupError(f"WORLD_SIZE={world} without {name}: start the ranks with torchrun, which "
+                                            "sets it (or unset WORLD_SIZE to run one process)")
+        port = os.environ["MASTER_PORT"].strip()
+        if not port.isdigit() or not 0 < int(port) < 2**16:
+            raise DistributedSetupError(f"MASTER_PORT={port!r}: must be a TCP port (1-65535)")
+    return rank, world, local
+
+
+def process_rank() -> int:
+    """This process's torchrun rank (0 without torchrun, or when RANK is malformed: the checks of
+    torchrun_env refuse that before anything runs; for the paths that report an error)."""
+    try:
+        return torchrun_env()[0]
+    except DistributedSetupError:
+        return 0
+
+
+def process_world() -> int:
+    """This process's torchrun world size (1 without torchrun, or when the variables are malformed, which
+    torchrun_env refuses before anything runs; for the paths that decide how to refuse)."""
+    try:
+        return torchrun_env()[1]
+    except DistributedSetupError:
+        return 1
+
+
+def rendezvous_timeout_s() -> float:
+    """RENDEZVOUS_TIMEOUT_S, or `$BMIMIC_RENDEZVOUS_TIMEOUT_S` (seconds > 0)."""
+    text = os.environ.get("BMIMIC_RENDEZVOUS_TIMEOUT_S")
+    if text is None:
+        return RENDEZVOUS_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (value > 0 and value < 1e7):
+        raise DistributedSetupError(f"BMIMIC_RENDEZVOUS_TIMEOUT_S={text!r}: must be a number of seconds > 0")
+    return value
+
+
 def init_distributed() -> tuple[int, int]:
     """(rank, world size); under torchrun, join the process group (NCCL on GPUs, gloo on a CPU-only
-    machine) before any env is built."""
+    machine) before any env is built. The ranks meet (rendezvous) in a helper thread while this one
+    waits in Python: a stop signal is handled at once (bmimic.training.interrupts), and a rank whose
+    peers do not come within rendezvous_timeout_s ends with one line."""
     import torch
 
-    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank, world, local = torchrun_env()
     if world <= 1:
         return 0, 1
     if not torch.distributed.is_initialized():
+        timeout_s = rendezvous_timeout_s()
         if torch.cuda.is_available():
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
-            torch.distributed.init_process_group("nccl")
-        else:  # CPU ranks (gloo): the same code path, for smoke tests without a GPU
-            torch.distributed.init_process_group("gloo")
+            if local >= torch.cuda.device_count():
+                raise DistributedSetupError(f"LOCAL_RANK={local}: only {torch.cuda.device_count()} GPU(s) are visible")
+            torch.cuda.set_device(local)
+        store = _rendezvous(rank, world, timeout_s)
+        # (CPU ranks use gloo: the same code path, for smoke tests without a GPU)
+        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo", store=store,
+                                             rank=rank, world_size=world)
     return torch.distributed.get_rank(), world
+
+
+def _rendezvous(rank: int, world: int, timeout_s: float):
+    """torch's env:// rendezvous store, met in a daemon thread (see init_distributed)."""
+    import datetime
+    import threading
+    import time
+
+    import torch
+    from torch.distributed.rendezvous import rendezvous as torch_rendezvous
+
+    where = f"{os.environ['MASTER_ADDR'].strip()}:{os.environ['MASTER_PORT'].strip()}"
+    result: dict[str, Any] = {}
+
+    def meet() -> None:
+        try:
+            store, _, _ = next(torch_rendezvous("env://", rank, world, timeout=datetime.timedelta(seconds=timeout_s)))
+            store.set_timeout(torch.distributed.default_pg_timeout)
+            result["store"] = store
+        except Exception as e:  # noqa: BLE001 - torch raises several types (DistStoreError, ValueError, ...)
+            result["error"] = e
+
+    thread = threading.Thread(target=meet, name="bmimic-rendezvous", daemon=True)
+    thread.start()
+    start, said = time.monotonic(), False
+    while thread.is_alive():
+        thread.join(0.2)
+        waited = time.monotonic() - start
+        if not said and waited > 5 and thread.is_alive():
+            log.info("torchrun: rank %d of %d waiting for the other ranks at %s (up to %g s)", rank, world, where,
+                     timeout_s)
+            said = True
+        if waited > timeout_s + 30:  # torch's own timeout should have ended it by now
+            break
+    if "store" in result:
+        return result["store"]
+    error = result.get("error")
+    detail = str(error).strip().splitlines()[0] if error is not None and str(error).strip() else "no answer"
+    raise DistributedSetupError(
+        f"torchrun: rank {rank} of {world} could not meet the other ranks at MASTER_ADDR:MASTER_PORT={where} within "
+        f"{timeout_s:g} s ({detail[:200]}); start every rank (torchrun --nproc-per-node {world}), or unset "
+        "WORLD_SIZE and RANK to run one process ($BMIMIC_RENDEZVOUS_TIMEOUT_S sets the wait)")
 
 
 def any_rank(flag: bool, device: Any) -> bool:
@@ -106,6 +233,21 @@ def exit_rank(code: int) -> None:
     sys.stderr.flush()
     logging.shutdown()
     os._exit(code)
+
+
+def available_memory_bytes() -> int | None:
+    """The host's memory available to a new allocation (MemAvailable of /proc/meminfo); None when unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
 
 
 # --------------------------------------------------------------------------------------------- seeding

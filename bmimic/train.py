@@ -14,16 +14,17 @@ outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/. Returns the final evaluate
 
 from __future__ import annotations
 
-import os
 import sys
 
 import hydra
+from hydra.errors import HydraException
 from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
 
 import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver of the launchers)
 from bmimic import CONF_DIR
-from bmimic.cli_common import shell_arg
-from bmimic.config import ConfigError, check_overrides, config_loader
+from bmimic.cli_common import first_line, shell_arg
+from bmimic.config import ConfigError, check_hydra_flags, check_overrides, config_loader
 from bmimic.extras import MissingExtraError, check_launcher
 
 
@@ -83,7 +84,11 @@ def help_text(argv: list[str]) -> str | None:
 
 def cli() -> None:
     """`bmimic-train` and `python -m bmimic.train`: the Hydra app with bmimic's checks around it."""
+    from bmimic.runtime import DistributedSetupError, exit_rank, rendezvous_timeout_s, torchrun_env
+
     try:
+        _, world, _ = torchrun_env()  # torchrun's variables, before Hydra claims a folder with them
+        rendezvous_timeout_s()
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
         # Hydra's own report of overrides that do not compose is a 5-7 line block and exit 1, and it
         # suggests `+key=...` for a typo; bmimic names the override in one line (exit 2).
@@ -92,17 +97,23 @@ def cli() -> None:
         if argv != sys.argv:  # --cfg, --help or --info of a sweep: its first job's overrides, without -m
             sys.argv = argv
             check_overrides(argv[1:])
-        text = help_text(sys.argv)
-    except (MissingExtraError, ConfigError) as e:
+        check_hydra_flags(sys.argv[1:])  # flag combinations Hydra refuses with a traceback (after -m with --cfg
+        text = help_text(sys.argv)  # became the first job's --cfg)
+    except (MissingExtraError, ConfigError, DistributedSetupError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     if text is not None:
         print(text)
         return
-    main()
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        from bmimic.runtime import exit_rank
-
+    try:
+        main()
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    except (HydraException, OmegaConfBaseException) as e:  # --info composes outside Hydra's error report
+        print(f"error: {first_line(e)}", file=sys.stderr)
+        sys.exit(2)
+    if world > 1:
         exit_rank(0)  # a torchrun rank whose run is written: no interpreter teardown (runtime.exit_rank)
 
 

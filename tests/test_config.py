@@ -176,3 +176,19 @@ def test_adding_a_key_under_a_null_node_is_one_line_not_omegaconfs_assertion():
                          timeout=300)
     assert out.returncode == 2 and out.stderr.startswith("error: " + bad) and len(out.stderr.splitlines()) == 1
     assert "Traceback" not in out.stderr
+
+
+def test_a_run_records_the_values_of_its_interpolations():
+    """Issue 47: .hydra/config.yaml held `seed: ${oc.env:SLURM_ARRAY_TASK_ID}`, which the tools reading the
+    run resolve in their own environment (or cannot). The record takes each interpolated leaf's value
+    from the resolved config; the reader's own keys (data.lafan_dir) and everything else stay."""
+    from bmimic.config import interpolated_keys, recorded_config
+
+    composed = {"seed": "${oc.env:SLURM_ARRAY_TASK_ID}", "num_envs": None, "data": {"lafan_dir": "${oc.env:X,null}"},
+                "sampler": {"gamma": "${oc.decode:0.5}", "K": 5}, "run_name": "a-${seed}"}
+    resolved = {"seed": 7, "num_envs": 8, "data": {"lafan_dir": "/mine"}, "sampler": {"gamma": 0.5, "K": 5},
+                "run_name": "a-7"}
+    assert interpolated_keys(composed) == ["seed", "sampler.gamma", "run_name"]
+    assert recorded_config(composed, resolved) == {"seed": 7, "num_envs": None, "data": {"lafan_dir": "${oc.env:X,null}"},
+                                                   "sampler": {"gamma": 0.5, "K": 5}, "run_name": "a-7"}
+    assert composed["seed"].startswith("${")  # not changed in place

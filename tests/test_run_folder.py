@@ -28,6 +28,20 @@ def test_atomic_write_replaces_whole_file(tmp_path):
     assert [p.name for p in path.parent.iterdir()] == ["x.json"]  # no temp files left behind
 
 
+def test_json_files_are_valid_json_a_value_that_is_not_a_number_is_null(tmp_path):
+    """Issue 47: metrics.json held a bare NaN (mean_episode_length when no episode ended), which strict
+    JSON readers (jq, browsers, other languages) refuse."""
+    path = tmp_path / "metrics.json"
+    atomic_write_json(path, {"nan": float("nan"), "inf": [float("-inf"), 1.5], "f32": np.float32("nan"),
+                             "f64": np.float64(2.0), "nested": {"x": float("inf"), "n": 3, "s": "NaN"}})
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    data = json.loads(path.read_text(), parse_constant=refuse)
+    assert data == {"nan": None, "inf": [None, 1.5], "f32": None, "f64": 2.0, "nested": {"x": None, "n": 3, "s": "NaN"}}
+
+
 def test_atomic_write_failure_keeps_old_content(tmp_path):
     path = tmp_path / "x.txt"
     atomic_write_text(path, "old")

@@ -94,13 +94,17 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
     from omegaconf import OmegaConf, open_dict
     from omegaconf.errors import OmegaConfBaseException
 
-    from bmimic.config import TrainConfig
+    from bmimic.config import READER_ENV_KEYS, TrainConfig, recorded_config
     from bmimic.config_checks import check_resolvable
     from bmimic.training.resume import flatten_config
 
     path = run_dir / HYDRA_DIR / "config.yaml"
     try:
         loaded = OmegaConf.load(path)
+        resolved = read_resolved_config(run_dir)
+        if resolved is not None and isinstance(tree := OmegaConf.to_container(loaded, resolve=False), dict):
+            # a run recorded before bmimic recorded values: its interpolations get the values it trained with
+            loaded = OmegaConf.create(recorded_config(tree, resolved))
         reads_env = [k for k, v in flatten_config(OmegaConf.to_container(loaded, resolve=False)).items()
                      if isinstance(v, str) and "${oc.env:" in v and k not in READER_ENV_KEYS]
         if reads_env:
@@ -147,8 +151,6 @@ def anchor_relative_paths(cfg, run_dir: Path) -> None:
                 cfg[group][key] = str(launch_dir / value)
 
 
-READER_ENV_KEYS = ("data.lafan_dir",)
-"""Keys whose ${oc.env:...} is meant to be the reader's (the LAFAN1 folder on this machine)."""
 TASK_KEYS = ("robot", "motion", "env", "sim.timestep_s", "sim.decimation", "sampler.bins", "sampler.bin_size_seconds",
              "ppo.actor_hidden_dims", "ppo.critic_hidden_dims", "ppo.activation")
 """Config keys (and prefixes) a checkpoint must share with the run it is evaluated in: the robot, its

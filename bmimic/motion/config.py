@@ -93,6 +93,10 @@ class MotionConfig:
     """End of the window to train on, in seconds (None: the motion's end)."""
     assume_model_order: bool = False
     """Accept an npz without joint/body names (e.g. made by mjlab) as being in the model's order."""
+    check_plausible: bool = True
+    """Refuse a motion file (or LAFAN1 clip) that is not a plausible reference: its root upside down at
+    the first frame, or its feet far from the ground on most frames (a root quaternion in the wrong
+    order, a position in other units); false uses it anyway, with a warning."""
 
 
 def resolve_path(path: str) -> Path:
@@ -187,10 +191,12 @@ def load_motion(
     window shorter than two time bins of `bin_size_s`.
     """
     from bmimic.motion import builtin
+    from bmimic.motion.limits import check_motion_size, check_plausible, implausibility
     from bmimic.motion.motion import Motion
 
     cache = resolve_path(str(cache_dir))
     if cfg.source == "builtin":
+        check_motion_size(mjmodel, float(cfg.duration_s), builtin.FPS, "motion.duration_s", generated=True)
         key = hashlib.sha256(
             f"builtin|{cfg.builtin}|{cfg.seed}|{float(cfg.duration_s)!r}|{builtin.GENERATOR_VERSION}|"
             f"{model_fingerprint(mjmodel)}".encode()
@@ -236,11 +242,17 @@ def load_motion(
             motion.segments = [Segment(path.stem, 0.0, motion.duration_s, "unknown")]
         else:
             raise MotionDataError(f"motion.path: {path}: expected a .npz or .csv file")
+        if cfg.check_plausible:
+            check_plausible(motion, f"motion.path: {path}", "set motion.check_plausible=false", mjmodel)
+        elif (why := implausibility(motion, mjmodel)) is not None:
+            log.warning("warning: motion.path: %s: %s; used anyway (motion.check_plausible=false)", path, why)
     else:
         hint = " (a library loads through bmimic.motion.library.load_any)" if cfg.source == "library" else ""
         raise MotionDataError(f"motion.source: expected 'builtin', 'lafan' or 'file', got {cfg.source!r}{hint}")
 
     if abs(motion.fps - control_fps) > 1e-6 * control_fps:
+        check_motion_size(mjmodel, motion.duration_s, control_fps, f"motion {cfg.name!r} resampled to the control "
+                          "rate 1 / (sim.timestep_s x sim.decimation)")
         try:
             motion = motion.resample(control_fps)
         except MotionDataError as err:

@@ -20,7 +20,9 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
+from bmimic.cli_common import path_arg
 from bmimic.motion.kinematics import kinematic_motion
+from bmimic.motion.limits import check_motion_size, check_plausible
 from bmimic.motion.math import output_times, quat_slerp
 from bmimic.motion.model import find_joint_limit_violation
 from bmimic.motion.motion import Motion
@@ -165,6 +167,7 @@ def convert_csv(
         raise MotionDataError(f"{path}: fps_in and fps_out must be positive, got {fps_in} and {fps_out}")
     data, rows = read_lafan_csv(path, frames)
     check_joint_limits(path, data, rows, mjmodel)
+    check_motion_size(mjmodel, (data.shape[0] - 1) / fps_in, fps_out, f"{path}: --fps-out {fps_out:g}")
     if data.shape[0] < 2 or len(output_times(data.shape[0], fps_in, fps_out)) < 2:
         raise MotionDataError(
             f"{path}: {data.shape[0]} rows at {fps_in} fps give fewer than 2 frames at {fps_out} fps"
@@ -202,15 +205,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m bmimic.motion.convert", description=__doc__.split("\n\n")[0]
     )
-    parser.add_argument("input", type=Path, help="LAFAN1 G1 CSV (no header, 36 columns)")
-    parser.add_argument("output", type=Path, help="motion npz to write")
+    parser.add_argument("input", type=path_arg, help="LAFAN1 G1 CSV (no header, 36 columns)")
+    parser.add_argument("output", type=path_arg, help="motion npz to write")
     parser.add_argument("--fps-in", type=float, default=30.0, help="frame rate of the CSV (default 30)")
     parser.add_argument("--fps-out", type=float, default=50.0, help="frame rate to write (default 50)")
     parser.add_argument(
         "--frames", type=int, nargs=2, metavar=("A", "B"), help="keep CSV rows A..B (1-indexed, inclusive)"
     )
-    parser.add_argument("--mjcf", type=Path, default=None, help="robot MJCF instead of the built-in G1")
+    parser.add_argument("--mjcf", type=path_arg, default=None, help="robot MJCF instead of the built-in G1")
     parser.add_argument("--force", action="store_true", help="replace OUT when it exists")
+    parser.add_argument("--allow-implausible", action="store_true",
+                        help="write a motion that is not a plausible reference (root upside down at the first "
+                             "frame, feet far from the ground) instead of refusing it")
     args = parser.parse_args(argv)
     problem = check_output_path(args.input, args.output, args.force)
     if problem:
@@ -230,6 +236,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.fps_out,
             None if args.frames is None else tuple(args.frames),
         )
+        if not args.allow_implausible:
+            check_plausible(motion, str(args.input), "pass --allow-implausible", mjmodel)
         motion.save(args.output)
     except (MotionDataError, RobotModelError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -219,6 +219,7 @@ def load_library(cfg: Any, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike
         one = MotionConfig(name=e.name, source=e.source, start_s=e.start_s, end_s=e.end_s,
                            fps_in=float(getattr(cfg, "fps_in", 30.0)),
                            assume_model_order=bool(getattr(cfg, "assume_model_order", False)),
+                           check_plausible=bool(getattr(cfg, "check_plausible", True)),
                            path=e.value if e.source == "file" else None, clip=e.value if e.source == "lafan" else None,
                            builtin=e.value if e.source == "builtin" else "graded", seed=e.seed, duration_s=e.duration_s)
         # an entry of motion.clips is named by its key (motion.clips[1].path), a file of a folder or glob by

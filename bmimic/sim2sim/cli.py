@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from bmimic.cli_common import user_errors
+from bmimic.cli_common import check_output_file, path_arg, user_errors
 from bmimic.extras import require_extra
 from bmimic.run_folder import (
     EVAL_TABLES,
@@ -74,7 +74,7 @@ def parser() -> argparse.ArgumentParser:
         prog="python -m bmimic.sim2sim",
         description="Evaluate the exported (BeyondMimic-compatible) ONNX policy in native MuJoCo on the CPU.",
         epilog=f"Tables: RUN/{SIM2SIM_DIR}/<model>/<checkpoint>/{{{','.join((*EVAL_TABLES, GAP_FILE))}}}")
-    p.add_argument("path", help="a run folder (its latest checkpoints/motion_policy_<it>.onnx) or such an ONNX file")
+    p.add_argument("path", type=path_arg, help="a run folder (its latest checkpoints/motion_policy_<it>.onnx) or such an ONNX file")
     p.add_argument("--model", default="project",
                    help="project (the run's G1), menagerie (MuJoCo Menagerie's G1) or an MJCF path")
     p.add_argument("--episodes-per-bin", type=int, help="default: as the run's MuJoCo-Warp evaluation")
@@ -88,11 +88,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--clip", type=lambda text: [c.strip() for c in text.split(",") if c.strip()],
                    help="a library's clip (or several, comma-separated): evaluate only its bins (with --whole-clip: "
                         "only it), read only its frames")
-    p.add_argument("--video", type=Path, help="also render one episode to this .mp4 (or .gif)")
+    p.add_argument("--video", type=path_arg, help="also render one episode to this .mp4 (or .gif)")
     p.add_argument("--video-start-s", type=float, default=0.0,
                    help="where the video episode starts in the motion (with --clip: in its first clip)")
     p.add_argument("--video-s", type=float, default=10.0, help="longest video episode in seconds")
-    p.add_argument("--out", type=Path, help="folder for the tables (default RUN/sim2sim/<model>/<checkpoint>, "
+    p.add_argument("--out", type=path_arg, help="folder for the tables (default RUN/sim2sim/<model>/<checkpoint>, "
                    f"with --whole-clip .../<checkpoint>/{SIM2SIM_WHOLE_CLIP})")
     p.add_argument("--whole-clip", type=int, metavar="R",
                    help="instead of the windows: R rollouts per clip from its first frame to its last, per condition "
@@ -111,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.video is not None:
             from bmimic.render import select_gl_backend, video_path
 
-            video_path(args.video)  # a bad suffix is refused before any work
+            check_output_file("--video", video_path(args.video))  # a bad suffix or folder: refused before any work
             select_gl_backend()  # before mujoco is imported
         if args.workers < 1:
             raise Sim2SimError(f"--workers {args.workers}: need at least 1")

@@ -60,7 +60,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     if summary_file.is_file() and bins_file.is_file():
         with readable(summary_file):
             s = json.loads(summary_file.read_text())
-            success, mpkpe = float(s["eval_success_rate"]), float(s["eval_mpkpe_rel_mm"])
+            success, mpkpe = (math.nan if s[k] is None else float(s[k]) for k in ("eval_success_rate", "eval_mpkpe_rel_mm"))
         with readable(bins_file):
             bins = pd.read_parquet(bins_file)
         if "visits" in bins:

@@ -16,6 +16,7 @@ from bmimic.run_schema import BIN, HORIZON_TRUNCATED, ITERATION
 from bmimic.sim2sim.gap import eval_settings, gap_table, restrict, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.rollout import Episode
+from bmimic.sim2sim.run_check import check_policy_of_run
 from bmimic.sim2sim.spec import (
     PolicySpec,
     Sim2SimError,
@@ -45,7 +46,11 @@ def locate(path: str | Path) -> tuple[Path, Path | None]:
     if not found:
         raise Sim2SimError(f"{p}: no checkpoints/motion_policy_<it>.onnx (the BeyondMimic-compatible export); "
                            f"write it with: python -m bmimic.export {p}")
-    return max(found)[1].resolve(), p.resolve()
+    policy = max(found)[1]
+    try:
+        return policy.resolve(strict=True), p.resolve()
+    except (OSError, RuntimeError) as e:  # a dangling link, a loop of links
+        raise Sim2SimError(f"{policy}: cannot be read ({e})") from None
 
 
 def checkpoint_label(spec: PolicySpec) -> str:
@@ -95,6 +100,7 @@ def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", ep
     from bmimic.training.evaluator import stratified_start_frames, summarize
 
     spec = read_policy(policy_path)
+    check_policy_of_run(spec, run_dir)  # before its results are written under the run
     chosen = clip_indices(spec, clips)
     label = checkpoint_label(spec)
     warp = warp_eval(run_dir, label, spec.iteration)

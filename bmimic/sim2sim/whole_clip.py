@@ -43,6 +43,7 @@ from bmimic.run_schema import (
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.native_eval import checkpoint_label, collect
 from bmimic.sim2sim.perturb import Perturbations, perturbations_from_env
+from bmimic.sim2sim.run_check import check_policy_of_run
 from bmimic.sim2sim.spec import (
     PolicySpec,
     Sim2SimError,
@@ -203,6 +204,7 @@ def run_whole_clip(policy_path: Path, run_dir: Path | None, rollouts_per_clip: i
 
     check_rollouts(rollouts_per_clip)
     spec = read_policy(policy_path)
+    check_policy_of_run(spec, run_dir)  # before its results are written under the run
     chosen = np.asarray(clip_indices(spec, clips), dtype=np.int64)
     label = checkpoint_label(spec)
     ref = read_reference(policy_session(policy_path), spec, None if clips is None else chosen.tolist())

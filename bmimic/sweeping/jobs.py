@@ -98,8 +98,9 @@ def list_jobs(overrides: Sequence[str], config_dir: str | os.PathLike = CONF_DIR
     with config_loader(config_dir, config_name) as loader:
         master, _ = _expand(loader, config_name, overrides)
         jobs = expand_jobs(loader, master)
-        check_jobs(jobs)
-        return Path(str(master.hydra.sweep.dir)), jobs
+        sweep_dir = Path(str(master.hydra.sweep.dir))
+        check_jobs(jobs, sweep_dir, f"{master.hydra.job.name}.log")
+        return sweep_dir, jobs
 
 
 def expand_jobs(loader, master: DictConfig) -> list[Job]:
@@ -254,9 +255,29 @@ def _continues(job: Job) -> bool:
     return resume_request(OmegaConf.select(job.config, "resume")) is not None and _extendable(job)
 
 
-def check_jobs(jobs: Sequence[Job]) -> None:
+def check_jobs(jobs: Sequence[Job], sweep_dir: str | os.PathLike | None = None, log_name: str | None = None) -> None:
     """Refuse a multirun in which two jobs map to one folder: the second would be skipped as done or
-    locked and the sweep would report success for an arm it never trained."""
+    locked and the sweep would report success for an arm it never trained. With `sweep_dir`, also one
+    whose sweep folder or a job's folder holds files that are not bmimic's (bmimic.run_claim: a launch
+    writes only into its own folders; `log_name`: Hydra's log of a job, which a killed job leaves), or a
+    job whose folder would lie outside the sweep folder."""
+    from bmimic.run_claim import check_sweep_folder, foreign_entries, holds_run
+
+    if sweep_dir is not None:
+        if not any(job.run_dir.is_dir() and holds_run(job.run_dir) for job in jobs):  # else: this sweep's folder
+            check_sweep_folder(sweep_dir)
+        root = os.path.abspath(sweep_dir)
+        for job in jobs:
+            folder = os.path.abspath(job.run_dir)
+            if os.path.commonpath([root, folder]) != root or folder == root:
+                raise SweepListError(f"job {job.num} ({' '.join(job.overrides)}): its folder {job.run_dir} lies outside "
+                                     f"the sweep folder {sweep_dir}")
+            held = not job.run_dir.is_dir() or holds_run(job.run_dir)
+            foreign = [] if held else foreign_entries(job.run_dir, log_name)
+            if foreign:
+                raise SweepListError(f"job {job.num} ({' '.join(job.overrides)}): its folder {job.run_dir} holds files "
+                                     f"that are not a bmimic run ({', '.join(foreign[:4])}); a sweep writes only into "
+                                     "new or empty folders or its own jobs: choose another sweep_name")
     seen: dict[Path, Job] = {}
     for job in jobs:
         key = job.run_dir.resolve()

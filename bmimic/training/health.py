@@ -3,6 +3,8 @@ or action noise turned non-finite (e.g. `ppo.learning_rate=1e10`), or an environ
 world-steps are broken (non-finite state, |qvel| above `sim.max_abs_qvel`, the root out of bounds,
 a reward overflow: e.g. a motion 100 m below the floor, or `sim.max_abs_qvel=1e-6`). A broken world
 is reset and counted as a failure, so a few are harmless; a run made mostly of them trains nothing.
+Likewise a simulation that loses contacts or constraints on many steps (`sim.nconmax` / `sim.njmax`
+too small: the buffers overflow and MuJoCo-Warp drops what does not fit) simulates another robot.
 
 The checks read the iteration's train_metrics row, which the trainer reads from the device once per
 iteration anyway: nothing is added to the step.
@@ -18,6 +20,9 @@ BROKEN_SHARE = 0.5
 """Share of an iteration's world-steps above which the iteration counts as mostly broken."""
 BROKEN_ITERATIONS = 3
 """The run stops after this many mostly broken iterations in a row (fewer at the start of a launch)."""
+OVERFLOW_SHARE = 0.1
+"""Share of an iteration's world-steps whose contact or constraint buffers overflowed above which the
+iteration counts as overflowing (no committed run overflowed at all with the default buffers)."""
 
 
 class TrainingStoppedError(BmimicError):
@@ -32,6 +37,7 @@ class Health:
         """World-steps one rank simulates per iteration (num_envs x ppo.num_steps_per_env)."""
         self.iterations = 0
         self.broken_in_a_row = 0
+        self.overflow_in_a_row = 0
 
     def problem(self, it: int, row: dict, learning_rate: float) -> str | None:
         """Why training must stop after iteration `it` (its train_metrics `row`), or None."""
@@ -49,6 +55,12 @@ class Health:
                     f"sim.max_abs_qvel, root beyond sim.max_root_distance_m or reward above "
                     f"env.max_abs_step_reward) in {self.broken_in_a_row} iteration(s) in a row: nothing can be "
                     "learned; check the motion (root height, velocities), those limits and the policy")
+        overflow = float(row.get("overflow_worlds", 0.0)) / self.world_steps
+        self.overflow_in_a_row = self.overflow_in_a_row + 1 if overflow > OVERFLOW_SHARE else 0
+        if self.overflow_in_a_row >= min(BROKEN_ITERATIONS, self.iterations):
+            return (f"iteration {it}: {overflow:.0%} of the world-steps overflowed the contact/constraint buffers "
+                    f"(more than {OVERFLOW_SHARE:.0%}) in {self.overflow_in_a_row} iteration(s) in a row: the "
+                    "simulation drops contacts, so the results would be wrong; raise sim.nconmax / sim.njmax")
         return None
 
     def check(self, it: int, row: dict, learning_rate: float, distributed: bool = False, device=None) -> None:

@@ -4,6 +4,10 @@ preempts a job) end the current iteration instead of the process.
 While `StopSignals` is active, the first of these signals only sets `requested`; the training loop
 checks it after each iteration, writes a checkpoint and the tables, and the run ends with status
 `interrupted` and exit status 128 + signal (130, 143). A second one stops at once (the default action).
+In a phase that may last minutes and has nothing to save midway (the set-up before the run writes
+anything: motion, Warp kernel compilation, the rendezvous of torchrun's ranks; an evaluation), the
+phase is marked `at_once`: the first signal raises `StopNow` there and then, so any phase ends within
+seconds (an evaluation's iteration then gets its checkpoint, and the evaluation runs again on resume).
 A signal a launcher already handles (submitit's SIGUSR1/SIGUSR2 before a SLURM time limit or on
 preemption, which requeue the job) is caught the same way, and the launcher's handler runs after the
 checkpoint (`chain`): the requeued job resumes from it and loses no iteration.
@@ -13,11 +17,12 @@ Torch-free. Handlers can only be set in the main thread; elsewhere nothing is in
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
 import threading
-from typing import Any
+from typing import Any, Iterator
 
 from bmimic.cli_common import override_arg
 
@@ -29,13 +34,41 @@ LAUNCHER_SIGNALS = tuple(s for s in (getattr(signal, "SIGUSR1", None), getattr(s
 """Caught only where a launcher (submitit) installed a Python handler: theirs runs after the checkpoint."""
 
 
+class StopNow(BaseException):
+    """A stop signal arrived in a phase marked `at_once` (StopSignals): the phase ends here. A
+    BaseException, so that no `except Exception` of the code it interrupts swallows it."""
+
+
 class StopSignals:
-    """Context manager: SIGINT/SIGTERM (and a launcher's signals) request a stop after the iteration."""
+    """Context manager: SIGINT/SIGTERM (and a launcher's signals) request a stop after the iteration,
+    or at once in a phase marked `at_once`."""
 
     def __init__(self) -> None:
         self.signum: int | None = None
         """The first signal received (None: none)."""
+        self.at_once_depth = 0
+        """Phases marked at_once now entered (> 0: the first signal raises StopNow)."""
         self._previous: dict[int, Any] = {}
+
+    def begin_at_once(self) -> None:
+        """The phase that begins now ends at once on a signal (StopNow; at once, too, if one came already),
+        until end_at_once."""
+        if self.requested:
+            raise StopNow
+        self.at_once_depth += 1
+
+    def end_at_once(self) -> None:
+        """The phase begun by begin_at_once is over: a signal again stops after the iteration."""
+        self.at_once_depth = max(self.at_once_depth - 1, 0)
+
+    @contextlib.contextmanager
+    def at_once(self) -> Iterator[None]:
+        """A phase (begin_at_once ... end_at_once) as a `with` block."""
+        self.begin_at_once()
+        try:
+            yield
+        finally:
+            self.end_at_once()
 
     @property
     def requested(self) -> bool:
@@ -69,6 +102,8 @@ class StopSignals:
     def _handle(self, signum: int, frame: Any) -> None:
         if self.signum is None:
             self.signum = signum
+            if self.at_once_depth > 0:
+                raise StopNow
             log.warning("%s: stopping after this iteration, with a checkpoint and the tables (send it again to "
                         "stop at once)", signal.Signals(signum).name)
             return
@@ -104,4 +139,4 @@ class TrainingInterrupted(Exception):
         super().__init__(message)
 
 
-__all__ = ["LAUNCHER_SIGNALS", "STOP_SIGNALS", "StopSignals", "TrainingInterrupted"]
+__all__ = ["LAUNCHER_SIGNALS", "STOP_SIGNALS", "StopNow", "StopSignals", "TrainingInterrupted"]

@@ -118,6 +118,7 @@ def restore(trainer: Any, state: dict, path: str | os.PathLike = "checkpoint", a
     trainer.record.truncate(trainer.progress.iteration)
     for key in trainer.total_resets:
         trainer.total_resets[key] = int(sum(_count(r.get(key)) for r in trainer.record.rows("train_metrics")))
+    trainer.overflow_world_steps = int(sum(_count(r.get("overflow_worlds")) for r in trainer.record.rows("train_metrics")))
     log.info("resumed from %s at iteration %d (lr %.2e)", path, trainer.progress.iteration, trainer.alg.learning_rate)
 
 

@@ -13,6 +13,7 @@ and RNG states, so `resume` reproduces iteration count, learning rate and sample
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -28,7 +29,7 @@ from bmimic.run_folder import (
 )
 from bmimic.run_record import RunRecord
 from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S, whole_clip_key
-from bmimic.runtime import any_rank
+from bmimic.runtime import any_rank, torchrun_env
 from bmimic.sampling import diagnostics
 from bmimic.training import run_state
 from bmimic.training.checkpoints import (
@@ -54,7 +55,7 @@ class _Runner(OnPolicyRunner):
             return super()._configure_multi_gpu()
         self.gpu_world_size = dist.get_world_size()
         self.gpu_global_rank = dist.get_rank()
-        self.gpu_local_rank = int(os.getenv("LOCAL_RANK", "0"))
+        self.gpu_local_rank = torchrun_env()[2]
         self.is_distributed = self.gpu_world_size > 1
         self.cfg["multi_gpu"] = {"global_rank": self.gpu_global_rank, "local_rank": self.gpu_local_rank,
                                  "world_size": self.gpu_world_size} if self.is_distributed else None
@@ -89,6 +90,8 @@ class Trainer:
         self.record = RunRecord(self.run_dir, enabled=is_main_rank)
         """The run's tables (train_metrics, sampler, eval, clip_eval): rows, resume truncation, flushes."""
         self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
+        self.overflow_world_steps = 0
+        """World-steps whose contact or constraint buffers overflowed, over the run (metrics.json)."""
         # A stopping rule after each evaluation (its summary -> True: stop; bmimic.race), when learn()
         # began (time.time()) and the wall time the evaluations took.
         self.after_evaluation: Callable[[Trainer, dict], bool] | None = None
@@ -104,6 +107,7 @@ class Trainer:
         """(iteration, summary) of the latest whole-clip evaluation of this process."""
         self._whole_clip_s: float | None = None  # how long the latest one took
         self.interrupted = False  # learn() stopped early on a signal (bmimic.training.interrupts)
+        self.signals = None  # learn()'s StopSignals: a signal ends an evaluation at once (StopNow)
 
     # ------------------------------------------------------------------ checkpoints (bmimic.training.run_state)
     def meta(self) -> dict:
@@ -136,7 +140,7 @@ class Trainer:
     def evaluate(self) -> dict:
         """Evaluate the current policy (eval.parquet row, logged); returns the summary."""
         t0 = time.perf_counter()
-        with eval_mode(self.alg.get_policy()) as policy:
+        with self._at_once(), eval_mode(self.alg.get_policy()) as policy:
             per_bin = self.evaluator.evaluate(policy, self.progress.iteration, self.progress.env_steps,
                                               self.progress.wall_time_s)
         self.record.append("eval", per_bin)
@@ -185,7 +189,7 @@ class Trainer:
     def _clip_outcomes(self, max_s: float | None) -> torch.Tensor:
         """Rank 0, for a sampler that learns from clip outcomes (phc, protomotions): one rollout per clip
         from its first frame (clip_rollouts; a row of clip_eval.parquet each); [C] > 0 where one failed."""
-        with eval_mode(self.alg.get_policy()) as policy:
+        with self._at_once(), eval_mode(self.alg.get_policy()) as policy:
             rows = clip_rollouts(self.evaluator, policy, max_s)
         p = self.progress
         self.record.append("clip_eval", rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
@@ -194,11 +198,16 @@ class Trainer:
         log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
         return clips_failed(rows, self.env.layout.num_clips)
 
+    def _at_once(self):
+        """An evaluation ends at once on a stop signal (StopNow): it has nothing to save midway."""
+        return self.signals.at_once() if self.signals is not None else contextlib.nullcontext()
+
     # ------------------------------------------------------------------ the loop
     def learn(self, signals=None) -> None:
         """Train from the current iteration to `max_iterations` (or until `time_limit_s` of training, or
         until a stop was requested of `signals` (training.interrupts.StopSignals): `interrupted` is then True)."""
         env, alg, cfg = self.env, self.alg, self.cfg
+        self.signals = signals
         time_limit_s = cfg.time_limit_s
         if self.ppo_cfg.init_at_random_ep_len and self.progress.iteration == 0:
             # In place: the environment's captured CUDA graphs hold this buffer's address.
@@ -303,6 +312,7 @@ class Trainer:
                 row["metrics/" + k.split("/", 1)[1]] = v
         for key in self.total_resets:
             self.total_resets[key] += int(stats[key])
+        self.overflow_world_steps += int(stats["overflow_worlds"])
         self.record.append("train_metrics", row)
         self.health.check(it, row, self.ppo_cfg.learning_rate, self.runner.is_distributed, self.device)
         sampler_table = it % self._sampler_every == 0 or last

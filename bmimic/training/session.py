@@ -35,7 +35,7 @@ from bmimic.run_folder import (
     write_status,
 )
 from bmimic.run_schema import ITERATION
-from bmimic.runtime import provenance
+from bmimic.runtime import process_rank, provenance
 from bmimic.training.resume import RunPlan
 
 log = logging.getLogger("bmimic.train")
@@ -52,6 +52,8 @@ class RunContext:
         """The run folder this launch writes; None until committed."""
         self.hydra_record: dict[str, str] | None = None
         """This launch's .hydra files (written at commit into a new run)."""
+        self.composed_config: dict = {}
+        """The config as composed, unresolved (its interpolations get their values in hydra_record)."""
         self.claim: RunClaim | None = current_claim(launch_dir)
         """What the launch found and created at launch_dir (bmimic.run_claim; None for a sweep job)."""
         self._locks: dict[Path, object] = {}
@@ -144,7 +146,7 @@ def record_failure(ctx: RunContext, multirun: bool, message: str, details: str =
                 write_status(ctx.launch_dir, "failed", error=message)
                 with contextlib.suppress(OSError):
                     append_error_log(ctx.launch_dir, f"attempt failed: {message}", details)
-        elif int(os.environ.get("RANK", "0")) == 0:  # under torchrun, rank 0 owns the folder
+        elif process_rank() == 0:  # under torchrun, rank 0 owns the folder
             ctx.discard()
             ctx.release()
     except OSError as e:

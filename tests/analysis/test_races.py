@@ -146,6 +146,12 @@ def test_the_cli_writes_the_tables_and_the_figure(tmp_path, capsys):
     ('{"kind": "bmimic-race-1", "config": {}, "evaluations": {}}', "'evaluations' is not a list"),
     ('{"kind": "bmimic-race-1", "evaluations": []}', "no 'config' object"),
     ('{"kind": "bmimic-race-1", "config": {}, "evaluations": [{"iteration": 1}]}', "evaluation 0 lacks env_steps"),
+    ('{"kind": "bmimic-race-1", "config": {}, "evaluations": [{"iteration": "1x", "env_steps": 1, '
+     '"wall_from_launch_s": 1, "success_rate": 0.5, "mpkpe_rel_mm": 40}]}', "evaluation 0: iteration is '1x'"),
+    ('{"kind": "bmimic-race-1", "config": {}, "evaluations": [{"iteration": 1, "env_steps": 1, '
+     '"wall_from_launch_s": true, "success_rate": 0.5, "mpkpe_rel_mm": 40}]}', "wall_from_launch_s is True"),
+    ('{"kind": "bmimic-race-1", "config": {}, "evaluations": [], "thresholds": [{"threshold": "x"}]}',
+     "'thresholds' must be a list of objects"),
 ])
 def test_bad_input_is_one_line_naming_the_file_and_writes_nothing(tmp_path, capsys, content, message):
     bad = tmp_path / "bad.json"

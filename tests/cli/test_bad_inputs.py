@@ -884,6 +884,33 @@ def test_planted_nan_is_reset_counted_and_never_reaches_the_loss(tmp_path, monke
     assert np.isfinite(losses).all() and np.isfinite(rows["mean_reward"].dropna()).all()
 
 
+@pytest.mark.slow
+def test_contact_overflow_is_counted_in_the_done_line_and_metrics_and_beyond_a_share_stops_the_run(
+        tmp_path, monkeypatch) -> None:
+    """Issue 47: `sim.nconmax=1` overflowed the contact buffers on every step and the run ended "done"
+    without a word in its done line or metrics.json. The overflow is counted there; above
+    bmimic.training.health.OVERFLOW_SHARE of the world-steps the run stops, status failed."""
+    from bmimic.training import health
+
+    ws = Workspace(tmp_path)
+    with ws.cwd():
+        monkeypatch.setattr(health, "OVERFLOW_SHARE", 1.0)  # never stops: what the record says
+        res = run_tool("train", _train("sim.nconmax=1", "run_name=counted"))
+        assert res.rc == 0, res.out[-3000:]
+        run = next((tmp_path / "outputs" / "runs" / "counted").iterdir())
+        metrics = json.loads((run / "metrics.json").read_text())
+        assert metrics["overflow_world_steps"] >= 1
+        done = [line for line in res.out.splitlines() if line.startswith("done:")]
+        assert done and "world-steps overflowed the contact/constraint buffers (raise sim.nconmax" in done[0]
+        monkeypatch.setattr(health, "OVERFLOW_SHARE", 0.1)
+        res = run_tool("train", _train("sim.nconmax=1", "run_name=stopped"))
+    assert res.rc == 2 and "Traceback" not in res.out, res.out[-3000:]
+    errors = [line for line in res.out.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "overflowed the contact/constraint buffers" in errors[0] and "sim.nconmax" in errors[0]
+    run = next((tmp_path / "outputs" / "runs" / "stopped").iterdir())
+    assert json.loads((run / "status.json").read_text())["status"] == "failed"
+
+
 def test_atomic_write_keeps_the_extension_and_honours_the_umask(tmp_path) -> None:
     from bmimic.run_folder import atomic_write
 

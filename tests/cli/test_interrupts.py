@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -43,6 +44,31 @@ def test_the_first_signal_asks_to_stop_and_the_second_stops():
             os.kill(os.getpid(), signal.SIGINT)  # a second signal: SIGINT's default, at once
             time.sleep(1)
     assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before  # restored
+
+
+def test_a_signal_ends_a_phase_marked_at_once_there_and_then():
+    """Issue 47: a set-up of minutes (a huge motion, torchrun's rendezvous) acknowledged SIGTERM and went
+    on. A phase with nothing to save midway ends at the signal (StopNow, which no `except Exception`
+    swallows); a signal that came before it began ends it as it begins."""
+    from bmimic.training.interrupts import StopNow
+
+    with StopSignals() as stop:
+        with pytest.raises(StopNow):
+            with stop.at_once():
+                try:
+                    os.kill(os.getpid(), signal.SIGTERM)
+                    time.sleep(5)
+                except Exception:  # noqa: BLE001 - the code a phase runs cannot swallow it
+                    pytest.fail("StopNow was caught as an Exception")
+        assert stop.requested and stop.at_once_depth == 0
+        with pytest.raises(StopNow):
+            stop.begin_at_once()
+    with StopSignals() as stop:
+        with stop.at_once():
+            pass
+        os.kill(os.getpid(), signal.SIGTERM)  # outside the phase: a stop after the iteration, as before
+        time.sleep(0.01)
+        assert stop.requested
 
 
 def test_a_launchers_handler_runs_after_the_stop():
@@ -94,6 +120,107 @@ def test_sigterm_mid_run_checkpoints_the_iteration_and_a_resume_loses_nothing(tm
     assert [line for line in out.splitlines() if line.startswith("next: ")] == [
         f"next: bmimic-eval {run} (evaluate), bmimic-report {run} (report), "
         f"tensorboard --logdir {run / 'tensorboard'} (curves)"]
+
+
+def _signal_then_wait(original):
+    """`original`, after a SIGTERM to this process and 60 s of work that a stop must cut short."""
+    def slow(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(60)
+        return original(*args, **kwargs)
+    return slow
+
+
+def test_sigterm_during_the_set_up_or_an_evaluation_ends_it_at_once(tmp_path, monkeypatch):
+    """Issue 47: SIGTERM was acknowledged and ignored for as long as the set-up (or an evaluation) took.
+    In the set-up nothing is written and the launch's folder is removed; in an evaluation the iteration
+    it evaluates is checkpointed (status interrupted), and a resume evaluates it again."""
+    import bmimic.job
+    from bmimic.training.evaluator import Evaluator
+
+    run = tmp_path / "setup"
+    monkeypatch.setattr(bmimic.job, "build_task", _signal_then_wait(bmimic.job.build_task))
+    start = time.monotonic()
+    code, out = run_train(*TINY, "max_iterations=2", "logger=none", f"hydra.run.dir={run}")
+    assert code == 143 and time.monotonic() - start < 50, out[-3000:]
+    assert out.strip().splitlines()[-1] == "interrupted by SIGTERM before training started; nothing was written"
+    assert "Traceback" not in out and not run.exists()
+    monkeypatch.undo()
+
+    run = tmp_path / "eval"
+    monkeypatch.setattr(Evaluator, "evaluate", _signal_then_wait(Evaluator.evaluate))
+    start = time.monotonic()
+    code, out = run_train(*TINY, "max_iterations=4", "eval.every_iters=2", "logger=none", f"hydra.run.dir={run}")
+    assert code == 143 and time.monotonic() - start < 50, out[-3000:]
+    assert out.strip().splitlines()[-1].startswith("interrupted by SIGTERM after iteration 2: checkpoint")
+    assert _status(run) == {**_status(run), "status": "interrupted", "iteration": 2}
+    assert (run / "checkpoints" / "model_2.pt").exists() and _iterations(run) == [0, 1]
+    monkeypatch.undo()
+    code, out = run_train(*TINY, "max_iterations=4", "eval.every_iters=2", "logger=none", f"resume={run}",
+                          f"hydra.run.dir={tmp_path / 'x'}")
+    assert code == 0, out[-3000:]
+    assert _status(run)["status"] == "done" and _iterations(run) == [0, 1, 2, 3]
+    assert sorted(set(pd.read_parquet(run / "eval.parquet")["iteration"])) == [4]
+
+
+@pytest.mark.slow
+def test_a_torchrun_rank_without_peers_ends_in_one_line_or_at_sigterm(tmp_path):
+    """Issue 47: WORLD_SIZE=2 RANK=0 MASTER_ADDR/PORT without the other rank printed nothing for 10
+    minutes and ignored two SIGTERMs. The rendezvous now says it waits, ends after
+    BMIMIC_RENDEZVOUS_TIMEOUT_S with one line, and a SIGTERM ends it within seconds."""
+    from tests.conftest import free_port
+
+    env = {**cli_env(), "WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1",
+           "MASTER_PORT": str(free_port()), "BMIMIC_RENDEZVOUS_TIMEOUT_S": "3"}
+    out = subprocess.run([sys.executable, "-m", "bmimic.train", *TINY, "hydra.run.dir=alone"], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=300)
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert out.returncode == 2 and len(errors) == 1 and "Traceback" not in out.stderr, out.stderr[-3000:]
+    assert "rank 0 of 2 could not meet the other ranks" in errors[0] and "within 3 s" in errors[0]
+    assert not (tmp_path / "alone").exists()
+    env["BMIMIC_RENDEZVOUS_TIMEOUT_S"] = "600"
+    proc = subprocess.Popen([sys.executable, "-m", "bmimic.train", *TINY, "hydra.run.dir=waiting"], cwd=tmp_path,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in proc.stdout:  # it says what it waits for
+            lines.append(line)
+            if "waiting for the other ranks" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        start = time.monotonic()
+        rest, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143 and time.monotonic() - start < 20, "".join(lines) + rest
+    assert rest.strip().splitlines()[-1] == "interrupted by SIGTERM before training started; nothing was written"
+    assert not (tmp_path / "waiting").exists()
+
+
+def test_torchrun_variables_are_checked_before_anything_runs(monkeypatch):
+    from bmimic.runtime import DistributedSetupError, process_rank, torchrun_env
+
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(name, raising=False)
+    assert torchrun_env() == (0, 1, 0)
+    cases = [({"WORLD_SIZE": "abc"}, "WORLD_SIZE='abc': must be a whole number >= 1"),
+             ({"WORLD_SIZE": "0"}, "WORLD_SIZE='0'"), ({"RANK": "-1"}, "RANK='-1'"),
+             ({"LOCAL_RANK": "x"}, "LOCAL_RANK='x'"), ({"RANK": "3"}, "RANK=3 with WORLD_SIZE=1"),
+             ({"WORLD_SIZE": "2"}, "WORLD_SIZE=2 without RANK"),
+             ({"WORLD_SIZE": "2", "RANK": "1"}, "without MASTER_ADDR"),
+             ({"WORLD_SIZE": "2", "RANK": "1", "MASTER_ADDR": "h", "MASTER_PORT": "notaport"}, "MASTER_PORT='notaport'"),
+             ({"WORLD_SIZE": "2", "RANK": "1", "MASTER_ADDR": "h", "MASTER_PORT": "70000"}, "MASTER_PORT='70000'")]
+    for env, words in cases:
+        with monkeypatch.context() as m:
+            for k, v in env.items():
+                m.setenv(k, v)
+            with pytest.raises(DistributedSetupError, match=re.escape(words)):
+                torchrun_env()
+            assert process_rank() >= 0  # the error paths' rank never raises
+    code, out = run_train(*TINY, env={"WORLD_SIZE": "2", "RANK": "x"})
+    assert code == 2 and out.strip() == "error: RANK='x': must be a whole number >= 0 (torchrun sets it; unset it to " \
+        "run one process)", out[-2000:]
 
 
 # --------------------------------------------------------------------------------------- dead or running

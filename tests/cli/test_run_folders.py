@@ -70,11 +70,12 @@ def test_claim_refuses_a_pinned_folder_holding_a_run_without_resume(tmp_path) ->
 
 def test_release_keeps_what_the_folder_held_before_the_launch(tmp_path) -> None:
     from bmimic.run_claim import claim
-    from bmimic.run_folder import LOCK, lock_run
+    from bmimic.run_folder import LOCK, lock_run, write_status
 
     (tmp_path / "train.log").write_text("earlier lines\n")
+    write_status(tmp_path, "failed", 0)  # a run: its owner's notes stay
     (tmp_path / "notes.log").write_text("mine\n")
-    c = claim(tmp_path, pinned=True, resume=False, log_name="train.log")
+    c = claim(tmp_path, pinned=True, resume=True, log_name="train.log")
     with open(tmp_path / "train.log", "a") as f:
         f.write("this launch\n")
     held = lock_run(tmp_path)
@@ -83,6 +84,32 @@ def test_release_keeps_what_the_folder_held_before_the_launch(tmp_path) -> None:
     assert (tmp_path / "train.log").read_text() == "earlier lines\n" and (tmp_path / "notes.log").exists()
     assert not (tmp_path / LOCK).exists()  # created and held by this launch: removed
     held.close()
+
+
+def test_claim_refuses_a_pinned_folder_of_someone_elses_files_even_with_resume(tmp_path) -> None:
+    """Issue 47: a folder holding a user's own metrics.json, provenance.json and checkpoints/policy_1.onnx
+    (no status.json, no .hydra) was written into with exit status 0. A launch writes only into a new or
+    empty folder or its own run; what a killed launch leaves (its lock, its log) does not count."""
+    from bmimic.run_claim import ClaimError, check_sweep_folder, claim
+    from bmimic.run_folder import LOCK
+
+    mine = tmp_path / "mine"
+    (mine / "checkpoints").mkdir(parents=True)
+    for name in ("metrics.json", "provenance.json", "checkpoints/policy_1.onnx"):
+        (mine / name).write_text("the user's\n")
+    for resume in (False, True):
+        with pytest.raises(ClaimError, match=r"holds files that are not a bmimic run \(checkpoints, metrics.json, "):
+            claim(mine, pinned=True, resume=resume, log_name="train.log")
+    assert sorted(p.name for p in mine.rglob("*")) == ["checkpoints", "metrics.json", "policy_1.onnx", "provenance.json"]
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / LOCK).touch()
+    (killed / "train.log").write_text("a launch killed before it wrote anything\n")
+    assert claim(killed, pinned=True, resume=False, log_name="train.log").created == []
+    with pytest.raises(ClaimError, match="hydra.sweep.dir=.*holds files that are not a bmimic sweep"):
+        check_sweep_folder(mine)
+    (mine / "multirun.yaml").write_text("{}\n")
+    check_sweep_folder(mine)  # a sweep's own folder
 
 
 def test_a_lock_is_never_removed_by_a_process_that_does_not_hold_it(tmp_path) -> None:
@@ -195,7 +222,9 @@ def test_a_refused_launch_removes_only_what_it_created(tmp_path, where) -> None:
     before = tree(folder)
     target = "hydra.run.dir=." if where == "cwd" else f"hydra.run.dir={folder}"
     code, out = run_train(*TINY, "max_iterations=1", target, "ppo.gamma=1.5", cwd=folder)
-    assert code == 2 and "ppo.gamma" in one_error(out)
+    # Refused for the bad value or, first, for the user's files (a launch never writes among them).
+    error = one_error(out)
+    assert code == 2 and ("ppo.gamma" in error or "holds files that are not a bmimic run (notes.log)" in error)
     assert folder.is_dir() and tree(folder) == before
 
 
@@ -294,6 +323,31 @@ def test_a_full_disk_during_a_resume_ends_in_one_line(tmp_path, monkeypatch) -> 
     code, out = run_train(*TINY, "max_iterations=2", f"hydra.run.dir={run}", "resume=true", cwd=tmp_path)
     assert code != 0 and "No space left" in one_error(out)
     assert json.loads((run / "status.json").read_text())["status"] != "running"
+
+
+@pytest.mark.slow
+def test_interpolated_values_are_recorded_as_the_values_the_run_trained_with(tmp_path) -> None:
+    """Issue 47: `seed=${oc.env:SLURM_ARRAY_TASK_ID}` or `seed=${num_envs}` trained, but the report
+    tracebacked and bmimic-eval refused the project's own run (the reader's environment, not the run's
+    values). .hydra/config.yaml now holds the values the run trained with (the override stays in
+    overrides.yaml); data.lafan_dir, the reader's own folder, stays as written."""
+    import yaml
+
+    from analysis.report import main as report_main
+    from bmimic import eval as bm_eval
+
+    code, out = run_train(*TINY, "max_iterations=1", "seed=${oc.env:BMIMIC_TEST_TASK_ID}", "hydra.run.dir=env",
+                          cwd=tmp_path, env={"BMIMIC_TEST_TASK_ID": "3"})
+    assert code == 0, out[-3000:]
+    train_ok(tmp_path, "max_iterations=1", "seed=${num_envs}", "hydra.run.dir=key")
+    for run, seed in (("env", 3), ("key", 2)):
+        folder = tmp_path / run
+        config = yaml.safe_load((folder / ".hydra" / "config.yaml").read_text())
+        assert config["seed"] == seed and config["data"]["lafan_dir"].startswith("${oc.env:BMIMIC_LAFAN_DIR")
+        assert any(o.startswith("seed=${") for o in yaml.safe_load((folder / ".hydra" / "overrides.yaml").read_text()))
+        assert bm_eval.main([str(folder), "--episodes-per-bin", "1"]) == 0
+        assert report_main([str(folder)]) == 0
+        assert pd.read_csv(folder / "report" / "runs.csv")["seed"].tolist() == [seed]
 
 
 def test_resumes_json_lists_changes_of_the_run_not_of_the_launch() -> None:

@@ -23,7 +23,7 @@ from omegaconf import OmegaConf, open_dict, read_write
 
 import bmimic.config  # noqa: F401  (registers the config schemas, as bmimic.train does)
 from analysis.index import SweepIndexCallback
-from bmimic import CONF_DIR, launch
+from bmimic import CONF_DIR, BmimicError, launch
 from bmimic.run_folder import append_error_log
 from bmimic.sweeping import gpu_slots
 from bmimic.sweeping import jobs as sweep_jobs
@@ -607,3 +607,24 @@ def test_submitit_local_launcher(tmp_path):
     assert status(job)["status"] == "done"
     assert (sweep / ".submitit").is_dir()  # the job ran through submitit, in its own process
     assert pd.read_csv(sweep / "index.csv")["status"].tolist() == ["done"]
+
+
+def test_a_job_folder_stays_in_its_sweep_whatever_its_values_hold(tmp_path, hydra_config_restored):
+    """Issue 47: `motion.path=../../x.npz` made a job folder outside its sweep (and outside outputs/), so
+    the sweep's index was empty and its report found no run. A `.` or `..` part of a value is spelled
+    %2E; a job whose folder would still lie outside is refused, and so is a sweep folder of the user's
+    own files."""
+    from bmimic.sweeping.jobs import SweepListError
+
+    _, jobs = list_jobs(["seed=0", "motion=file", "motion.path=../../../x.npz", f"hydra.sweep.dir={tmp_path}"])
+    (folder,) = [j.run_dir for j in jobs]
+    assert folder.resolve().is_relative_to(tmp_path.resolve())
+    assert folder.relative_to(tmp_path).as_posix() == "motion.path=../%2E%2E/%2E%2E/x.npz,motion=file/seed=0"
+    (tmp_path / "mine.txt").write_text("the user's\n")
+    with pytest.raises(BmimicError, match="hydra.sweep.dir=.*holds files that are not a bmimic sweep .mine.txt"):
+        list_jobs(["seed=0", f"hydra.sweep.dir={tmp_path}"])
+    (tmp_path / "multirun.yaml").write_text("{}\n")
+    (tmp_path / "base" / "seed=0").mkdir(parents=True)
+    (tmp_path / "base" / "seed=0" / "notes.txt").write_text("the user's\n")
+    with pytest.raises(SweepListError, match=r"job 0 \(seed=0\): its folder .* holds files that are not a bmimic run"):
+        list_jobs(["seed=0", f"hydra.sweep.dir={tmp_path}"])

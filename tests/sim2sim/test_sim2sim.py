@@ -555,3 +555,32 @@ def test_sim2sim_video(trained, tmp_path):
         cwd=tmp_path)
     frames = Image.open(clip).n_frames
     assert 2 <= frames <= 16  # the start plus one frame per control step until the end or a termination
+
+
+def test_a_policy_from_another_run_in_this_runs_folder_is_refused(task, tmp_path):
+    """Issue 47: sim2sim evaluated an ONNX copied from another run into this run's checkpoints/ and wrote
+    its results (and a gap to this run's evaluation) under this run. The policy's metadata must match
+    the run's record: motion segments, control and physics step, bins, an iteration the run reached."""
+    from bmimic.run_folder import write_motion_segments, write_resolved_config, write_status
+    from bmimic.sim2sim.run_check import check_policy_of_run
+
+    env, _, paths = task
+    spec = sim2sim.read_policy(paths[1])
+    run = tmp_path / "run"
+    write_motion_segments(run, [s._asdict() for s in env.reference.motion.segments])
+    write_resolved_config(run, {"sim": {"timestep_s": spec.physics_dt_s, "decimation": spec.decimation},
+                                "sampler": {"bins": spec.bin_layout, "bin_size_seconds": spec.bin_size_s}})
+    write_status(run, "done", 7)
+    check_policy_of_run(spec, run)  # its own run
+    check_policy_of_run(spec, None)  # an ONNX outside any run: nothing to compare with
+    write_status(run, "done", 3)
+    with pytest.raises(sim2sim.Sim2SimError, match=r"another run than .*iteration 7 \(the run reached 3\)"):
+        check_policy_of_run(spec, run)
+    write_status(run, "done", 7)
+    write_motion_segments(run, [{"name": "walk", "start_s": 0.0, "end_s": 4.0, "difficulty": "easy"}])
+    with pytest.raises(sim2sim.Sim2SimError, match="another run than .*motion segments"):
+        check_policy_of_run(spec, run)
+    write_motion_segments(run, [s._asdict() for s in env.reference.motion.segments])
+    write_resolved_config(run, {"sim": {"timestep_s": spec.physics_dt_s, "decimation": spec.decimation + 1}})
+    with pytest.raises(sim2sim.Sim2SimError, match=f"sim.decimation \\({spec.decimation}, the run's"):
+        check_policy_of_run(spec, run)

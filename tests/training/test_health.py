@@ -39,3 +39,19 @@ def test_a_launch_whose_first_iteration_is_all_broken_stops_at_once():
     h = Health(world_steps_per_iteration=100)
     with pytest.raises(TrainingStoppedError, match="100% of the world-steps were broken"):
         h.check(0, row(broken=100), 1e-3)
+
+
+def test_overflowing_contact_buffers_stop_the_run_naming_sim_nconmax():
+    """Issue 47: sim.nconmax too small overflowed the contact buffers on every step and the run ended
+    "done". Above OVERFLOW_SHARE of an iteration's world-steps, BROKEN_ITERATIONS in a row, it stops."""
+    from bmimic.training.health import OVERFLOW_SHARE
+
+    h = Health(world_steps_per_iteration=100)
+    for it in range(5):
+        assert h.problem(it, {**row(), "overflow_worlds": 100 * OVERFLOW_SHARE}, 1e-3) is None  # at the share: kept
+    for it in range(5, 5 + BROKEN_ITERATIONS - 1):
+        assert h.problem(it, {**row(), "overflow_worlds": 50}, 1e-3) is None
+    problem = h.problem(5 + BROKEN_ITERATIONS - 1, {**row(), "overflow_worlds": 50}, 1e-3)
+    assert problem and "50% of the world-steps overflowed" in problem and "sim.nconmax" in problem
+    with pytest.raises(TrainingStoppedError, match="100% of the world-steps overflowed"):
+        Health(world_steps_per_iteration=10).check(0, {**row(), "overflow_worlds": 10}, 1e-3)

@@ -1,0 +1,94 @@
+"""Run folders that would have reached a report as if valid (issue 47): one seed launched several times,
+a damaged or hand-edited table, a seed written as an interpolation. Each is counted once, refused in
+one line naming the file and column, or read with the value the run trained with."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from analysis import AnalysisError
+from analysis.load import load_runs, load_table
+from analysis.report import main as report_main
+from tests.analysis.synthetic_runs import write_run
+
+MASTERY = [10.0, 20.0, 30.0, 40.0]
+
+
+def test_one_seed_launched_five_times_counts_once_and_says_so(tmp_path, caplog):
+    for k in range(5):
+        write_run(tmp_path / "runs" / "adaptive" / f"2026-01-0{k + 1}_00-00-00", sampler="adaptive", seed=0,
+                  overrides=[], mastery=MASTERY, seconds_per_iteration=1.0 + k / 10, last_iteration=40 + k)
+        write_run(tmp_path / "runs" / "uniform" / f"2026-01-0{k + 1}_00-00-00", sampler="uniform", seed=0,
+                  overrides=["sampler=uniform"], mastery=MASTERY, seconds_per_iteration=1.0 + k / 10)
+    runs = load_runs(tmp_path / "runs")
+    used = runs[runs["included"]]
+    assert sorted(used["arm"]) == ["adaptive", "uniform"] and set(used["seed"]) == {0}
+    kept = used.set_index("arm")["run_dir"]
+    assert kept["adaptive"].endswith("2026-01-05_00-00-00")  # trained longest
+    left_out = runs[~runs["included"]]
+    assert len(left_out) == 8 and left_out["problem"].str.contains("seed 0 of arm .* again", regex=True).all()
+    assert sum("seed 0 appears in 5 runs; counted once" in r.getMessage() for r in caplog.records) == 2
+
+
+def _run(tmp_path):
+    return write_run(tmp_path / "run", sampler="uniform", seed=0, overrides=[], mastery=MASTERY)
+
+
+def _damage(run, table, change):
+    path = run / f"{table}.parquet"
+    df = pd.read_parquet(path)
+    change(df) if callable(change) else None
+    (df if not isinstance(change, pd.DataFrame) else change).to_parquet(path, index=False)
+
+
+@pytest.mark.parametrize("table, change, column, words", [
+    ("eval", lambda d: d.__setitem__("failure_rate", 5.0), "failure_rate", "holds 5.0, outside [0, 1]"),
+    ("eval", lambda d: d.loc.__setitem__((d.index[-1], "bin"), 99), "bin", "holds 99, but the run has 4 bins"),
+    ("eval", lambda d: d.__setitem__("bin_end_s", d["bin_end_s"] * 3), "bin_end_s", "outside [0, 8]"),
+    ("eval", lambda d: d.__setitem__("failure_rate", np.nan), "failure_rate", "has no finite value"),
+    ("eval", lambda d: d.__setitem__("iteration", d["iteration"].astype(str) + "x"), "iteration", "'0x', not numbers"),
+    ("eval", lambda d: d.__setitem__("visits", -1), "visits", "holds -1, outside >= 0"),
+    ("train_metrics", lambda d: d.__setitem__("iteration", d["iteration"] + 0.5), "iteration", "not a whole number"),
+    ("train_metrics", lambda d: d.__setitem__("mean_reward", np.nan), "mean_reward", "episodes ended"),
+    ("sampler", lambda d: d.__setitem__("probability", 0.5), "probability", "sums to 2"),
+])
+def test_a_table_out_of_range_is_one_line_naming_file_and_column(tmp_path, capsys, table, change, column, words):
+    run = _run(tmp_path)
+    _damage(run, table, change)
+    with pytest.raises(AnalysisError, match=f"{table}.parquet: column {column}"):
+        load_table(load_runs(run), table)
+    assert report_main([str(run)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and f"{table}.parquet: column {column}" in err[0]
+    assert words in err[0]
+    assert not (run / "report" / "report.md").exists()
+
+
+@pytest.mark.parametrize("table", ["eval", "train_metrics"])
+def test_a_table_with_no_rows_is_refused(tmp_path, capsys, table):
+    run = _run(tmp_path)
+    path = run / f"{table}.parquet"
+    pd.read_parquet(path).iloc[:0].to_parquet(path, index=False)
+    assert report_main([str(run)]) == 2
+    assert f"{table}.parquet: has no rows" in capsys.readouterr().err
+
+
+def test_an_interpolated_seed_reads_the_value_the_run_trained_with(tmp_path, capsys):
+    """`seed=${oc.env:SLURM_ARRAY_TASK_ID}` (a run recorded before bmimic recorded values) took the
+    report down with a traceback: the seed comes from resolved_config.json, else the run is left out."""
+    run = _run(tmp_path)
+    config = run / ".hydra" / "config.yaml"
+    cfg = yaml.safe_load(config.read_text())
+    config.write_text(yaml.safe_dump({**cfg, "seed": "${oc.env:SLURM_ARRAY_TASK_ID}"}))
+    runs = load_runs(run)
+    assert not runs["included"].any() and "seed '${oc.env:SLURM_ARRAY_TASK_ID}' is not a whole number" in runs[
+        "problem"][0]
+    (run / "resolved_config.json").write_text(json.dumps({**cfg, "seed": 3}))
+    runs = load_runs(run)
+    assert runs["included"].all() and runs["seed"].tolist() == [3]
+    assert report_main([str(run)]) == 0
