@@ -248,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     from bmimic.cli_common import first_line, user_errors
 
     try:
+        if args.multigpu_json:  # a malformed file is one line, before the checks that start Warp
+            read_multigpu_rows(args.multigpu_json)
         envs, only, device = checked_args(args, overrides)
         if args.multigpu_json:
             return multigpu(args, overrides, envs)

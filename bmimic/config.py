@@ -189,8 +189,12 @@ def _refuse_additions_under_null(cfg, adds: Sequence[str], set_elsewhere: Sequen
             parent = ".".join(parts[:i])
             try:
                 value = OmegaConf.select(cfg, parent, default=_UNSET)
-            except OmegaConfBaseException:  # an interpolation that does not resolve (`${oc.env:UNSET}`): its
-                break  # own error, in Hydra's or validate's words, not a traceback here
+            except OmegaConfBaseException as e:  # an interpolation that does not resolve (`${oc.env:UNSET}`):
+                # Hydra would add under the node it stands for, still null, and fail with a bare assertion
+                if parent in set_elsewhere:
+                    break
+                raise ConfigError(f"{override}: {parent} is an interpolation that does not resolve "
+                                  f"({str(e).splitlines()[0]}), so nothing can be added under it") from None
             if value is None and parent not in set_elsewhere:
                 raise ConfigError(f"{override}: {parent} is null in the config, so nothing can be added under it; "
                                   f"set {parent} itself (e.g. {parent}=[...] or {parent}={{...}})")
@@ -217,7 +221,10 @@ def check_additions(overrides: list[str]) -> None:
         except Exception:  # noqa: BLE001 - anything else: check_overrides (or Hydra) reports it in its own words
             continue
         fallback = attempt is groups and groups != others
-        _refuse_additions_under_null(cfg, adds, [o.split("=", 1)[0] for o in others] if fallback else ())
+        # only an override that makes the parent a mapping or a list can take the addition (one that sets
+        # it to '' or a number leaves OmegaConf the same bare AssertionError)
+        containers = [k for k, _, v in (o.partition("=") for o in others) if v.strip().startswith(("{", "["))]
+        _refuse_additions_under_null(cfg, adds, containers if fallback else ())
         return
 
 

@@ -251,8 +251,10 @@ def load_motion(
         raise MotionDataError(f"motion.source: expected 'builtin', 'lafan' or 'file', got {cfg.source!r}{hint}")
 
     if abs(motion.fps - control_fps) > 1e-6 * control_fps:
-        check_motion_size(mjmodel, motion.duration_s, control_fps, f"motion {cfg.name!r} resampled to the control "
-                          "rate 1 / (sim.timestep_s x sim.decimation)")
+        # the file's own rate named too: a wrong fps in a file is what makes an absurd duration
+        check_motion_size(mjmodel, motion.duration_s, control_fps,
+                          f"motion {cfg.name!r} ({motion.num_frames} frames at fps {motion.fps:g}) resampled to the "
+                          "control rate 1 / (sim.timestep_s x sim.decimation)")
         try:
             motion = motion.resample(control_fps)
         except MotionDataError as err:

@@ -76,6 +76,16 @@ def _edit_config(old: str, new: str):
     return edit
 
 
+def _unrecorded_env(value: str):
+    """A shared run whose config reads an environment variable and that records no resolved values
+    (resolved_config.json, written since issue 47): nothing says what the variable held when it
+    trained. (With the record, eval takes the recorded values and never reads the reader's.)"""
+    def edit(run: Path) -> None:
+        _edit_config("name: easy_only", f"name: {value}")(run)
+        (run / "resolved_config.json").unlink()
+    return edit
+
+
 def _other_task(run: Path) -> None:
     """The copy now says it trained on an 8 s motion: its checkpoints (7 s) are another run's."""
     _edit_config("duration_s: 7", "duration_s: 8")(run)
@@ -287,9 +297,9 @@ def cases() -> list[Case]:
     for name, args, match in (
         ("override interpolating an unset variable", lambda ws: [str(ws.run), f"seed=${{oc.env:{UNSET}}}"], "seed"),
         ("shared config interpolating an unset variable", lambda ws: [str(_copy_with(
-            "env_unset", _edit_config("name: easy_only", f"name: ${{oc.env:{UNSET}}}"))(ws))], "environment"),
+            "env_unset", _unrecorded_env(f"${{oc.env:{UNSET}}}"))(ws))], "environment"),
         ("shared config reading the reader's environment", lambda ws: [str(_copy_with(
-            "env_secret", _edit_config("name: easy_only", "name: ${oc.env:HOME}"))(ws))], "environment"),
+            "env_secret", _unrecorded_env("${oc.env:HOME}"))(ws))], "environment"),
         ("checkpoint of another run", lambda ws: [str(_copy_with("other_task", _other_task)(ws))], "duration_s"),
         ("checkpoint iter 1e30", lambda ws: [str(_copy_with("iter_huge", _set_iter(10**30))(ws))], "iter"),
         ("checkpoint iter a string", lambda ws: [str(_copy_with("iter_text", _set_iter("two"))(ws))], "iter"),
