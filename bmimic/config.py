@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, List, Optional, Sequence
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, OmegaConf
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from bmimic import BmimicError
@@ -198,6 +198,11 @@ def _refuse_additions_under_null(cfg, adds: Sequence[str], set_elsewhere: Sequen
             if value is None and parent not in set_elsewhere:
                 raise ConfigError(f"{override}: {parent} is null in the config, so nothing can be added under it; "
                                   f"set {parent} itself (e.g. {parent}=[...] or {parent}={{...}})")
+            if value is not _UNSET and not isinstance(value, (DictConfig, ListConfig, dict, list)):
+                # a scalar (another override's value, say) takes no keys; Hydra may meet the node still
+                # null and fail with a bare assertion
+                raise ConfigError(f"{override}: {parent} is {value!r}, not a mapping, so nothing can be added "
+                                  "under it")
 
 
 def check_additions(overrides: list[str]) -> None:
