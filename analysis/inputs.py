@@ -5,12 +5,14 @@ report's options are in range. Each refusal is an AnalysisError with one line.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 from pathlib import Path
 
 from analysis import AnalysisError
 from analysis.run_files import NEEDED_TABLES, config_value
+from bmimic.motion.config import MotionConfig
 from bmimic.run_folder import table_path
 from bmimic.run_schema import ITERATION
 
@@ -22,6 +24,12 @@ folder names), so runs that differ in them are not one study's arms (a smoke run
 not a seed of a 10,000-iteration study), and arms compared at equal iterations would be cut to the
 shortest."""
 MIXED_FLAG = "--allow-mixed"
+
+
+MOTION_DEFAULTS = {f"motion.{f.name}": f.default for f in dataclasses.fields(MotionConfig)
+                   if f.default is not dataclasses.MISSING}
+"""A motion key that a run's config lacks was written before the key existed: that run had the key's default
+(motion.check_plausible, added later, is True for every earlier run), so it is compared as that default."""
 
 
 def _flat(tree, prefix: str = "") -> dict:
@@ -46,7 +54,7 @@ def check_comparable(rows: list[dict], allow_mixed: bool = False) -> list[str]:
         def signature(r, _keys=keys):
             cfg = r["_cfg"]
             if _keys is None:
-                return _flat(cfg.get("motion") or {}, "motion.")
+                return {**MOTION_DEFAULTS, **_flat(cfg.get("motion") or {}, "motion.")}
             if _keys is BUDGET_KEYS:  # as trained: a resume that raised max_iterations updated resolved_config.json
                 cfg = r.get("_resolved") or cfg
             return {k: config_value(cfg, k) for k in _keys}

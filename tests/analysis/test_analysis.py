@@ -717,3 +717,33 @@ def test_a_report_refuses_runs_of_different_budgets_unless_told(tmp_path):
     load_runs(sweep)
     index = build_index(sweep)
     assert set(index["max_iterations"].dropna()) == {60} and "num_envs" in index.columns
+
+
+def _set_motion_key(run_dir: Path, key: str, value) -> None:
+    import yaml
+
+    path = Path(run_dir) / ".hydra" / "config.yaml"
+    cfg = yaml.safe_load(path.read_text())
+    motion = dict(cfg.get("motion") or {})
+    if value is _ABSENT:
+        motion.pop(key, None)
+    else:
+        motion[key] = value
+    path.write_text(yaml.safe_dump({**cfg, "motion": motion}))
+
+
+_ABSENT = object()
+
+
+def test_a_motion_key_added_later_compares_as_its_default(tmp_path):
+    """A run written before motion.check_plausible existed had its default (True): the same motion as a run
+    that records True, and a different one from a run that switched the check off."""
+    sweep = make_sweep(tmp_path)
+    runs = sorted(p for p in sweep.rglob("seed=*") if (p / ".hydra").is_dir())
+    _set_motion_key(runs[0], "check_plausible", _ABSENT)
+    for run in runs[1:]:
+        _set_motion_key(run, "check_plausible", True)
+    assert len(load_runs(sweep)) > 0
+    _set_motion_key(runs[1], "check_plausible", False)
+    with pytest.raises(AnalysisError, match=r"different motions \(motion.check_plausible: True vs False\)"):
+        load_runs(sweep)
