@@ -35,14 +35,17 @@ from analysis.run_files import (
 )
 from analysis.table_checks import check_table
 from bmimic.run_folder import (
+    EVAL_DIR,
     EVALUATION_TABLES,
     MOTION_SEGMENTS,
     STATUS,
     TABLES,
+    WHOLE_CLIP_DIR,
+    WHOLE_CLIP_FILES,
     read_resolved_config,
     table_path,
 )
-from bmimic.run_schema import ITERATION
+from bmimic.run_schema import CONDITION, ENV_STEPS, ITERATION
 
 log = logging.getLogger("analysis")
 
@@ -263,18 +266,19 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
     frames = []
     for run in runs[runs["included"]].itertuples(index=False):
         path = table_path(run.run_dir, name)
-        if not path.is_file():
-            if name in NEEDED_TABLES:
-                raise AnalysisError(f"{path}: missing")
+        table = None
+        if path.is_file():
+            try:
+                table = pd.read_parquet(path)
+            except Exception as e:  # pyarrow raises several types for truncated or foreign files
+                raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
+            _check_read(path, name, table, run.run_dir)
+        elif name in NEEDED_TABLES:
+            raise AnalysisError(f"{path}: missing")
+        if name in CHECKPOINT_WHOLE_CLIP_FILES:
+            table = _with_checkpoint_whole_clips(Path(run.run_dir), name, table)
+        if table is None:
             continue
-        try:
-            table = pd.read_parquet(path)
-        except Exception as e:  # pyarrow raises several types for truncated or foreign files
-            raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
-        missing = missing_columns(name, table.columns)
-        if missing:
-            raise AnalysisError(f"{path}: missing columns {missing}")
-        check_table(path, name, table, run.run_dir)  # ranges, bins, rows: one line naming file and column
         if max_iteration is not None and ITERATION in table.columns:
             done = table[ITERATION] if name in EVALUATION_TABLES else table[ITERATION] + 1
             table = table[done <= max_iteration]
@@ -304,3 +308,50 @@ def load_segments(runs: pd.DataFrame) -> pd.DataFrame:
             raise AnalysisError(f"{path}: segments lack fields {missing}")
         return segments
     return pd.DataFrame(columns=["name", "start_s", "end_s", "difficulty"])
+
+
+CHECKPOINT_WHOLE_CLIP_FILES = dict(zip(("whole_clip", "whole_clip_survival", "whole_clip_failures"), WHOLE_CLIP_FILES))
+"""The run tables that `python -m bmimic.eval RUN --whole-clip` also writes, per checkpoint, as
+eval/<checkpoint label>/whole_clip/<file> (without the iteration, which its summary holds)."""
+
+
+def _check_read(path: Path, name: str, table: pd.DataFrame, run_dir) -> None:
+    missing = missing_columns(name, table.columns)
+    if missing:
+        raise AnalysisError(f"{path}: missing columns {missing}")
+    check_table(path, name, table, run_dir)  # ranges, bins, rows: one line naming file and column
+
+
+def _with_checkpoint_whole_clips(run_dir: Path, name: str, table: pd.DataFrame | None) -> pd.DataFrame | None:
+    """`table` (training's whole-clip table, or None) with the rows of the run's checkpoint evaluations
+    (`bmimic.eval --whole-clip`) whose iteration and condition training did not evaluate: a whole-clip
+    evaluation of a checkpoint after training is the same measurement as one at that iteration during it.
+    Only complete evaluations count (the summary, written last, names the iteration)."""
+    extra = []
+    for summary_path in sorted((run_dir / EVAL_DIR).glob(f"*/{WHOLE_CLIP_DIR}/{WHOLE_CLIP_FILES[-1]}")):
+        path = summary_path.parent / CHECKPOINT_WHOLE_CLIP_FILES[name]
+        summary = read_json(summary_path)
+        iteration = summary.get("iteration") if isinstance(summary, dict) else None
+        if not isinstance(iteration, int) or isinstance(iteration, bool) or iteration < 0:
+            raise AnalysisError(f"{summary_path}: 'iteration' must be an integer >= 0, got {iteration!r}")
+        if not path.is_file():
+            raise AnalysisError(f"{path}: missing (its evaluation's summary exists)")
+        try:
+            rows = pd.read_csv(path)
+        except Exception as e:  # an unreadable or foreign file is one line naming it
+            raise AnalysisError(f"{path}: unreadable csv ({type(e).__name__}: {e})") from e
+        if rows.empty:  # a whole_clip_failures.csv of an evaluation where every rollout completed
+            continue
+        rows.insert(0, ITERATION, iteration)
+        if isinstance(summary.get(ENV_STEPS), int):
+            rows.insert(1, ENV_STEPS, summary[ENV_STEPS])
+        _check_read(path, name, rows, run_dir)
+        extra.append(rows)
+    if not extra:
+        return table
+    rows = pd.concat(extra, ignore_index=True)
+    if table is not None and len(table):
+        done = set(zip(table[ITERATION], table[CONDITION]))
+        rows = rows[[key not in done for key in zip(rows[ITERATION], rows[CONDITION])]]
+        return pd.concat([table, rows], ignore_index=True)
+    return rows

@@ -17,6 +17,9 @@ from analysis.tables import ReportOptions, learning_curves, summary_rows, use_bo
 from bmimic.run_schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
 
 COUNTS = ["rollouts", "completed", "transient_failures", "later_failures"]
+TRACKED_S = "tracked_s"
+"""Seconds of clip a rollout tracked before it failed (its clip's duration when it completed), mean over the
+rollouts of an evaluation: the area under its survival curve, which tells apart policies that all fail."""
 
 
 @dataclass
@@ -34,9 +37,10 @@ class WholeClipReport:
     each second of each run's last whole-clip evaluation (clips pooled), mean and range over seeds."""
 
 
-def _per_run(clips: pd.DataFrame) -> pd.DataFrame:
-    """Per run, condition and evaluation: the clips' counts summed, success = completed / rollouts, and the
-    root-relative MPKPE over the completed rollouts (weighted by completed rollouts x clip duration)."""
+def _per_run(clips: pd.DataFrame, failures: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Per run, condition and evaluation: the clips' counts summed, success = completed / rollouts, the
+    root-relative MPKPE over the completed rollouts (weighted by completed rollouts x clip duration) and,
+    with the failures table, the seconds of clip tracked per rollout (TRACKED_S)."""
     clips = clips.assign(_w=clips["completed"] * clips["clip_duration_s"])
     has_error = MPKPE_REL_MM in clips
     if has_error:
@@ -45,6 +49,16 @@ def _per_run(clips: pd.DataFrame) -> pd.DataFrame:
     out = clips.groupby(keys, sort=True)[[*COUNTS, "_w", *(["_e"] if has_error else [])]].sum().reset_index()
     out["success"] = out["completed"] / out["rollouts"].where(out["rollouts"] > 0)
     out[MPKPE_REL_MM] = out["_e"] / out["_w"].where(out["_w"] > 0) if has_error else np.nan
+    out[TRACKED_S] = np.nan
+    if failures is not None and len(failures):
+        # seconds tracked per rollout: a completed rollout tracked its clip's duration (_w), a failed one up to
+        # its failure; only where the failures table accounts for every failed rollout of the evaluation
+        failed = failures.groupby(["run_dir", CONDITION, ITERATION])["failure_time_s"].agg(["sum", "count"])
+        key = pd.MultiIndex.from_frame(out[["run_dir", CONDITION, ITERATION]])
+        fail_s, n = failed["sum"].reindex(key).to_numpy(), failed["count"].reindex(key).fillna(0).to_numpy()
+        known = n == (out["rollouts"] - out["completed"]).to_numpy()
+        tracked = (np.nan_to_num(fail_s) + out["_w"].to_numpy()) / out["rollouts"].where(out["rollouts"] > 0).to_numpy()
+        out[TRACKED_S] = np.where(known, tracked, np.nan)
     return out.drop(columns=[c for c in ("_w", "_e") if c in out])
 
 
@@ -58,6 +72,9 @@ def _final_rows(last: pd.DataFrame, runs: pd.DataFrame, opts: ReportOptions) -> 
                     "transient_failures_per_seed": float(g["transient_failures"].mean()),
                     "later_failures_per_seed": float(g["later_failures"].mean()),
                     MPKPE_REL_MM: float(g[MPKPE_REL_MM].mean())})
+        tracked = summary_rows(arm, TRACKED_S, g.assign(value=g[TRACKED_S]), "value", boot, opts)
+        row.update({f"{TRACKED_S}_{k}": tracked[k] for k in ("mean", "iqm", "ci_low", "ci_high", "ci_method",
+                                                             "n_seeds", "per_seed")})
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -67,7 +84,8 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> WholeClipReport | None:
     clips = load_table(runs, "whole_clip", opts.max_iteration)
     if not len(clips):
         return None
-    per_run = _per_run(clips)
+    failures = load_table(runs, "whole_clip_failures", opts.max_iteration)
+    per_run = _per_run(clips, failures)
     per_seed = per_run[["arm", "run_dir", "seed", CONDITION, ITERATION, "success"]].rename(
         columns={CONDITION: "metric", "success": "value"})
     last_it = per_run.groupby(["run_dir", CONDITION])[ITERATION].transform("max")
@@ -92,14 +110,26 @@ def section(w: WholeClipReport) -> list[str]:
         "rollouts per seed": f["rollouts_per_seed"].map(fmt),
         f"start transients (< {START_TRANSIENT_S:g} s) per seed": f["transient_failures_per_seed"].map(fmt),
         "later failures per seed": f["later_failures_per_seed"].map(fmt),
+        "seconds tracked per rollout": [_tracked_cell(r) for r in f.to_dict("records")],
         "root-relative MPKPE of completed rollouts (mm)": f[MPKPE_REL_MM].map(fmt),
     })
     return ["## Whole clips", "", "Rollouts from each clip's first frame to its last (eval.whole_clip): `nominal` "
             "as the window evaluation (deterministic, one per clip), `robust` with training's domain randomisation, "
             "observation noise and pushes (each rollout its own draw). Success: rollouts that tracked their clip to "
             "its last frame / rollouts, over every clip; at each run's last whole-clip evaluation. Failures within "
-            f"{START_TRANSIENT_S:g} s of the start are start transients; the others are later failures.", "",
-            md_table(view), ""]
+            f"{START_TRANSIENT_S:g} s of the start are start transients; the others are later failures. Seconds "
+            "tracked per rollout: the clip time a rollout tracked before it failed (its clip's length when it "
+            "completed), mean over rollouts: the area under the survival curve, which separates policies that "
+            "all fail somewhere.", "", md_table(view), ""]
+
+
+def _tracked_cell(r: dict) -> str:
+    n = r.get(f"{TRACKED_S}_n_seeds")
+    if n is None or not np.isfinite(r.get(f"{TRACKED_S}_mean", np.nan)):
+        return "–"
+    point = r[f"{TRACKED_S}_iqm"] if n >= MIN_SEEDS_IQM else r[f"{TRACKED_S}_mean"]
+    return estimate_cell(point, r[f"{TRACKED_S}_ci_low"], r[f"{TRACKED_S}_ci_high"], str(r[f"{TRACKED_S}_ci_method"]),
+                         int(n), str(r[f"{TRACKED_S}_per_seed"]))
 
 
 __all__ = ["WholeClipReport", "compute", "section"]

@@ -76,3 +76,79 @@ def test_a_report_without_whole_clip_tables_says_nothing_about_them(tmp_path):
     out = build_report([_study(tmp_path / "study", False)], opts=OPTS)
     assert "hole clip" not in (out / "report.md").read_text() and "hole-clip" not in (out / "report.md").read_text()
     assert not list(out.glob("whole_clip*"))
+
+
+def _checkpoint_whole_clip(run, iteration: int, condition: str, completed: int, fail_times: list[float],
+                           duration: float = 4.0) -> None:
+    """What `bmimic.eval RUN --whole-clip` writes for a checkpoint: eval/model_<it>/whole_clip/ (no iteration
+    column; the summary, written last, names it)."""
+    import json
+
+    out = run / "eval" / f"model_{iteration}" / "whole_clip"
+    out.mkdir(parents=True, exist_ok=True)
+    rollouts = completed + len(fail_times)
+    pd.DataFrame([{CONDITION: condition, "clip": 0, "clip_name": "c0", "clip_duration_s": duration,
+                   "rollouts": rollouts, "completed": completed, "success_rate": completed / rollouts,
+                   "failures": len(fail_times), "transient_failures": sum(t < 1.0 for t in fail_times),
+                   "later_failures": sum(t >= 1.0 for t in fail_times)}]).to_csv(out / "whole_clip.csv", index=False)
+    pd.DataFrame([{CONDITION: condition, "clip": 0, "clip_name": "c0", CLIP_TIME_S: t, "rollouts": rollouts,
+                   "tracking": completed + sum(f > t for f in fail_times),
+                   "tracking_frac": (completed + sum(f > t for f in fail_times)) / rollouts} for t in (0.0, 1.0, 2.0, 3.0)]
+                 ).to_csv(out / "whole_clip_survival.csv", index=False)
+    pd.DataFrame([{CONDITION: condition, "clip": 0, "clip_name": "c0", "rollout": i, "failure_frame": int(t * 50),
+                   "failure_time_s": t, "bin": int(t), "transient": t < 1.0} for i, t in enumerate(fail_times)],
+                 columns=[CONDITION, "clip", "clip_name", "rollout", "failure_frame", "failure_time_s", "bin", "transient"]
+                 ).to_csv(out / "whole_clip_failures.csv", index=False)
+    (out / "whole_clip_summary.json").write_text(json.dumps({"iteration": iteration, "env_steps": 1000 * iteration}))
+
+
+def test_checkpoint_whole_clip_evaluations_join_the_report_with_seconds_tracked(tmp_path):
+    """Runs evaluated after training (`bmimic.eval --whole-clip`) report like runs evaluated during it; the
+    seconds tracked per rollout are the area under the survival curve, planted: uniform's 4 robust rollouts
+    fail at 1, 2, 3 and 3 s of a 4 s clip (2.25 s), adaptive's 2 complete and 2 fail at 2 s (3.0 s)."""
+    root = tmp_path / "study"
+    plant = {"sampler=uniform": (0, [1.0, 2.0, 3.0, 3.0]), "sampler=adaptive": (2, [2.0, 2.0])}
+    for arm, (completed, fails) in plant.items():
+        for seed in (0, 1):
+            run = write_run(root / arm / f"seed={seed}", sampler=arm.split("=")[1], seed=seed, overrides=[arm],
+                            mastery=[10.0, 20.0, 30.0, 40.0])
+            _checkpoint_whole_clip(run, 60, "robust", completed, fails)
+    out = build_report([root], opts=OPTS)
+    final = pd.read_csv(out / "whole_clip_final.csv").set_index("arm")
+    arm = {a: next(label for label in final.index if a.split("=")[1] in label) for a in plant}
+    assert final.loc[arm["sampler=uniform"], "mean"] == pytest.approx(0.0)
+    assert final.loc[arm["sampler=adaptive"], "mean"] == pytest.approx(0.5)
+    assert final.loc[arm["sampler=uniform"], "tracked_s_mean"] == pytest.approx(2.25)
+    assert final.loc[arm["sampler=adaptive"], "tracked_s_mean"] == pytest.approx(3.0)
+    assert final.loc[arm["sampler=adaptive"], "iterations"] == "60;60"
+    md = (out / "report.md").read_text()
+    assert "seconds tracked per rollout" in md and "2.25" in md
+
+
+def test_a_checkpoint_evaluation_adds_only_what_training_did_not_evaluate(tmp_path):
+    """Training evaluated robust whole clips at 30 and 60; a later `bmimic.eval --whole-clip` of the
+    iteration-60 checkpoint adds its nominal rollout and leaves training's robust rows as they were."""
+    root = _study(tmp_path / "study", True)
+    for run in root.glob("*/seed=*"):
+        _checkpoint_whole_clip(run, 60, "robust", 0, [0.5] * 8)  # would change success if it were counted
+        _checkpoint_whole_clip(run, 60, "nominal", 1, [])
+    out = build_report([root], opts=OPTS)
+    final = pd.read_csv(out / "whole_clip_final.csv").set_index(["arm", CONDITION])
+    uniform = next(a for a in final.index.get_level_values("arm") if "uniform" in a)
+    assert final.loc[(uniform, "robust"), "mean"] == pytest.approx(0.5)  # training's, not the planted 0
+    assert final.loc[(uniform, "nominal"), "mean"] == pytest.approx(1.0)
+    assert pd.isna(final.loc[(uniform, "robust"), "tracked_s_mean"])  # training wrote no failures table here
+
+
+def test_a_checkpoint_evaluation_without_its_iteration_is_one_line(tmp_path):
+    import json
+
+    from analysis import AnalysisError
+
+    root = _study(tmp_path / "study", False)
+    run = next(root.glob("*/seed=0"))
+    _checkpoint_whole_clip(run, 60, "robust", 1, [])
+    summary = run / "eval" / "model_60" / "whole_clip" / "whole_clip_summary.json"
+    summary.write_text(json.dumps({"iteration": "sixty"}))
+    with pytest.raises(AnalysisError, match=r"whole_clip_summary.json: 'iteration' must be an integer >= 0, got 'sixty'"):
+        build_report([root], opts=OPTS)
