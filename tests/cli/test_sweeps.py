@@ -242,7 +242,7 @@ def test_every_key_left_out_of_job_folder_names_is_result_neutral_or_a_budget():
 
 
 @pytest.mark.parametrize("study", ["mdp_action_rate", "design_choices_dance1", "peer_samplers",
-                                   "confirm_hybrid_dance1"])
+                                   "confirm_hybrid_dance1", "sensitivity_dance1"])
 def test_a_studys_committed_runs_are_its_jobs_for_todays_bmimic(study, tmp_path, hydra_config_restored):
     """Run again, a study would take its committed runs (docs/results/<study>/runs) as done, not as runs
     of other settings: a default that changes what a study trains must be pinned in its sweep file.
