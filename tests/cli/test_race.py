@@ -135,6 +135,12 @@ def test_bad_race_options_are_one_line_exit_2(argv, message, capsys):
 
 def test_race_defaults_give_way_to_the_overrides():
     assert race_overrides(["seed=3"])[:3] == ["eval.every_iters=100", "eval.episodes_per_bin=16", "run_name=race"]
+    # the recommended configuration (the confirmatory test's winner), unless the command chooses its own
+    assert {"env=tracking", "sampler=adaptive_hybrid"} <= set(race_overrides(["seed=3"]))
+    mine = race_overrides(["sampler=uniform", "env=beyondmimic"])
+    assert "sampler=adaptive_hybrid" not in mine and "env=tracking" not in mine and mine[-2:] == ["sampler=uniform",
+                                                                                                  "env=beyondmimic"]
+    assert "sampler=adaptive_hybrid" in race_overrides(["sampler.gamma=0.7"])  # a parameter of the race's sampler
     assert "eval.every_iters=100" not in race_overrides(["eval.every_iters=10"])
     assert race_overrides(["run_name=mine"])[-1] == "run_name=mine" and "run_name=race" not in race_overrides(
         ["run_name=mine"])
