@@ -164,6 +164,28 @@ def test_reward_terms_are_overridable():
         validate(_resolved(["env.rewards.alive.func=is_alivee"]), motion_duration_s=30.0)
 
 
+@pytest.mark.parametrize("argv,composes", [
+    (["motion.include={}", "+motion.include.x=1"], True),  # the parent made a mapping first
+    (["+motion.include.x=1", "motion.include={}"], True),  # ... or after the addition on the line
+    (["+motion.include.x=1", "motion.include={y: 2}"], False),  # then y meets the addition's struct node
+    (["+motion.include.x=1", "motion.include=[a]"], False),  # a list over the added mapping
+])
+def test_an_addition_and_a_later_override_of_its_parent_compose_or_give_one_line(argv, composes):
+    """Whatever the order of `+a.b.c=v` and an override of `a.b`, the command composes or refuses in one
+    line naming an override; never OmegaConf's bare assertion (issue 47)."""
+    from bmimic.config import ConfigError, check_additions, check_overrides
+
+    if composes:
+        check_additions(argv)
+        assert check_overrides(argv).motion.include.x == 1
+        return
+    with pytest.raises(ConfigError) as refused:
+        check_additions(argv)
+        check_overrides(argv)
+    line = str(refused.value)
+    assert len(line.splitlines()) == 1 and line.startswith("motion.include")
+
+
 def test_adding_a_key_under_a_null_node_is_one_line_not_omegaconfs_assertion():
     # OmegaConf fails with a bare AssertionError inside Hydra's composition (a traceback on the CLI).
     from bmimic.config import ConfigError, check_additions
