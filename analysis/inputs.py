@@ -5,14 +5,12 @@ report's options are in range. Each refusal is an AnalysisError with one line.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import math
 from pathlib import Path
 
 from analysis import AnalysisError
 from analysis.run_files import NEEDED_TABLES, config_value
-from bmimic.motion.config import MotionConfig
 from bmimic.run_folder import table_path
 from bmimic.run_schema import ITERATION
 
@@ -26,10 +24,9 @@ shortest."""
 MIXED_FLAG = "--allow-mixed"
 
 
-MOTION_DEFAULTS = {f"motion.{f.name}": f.default for f in dataclasses.fields(MotionConfig)
-                   if f.default is not dataclasses.MISSING}
-"""A motion key that a run's config lacks was written before the key existed: that run had the key's default
-(motion.check_plausible, added later, is True for every earlier run), so it is compared as that default."""
+MOTION_CHECK_KEYS = ("motion.check_plausible",)
+"""Motion keys that only decide whether a file is refused, never what is trained on: left out of the motion
+a run is compared on (so a run written before such a key existed compares with one that records it)."""
 
 
 def _flat(tree, prefix: str = "") -> dict:
@@ -54,7 +51,8 @@ def check_comparable(rows: list[dict], allow_mixed: bool = False) -> list[str]:
         def signature(r, _keys=keys):
             cfg = r["_cfg"]
             if _keys is None:
-                return {**MOTION_DEFAULTS, **_flat(cfg.get("motion") or {}, "motion.")}
+                flat = _flat(cfg.get("motion") or {}, "motion.")
+                return {k: v for k, v in flat.items() if k not in MOTION_CHECK_KEYS}
             if _keys is BUDGET_KEYS:  # as trained: a resume that raised max_iterations updated resolved_config.json
                 cfg = r.get("_resolved") or cfg
             return {k: config_value(cfg, k) for k in _keys}
