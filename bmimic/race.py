@@ -44,7 +44,9 @@ duration), stay within 10% of the wall time since the first iteration: beside th
 one every 15 minutes of racing, so whole-clip times are that coarse (docs/benchmarks.md).
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import math
