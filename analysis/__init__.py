@@ -8,8 +8,6 @@ time to threshold, speedup), ``plots`` one function per figure, ``report`` the c
 This package never imports torch or the simulator, so reports can be built on any machine.
 """
 
-import bmimic  # noqa: F401  (first: under `python -m` it takes the working directory off sys.path)
-
 
 class AnalysisError(Exception):
     """Bad input to the analysis (a missing file, an unreadable table, a wrong column).

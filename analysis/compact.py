@@ -13,7 +13,9 @@ studies allowed more, each with its reason. tests/test_results_size.py holds eve
 docs/results to its budget.
 """
 
-from __future__ import annotations
+from bmimic.startup import leave_working_directory
+
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
 
 import argparse
 import io

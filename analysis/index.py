@@ -7,7 +7,9 @@ lock while it reads the folders and writes a unique temp file that os.replace mo
 the file is always complete and the last rebuild saw every status written before it started.
 """
 
-from __future__ import annotations
+from bmimic.startup import leave_working_directory
+
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
 
 import contextlib
 import fcntl

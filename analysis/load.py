@@ -39,6 +39,7 @@ from bmimic.run_folder import (
     EVALUATION_TABLES,
     MOTION_SEGMENTS,
     STATUS,
+    SWEEP_INDEX,
     TABLES,
     WHOLE_CLIP_DIR,
     WHOLE_CLIP_FILES,
@@ -143,7 +144,7 @@ def _missing_jobs(rows: list[dict]) -> list[dict]:
         expected = {
             str(arm_dir / f"seed={seed}"): (arm, seed) for arm, arm_dir in arm_dirs.items() for seed in seeds
         }
-        index = Path(sweep_dir) / "index.csv"
+        index = Path(sweep_dir) / SWEEP_INDEX
         if index.is_file():
             try:
                 listed = pd.read_csv(index)
@@ -331,7 +332,7 @@ def _with_checkpoint_whole_clips(run_dir: Path, name: str, table: pd.DataFrame |
     for summary_path in sorted((run_dir / EVAL_DIR).glob(f"*/{WHOLE_CLIP_DIR}/{WHOLE_CLIP_FILES[-1]}")):
         path = summary_path.parent / CHECKPOINT_WHOLE_CLIP_FILES[name]
         summary = read_json(summary_path)
-        iteration = summary.get("iteration") if isinstance(summary, dict) else None
+        iteration = summary.get(ITERATION) if isinstance(summary, dict) else None
         if not isinstance(iteration, int) or isinstance(iteration, bool) or iteration < 0:
             raise AnalysisError(f"{summary_path}: 'iteration' must be an integer >= 0, got {iteration!r}")
         if not path.is_file():

@@ -21,7 +21,9 @@ is only comparable between races on the same card kind under the same load; the 
 GPU count when more than one) is part of every label for that reason.
 """
 
-from __future__ import annotations
+from bmimic.startup import leave_working_directory
+
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
 
 import argparse
 import json

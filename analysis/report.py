@@ -12,7 +12,9 @@ Machine-readable outputs: ``summary.csv`` (tables.SUMMARY_COLUMNS), ``speedup.cs
 plus per-seed and per-bin tables beside them.
 """
 
-from __future__ import annotations
+from bmimic.startup import leave_working_directory
+
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
 
 import argparse
 import os

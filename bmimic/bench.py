@@ -20,7 +20,9 @@ rank, the slowest rank's iteration time) and merges one row per env count into P
         --multigpu-json docs/bench/$(date +%F)_h200_multigpu.json; done
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import json

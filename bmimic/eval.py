@@ -43,7 +43,9 @@ Bad input (missing folder, no checkpoint, a checkpoint that does not match the r
 `error: ...` line and exits with status 2, writing nothing.
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import logging

@@ -11,7 +11,9 @@ The run's config is reloaded as `bmimic.eval` does, and a one-world evaluation e
 supplies the robot, motion and observation layout. Bad input prints one `error: ...` line (status 2).
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import logging

@@ -8,7 +8,9 @@ The dry run expands a multirun exactly as `python -m bmimic.train -m <same overr
 already done. It keeps torch and the simulator out of its imports.
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import sys

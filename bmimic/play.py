@@ -15,7 +15,9 @@ or .gif when imageio/imageio-ffmpeg are not installed. Exit status 2 with a one-
 on bad input or when no OpenGL backend is available.
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import logging

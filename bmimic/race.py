@@ -44,7 +44,9 @@ duration), stay within 10% of the wall time since the first iteration: beside th
 one every 15 minutes of racing, so whole-clip times are that coarse (docs/benchmarks.md).
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import math
@@ -203,7 +205,7 @@ def _race(argv: list[str] | None) -> int:
 
     from bmimic import CONF_DIR
     from bmimic.job import launch
-    from bmimic.run_folder import PROVENANCE, atomic_write_json, read_json
+    from bmimic.run_folder import PROVENANCE, RACE, atomic_write_json, read_json
 
     # An absolute config path: the app runs from this module whether started with -m or imported.
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
@@ -235,7 +237,7 @@ def _race(argv: list[str] | None) -> int:
         print("error: the race ran no evaluation (eval.every_iters=0, or max_iterations below it)", file=sys.stderr)
         return 2
     record = race.to_json(result.get("config", {}), read_json(Path(race.run_dir) / PROVENANCE))
-    atomic_write_json(Path(race.run_dir) / "race.json", record)
+    atomic_write_json(Path(race.run_dir) / RACE, record)
     if args.json is not None:
         atomic_write_json(args.json, record)
     for line in race.lines():

@@ -12,7 +12,9 @@ outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/. Returns the final evaluate
 (lower is better) so Hydra's optimising sweepers can use it.
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import sys
 

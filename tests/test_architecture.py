@@ -13,8 +13,10 @@
 - run-folder tables are written through bmimic.run_record only: no other module names the table writers
   (atomic_write_parquet, atomic_write_csv), and evaluation's producers (bmimic.eval, bmimic.evaluation,
   bmimic.sim2sim) name no atomic writer at all;
-- no import runs back up the layers robot < motion < sim < sampling < envs < training < evaluation
-  (a lower layer never imports a higher one: the env hands the sampler's feedback what it measured);
+- every module is on a floor of docs/architecture.md's floor table, and every import goes down the
+  floors or stays on its floor (a lower floor never imports a higher one: the env hands the sampler's
+  feedback what it measured);
+- every run-folder file name is spelled in bmimic.run_folder only;
 - no module is over 400 lines.
 
 Imports inside functions count: a lazy import is still a dependency.
@@ -23,6 +25,7 @@ Imports inside functions count: a lazy import is still a dependency.
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -301,23 +304,74 @@ def test_column_positions_finds_the_places_a_column_is_named():
         "bin", "iteration", "bin", "iteration", "bin", "iteration", "bin"]
 
 
-LAYERS = ("bmimic.robot", "bmimic.motion", "bmimic.sim", "bmimic.sampling", "bmimic.envs", "bmimic.training",
-          "bmimic.evaluation")
-"""The library's floors, lowest first; the modules above them (task, job, the entry points) compose them."""
-LAYER_EXEMPT = ("bmimic.motion.convert",)
-"""Entry points that live in a floor's package (they are tools on top, not part of the floor)."""
+FLOOR_TABLE_HEADER = "| floor | modules | their job |"
 
 
-def _layer(module: str) -> int | None:
-    if any(module == e or module.startswith(e + ".") for e in LAYER_EXEMPT):
-        return None
-    return next((i for i, p in enumerate(LAYERS) if module == p or module.startswith(p + ".")), None)
+def drawn_floors(text: str) -> list[tuple[str, list[str]]]:
+    """(floor, names) of each row of the floor table in docs/architecture.md, top floor first."""
+    lines = text.splitlines()
+    start = lines.index(FLOOR_TABLE_HEADER) + 2  # past the header and its |---| line
+    rows = []
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        floor, names, _ = (cell.strip() for cell in line.strip("|").split("|"))
+        rows.append((floor, re.findall(r"`([^`]+)`", names)))
+    return rows
 
 
-def test_no_import_runs_back_up_the_layers():
-    up = sorted((a, b) for a, targets in GRAPH.items() for b in targets
-                if _layer(a) is not None and _layer(b) is not None and _layer(b) > _layer(a))
-    assert up == []
+def drawn_module(name: str) -> str:
+    """The module a drawn name stands for: `bmimic.<name>` unless it is the analysis's; `__init__` is bmimic."""
+    name = name.rstrip("/")
+    return "bmimic" if name == "__init__" else name if name.split(".")[0] == "analysis" else f"bmimic.{name}"
+
+
+FLOORS = drawn_floors((REPO / "docs" / "architecture.md").read_text(encoding="utf-8"))
+
+
+def floor_of(module: str) -> int | None:
+    """The height of `module`'s floor (0: the bottom one): the floor of its longest drawn name, where a
+    name ending in `/` is a package and all its modules and any other name one module."""
+    best = None
+    for height, (_, names) in enumerate(reversed(FLOORS)):
+        for name in names:
+            drawn = drawn_module(name)
+            if (module == drawn or name.endswith("/") and module.startswith(drawn + ".")) and (
+                    best is None or len(drawn) > best[0]):
+                best = (len(drawn), height)
+    return None if best is None else best[1]
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[tuple[str, str, str, str]]:
+    """(module, its floor, imported module, its floor) of every import that goes up the floors."""
+    name = [floor for floor, _ in reversed(FLOORS)]
+    return sorted((a, name[floor_of(a)], b, name[floor_of(b)]) for a, targets in graph.items() for b in targets
+                  if floor_of(b) > floor_of(a))
+
+
+def test_the_floor_table_is_read_as_drawn():
+    heights = [floor_of(m) for m in ("bmimic.robot.g1", "bmimic.motion.motion", "bmimic.sim.simulator",
+                                     "bmimic.sampling.bins", "bmimic.envs.tracking_env", "bmimic.training.runner",
+                                     "bmimic.task", "bmimic.evaluation.saved_run", "bmimic.train")]
+    assert heights == sorted(heights) and len(set(heights)) == len(heights)
+    assert floor_of("bmimic.sweeping.gpu_slots") == 0 < floor_of("bmimic.sweeping.jobs")  # the longest name wins
+    assert floor_of("bmimic") == floor_of("bmimic.run_folder") == 0
+    # The command lines are on top; the CSV converter is also the motion floor's (load_motion uses it).
+    assert [e for e in ENTRY_POINTS if floor_of(e) != len(FLOORS) - 1] == ["bmimic.motion.convert"]
+    assert upward_imports({"bmimic.robot.g1": {"bmimic.task"}, "bmimic.task": {"bmimic.robot.g1"}}) == [
+        ("bmimic.robot.g1", "robot", "bmimic.task", "composition")]
+
+
+def test_every_module_is_drawn_on_a_floor_and_every_drawn_name_exists():
+    assert sorted(m for m in MODULES if floor_of(m) is None) == []
+    names = [n for _, floor in FLOORS for n in floor]
+    assert sorted(n for n in names if not any(m == drawn_module(n) or m.startswith(drawn_module(n) + ".")
+                                              for m in MODULES)) == []
+    assert sorted({n for n in names if names.count(n) > 1}) == []
+
+
+def test_every_import_goes_down_the_floors_or_stays_on_its_floor():
+    assert upward_imports(GRAPH) == []
 
 
 TABLE_WRITERS = ("atomic_write_parquet", "atomic_write_csv")
@@ -359,3 +413,22 @@ def test_run_folder_tables_are_written_only_through_the_run_record():
                        if any(name == p or name.startswith(p + ".") for p in EVALUATION_PRODUCERS)
                        for hit in _writers_named(module.tree, ("atomic_write", "make_folder")))
     assert producers == []
+
+
+FILE_SUFFIXES = (".json", ".csv", ".parquet", ".log", ".lock", ".pt", ".onnx")
+REPORT_FILES = {("analysis.report_files", "whole_clip_survival.csv")}
+"""A report's own file that has a run-folder file's name (it is written into the report folder)."""
+
+
+def _string_constants(tree: ast.AST) -> list[ast.Constant]:
+    return [n for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)]
+
+
+def test_run_folder_file_names_are_spelled_only_in_the_run_folder_module():
+    names = {c.value for c in _string_constants(MODULES["bmimic.run_folder"].tree)
+             if c.value.endswith(FILE_SUFFIXES) and "*" not in c.value and "\\" not in c.value}
+    assert {"metrics.json", "eval.parquet", "race.json", "index.csv"} <= names
+    spelled = sorted((name, c.value, c.lineno) for name, module in MODULES.items() if name != "bmimic.run_folder"
+                     for c in _string_constants(module.tree)
+                     if c.value in names and (name, c.value) not in REPORT_FILES)
+    assert spelled == []

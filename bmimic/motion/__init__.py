@@ -6,7 +6,9 @@ helpers from `bmimic.motion.math` and must choose MuJoCo's GL backend before muj
 submodule imported with the package would make `python -m bmimic.motion.convert` warn under runpy.
 """
 
-from __future__ import annotations
+from bmimic.startup import leave_working_directory
+
+leave_working_directory(__name__)  # first: `python -m bmimic.motion.convert` runs this before convert
 
 from typing import TYPE_CHECKING
 

@@ -9,7 +9,9 @@ root orientation by slerp), velocities come from finite differences and body sta
 kinematics of the project's G1 model (`bmimic.motion.kinematics.kinematic_motion`).
 """
 
-from __future__ import annotations
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
 
 import argparse
 import sys

@@ -57,6 +57,10 @@ command's bookkeeping (bins, start frames, tables) reuses bmimic.evaluation's, s
 comparable row by row.
 """
 
+from bmimic.startup import start_command
+
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+
 from bmimic.sim2sim.cli import main, parser, render_video
 from bmimic.sim2sim.gap import GAP_FILE, SETTINGS, WarpEval, format_gap, gap_table, warp_eval
 from bmimic.sim2sim.model import MENAGERIE_ENV, MODELS, build_model, find_menagerie, model_label
