@@ -39,28 +39,24 @@ def bin_counts(bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None =
 
 class BinSampler:
     """Shared plumbing: cached probabilities and CDF, sampling, update(), state dict. `kind` is the
-    name it is registered under (`bmimic.sampling.registry.register_sampler` sets it)."""
+    name it is registered under and `schema` its config dataclass
+    (`bmimic.sampling.registry.register_sampler` sets both)."""
 
     kind = ""
+    schema: type | None = None
     signals: tuple = ()
     """What the sampler learns from (:class:`bmimic.sampling.feedback.Signal` s): the sampler's
     feedback measures each and delivers it, at its cadence, to the method the signal names
     (:meth:`update_counts`, :meth:`update_errors`, :meth:`observe_eval`). None: it never changes."""
 
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        """Range checks of the keys of this sampler's own schema (its `register_sampler` config)."""
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "BinSampler":
-        """The sampler that ``cfg`` describes, over ``num_bins`` bins."""
-        return cls(num_bins, device=device)
-
-    def __init__(self, num_bins: int, device: Any = "cpu", method: str = "inverse_cdf"):
+    def __init__(self, num_bins: int, cfg: Any = None, device: Any = "cpu", method: str = "inverse_cdf"):
+        """`cfg`: the sampler's validated config (an instance of its `schema`, checked by
+        `bmimic.sampling.config.validate_sampler_config`); None: the schema's defaults."""
         if not (isinstance(num_bins, int) and not isinstance(num_bins, bool) and num_bins >= 1):
             raise SamplerConfigError(f"sampler num_bins must be an integer >= 1, got {num_bins!r}")
         if method not in METHODS:
             raise SamplerConfigError(f"sampler method must be one of {', '.join(METHODS)}, got {method!r}")
+        self.cfg = cfg if cfg is not None or self.schema is None else self.schema()
         self.num_bins = num_bins
         self.device = torch.device(device)
         self.method = method
