@@ -719,7 +719,9 @@ def test_the_variants_are_the_yaml_files_of_registered_samplers():
 
 
 @pytest.mark.parametrize("name", variant_names())
-def test_each_variant_is_named_after_its_file_and_sets_only_its_schemas_keys(name):
+def test_each_variant_is_named_after_its_file_and_only_overrides_its_schema(name):
+    """A variant selects its schema and sets only keys of it, each to a value other than the schema's
+    default (the defaults live in the schema alone)."""
     from omegaconf import OmegaConf
 
     from tests.conftest import CONF
@@ -727,11 +729,14 @@ def test_each_variant_is_named_after_its_file_and_sets_only_its_schemas_keys(nam
     cfg = load_variant(name)
     assert cfg.name == name
     validate_sampler_config(cfg, 30.0)
-    node = OmegaConf.load(CONF / "sampler" / f"{name}.yaml")
-    schema = {f.name for f in dataclasses.fields(SAMPLERS[cfg.kind].config)}
-    assert node.defaults[0] == f"{cfg.kind}_schema"
-    assert set(node) - {"defaults"} == schema - {"kind"}  # its own keys, each once, none of another sampler's
-    assert set(node.accounting) == set(DESIGN_ACCOUNTING)
+    node = OmegaConf.to_container(OmegaConf.load(CONF / "sampler" / f"{name}.yaml"))
+    default = dataclasses.asdict(SAMPLERS[cfg.kind].config())
+    assert node.pop("defaults")[0] == f"{cfg.kind}_schema"
+    assert set(node) <= set(default) - {"kind"}  # none of another sampler's keys
+    assert set(node.get("accounting", {})) <= set(DESIGN_ACCOUNTING)
+    for key, value in node.items():
+        for k, v in (value.items() if key == "accounting" else [(None, value)]):
+            assert v != (default[key][k] if k else default[key]), f"{name}.yaml repeats the default of {key}.{k or ''}"
     layout = layout_for(cfg, 1500, 50.0)
     assert type(make_sampler(cfg, layout.num_bins)) is SAMPLERS[cfg.kind].cls
     assert (CONF / "sampler" / f"{name}.yaml").read_text().startswith("# ")  # a header says what it is
