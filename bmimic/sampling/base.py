@@ -5,11 +5,14 @@ and the sampler's feedback count with. A sampler subclasses BinSampler and imple
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from bmimic.sampling.checks import SamplerConfigError
+
+if TYPE_CHECKING:
+    from bmimic.sampling.schemas import SamplerConfig
 
 ERROR_COMPONENTS = ("body_pos_m", "body_ori_rad", "body_lin_vel_m_per_s", "max_body_pos_m")
 """The per-env tracking errors the sampler's feedback sums per bin for samplers that declare
@@ -43,13 +46,14 @@ class BinSampler:
     (`bmimic.sampling.registry.register_sampler` sets both)."""
 
     kind = ""
-    schema: type | None = None
+    schema: type[SamplerConfig] | None = None
     signals: tuple = ()
     """What the sampler learns from (:class:`bmimic.sampling.feedback.Signal` s): the sampler's
     feedback measures each and delivers it, at its cadence, to the method the signal names
     (:meth:`update_counts`, :meth:`update_errors`, :meth:`observe_eval`). None: it never changes."""
 
-    def __init__(self, num_bins: int, cfg: Any = None, device: Any = "cpu", method: str = "inverse_cdf"):
+    def __init__(self, num_bins: int, cfg: SamplerConfig | None = None, device: Any = "cpu",
+                 method: str = "inverse_cdf"):
         """`cfg`: the sampler's validated config (an instance of its `schema`, checked by
         `bmimic.sampling.config.validate_sampler_config`); None: the schema's defaults."""
         if not (isinstance(num_bins, int) and not isinstance(num_bins, bool) and num_bins >= 1):
