@@ -121,8 +121,8 @@ def check_finite(cfg, prefix: str = "") -> None:
 
 
 def check_sampler_choice(cfg, choices) -> None:
-    """`sampler.name` must be the sampler group's option (each conf/sampler/<name>.yaml sets
-    name: <name>), so `sampler=uniform sampler.name=adaptive` cannot train another sampler than the
+    """`sampler.name` must be the sampler group's option (each conf/sampler/<name>.yaml is named
+    <name>: its schema's default or its own `name:`), so `sampler=uniform sampler.name=adaptive` cannot train another sampler than the
     run's folder and records say."""
     chosen = choices.get("sampler") if choices is not None else None
     if chosen is not None and str(cfg.sampler.name) != str(chosen):

@@ -8,14 +8,16 @@ sampler is registered, :mod:`bmimic.sampling.bins` for the bin layouts,
 :mod:`bmimic.sampling.config` for the options and the named variants.
 
 Importing the package registers the built-in schemas (:mod:`bmimic.sampling.schemas`, torch-free, so
-that composing a config needs no torch); the first use of any other name loads the rest (torch), and
-so registers the built-in sampler classes (bmimic.sampling.config also loads them when it first needs
-a class).
+that composing a config needs no torch); the first use of any other name loads its module (torch). The
+sampler classes (``AdaptiveSampler``, ...) and ``SAMPLERS`` come from the registry, which imports the
+module of each registered kind's class on first use.
 """
+
+from typing import Any
 
 from bmimic.sampling import schemas as _schemas  # noqa: F401  (registers the built-in schemas)
 from bmimic.sampling.checks import SamplerConfigError
-from bmimic.sampling.registry import register_sampler
+from bmimic.sampling.registry import load_classes, register_sampler
 from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, SamplerConfig, UniformConfig
 
 _LAZY = {
@@ -42,61 +44,49 @@ _LAZY = {
     "sampling_entropy": "diagnostics",
     "summary": "diagnostics",
     "make_layout": "layouts",
-    "PHCSampler": "peer_clips",
-    "ProtoMotionsSampler": "peer_clips",
-    "EGMSampler": "peer_errors",
-    "GMTSampler": "peer_errors",
-    "AdaptiveSampler": "samplers",
-    "BeyondMimicSampler": "samplers",
-    "UniformSampler": "samplers",
 }
-"""Public names imported on first use: name -> module of this package."""
+"""Public names imported on first use: name -> module of this package (the sampler classes: the registry's)."""
 
 
-def __getattr__(name: str):
-    if name != "SAMPLERS" and name not in _LAZY:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    # The first use loads the whole package (torch), and so registers every built-in class.
-    from bmimic.sampling import (
-        base,
-        bins,
-        clips,
-        config,
-        diagnostics,
-        feedback,
-        layouts,
-        peer_clips,
-        peer_errors,
-        registry,
-        samplers,
-        schemas,
-    )
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        # The first use loads the package's modules (torch); the sampler classes' modules are the registry's.
+        from bmimic.sampling import (
+            base,
+            bins,
+            clips,
+            config,
+            diagnostics,
+            feedback,
+            layouts,
+            registry,
+            schemas,
+        )
 
-    modules = {m.__name__.rpartition(".")[2]: m for m in (base, bins, clips, config, diagnostics, feedback, layouts,
-                                                          peer_clips, peer_errors, registry, samplers, schemas)}
-    return registry.SAMPLERS if name == "SAMPLERS" else getattr(modules[_LAZY[name]], name)
+        modules = {m.__name__.rpartition(".")[2]: m for m in (base, bins, clips, config, diagnostics, feedback,
+                                                              layouts, registry, schemas)}
+        return getattr(modules[_LAZY[name]], name)
+    if name == "SAMPLERS" or name.endswith("Sampler"):  # a registered class: its module loads on first use
+        samplers = load_classes()
+        classes = {entry.cls.__name__: entry.cls for entry in samplers.values()}
+        if name == "SAMPLERS" or name in classes:
+            return samplers if name == "SAMPLERS" else classes[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 __all__ = [
     "AccountingConfig",
     "AdaptiveConfig",
-    "AdaptiveSampler",
     "BeyondMimicConfig",
-    "BeyondMimicSampler",
     "BinLayout",
     "BinSampler",
     "ClipLayout",
-    "EGMSampler",
-    "GMTSampler",
-    "PHCSampler",
-    "ProtoMotionsSampler",
     "ReleasedBinLayout",
     "SAMPLERS",
     "SamplerConfig",
     "SamplerConfigError",
     "SamplerFeedback",
     "UniformConfig",
-    "UniformSampler",
     "attribute",
     "bin_counts",
     "bin_edges_s",

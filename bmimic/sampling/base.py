@@ -5,11 +5,14 @@ and the sampler's feedback count with. A sampler subclasses BinSampler and imple
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from bmimic.sampling.checks import SamplerConfigError
+
+if TYPE_CHECKING:
+    from bmimic.sampling.schemas import SamplerConfig
 
 ERROR_COMPONENTS = ("body_pos_m", "body_ori_rad", "body_lin_vel_m_per_s", "max_body_pos_m")
 """The per-env tracking errors the sampler's feedback sums per bin for samplers that declare
@@ -39,28 +42,25 @@ def bin_counts(bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None =
 
 class BinSampler:
     """Shared plumbing: cached probabilities and CDF, sampling, update(), state dict. `kind` is the
-    name it is registered under (`bmimic.sampling.registry.register_sampler` sets it)."""
+    name it is registered under and `schema` its config dataclass
+    (`bmimic.sampling.registry.register_sampler` sets both)."""
 
     kind = ""
+    schema: type[SamplerConfig] | None = None
     signals: tuple = ()
     """What the sampler learns from (:class:`bmimic.sampling.feedback.Signal` s): the sampler's
     feedback measures each and delivers it, at its cadence, to the method the signal names
     (:meth:`update_counts`, :meth:`update_errors`, :meth:`observe_eval`). None: it never changes."""
 
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        """Range checks of the keys of this sampler's own schema (its `register_sampler` config)."""
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "BinSampler":
-        """The sampler that ``cfg`` describes, over ``num_bins`` bins."""
-        return cls(num_bins, device=device)
-
-    def __init__(self, num_bins: int, device: Any = "cpu", method: str = "inverse_cdf"):
+    def __init__(self, num_bins: int, cfg: SamplerConfig | None = None, device: Any = "cpu",
+                 method: str = "inverse_cdf"):
+        """`cfg`: the sampler's validated config (an instance of its `schema`, checked by
+        `bmimic.sampling.config.validate_sampler_config`); None: the schema's defaults."""
         if not (isinstance(num_bins, int) and not isinstance(num_bins, bool) and num_bins >= 1):
             raise SamplerConfigError(f"sampler num_bins must be an integer >= 1, got {num_bins!r}")
         if method not in METHODS:
             raise SamplerConfigError(f"sampler method must be one of {', '.join(METHODS)}, got {method!r}")
+        self.cfg = cfg if cfg is not None or self.schema is None else self.schema()
         self.num_bins = num_bins
         self.device = torch.device(device)
         self.method = method

@@ -1,6 +1,6 @@
-"""Range checks of sampler options and the error they raise. Each sampler class checks the keys it
-reads (`check_config`, beside the class) with these, and its constructor calls the same functions, so a
-bad value gets the same one-line message whichever way it arrives. Comparisons are written
+"""Range checks of sampler options and the error they raise. Each sampler's config schema states the
+rules of its keys with these (its `check`, :mod:`bmimic.sampling.schemas`), run once when the config is
+validated; a bad value gets a one-line message naming the key. Comparisons are written
 `not (lo < x <= hi)` so that NaN fails them."""
 
 from __future__ import annotations

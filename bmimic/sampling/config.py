@@ -3,30 +3,18 @@ and the factories.
 
 Each YAML under ``conf/sampler/`` is a named variant (``name`` = its file name) of a registered
 sampler class: it lists that class's schema first in its defaults (``<kind>_schema``,
-:mod:`bmimic.sampling.registry`) and sets only the keys that schema has:
+:mod:`bmimic.sampling.registry`) and may set only the keys that schema has:
 
 - the keys of every variant (:class:`SamplerConfig`): ``name``, ``kind`` (the class; the schema's
   default), ``enabled``, the bin layout ``bins`` and ``bin_size_seconds``, ``accounting`` (the
   episode accounting, :class:`bmimic.sampling.schemas.AccountingConfig`: ``attribution``,
   ``failure``, ``failure_threshold``, ``update_every``) and ``log_every`` (the trainer's);
-- the sampler's own parameters (its schema, beside its class in :mod:`bmimic.sampling.samplers`).
+- the sampler's own parameters: its schema in :mod:`bmimic.sampling.schemas`, the one place of their
+  defaults and range rules; a YAML sets only the values where the variant differs from them.
 
-=================  ==================  ========================================================
-variant (name)     class (kind)        what it is
-=================  ==================  ========================================================
-adaptive           adaptive            the design (the schema defaults)
-adaptive_hybrid    adaptive            the earlier ``adaptive``: the design's formulas with the
-                                       released code's bookkeeping (results in docs/results)
-beyondmimic        beyondmimic         the released code, its bins and accounting included
-egm                egm                 EGM: EMA of a composite tracking error per bin, scheduled
-                                       power and uniform ratio (:mod:`bmimic.sampling.peer_errors`)
-gmt                gmt                 GMT: completion levels of <= 10-bin sub-clips, then the
-                                       largest body error
-phc                phc                 PHC: clips weighted by their evaluation failures
-protomotions       protomotions        ProtoMotions v3: multiplicative clip weights from
-                                       evaluations, floor 1/C
-uniform            uniform             uniform start bins (the baseline)
-=================  ==================  ========================================================
+The variants are the YAML files (:func:`variant_names`; ``python -m bmimic.train --help`` lists
+them), each with a header saying what it is; the kinds are those of the registry
+(:mod:`bmimic.sampling.registry`).
 
 ``enabled: false`` draws start bins uniformly whatever the variant (the design's switch back to
 uniform sampling); the run then equals ``sampler=uniform`` except for the recorded name.
@@ -53,9 +41,7 @@ if TYPE_CHECKING:
 
 
 def sampler_class(kind: Any) -> type:
-    """The sampler class registered for `kind`, the built-in classes registered first."""
-    from bmimic.sampling import peer_clips, peer_errors, samplers  # noqa: F401  (they register their classes)
-
+    """The sampler class registered for `kind` (its module imported on first use)."""
     return sampler_entry(kind).cls
 
 _LEGACY_KINDS = {"adaptive": "adaptive", "adaptive_hybrid": "adaptive", "beyondmimic": "beyondmimic",
@@ -116,7 +102,7 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
     check_choice("clip_balance", cfg.clip_balance, CLIP_BALANCES)
     if cfg.bins == "time" or cfg.bin_size_seconds is not None:
         check_bin_size(cfg.bin_size_seconds, motion_duration_s if cfg.bins == "time" else None)
-    sampler_class(cfg.kind).check_config(cfg)
+    cfg.check()
     check_accounting(cfg.accounting)
     if cfg.log_every is not None and not (isinstance(cfg.log_every, int) and not isinstance(cfg.log_every, bool)
                                           and cfg.log_every >= 1):
@@ -128,8 +114,10 @@ def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu", layout: Any = Non
     ``cfg.enabled`` is false); given the ``layout`` of a library (several clips), the sampler knows its
     clips (look-ahead stops at clip ends; ``cfg.clip_balance`` with ``clip_weights``)."""
     cfg = sampler_config(cfg)
-    cls = sampler_class(cfg.kind if cfg.enabled is not False else "uniform")
-    sampler = cls.from_config(cfg, num_bins, device)
+    if cfg.enabled is False:
+        sampler = sampler_class("uniform")(num_bins, device=device)
+    else:
+        sampler = sampler_class(cfg.kind)(num_bins, cfg, device=device)
     if layout is not None and layout.num_clips > 1:
         sampler.set_clips(layout.bin_clip, layout.bin_last_in_clip, layout.num_clips, cfg.clip_balance, clip_weights)
     return sampler

@@ -32,24 +32,23 @@ from typing import Any, Optional
 import torch
 
 from bmimic.sampling.base import BinSampler
-from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, check_positive, fail
+from bmimic.sampling.checks import SamplerConfigError
 from bmimic.sampling.feedback import CLIP_OUTCOMES
 from bmimic.sampling.registry import register_sampler
-from bmimic.sampling.schemas import PHCConfig, ProtoMotionsConfig
+from bmimic.sampling.schemas import ClipWeightingConfig, PHCConfig, ProtoMotionsConfig
+
+
+def _optional_float(x: Optional[float]) -> Optional[float]:
+    return None if x is None else float(x)
 
 
 class GroupSampler(BinSampler):
     """A sampler whose weights live on groups of consecutive bins (clips or sub-clips); each group's
     share is spread evenly over its bins."""
 
-    def __init__(self, num_bins: int, device: Any = "cpu"):
-        super().__init__(num_bins, device=device)
+    def __init__(self, num_bins: int, cfg: ClipWeightingConfig | None = None, device: Any = "cpu"):
+        super().__init__(num_bins, cfg, device=device)
         self._set_groups(torch.zeros(num_bins, dtype=torch.long))
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        if getattr(cfg, "clip_balance", "bins") != "bins":
-            fail("clip_balance", f"bins (the {cls.kind} sampler weights clips itself)", cfg.clip_balance)
 
     def _groups_of(self, bin_clip: torch.Tensor) -> torch.Tensor:
         """The group of each bin: its clip (a subclass may cut clips finer)."""
@@ -87,8 +86,6 @@ class GroupSampler(BinSampler):
 
 
 # ------------------------------------------------------------------------------------------------ PHC
-PHC_MODES = ("soft", "hard")
-
 
 @register_sampler("phc", PHCConfig)
 class PHCSampler(GroupSampler):
@@ -96,24 +93,12 @@ class PHCSampler(GroupSampler):
 
     signals = (CLIP_OUTCOMES,)
 
-    def __init__(self, num_bins: int, mode: str = "soft", rollout_max_s: Optional[float] = None, device: Any = "cpu"):
-        check_choice("mode", mode, PHC_MODES)
-        super().__init__(num_bins, device=device)
-        self.mode = mode
-        self.rollout_max_s = None if rollout_max_s is None else float(rollout_max_s)
+    def __init__(self, num_bins: int, cfg: PHCConfig | None = None, device: Any = "cpu"):
+        super().__init__(num_bins, cfg, device=device)
+        self.mode = self.cfg.mode
+        self.rollout_max_s = _optional_float(self.cfg.rollout_max_s)
         self._failures = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._last_failed = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        super().check_config(cfg)
-        check_choice("mode", cfg.mode, PHC_MODES)
-        if cfg.rollout_max_s is not None:
-            check_positive("rollout_max_s", cfg.rollout_max_s)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "PHCSampler":
-        return cls(num_bins, mode=cfg.mode, rollout_max_s=cfg.rollout_max_s, device=device)
 
     def observe_eval(self, clip_failed: torch.Tensor, iterations: int) -> None:
         failed = torch.zeros(self.num_bins, dtype=torch.float64, device=self.device)
@@ -146,28 +131,12 @@ class ProtoMotionsSampler(GroupSampler):
 
     signals = (CLIP_OUTCOMES,)
 
-    def __init__(self, num_bins: int, success_decay: float = 0.999, failure_decay: float = 0.0,
-                 min_weight: Optional[float] = None, rollout_max_s: Optional[float] = 12.0, device: Any = "cpu"):
-        super().__init__(num_bins, device=device)
-        self.success_decay, self.failure_decay = float(success_decay), float(failure_decay)
-        self.min_weight = None if min_weight is None else float(min_weight)
-        self.rollout_max_s = None if rollout_max_s is None else float(rollout_max_s)
+    def __init__(self, num_bins: int, cfg: ProtoMotionsConfig | None = None, device: Any = "cpu"):
+        super().__init__(num_bins, cfg, device=device)
+        self.success_decay, self.failure_decay = float(self.cfg.success_decay), float(self.cfg.failure_decay)
+        self.min_weight = _optional_float(self.cfg.min_weight)
+        self.rollout_max_s = _optional_float(self.cfg.rollout_max_s)
         self._weight = torch.ones(num_bins, dtype=torch.float64, device=self.device)
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        super().check_config(cfg)
-        check_fraction("success_decay", cfg.success_decay)
-        check_fraction("failure_decay", cfg.failure_decay, closed_below=True)
-        if cfg.min_weight is not None:
-            check_positive("min_weight", cfg.min_weight)
-        if cfg.rollout_max_s is not None:
-            check_positive("rollout_max_s", cfg.rollout_max_s)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "ProtoMotionsSampler":
-        return cls(num_bins, success_decay=cfg.success_decay, failure_decay=cfg.failure_decay,
-                   min_weight=cfg.min_weight, rollout_max_s=cfg.rollout_max_s, device=device)
 
     def floor(self) -> float:
         """The weight floor in force (min_weight, or 1 / number of clips)."""

@@ -35,7 +35,6 @@ import torch
 
 from bmimic.run_schema import ITERATION
 from bmimic.sampling.base import BinSampler
-from bmimic.sampling.checks import check_fraction, check_int_at_least, check_nonnegative, check_positive, fail
 from bmimic.sampling.feedback import EPISODE_OUTCOMES, TRACKING_ERRORS
 from bmimic.sampling.peer_clips import GroupSampler
 from bmimic.sampling.registry import register_sampler
@@ -53,40 +52,19 @@ class EGMSampler(BinSampler):
 
     signals = (TRACKING_ERRORS,)
 
-    def __init__(self, num_bins: int, ema: float = 0.1, weights: tuple[float, float, float] = (1.0, 0.1, 0.1),
-                 power: tuple[float, float] = (0.5, 2.0), uniform: tuple[float, float] = (0.5, 0.1),
-                 schedule_iterations: int = UNSET_SCHEDULE_ITERATIONS, device: Any = "cpu"):
-        super().__init__(num_bins, device=device)
-        self.ema = float(ema)
-        self.weights = tuple(float(w) for w in weights)
-        self.power = tuple(float(p) for p in power)
-        self.uniform = tuple(float(u) for u in uniform)
-        self.schedule_iterations = int(schedule_iterations)
+    def __init__(self, num_bins: int, cfg: EGMConfig | None = None, device: Any = "cpu"):
+        super().__init__(num_bins, cfg, device=device)
+        cfg = self.cfg
+        self.ema = float(cfg.ema)
+        self.weights = (float(cfg.weight_body_pos), float(cfg.weight_body_ori), float(cfg.weight_body_lin_vel))
+        self.power = (float(cfg.power_start), float(cfg.power_end))
+        self.uniform = (float(cfg.uniform_start), float(cfg.uniform_end))
+        self.schedule_iterations = int(UNSET_SCHEDULE_ITERATIONS if cfg.schedule_iterations is None
+                                       else cfg.schedule_iterations)
         self._w = torch.tensor(self.weights, dtype=torch.float64, device=self.device)
         self._error = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._seen = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._iteration = torch.zeros((), dtype=torch.float64, device=self.device)
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        check_fraction("ema", cfg.ema)
-        for key in ("weight_body_pos", "weight_body_ori", "weight_body_lin_vel"):
-            check_nonnegative(key, getattr(cfg, key))
-        if cfg.weight_body_pos + cfg.weight_body_ori + cfg.weight_body_lin_vel <= 0:
-            fail("weight_body_pos", "weights whose sum is > 0", cfg.weight_body_pos)
-        for key in ("power_start", "power_end"):
-            check_positive(key, getattr(cfg, key))
-        for key in ("uniform_start", "uniform_end"):
-            check_fraction(key, getattr(cfg, key), closed_below=True)
-        if cfg.schedule_iterations is not None:
-            check_int_at_least("schedule_iterations", cfg.schedule_iterations, 1)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "EGMSampler":
-        return cls(num_bins, ema=cfg.ema, weights=(cfg.weight_body_pos, cfg.weight_body_ori, cfg.weight_body_lin_vel),
-                   power=(cfg.power_start, cfg.power_end), uniform=(cfg.uniform_start, cfg.uniform_end),
-                   schedule_iterations=(UNSET_SCHEDULE_ITERATIONS if cfg.schedule_iterations is None
-                                        else cfg.schedule_iterations), device=device)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         pass  # EGM learns from tracking errors only
@@ -134,41 +112,23 @@ class GMTSampler(GroupSampler):
 
     signals = (EPISODE_OUTCOMES, TRACKING_ERRORS)
 
-    def __init__(self, num_bins: int, subclip_bins: int = 10, initial_level: float = 10.0,
-                 completion_decay: float = 0.99, min_level: float = 1.0, error_scale_m: float = 0.15,
-                 error_power: float = 5.0, device: Any = "cpu"):
-        self.subclip_bins = int(subclip_bins)
-        super().__init__(num_bins, device=device)
-        self.initial_level, self.completion_decay, self.min_level = float(initial_level), float(completion_decay), \
-            float(min_level)
-        self.error_scale_m, self.error_power = float(error_scale_m), float(error_power)
+    def __init__(self, num_bins: int, cfg: GMTConfig | None = None, device: Any = "cpu"):
+        super().__init__(num_bins, cfg, device=device)
+        cfg = self.cfg
+        self.subclip_bins = int(cfg.subclip_bins)
+        self.initial_level, self.completion_decay = float(cfg.initial_level), float(cfg.completion_decay)
+        self.min_level, self.error_scale_m, self.error_power = float(cfg.min_level), float(cfg.error_scale_m), \
+            float(cfg.error_power)
         self._level = torch.full((num_bins,), self.initial_level, dtype=torch.float64, device=self.device)
         self._max_error = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._recompute()
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        super().check_config(cfg)
-        check_int_at_least("subclip_bins", cfg.subclip_bins, 1)
-        check_fraction("completion_decay", cfg.completion_decay)
-        for key in ("min_level", "error_scale_m", "error_power"):
-            check_positive(key, getattr(cfg, key))
-        check_positive("initial_level", cfg.initial_level)
-        if cfg.initial_level < cfg.min_level:
-            fail("initial_level", f"a number >= min_level ({cfg.min_level})", cfg.initial_level)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "GMTSampler":
-        return cls(num_bins, subclip_bins=cfg.subclip_bins, initial_level=cfg.initial_level,
-                   completion_decay=cfg.completion_decay, min_level=cfg.min_level, error_scale_m=cfg.error_scale_m,
-                   error_power=cfg.error_power, device=device)
 
     def _groups_of(self, bin_clip: torch.Tensor) -> torch.Tensor:
         """Sub-clips: each clip's bins cut from its first bin into runs of subclip_bins."""
         idx = torch.arange(len(bin_clip))
         first = torch.zeros(int(bin_clip.max()) + 1, dtype=torch.long).scatter_reduce(
             0, bin_clip, idx, "amin", include_self=False)
-        sub = (idx - first[bin_clip]) // self.subclip_bins
+        sub = (idx - first[bin_clip]) // int(self.cfg.subclip_bins)
         new_group = torch.ones_like(idx, dtype=torch.bool)
         new_group[1:] = (bin_clip[1:] != bin_clip[:-1]) | (sub[1:] != sub[:-1])
         return new_group.long().cumsum(0) - 1

@@ -22,10 +22,10 @@ A bin is boosted by failures in the K-1 bins after it, so episodes start shortly
 hard part; the right end is padded by repeating the last bin.
 
 Each class registers itself with its config schema (`register_sampler`; the schemas are in
-:mod:`bmimic.sampling.schemas`, torch-free, so that composing a config needs no torch); its
-`check_config` holds the range checks of the schema's keys and `from_config` builds it. Adding a
-sampler is a schema, a class here (or in a module that ``config.sampler_class`` imports) and a YAML in
-``conf/sampler/`` (docs/architecture.md lists the steps).
+:mod:`bmimic.sampling.schemas`, torch-free, so that composing a config needs no torch: they hold the
+defaults and the range rules) and its constructor takes the validated schema instance. Adding a
+sampler is a schema, a class here (or in the module its schema names) and a YAML in
+``conf/sampler/`` (:mod:`bmimic.sampling.registry` lists the steps).
 
 **UniformSampler**: :math:`P_s = 1/S`; updates are ignored.
 
@@ -88,12 +88,14 @@ from typing import Any
 import torch
 
 from bmimic.sampling.base import BinSampler
-from bmimic.sampling.checks import check_choice, check_fraction, check_int_at_least, check_positive
 from bmimic.sampling.feedback import EPISODE_OUTCOMES, EPISODE_RETURNS
 from bmimic.sampling.registry import register_sampler
-from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, LowReturnConfig, UniformConfig
-
-EMPTY_BINS = ("decay", "hold")
+from bmimic.sampling.schemas import (
+    AdaptiveConfig,
+    BeyondMimicConfig,
+    LowReturnConfig,
+    UniformConfig,
+)
 
 
 def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype | None = None, device: Any = "cpu") -> torch.Tensor:
@@ -129,22 +131,13 @@ class _LookaheadSampler(BinSampler):
 
     signals = (EPISODE_OUTCOMES,)
 
-    def __init__(self, num_bins: int, gamma: float, K: int, empty_bins: str, device: Any, method: str):
-        check_fraction("gamma", gamma)
-        check_int_at_least("K", K, 1)
-        check_choice("empty_bins", empty_bins, EMPTY_BINS)
-        super().__init__(num_bins, device=device, method=method)
-        self.gamma = float(gamma)
-        self.K = int(K)
-        self.empty_bins = str(empty_bins)
+    def __init__(self, num_bins: int, cfg: AdaptiveConfig | BeyondMimicConfig | None, device: Any, method: str):
+        super().__init__(num_bins, cfg, device=device, method=method)
+        self.gamma = float(self.cfg.gamma)
+        self.K = int(self.cfg.K)
+        self.empty_bins = str(self.cfg.empty_bins)
         self._kernel = lookahead_kernel(self.gamma, self.K, device=self.device)
         self._index = lookahead_index(num_bins, self.K, device=self.device)
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        check_fraction("gamma", cfg.gamma)
-        check_int_at_least("K", cfg.K, 1)
-        check_choice("empty_bins", cfg.empty_bins, EMPTY_BINS)
 
     def set_clips(self, bin_clip: torch.Tensor, bin_last_in_clip: torch.Tensor, num_clips: int,
                   clip_balance: str = "bins", clip_weights: Any = None) -> None:
@@ -167,40 +160,15 @@ class _LookaheadSampler(BinSampler):
 
 @register_sampler("adaptive", AdaptiveConfig)
 class AdaptiveSampler(_LookaheadSampler):
-    """The design: EMA of per-bin failure rates, look-ahead kernel, uniform mixture (see module doc).
+    """The design: EMA of per-bin failure rates, look-ahead kernel, uniform mixture (see module doc);
+    its parameters and their defaults (the design's): :class:`AdaptiveConfig`."""
 
-    The defaults are the design's, and equal those of ``conf/sampler/adaptive.yaml`` and
-    :class:`AdaptiveConfig` (a test keeps the three equal).
-    """
-
-    def __init__(
-        self,
-        num_bins: int,
-        gamma: float = 0.9,
-        lambda_uniform: float = 0.1,
-        K: int = 5,
-        alpha_smooth: float = 0.1,
-        empty_bins: str = "decay",
-        device: Any = "cpu",
-        method: str = "inverse_cdf",
-    ):
-        check_fraction("lambda_uniform", lambda_uniform, closed_below=True)
-        check_fraction("alpha_smooth", alpha_smooth)
-        super().__init__(num_bins, gamma, K, empty_bins, device, method)
-        self.lambda_uniform = float(lambda_uniform)
-        self.alpha_smooth = float(alpha_smooth)
+    def __init__(self, num_bins: int, cfg: AdaptiveConfig | None = None, device: Any = "cpu",
+                 method: str = "inverse_cdf"):
+        super().__init__(num_bins, cfg, device, method)
+        self.lambda_uniform = float(self.cfg.lambda_uniform)
+        self.alpha_smooth = float(self.cfg.alpha_smooth)
         self._rate = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        super().check_config(cfg)
-        check_fraction("lambda_uniform", cfg.lambda_uniform, closed_below=True)
-        check_fraction("alpha_smooth", cfg.alpha_smooth)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "AdaptiveSampler":
-        return cls(num_bins, gamma=cfg.gamma, lambda_uniform=cfg.lambda_uniform, K=cfg.K,
-                   alpha_smooth=cfg.alpha_smooth, empty_bins=cfg.empty_bins, device=device)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         self._ema(self._rate, failures / episodes.clamp(min=1.0), episodes, self.alpha_smooth)
@@ -234,40 +202,17 @@ class AdaptiveSampler(_LookaheadSampler):
 
 @register_sampler("beyondmimic", BeyondMimicConfig)
 class BeyondMimicSampler(_LookaheadSampler):
-    """Released-code form: EMA of failure counts plus uniform_ratio/S, look-ahead kernel (see module doc).
+    """Released-code form: EMA of failure counts plus uniform_ratio/S, look-ahead kernel (see module doc);
+    its parameters and their defaults (the released code's, HybridRobotics/whole_body_tracking
+    ``MotionCommandCfg``): :class:`BeyondMimicConfig`."""
 
-    The defaults are the released code's (HybridRobotics/whole_body_tracking, ``MotionCommandCfg``).
-    """
-
-    def __init__(
-        self,
-        num_bins: int,
-        gamma: float = 0.8,
-        K: int = 1,
-        alpha: float = 0.001,
-        uniform_ratio: float = 0.1,
-        empty_bins: str = "decay",
-        device: Any = "cpu",
-        method: str = "inverse_cdf",
-    ):
-        check_fraction("alpha", alpha)
-        check_positive("uniform_ratio", uniform_ratio)
-        super().__init__(num_bins, gamma, K, empty_bins, device, method)
-        self.alpha = float(alpha)
-        self.uniform_ratio = float(uniform_ratio)
+    def __init__(self, num_bins: int, cfg: BeyondMimicConfig | None = None, device: Any = "cpu",
+                 method: str = "inverse_cdf"):
+        super().__init__(num_bins, cfg, device, method)
+        self.alpha = float(self.cfg.alpha)
+        self.uniform_ratio = float(self.cfg.uniform_ratio)
         self._count = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._recompute()
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        super().check_config(cfg)
-        check_fraction("alpha", cfg.alpha)
-        check_positive("uniform_ratio", cfg.uniform_ratio)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "BeyondMimicSampler":
-        return cls(num_bins, gamma=cfg.gamma, K=cfg.K, alpha=cfg.alpha, uniform_ratio=cfg.uniform_ratio,
-                   empty_bins=cfg.empty_bins, device=device)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         # With empty_bins="decay" (the released code) every call decays q, also when no episode
@@ -298,26 +243,13 @@ class LowReturnSampler(BinSampler):
 
     signals = (EPISODE_RETURNS,)
 
-    def __init__(self, num_bins: int, ema: float = 0.1, temperature: float = 1.0, lambda_uniform: float = 0.1,
-                 device: Any = "cpu", method: str = "inverse_cdf"):
-        check_fraction("ema", ema)
-        check_positive("temperature", temperature)
-        check_fraction("lambda_uniform", lambda_uniform, closed_below=True)
-        super().__init__(num_bins, device=device, method=method)
-        self.ema, self.temperature, self.lambda_uniform = float(ema), float(temperature), float(lambda_uniform)
+    def __init__(self, num_bins: int, cfg: LowReturnConfig | None = None, device: Any = "cpu",
+                 method: str = "inverse_cdf"):
+        super().__init__(num_bins, cfg, device, method)
+        self.ema, self.temperature = float(self.cfg.ema), float(self.cfg.temperature)
+        self.lambda_uniform = float(self.cfg.lambda_uniform)
         self._return = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._seen = torch.zeros(num_bins, dtype=torch.bool, device=self.device)
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        check_fraction("ema", cfg.ema)
-        check_positive("temperature", cfg.temperature)
-        check_fraction("lambda_uniform", cfg.lambda_uniform, closed_below=True)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> "LowReturnSampler":
-        return cls(num_bins, ema=cfg.ema, temperature=cfg.temperature, lambda_uniform=cfg.lambda_uniform,
-                   device=device)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         pass  # learns from returns only
@@ -350,6 +282,6 @@ class LowReturnSampler(BinSampler):
         return {"return": self._return, "seen": self._seen}
 
 
-__all__ = ["EMPTY_BINS", "AdaptiveConfig", "AdaptiveSampler", "BeyondMimicConfig", "BeyondMimicSampler", "LowReturnConfig",
+__all__ = ["AdaptiveConfig", "AdaptiveSampler", "BeyondMimicConfig", "BeyondMimicSampler", "LowReturnConfig",
            "LowReturnSampler", "UniformConfig",
            "UniformSampler", "lookahead_index", "lookahead_kernel"]

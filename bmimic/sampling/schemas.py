@@ -1,12 +1,13 @@
 """The config schemas of the sampler group: the keys every variant has (:class:`SamplerConfig`, with
 the episode accounting's :class:`AccountingConfig`) and each built-in sampler kind's own parameters.
 
-They live apart from the sampler classes (torch) so that composing a config, `--help`, `--cfg job`
-and `python -m bmimic.launch list` need neither torch nor the simulator: importing this module
-stores every built-in schema in Hydra's ConfigStore as `sampler/<kind>_schema`. Each class in
-:mod:`bmimic.sampling.samplers`, :mod:`bmimic.sampling.peer_errors` and
-:mod:`bmimic.sampling.peer_clips` registers with its schema from here (`register_sampler`); the
-formulas and the range checks (`check_config`) are beside the classes.
+A schema is the one place of its sampler's defaults (a docstring under each field) and of their range
+rules (its `check`, run once when the config is validated: `validate_sampler_config`); the YAML
+variants under ``conf/sampler/`` only select a schema and override some of its values, and the
+sampler's constructor takes the validated schema instance. The schemas live apart from the sampler
+classes (torch) so that composing a config, `--help`, `--cfg job` and `python -m bmimic.launch list`
+need neither torch nor the simulator: importing this module stores every built-in schema in Hydra's
+ConfigStore as `sampler/<kind>_schema` (`sampler_schema`, which also names the module of its class).
 """
 
 from __future__ import annotations
@@ -14,7 +15,20 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-from bmimic.sampling.registry import register_schema
+from bmimic.sampling.checks import (
+    check_choice,
+    check_fraction,
+    check_int_at_least,
+    check_nonnegative,
+    check_positive,
+    fail,
+)
+from bmimic.sampling.registry import sampler_schema
+
+EMPTY_BINS = ("decay", "hold")
+"""`empty_bins` of the look-ahead samplers (adaptive, beyondmimic)."""
+PHC_MODES = ("soft", "hard")
+"""`mode` of the PHC sampler."""
 
 
 @dataclass
@@ -43,8 +57,7 @@ class SamplerConfig:
     """The keys every variant of ``conf/sampler/`` has; each sampler's schema subclasses it."""
 
     name: str = ""
-    """The variant: equals the YAML's file name (adaptive, adaptive_hybrid, beyondmimic, egm, gmt, low_return, phc,
-    protomotions, uniform)."""
+    """The variant: equals its YAML's file name in conf/sampler/ (the schema's default is its kind)."""
     kind: str = ""
     """The registered sampler class the variant configures (its schema's default; not set in a YAML)."""
     enabled: bool = True
@@ -65,7 +78,28 @@ class SamplerConfig:
     """sampler.parquet gets one row per bin every this many iterations and at the last one; null:
     1, or thinned to stay under about a million rows when there are more than 1,000 bins."""
 
+    def check(self) -> None:
+        """Range rules of the sampler's own keys (SamplerConfigError naming the first bad one); the keys
+        every variant has are checked by `bmimic.sampling.config.validate_sampler_config`."""
 
+
+def _check_lookahead(cfg: AdaptiveConfig | BeyondMimicConfig) -> None:
+    """The look-ahead kernel's keys, which the adaptive and beyondmimic schemas share (with their own defaults)."""
+    check_fraction("gamma", cfg.gamma)
+    check_int_at_least("K", cfg.K, 1)
+    check_choice("empty_bins", cfg.empty_bins, EMPTY_BINS)
+
+
+@dataclass
+class ClipWeightingConfig(SamplerConfig):
+    """Base of the schemas of samplers that weight clips (or sub-clips) themselves: gmt, phc, protomotions."""
+
+    def check(self) -> None:
+        if self.clip_balance != "bins":
+            fail("clip_balance", f"bins (the {self.kind} sampler weights clips itself)", self.clip_balance)
+
+
+@sampler_schema("uniform", "bmimic.sampling.samplers")
 @dataclass
 class UniformConfig(SamplerConfig):
     """`sampler=uniform`: no parameters of its own."""
@@ -74,6 +108,7 @@ class UniformConfig(SamplerConfig):
     kind: str = "uniform"
 
 
+@sampler_schema("adaptive", "bmimic.sampling.samplers")
 @dataclass
 class AdaptiveConfig(SamplerConfig):
     """Schema of the adaptive sampler's variants; the defaults are the design's (`sampler=adaptive`)."""
@@ -92,7 +127,13 @@ class AdaptiveConfig(SamplerConfig):
     """"decay": every update moves every bin (a bin without finished episodes decays towards 0, the
     design's formula); "hold": bins without finished episodes keep their value."""
 
+    def check(self) -> None:
+        _check_lookahead(self)
+        check_fraction("lambda_uniform", self.lambda_uniform, closed_below=True)
+        check_fraction("alpha_smooth", self.alpha_smooth)
 
+
+@sampler_schema("beyondmimic", "bmimic.sampling.samplers")
 @dataclass
 class BeyondMimicConfig(SamplerConfig):
     """Schema of the released code's sampler; the defaults are the released code's."""
@@ -113,7 +154,13 @@ class BeyondMimicConfig(SamplerConfig):
     """"decay": every update decays every bin (the released code); "hold": bins without finished
     episodes keep their value."""
 
+    def check(self) -> None:
+        _check_lookahead(self)
+        check_fraction("alpha", self.alpha)
+        check_positive("uniform_ratio", self.uniform_ratio)
 
+
+@sampler_schema("egm", "bmimic.sampling.peer_errors")
 @dataclass
 class EGMConfig(SamplerConfig):
     """`sampler=egm`: EGM's bin-based adaptive sampling from an EMA of a composite tracking error."""
@@ -142,9 +189,23 @@ class EGMConfig(SamplerConfig):
     max_iterations (the paper's schedule spans training; filled by bmimic.config.resolve_runtime),
     or peer_errors.UNSET_SCHEDULE_ITERATIONS where no run exists (benchmarks, unit tests)."""
 
+    def check(self) -> None:
+        check_fraction("ema", self.ema)
+        for key in ("weight_body_pos", "weight_body_ori", "weight_body_lin_vel"):
+            check_nonnegative(key, getattr(self, key))
+        if self.weight_body_pos + self.weight_body_ori + self.weight_body_lin_vel <= 0:
+            fail("weight_body_pos", "weights whose sum is > 0", self.weight_body_pos)
+        for key in ("power_start", "power_end"):
+            check_positive(key, getattr(self, key))
+        for key in ("uniform_start", "uniform_end"):
+            check_fraction(key, getattr(self, key), closed_below=True)
+        if self.schedule_iterations is not None:
+            check_int_at_least("schedule_iterations", self.schedule_iterations, 1)
 
+
+@sampler_schema("gmt", "bmimic.sampling.peer_errors")
 @dataclass
-class GMTConfig(SamplerConfig):
+class GMTConfig(ClipWeightingConfig):
     """`sampler=gmt`: GMT's completion-level sampling of sub-clips."""
 
     name: str = "gmt"
@@ -162,7 +223,18 @@ class GMTConfig(SamplerConfig):
     error_power: float = 5.0
     """See error_scale_m; > 0."""
 
+    def check(self) -> None:
+        super().check()
+        check_int_at_least("subclip_bins", self.subclip_bins, 1)
+        check_fraction("completion_decay", self.completion_decay)
+        for key in ("min_level", "error_scale_m", "error_power"):
+            check_positive(key, getattr(self, key))
+        check_positive("initial_level", self.initial_level)
+        if self.initial_level < self.min_level:
+            fail("initial_level", f"a number >= min_level ({self.min_level})", self.initial_level)
 
+
+@sampler_schema("low_return", "bmimic.sampling.samplers")
 @dataclass
 class LowReturnConfig(SamplerConfig):
     """`sampler=low_return`: start where episodes earn least (the per-bin mean episode return)."""
@@ -176,9 +248,15 @@ class LowReturnConfig(SamplerConfig):
     lambda_uniform: float = 0.1
     """Share of probability mass spread uniformly, in [0, 1]."""
 
+    def check(self) -> None:
+        check_fraction("ema", self.ema)
+        check_positive("temperature", self.temperature)
+        check_fraction("lambda_uniform", self.lambda_uniform, closed_below=True)
 
+
+@sampler_schema("phc", "bmimic.sampling.peer_clips")
 @dataclass
-class PHCConfig(SamplerConfig):
+class PHCConfig(ClipWeightingConfig):
     """`sampler=phc`: PHC's evaluation-driven hard-negative mining over clips."""
 
     name: str = "phc"
@@ -191,9 +269,16 @@ class PHCConfig(SamplerConfig):
     """Seconds of each clip's evaluation rollout from its first frame, > 0; null: to the clip's end
     (PHC evaluates the whole motion)."""
 
+    def check(self) -> None:
+        super().check()
+        check_choice("mode", self.mode, PHC_MODES)
+        if self.rollout_max_s is not None:
+            check_positive("rollout_max_s", self.rollout_max_s)
 
+
+@sampler_schema("protomotions", "bmimic.sampling.peer_clips")
 @dataclass
-class ProtoMotionsConfig(SamplerConfig):
+class ProtoMotionsConfig(ClipWeightingConfig):
     """`sampler=protomotions`: ProtoMotions v3's evaluation-driven multiplicative clip weights."""
 
     name: str = "protomotions"
@@ -208,14 +293,17 @@ class ProtoMotionsConfig(SamplerConfig):
     """Seconds of each clip's evaluation rollout from its first frame, > 0 (ProtoMotions' max_eval_steps,
     600 steps at its 50 Hz G1 control rate); null: to the clip's end."""
 
+    def check(self) -> None:
+        super().check()
+        check_fraction("success_decay", self.success_decay)
+        check_fraction("failure_decay", self.failure_decay, closed_below=True)
+        if self.min_weight is not None:
+            check_positive("min_weight", self.min_weight)
+        if self.rollout_max_s is not None:
+            check_positive("rollout_max_s", self.rollout_max_s)
 
-BUILTIN_SCHEMAS = {"uniform": UniformConfig, "adaptive": AdaptiveConfig, "beyondmimic": BeyondMimicConfig,
-                   "egm": EGMConfig, "gmt": GMTConfig, "phc": PHCConfig, "protomotions": ProtoMotionsConfig,
-                   "low_return": LowReturnConfig}
-"""The built-in sampler kinds and their schemas (the classes register with the same ones)."""
 
-for _kind, _schema in BUILTIN_SCHEMAS.items():
-    register_schema(_kind, _schema)
 
-__all__ = ["BUILTIN_SCHEMAS", "AccountingConfig", "AdaptiveConfig", "BeyondMimicConfig", "EGMConfig", "GMTConfig",
-           "LowReturnConfig", "PHCConfig", "ProtoMotionsConfig", "SamplerConfig", "UniformConfig"]
+__all__ = ["EMPTY_BINS", "PHC_MODES", "AccountingConfig", "AdaptiveConfig", "BeyondMimicConfig", "ClipWeightingConfig",
+           "EGMConfig", "GMTConfig", "LowReturnConfig", "PHCConfig", "ProtoMotionsConfig", "SamplerConfig",
+           "UniformConfig"]

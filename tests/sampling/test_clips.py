@@ -13,6 +13,7 @@ from bmimic.sampling.clips import ClipLayout
 from bmimic.sampling.config import make_sampler, sampler_config
 from bmimic.sampling.layouts import make_layout
 from bmimic.sampling.samplers import AdaptiveSampler, UniformSampler
+from bmimic.sampling.schemas import AdaptiveConfig
 
 FPS = 50.0
 
@@ -91,7 +92,7 @@ def _two_clip_layout():
 
 def test_the_lookahead_kernel_stops_at_the_clip_end():
     layout = _two_clip_layout()
-    s = AdaptiveSampler(5, gamma=0.5, lambda_uniform=0.0, K=3, alpha_smooth=1.0)
+    s = AdaptiveSampler(5, AdaptiveConfig(gamma=0.5, lambda_uniform=0.0, K=3, alpha_smooth=1.0))
     s.set_clips(layout.bin_clip, layout.bin_last_in_clip, 2)
     # only the first bin of clip b fails: clip a's last bin (2) must not see it through the kernel
     s.update_counts(torch.ones(5, dtype=torch.float64), torch.tensor([0, 0, 0, 1, 0], dtype=torch.float64))
@@ -99,7 +100,7 @@ def test_the_lookahead_kernel_stops_at_the_clip_end():
     assert p[2].item() == 0.0 and p[1].item() == 0.0
     assert p[3].item() == pytest.approx(1.0)
     # without clips the kernel reads across: bin 2 gets gamma/(1+gamma+gamma^2) of bin 3's rate
-    t = AdaptiveSampler(5, gamma=0.5, lambda_uniform=0.0, K=3, alpha_smooth=1.0)
+    t = AdaptiveSampler(5, AdaptiveConfig(gamma=0.5, lambda_uniform=0.0, K=3, alpha_smooth=1.0))
     t.update_counts(torch.ones(5, dtype=torch.float64), torch.tensor([0, 0, 0, 1, 0], dtype=torch.float64))
     assert t.probabilities()[2].item() > 0
 
@@ -114,7 +115,7 @@ def test_clip_balance_known_answers():
     w = make_sampler(cfg, 5, layout=layout, clip_weights=[3.0, 1.0])
     assert w.probabilities().tolist() == pytest.approx([0.25, 0.25, 0.25, 0.125, 0.125])
     # adaptive, K=1, lambda 0: P within a clip follows the rates, each clip gets 1/2
-    a = AdaptiveSampler(5, gamma=0.5, lambda_uniform=0.0, K=1, alpha_smooth=1.0)
+    a = AdaptiveSampler(5, AdaptiveConfig(gamma=0.5, lambda_uniform=0.0, K=1, alpha_smooth=1.0))
     a.set_clips(layout.bin_clip, layout.bin_last_in_clip, 2, "clips")
     # failure rates 1/4, 3/4, 0 in clip a and 1, 0 in clip b (alpha 1: the EMA is the last batch)
     a.update_counts(torch.full((5,), 4.0, dtype=torch.float64), torch.tensor([1, 3, 0, 4, 0], dtype=torch.float64))
@@ -131,7 +132,7 @@ def test_clip_balance_known_answers():
 def test_clip_balance_gives_each_clip_its_share(lengths, seed, weights):
     layout = make_layout("time", sum(lengths), FPS, 0.5, clip_starts=_starts(lengths))
     w = weights[: len(lengths)]
-    s = AdaptiveSampler(layout.num_bins, gamma=0.9, lambda_uniform=0.1, K=5, alpha_smooth=0.3)
+    s = AdaptiveSampler(layout.num_bins, AdaptiveConfig(gamma=0.9, lambda_uniform=0.1, K=5, alpha_smooth=0.3))
     s.set_clips(layout.bin_clip, layout.bin_last_in_clip, layout.num_clips, "clips", w)
     g = torch.Generator().manual_seed(seed)
     s.update_counts(torch.ones(layout.num_bins, dtype=torch.float64),

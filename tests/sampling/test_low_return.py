@@ -12,6 +12,7 @@ import torch
 from bmimic.sampling.config import load_variant, make_sampler, validate_sampler_config
 from bmimic.sampling.feedback import EPISODE_RETURNS, SamplerFeedback
 from bmimic.sampling.samplers import LowReturnSampler
+from bmimic.sampling.schemas import LowReturnConfig
 
 
 def _expected(returns, temperature=1.0, lam=0.1):
@@ -20,7 +21,7 @@ def _expected(returns, temperature=1.0, lam=0.1):
 
 
 def test_planted_mean_returns_give_the_softmax_probabilities():
-    s = LowReturnSampler(3, ema=0.5)
+    s = LowReturnSampler(3, LowReturnConfig(ema=0.5))
     np.testing.assert_allclose(s.probabilities().numpy(), [1 / 3] * 3)  # nothing seen: uniform
     s.update_returns(torch.tensor([[10.0, 2.0, 0.0]]), torch.tensor([2.0, 1.0, 0.0]))
     # means 5 and 2; bin 2 never visited counts as the lowest visited (2), so it is tried
@@ -33,7 +34,7 @@ def test_planted_mean_returns_give_the_softmax_probabilities():
 
 def test_the_feedback_delivers_each_finished_episodes_return_to_its_start_bin():
     layout = SimpleNamespace(num_bins=3, num_clips=1, bins_of=lambda frames: frames // 10)
-    s = LowReturnSampler(3, ema=1.0, temperature=2.0)
+    s = LowReturnSampler(3, LowReturnConfig(ema=1.0, temperature=2.0))
     fb = SamplerFeedback(s, layout, num_envs=3, max_episode_length=100)
     assert fb.signals == (EPISODE_RETURNS,)
     fb.start_episodes(torch.ones(3, dtype=torch.bool), torch.tensor([0, 1, 2]))

@@ -18,6 +18,7 @@ from bmimic.sampling.checks import SamplerConfigError
 from bmimic.sampling.config import load_variant, make_sampler, validate_sampler_config
 from bmimic.sampling.feedback import TRACKING_ERRORS
 from bmimic.sampling.peer_errors import UNSET_SCHEDULE_ITERATIONS
+from bmimic.sampling.schemas import EGMConfig, GMTConfig, PHCConfig, ProtoMotionsConfig
 from bmimic.training.clip_rollouts import clips_failed
 from tests.conftest import TINY, train_in_process
 
@@ -37,7 +38,9 @@ def _errors(pos=(), ori=(), vel=(), worst=(), n=4) -> torch.Tensor:
 
 # ---------------------------------------------------------------------------------------------- EGM
 def test_egm_known_answer():
-    s = EGMSampler(4, ema=0.5, weights=(1.0, 0.1, 0.1), power=(2.0, 2.0), uniform=(0.2, 0.2), schedule_iterations=1)
+    s = EGMSampler(4, EGMConfig(ema=0.5, weight_body_pos=1.0, weight_body_ori=0.1, weight_body_lin_vel=0.1,
+                                power_start=2.0, power_end=2.0, uniform_start=0.2, uniform_end=0.2,
+                                schedule_iterations=1))
     np.testing.assert_allclose(_probs(s), 0.25)  # no error seen yet: uniform
     # bin 0: body pos 2 m over 2 steps -> 1; bin 1: 20 rad over 1 step x 0.1 -> 2; bins 2, 3 unvisited
     s.update_errors(_errors(pos=[2, 0], ori=[0, 20]), torch.tensor([2.0, 1.0, 0.0, 0.0]))
@@ -50,7 +53,8 @@ def test_egm_known_answer():
 
 
 def test_egm_schedule_is_linear_then_constant():
-    s = EGMSampler(3, power=(0.5, 2.0), uniform=(0.5, 0.1), schedule_iterations=4)
+    s = EGMSampler(3, EGMConfig(power_start=0.5, power_end=2.0, uniform_start=0.5, uniform_end=0.1,
+                                schedule_iterations=4))
     seen = []
     for _ in range(6):
         tau, u = s.schedule()
@@ -63,7 +67,7 @@ def test_egm_schedule_is_linear_then_constant():
 
 # ---------------------------------------------------------------------------------------------- GMT
 def test_gmt_known_answer_levels_then_error_at_the_floor():
-    s = GMTSampler(4, subclip_bins=2)  # sub-clips {0, 1} and {2, 3}
+    s = GMTSampler(4, GMTConfig(subclip_bins=2))  # sub-clips {0, 1} and {2, 3}
     np.testing.assert_allclose(_probs(s), 0.25)  # both at level 10
     s.update_counts(torch.tensor([3.0, 0, 0, 0]), torch.tensor([1.0, 0, 0, 0]))  # 2 completions in sub-clip 0
     c0 = 10 * 0.99**2
@@ -77,7 +81,7 @@ def test_gmt_known_answer_levels_then_error_at_the_floor():
 
 
 def test_gmt_subclips_restart_at_every_clip():
-    s = GMTSampler(6, subclip_bins=2)
+    s = GMTSampler(6, GMTConfig(subclip_bins=2))
     s.set_clips(CLIPS, LAST, 3)
     assert s._group.tolist() == [0, 0, 1, 2, 2, 3]
     np.testing.assert_allclose(_probs(s), [1 / 8, 1 / 8, 1 / 4, 1 / 8, 1 / 8, 1 / 4])
@@ -85,7 +89,7 @@ def test_gmt_subclips_restart_at_every_clip():
 
 # ---------------------------------------------------------------------------------------------- PHC
 def test_phc_soft_and_hard_known_answers():
-    soft, hard = PHCSampler(6, mode="soft"), PHCSampler(6, mode="hard")
+    soft, hard = PHCSampler(6, PHCConfig(mode="soft")), PHCSampler(6, PHCConfig(mode="hard"))
     for s in (soft, hard):
         s.set_clips(CLIPS, LAST, 3)
         np.testing.assert_allclose(_probs(s), [1 / 9] * 3 + [1 / 6] * 2 + [1 / 3])  # every clip alike
@@ -114,7 +118,7 @@ def test_protomotions_known_answer_and_floor():
     for _ in range(20):  # clip 0 keeps succeeding: floored at 1/3; the others fail: reset to 1
         s.observe_eval(torch.tensor([False, True, True]), 200)
     np.testing.assert_allclose(s._weight[:3].numpy(), [1 / 3, 1, 1])
-    g = ProtoMotionsSampler(6, failure_decay=0.5, min_weight=0.01)
+    g = ProtoMotionsSampler(6, ProtoMotionsConfig(failure_decay=0.5, min_weight=0.01))
     g.set_clips(CLIPS, LAST, 3)
     g.observe_eval(torch.tensor([True, False, False]), 1)
     np.testing.assert_allclose(g._weight[:3].numpy(), [2.0, 0.999, 0.999])
@@ -340,8 +344,8 @@ def test_peer_hot_path_has_no_host_sync(kind):
 
 @pytest.mark.parametrize("kind", PEERS)
 def test_yaml_schema_and_constructor_defaults_agree(kind):
-    """The values in conf/sampler/<kind>.yaml are its schema's defaults, and the class built from them
-    has the constructor's defaults (one source of truth for the numbers the headers cite)."""
+    """The values of conf/sampler/<kind>.yaml are its schema's defaults, and the class built without a
+    config has them too (one source of truth for the numbers the headers cite)."""
     import dataclasses
     import inspect
 

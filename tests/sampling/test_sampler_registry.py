@@ -1,4 +1,5 @@
-"""Adding a sampler touches only its own code: a class with its schema (registered together) and a
+"""Adding a sampler touches only its own code: a class with its schema (registered together; the
+schema holds the defaults and the range rules, the constructor takes the validated schema) and a
 variant (a YAML in conf/sampler/, here its in-memory twin in Hydra's ConfigStore). A toy sampler
 registered here composes, validates, builds and trains one CPU iteration with nothing else changed."""
 
@@ -25,25 +26,19 @@ class FirstBinConfig(SamplerConfig):
     first_bin_weight: float = 1e6
     """Weight of bin 0 against 1 for the others (> 0)."""
 
+    def check(self) -> None:
+        check_positive("first_bin_weight", self.first_bin_weight)
+
 
 @register_sampler("first_bin", FirstBinConfig)
 class FirstBinSampler(BinSampler):
-    def __init__(self, num_bins: int, first_bin_weight: float = 1e6, device: Any = "cpu") -> None:
-        check_positive("first_bin_weight", first_bin_weight)
-        super().__init__(num_bins, device=device)
-        self.first_bin_weight = float(first_bin_weight)
+    def __init__(self, num_bins: int, cfg: FirstBinConfig | None = None, device: Any = "cpu") -> None:
+        super().__init__(num_bins, cfg, device=device)
+        self.first_bin_weight = float(self.cfg.first_bin_weight)
         w = torch.ones(num_bins, dtype=torch.float64, device=self.device)
         w[0] = self.first_bin_weight
         self._probs.copy_(w / w.sum())
         self._refresh_cdf()
-
-    @classmethod
-    def check_config(cls, cfg: Any) -> None:
-        check_positive("first_bin_weight", cfg.first_bin_weight)
-
-    @classmethod
-    def from_config(cls, cfg: Any, num_bins: int, device: Any = "cpu") -> FirstBinSampler:
-        return cls(num_bins, cfg.first_bin_weight, device)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
         pass

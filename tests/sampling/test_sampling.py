@@ -125,7 +125,8 @@ def _feed(sampler, batches):
     ],
 )
 def test_adaptive_worked_examples(empty_bins, r2, P2):
-    s = AdaptiveSampler(4, gamma=0.5, lambda_uniform=0.2, K=2, alpha_smooth=0.5, empty_bins=empty_bins)
+    s = AdaptiveSampler(4, AdaptiveConfig(gamma=0.5, lambda_uniform=0.2, K=2, alpha_smooth=0.5,
+                                          empty_bins=empty_bins))
     s.update(torch.tensor([0, 1, 1, 3]), torch.tensor([F, T, F, T]))
     assert torch.allclose(s.smoothed_failure(), torch.tensor([0, 0.25, 0, 0.5], dtype=torch.float64))
     expected = torch.tensor([0.122727, 0.195455, 0.195455, 0.486364], dtype=torch.float64)
@@ -137,7 +138,7 @@ def test_adaptive_worked_examples(empty_bins, r2, P2):
 
 def test_beyondmimic_hand_example():
     # S=3, K=2, gamma=0.5 -> kernel [2/3, 1/3]; alpha=0.5, uniform_ratio=0.3 -> +0.1 per bin.
-    s = BeyondMimicSampler(3, gamma=0.5, K=2, alpha=0.5, uniform_ratio=0.3)
+    s = BeyondMimicSampler(3, BeyondMimicConfig(gamma=0.5, K=2, alpha=0.5, uniform_ratio=0.3))
     s.update(torch.tensor([2, 2, 0]), torch.tensor([T, T, F]))  # h = [0, 0, 2] -> q = [0, 0, 1]
     assert torch.allclose(s.smoothed_failure(), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     w = torch.tensor([0.1, 0.1 * 2 / 3 + 1.1 / 3, 1.1], dtype=torch.float64)
@@ -150,7 +151,7 @@ def test_beyondmimic_hand_example():
 
 
 def test_initial_distributions_are_uniform():
-    for s in (UniformSampler(7), AdaptiveSampler(7), BeyondMimicSampler(7, K=3)):
+    for s in (UniformSampler(7), AdaptiveSampler(7), BeyondMimicSampler(7, BeyondMimicConfig(K=3))):
         assert torch.allclose(s.probabilities(), torch.full((7,), 1 / 7, dtype=torch.float64))
 
 
@@ -168,7 +169,8 @@ def test_adaptive_matches_reference(seed, empty_bins):
     S, K = rng.randint(1, 40), rng.randint(1, 8)
     gamma, lam, a = rng.uniform(0.05, 1.0), rng.uniform(0.0, 1.0), rng.uniform(0.01, 1.0)
     batches = _random_batches(rng, S, rng.randint(1, 25), 30)
-    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a, empty_bins=empty_bins)
+    s = AdaptiveSampler(S, AdaptiveConfig(gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a,
+                                          empty_bins=empty_bins))
     _feed(s, batches)
     r, P = ref_adaptive(S, gamma, lam, K, a, batches, empty_bins)
     assert np.allclose(s.smoothed_failure().numpy(), r, rtol=0, atol=1e-12)
@@ -182,7 +184,8 @@ def test_beyondmimic_matches_reference(seed, empty_bins):
     S, K = rng.randint(1, 40), rng.randint(1, 8)
     gamma, a, eps = rng.uniform(0.05, 1.0), rng.uniform(0.001, 1.0), rng.uniform(0.01, 5.0)
     batches = _random_batches(rng, S, rng.randint(1, 25), 30)
-    s = BeyondMimicSampler(S, gamma=gamma, K=K, alpha=a, uniform_ratio=eps, empty_bins=empty_bins)
+    s = BeyondMimicSampler(S, BeyondMimicConfig(gamma=gamma, K=K, alpha=a, uniform_ratio=eps,
+                                                empty_bins=empty_bins))
     _feed(s, batches)
     q, P = ref_beyondmimic(S, gamma, K, a, eps, batches, empty_bins)
     assert np.allclose(s.smoothed_failure().numpy(), q, rtol=1e-12, atol=1e-12)
@@ -190,7 +193,7 @@ def test_beyondmimic_matches_reference(seed, empty_bins):
 
 
 def test_update_with_visits_uses_visit_counts_as_denominator():
-    s = AdaptiveSampler(3, gamma=0.5, lambda_uniform=0.0, K=1, alpha_smooth=1.0)
+    s = AdaptiveSampler(3, AdaptiveConfig(gamma=0.5, lambda_uniform=0.0, K=1, alpha_smooth=1.0))
     # One failure ending in bin 2; bins 0..2 each visited by 4 segments.
     s.update(torch.tensor([2]), torch.tensor([T]), visits=torch.tensor([4, 4, 4]))
     assert torch.allclose(s.smoothed_failure(), torch.tensor([0.0, 0.0, 0.25], dtype=torch.float64))
@@ -198,7 +201,7 @@ def test_update_with_visits_uses_visit_counts_as_denominator():
 
 def test_update_counts_equals_update():
     bins, failed = torch.tensor([0, 2, 2, 4, 4, 4]), torch.tensor([T, F, T, F, F, T])
-    a, b = AdaptiveSampler(5, K=2), AdaptiveSampler(5, K=2)
+    a, b = AdaptiveSampler(5, AdaptiveConfig(K=2)), AdaptiveSampler(5, AdaptiveConfig(K=2))
     a.update(bins, failed)
     b.update_counts(torch.bincount(bins, minlength=5), torch.bincount(bins[failed], minlength=5))
     assert torch.equal(a.probabilities(), b.probabilities())
@@ -219,7 +222,7 @@ def test_update_rejects_bad_input():
 def test_zero_probability_bins_are_never_sampled():
     # lambda_uniform = 0 and K = 1: only bins with a non-zero failure rate have mass.
     for method in ("inverse_cdf", "multinomial"):
-        s = AdaptiveSampler(6, lambda_uniform=0.0, K=1, alpha_smooth=1.0, method=method)
+        s = AdaptiveSampler(6, AdaptiveConfig(lambda_uniform=0.0, K=1, alpha_smooth=1.0), method=method)
         s.update(torch.tensor([1, 4]), torch.tensor([T, T]))
         drawn = s.sample(20000, generator=torch.Generator().manual_seed(0))
         assert set(drawn.unique().tolist()) == {1, 4}
@@ -240,7 +243,7 @@ _batch = st.lists(st.tuples(st.integers(0, 10**6), st.booleans()), max_size=40)
     batches=st.lists(_batch, max_size=6),
 )
 def test_adaptive_properties(S, K, gamma, lam, a, batches):
-    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a)
+    s = AdaptiveSampler(S, AdaptiveConfig(gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a))
     for batch in batches:
         s.update(
             torch.tensor([b % S for b, _ in batch], dtype=torch.long), torch.tensor([x for _, x in batch])
@@ -264,7 +267,7 @@ def test_adaptive_properties(S, K, gamma, lam, a, batches):
     counts=st.lists(st.lists(st.integers(0, 10**6), min_size=50, max_size=50), max_size=6),
 )
 def test_beyondmimic_properties(S, K, gamma, a, eps, counts):
-    s = BeyondMimicSampler(S, gamma=gamma, K=K, alpha=a, uniform_ratio=eps)
+    s = BeyondMimicSampler(S, BeyondMimicConfig(gamma=gamma, K=K, alpha=a, uniform_ratio=eps))
     for c in counts:
         failures = torch.tensor(c[:S], dtype=torch.float64)
         s.update_counts(failures, failures)
@@ -280,8 +283,8 @@ def test_stress_long_motion_many_updates_no_drift():
     S, n = 240, 10_000
     layout = BinLayout(240 * 50, 50.0, 1.0)
     assert layout.num_bins == S
-    ad = AdaptiveSampler(S, gamma=0.8, lambda_uniform=0.1, K=5, alpha_smooth=0.001)
-    bm = BeyondMimicSampler(S, gamma=0.8, K=3, alpha=0.001, uniform_ratio=0.1)
+    ad = AdaptiveSampler(S, AdaptiveConfig(gamma=0.8, lambda_uniform=0.1, K=5, alpha_smooth=0.001))
+    bm = BeyondMimicSampler(S, BeyondMimicConfig(gamma=0.8, K=3, alpha=0.001, uniform_ratio=0.1))
     huge = torch.full((S,), 1e9, dtype=torch.float64)
     zeros = torch.zeros(S, dtype=torch.float64)
     # Extreme batches first: enormous counts, all failing, then nothing at all.
@@ -317,7 +320,9 @@ def test_stress_long_motion_many_updates_no_drift():
 def _fresh(kind, S=20):
     if kind == "uniform":
         return UniformSampler(S)
-    return AdaptiveSampler(S, K=3) if kind == "adaptive" else BeyondMimicSampler(S, K=3, alpha=0.05)
+    if kind == "adaptive":
+        return AdaptiveSampler(S, AdaptiveConfig(K=3))
+    return BeyondMimicSampler(S, BeyondMimicConfig(K=3, alpha=0.05))
 
 
 def _trained(kind, S=20):
@@ -536,7 +541,7 @@ def test_failed_mask():
 
 def _accounting(update_every="iteration", attribution="start", failure="short", sampler=None, num_envs=4):
     layout = BinLayout(50, 5.0, 1.0)  # 10 bins of 5 frames
-    sampler = sampler or AdaptiveSampler(10, K=1, alpha_smooth=0.5, lambda_uniform=0.0)
+    sampler = sampler or AdaptiveSampler(10, AdaptiveConfig(K=1, alpha_smooth=0.5, lambda_uniform=0.0))
     acc = SamplerFeedback(sampler, layout, num_envs, max_episode_length=100, attribution=attribution,
                             failure=failure, failure_threshold=0.8, update_every=update_every)
     return acc, layout, sampler
@@ -592,7 +597,7 @@ def test_accounting_failure_attribution_counts_segments():
 @pytest.mark.parametrize("update_every", ["iteration", "step"])
 def test_accounting_update_timing(update_every):
     acc, _, s = _accounting(update_every)
-    ref = AdaptiveSampler(10, K=1, alpha_smooth=0.5, lambda_uniform=0.0)
+    ref = AdaptiveSampler(10, AdaptiveConfig(K=1, alpha_smooth=0.5, lambda_uniform=0.0))
     c1 = torch.zeros(2, 10, dtype=torch.float64)
     c1[:, 3] = torch.tensor([2.0, 2.0])
     c2 = torch.zeros(2, 10, dtype=torch.float64)
@@ -628,7 +633,8 @@ def test_accounting_per_iteration_updates_match_reference(seed, empty_bins):
     rng = random.Random(1000 + seed)
     S, K, n = 10, rng.randint(1, 6), 16
     gamma, lam, a = rng.uniform(0.1, 1.0), rng.uniform(0.0, 0.5), rng.uniform(0.05, 1.0)
-    s = AdaptiveSampler(S, gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a, empty_bins=empty_bins)
+    s = AdaptiveSampler(S, AdaptiveConfig(gamma=gamma, lambda_uniform=lam, K=K, alpha_smooth=a,
+                                          empty_bins=empty_bins))
     acc, _, _ = _accounting("iteration", failure="terminated", sampler=s, num_envs=n)
     none = torch.zeros(n, dtype=torch.bool)
     frames, length = torch.zeros(n, dtype=torch.long), torch.full((n,), 5)
@@ -659,7 +665,7 @@ def test_accounting_step_path_traces_as_one_graph(attribution, update_every):
     import torch._dynamo as dynamo
 
     acc, layout, s = _accounting(update_every, attribution=attribution,
-                                 sampler=BeyondMimicSampler(10, K=3), num_envs=8)
+                                 sampler=BeyondMimicSampler(10, BeyondMimicConfig(K=3)), num_envs=8)
     g = torch.Generator().manual_seed(0)
     done, clip = torch.rand(8, generator=g) < 0.5, torch.rand(8, generator=g) < 0.3
     start = torch.randint(0, 50, (8,), generator=g)
@@ -698,9 +704,7 @@ def test_adaptive_defaults_are_the_design_from_one_source():
     assert {k: schema[k] for k in DESIGN} == DESIGN and schema["accounting"] == DESIGN_ACCOUNTING
     assert schema["bins"] == "time" and schema["bin_size_seconds"] == 1.0 and schema["enabled"] is True
     assert dataclasses.asdict(load_variant("adaptive")) == schema  # YAML == schema
-    sampler = inspect.signature(AdaptiveSampler).parameters
-    for key in DESIGN:
-        assert sampler[key].default == schema[key], key
+    assert AdaptiveSampler(4).hparams() == DESIGN  # built without a config: the schema's defaults
     accounting = inspect.signature(SamplerFeedback).parameters
     for key in DESIGN_ACCOUNTING:
         assert accounting[key].default == schema["accounting"][key], key
@@ -715,7 +719,9 @@ def test_the_variants_are_the_yaml_files_of_registered_samplers():
 
 
 @pytest.mark.parametrize("name", variant_names())
-def test_each_variant_is_named_after_its_file_and_sets_only_its_schemas_keys(name):
+def test_each_variant_is_named_after_its_file_and_only_overrides_its_schema(name):
+    """A variant selects its schema and sets only keys of it, each to a value other than the schema's
+    default (the defaults live in the schema alone)."""
     from omegaconf import OmegaConf
 
     from tests.conftest import CONF
@@ -723,11 +729,14 @@ def test_each_variant_is_named_after_its_file_and_sets_only_its_schemas_keys(nam
     cfg = load_variant(name)
     assert cfg.name == name
     validate_sampler_config(cfg, 30.0)
-    node = OmegaConf.load(CONF / "sampler" / f"{name}.yaml")
-    schema = {f.name for f in dataclasses.fields(SAMPLERS[cfg.kind].config)}
-    assert node.defaults[0] == f"{cfg.kind}_schema"
-    assert set(node) - {"defaults"} == schema - {"kind"}  # its own keys, each once, none of another sampler's
-    assert set(node.accounting) == set(DESIGN_ACCOUNTING)
+    node = OmegaConf.to_container(OmegaConf.load(CONF / "sampler" / f"{name}.yaml"))
+    default = dataclasses.asdict(SAMPLERS[cfg.kind].config())
+    assert node.pop("defaults")[0] == f"{cfg.kind}_schema"
+    assert set(node) <= set(default) - {"kind"}  # none of another sampler's keys
+    assert set(node.get("accounting", {})) <= set(DESIGN_ACCOUNTING)
+    for key, value in node.items():
+        for k, v in (value.items() if key == "accounting" else [(None, value)]):
+            assert v != (default[key][k] if k else default[key]), f"{name}.yaml repeats the default of {key}.{k or ''}"
     layout = layout_for(cfg, 1500, 50.0)
     assert type(make_sampler(cfg, layout.num_bins)) is SAMPLERS[cfg.kind].cls
     assert (CONF / "sampler" / f"{name}.yaml").read_text().startswith("# ")  # a header says what it is
@@ -744,9 +753,8 @@ def test_named_variants_are_what_their_names_say():
                                       "accounting": {"attribution": "failure", "failure": "terminated",
                                                      "failure_threshold": 0.8, "update_every": "step"}}
     assert (bm.bins, bm.bin_size_seconds, bm.alpha, bm.uniform_ratio) == ("released", None, 0.001, 0.1)
-    released = inspect.signature(BeyondMimicSampler).parameters
-    for key in ("gamma", "K", "alpha", "uniform_ratio", "empty_bins"):
-        assert released[key].default == getattr(bm, key), key
+    assert BeyondMimicSampler(4).hparams() == {k: getattr(bm, k) for k in ("gamma", "K", "alpha", "uniform_ratio",
+                                                                           "empty_bins")}
     # sampler=uniform has the bins and accounting of sampler=adaptive and no parameters of its own.
     uniform, design = load_variant("uniform"), load_variant("adaptive")
     assert (uniform.bins, uniform.bin_size_seconds, uniform.accounting) == (design.bins, design.bin_size_seconds,
@@ -897,11 +905,11 @@ def test_keys_of_another_sampler_are_refused():
         sampler_config({"name": "x", "kind": "greedy"})
 
 
-def test_constructors_validate_hyperparameters():
-    with pytest.raises(SamplerConfigError, match="sampler.lambda_uniform"):
-        AdaptiveSampler(5, lambda_uniform=2.0)
-    with pytest.raises(SamplerConfigError, match="sampler.K"):
-        BeyondMimicSampler(5, K=0)
+def test_schemas_hold_the_range_rules_and_constructors_the_shape_checks():
+    with pytest.raises(SamplerConfigError, match="sampler.lambda_uniform must be in \\[0, 1\\], got 2.0"):
+        AdaptiveConfig(lambda_uniform=2.0).check()
+    with pytest.raises(SamplerConfigError, match="sampler.K must be an integer >= 1, got 0"):
+        validate_sampler_config(BeyondMimicConfig(K=0))
     with pytest.raises(SamplerConfigError, match="num_bins"):
         UniformSampler(0)
 
@@ -921,7 +929,7 @@ def test_summary_values():
     }
     assert summary(UniformSampler(1), torch.zeros(1), torch.zeros(1))["sampling_entropy"] == 1.0
     assert math.isnan(summary(u, torch.zeros(8), torch.zeros(8))["failure_rate"])
-    s = AdaptiveSampler(4, lambda_uniform=0.0, K=1, alpha_smooth=1.0)
+    s = AdaptiveSampler(4, AdaptiveConfig(lambda_uniform=0.0, K=1, alpha_smooth=1.0))
     s.update(torch.tensor([2]), torch.tensor([T]))  # all mass on bin 2
     d = summary(s, torch.tensor([0, 0, 5, 0]), torch.tensor([0, 0, 1, 0]), total_episodes=2)
     assert d["sampling_entropy"] == pytest.approx(0.0, abs=1e-12)
@@ -931,7 +939,7 @@ def test_summary_values():
 
 def test_bin_table():
     lay = BinLayout(125, 50.0, 1.0)  # 2.5 s -> bins [0,1), [1,2), [2,2.5)
-    s = BeyondMimicSampler(3, alpha=0.5)
+    s = BeyondMimicSampler(3, BeyondMimicConfig(alpha=0.5))
     s.update(torch.tensor([1, 1]), torch.tensor([T, F]))
     df = bin_table(7, lay, torch.tensor([0, 2, 1]), torch.tensor([0, 1, 0]), s)
     assert tuple(df.columns) == BIN_TABLE_COLUMNS
@@ -973,7 +981,8 @@ def test_hot_path_has_no_host_sync():
     done = torch.rand(n, device=dev, generator=g) < 0.1
     length = torch.randint(0, 500, (n,), device=dev, generator=g)
     for lay in (BinLayout(3000, 50.0, 1.0, device=dev), ReleasedBinLayout(3000, 50.0, device=dev)):
-        for s in (AdaptiveSampler(lay.num_bins, device=dev), BeyondMimicSampler(lay.num_bins, K=3, device=dev)):
+        for s in (AdaptiveSampler(lay.num_bins, device=dev),
+                  BeyondMimicSampler(lay.num_bins, BeyondMimicConfig(K=3), device=dev)):
             for attribution in ("start", "failure"):
                 for update_every in ("iteration", "step"):
                     acc = SamplerFeedback(s, lay, n, 500, attribution=attribution, update_every=update_every,

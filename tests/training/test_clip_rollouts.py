@@ -14,6 +14,7 @@ import torch
 
 from bmimic.sampling import PHCSampler, ProtoMotionsSampler
 from bmimic.sampling.clips import ClipLayout
+from bmimic.sampling.schemas import PHCConfig
 from bmimic.training.clip_rollouts import clip_bounds, clip_rollouts, clips_failed
 from bmimic.training.evaluator import Evaluator
 
@@ -91,7 +92,8 @@ def test_one_rollout_per_clip_from_its_first_frame_to_its_end():
     assert short["steps"].tolist() == [3, 3, 3]
 
 
-@pytest.mark.parametrize("make", [lambda s: PHCSampler(s, mode="soft"), lambda s: PHCSampler(s, mode="hard"),
+@pytest.mark.parametrize("make", [lambda s: PHCSampler(s, PHCConfig(mode="soft")),
+                                  lambda s: PHCSampler(s, PHCConfig(mode="hard")),
                                   ProtoMotionsSampler], ids=["phc_soft", "phc_hard", "protomotions"])
 def test_the_always_failing_clip_gains_mass(make):
     ev = _evaluator({1})
