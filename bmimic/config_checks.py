@@ -83,6 +83,11 @@ def check_known_keys(cfg) -> None:
 
     plain = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
     plain.pop("hydra", None)
+    # The outcome depends on `plain` alone, and a training checks one config three times (check_composed,
+    # then validate before and after the motion is read): a config that passed once passes again.
+    seen = repr(plain)
+    if seen in _KNOWN_KEYS_PASSED:
+        return
     if isinstance(plain.get("sampler"), dict):
         sampler_config(plain["sampler"])  # the sampler's keys are its variant's schema's
     try:
@@ -94,6 +99,15 @@ def check_known_keys(cfg) -> None:
             _fail(key or "config", f"unknown key ({msg.splitlines()[0]}); check the spelling, "
                                    "`--cfg job` prints every key")
         _fail(key or "config", msg.splitlines()[0])
+    _KNOWN_KEYS_PASSED[seen] = None
+    while len(_KNOWN_KEYS_PASSED) > 16:
+        del _KNOWN_KEYS_PASSED[next(iter(_KNOWN_KEYS_PASSED))]
+
+
+_KNOWN_KEYS_PASSED: dict[str, None] = {}
+"""repr() of the last configs (plain containers, no `hydra` node) that check_known_keys passed: the
+same plain values get the same verdict (a schema merge, ~0.2 s each on a small CPU). repr tells
+apart every value to_container returns (1 from 1.0 from '1'); a config not seen is checked in full."""
 
 
 @functools.lru_cache(maxsize=1)

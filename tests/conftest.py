@@ -171,6 +171,14 @@ def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
         if recorded.get(item.nodeid, 0.0) >= QUICK_LIMIT_S:
             item.add_marker(pytest.mark.slow)
+    # Longest first, so that no long test starts last and leaves the other workers idle at the end of the
+    # run: files in the order of their longest recorded test, each file's tests kept together and in
+    # their own order (a file's module fixtures are made once per worker, not again after another file).
+    longest: dict[Path, float] = {}
+    for item in items:
+        longest[item.path] = max(longest.get(item.path, 0.0), recorded.get(item.nodeid, 0.0))
+    order = {id(item): i for i, item in enumerate(items)}
+    items.sort(key=lambda item: (-longest[item.path], str(item.path), order[id(item)]))
 
 
 def pytest_runtest_logreport(report) -> None:

@@ -36,6 +36,9 @@ CHEAP = settings(FAST, max_examples=60)
 TWENTY = settings(FAST, max_examples=20)
 """For table damage: an accepted example writes a whole report (seconds)."""
 MORE = settings(FAST, max_examples=200)
+DEEPER = settings(FAST, max_examples=100)
+"""For run-folder and table damage beyond the default draw: an example costs about a second (a tool's
+checks, or a whole report), so 100 more of each, beside the 30 and 20 that the quick tier draws."""
 BASE = ["device=cpu", "num_envs=2", "ppo.num_steps_per_env=4", "ppo.num_mini_batches=2", "motion=easy_only",
         "motion.duration_s=7", "eval.horizon_s=0.2", "progress_bar=false", "logger=none"]
 
@@ -402,7 +405,7 @@ def test_generated_run_folder_damage(world, example, tmp_path_factory):
 
 
 @pytest.mark.slow
-@MORE
+@DEEPER
 @given(example=run_damage())
 def test_more_generated_run_folder_damage(world, example, tmp_path_factory):
     _run_damage_property(example, world, tmp_path_factory.mktemp("damage"))
@@ -480,7 +483,7 @@ def test_generated_table_damage(world, changes, tmp_path_factory):
 
 
 @pytest.mark.slow
-@MORE
+@DEEPER
 @given(changes=table_damage())
 def test_more_generated_table_damage(world, changes, tmp_path_factory):
     _table_property(changes, world, tmp_path_factory.mktemp("tables"))
