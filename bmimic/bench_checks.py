@@ -52,7 +52,7 @@ def checked_args(args: argparse.Namespace, overrides: list[str]) -> tuple[list[i
         raise BmimicError(f"overrides after --: {first_line(e)}") from None
     check_composed(cfg, cfg.hydra.runtime.choices)
     resolve_runtime(cfg, device)
-    validate(cfg)
+    validate(cfg, composed_checked=True)
     mjm = load_mjmodel(cfg=cfg.robot)
     check_num_envs_fit(cfg, mjm, device, max(envs), cfg.ppo.num_steps_per_env)
     check_networks_fit(cfg, mjm, device)

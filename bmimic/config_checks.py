@@ -83,11 +83,6 @@ def check_known_keys(cfg) -> None:
 
     plain = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
     plain.pop("hydra", None)
-    # The outcome depends on `plain` alone, and a training checks one config three times (check_composed,
-    # then validate before and after the motion is read): a config that passed once passes again.
-    seen = repr(plain)
-    if seen in _KNOWN_KEYS_PASSED:
-        return
     if isinstance(plain.get("sampler"), dict):
         sampler_config(plain["sampler"])  # the sampler's keys are its variant's schema's
     try:
@@ -99,15 +94,6 @@ def check_known_keys(cfg) -> None:
             _fail(key or "config", f"unknown key ({msg.splitlines()[0]}); check the spelling, "
                                    "`--cfg job` prints every key")
         _fail(key or "config", msg.splitlines()[0])
-    _KNOWN_KEYS_PASSED[seen] = None
-    while len(_KNOWN_KEYS_PASSED) > 16:
-        del _KNOWN_KEYS_PASSED[next(iter(_KNOWN_KEYS_PASSED))]
-
-
-_KNOWN_KEYS_PASSED: dict[str, None] = {}
-"""repr() of the last configs (plain containers, no `hydra` node) that check_known_keys passed: the
-same plain values get the same verdict (a schema merge, ~0.2 s each on a small CPU). repr tells
-apart every value to_container returns (1 from 1.0 from '1'); a config not seen is checked in full."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -264,9 +250,20 @@ def validate(cfg, motion_duration_s: float | None = None, composed_checked: bool
         check_env(cfg.env)
     except EnvConfigError as e:
         raise ConfigError(str(e)) from None
-    if motion_duration_s is not None and (not math.isfinite(motion_duration_s) or motion_duration_s <= 0):
+    if motion_duration_s is not None:
+        check_motion_fit(cfg, motion_duration_s)
+    else:
+        validate_sampler_config(cfg.sampler)  # without a motion: all but the bins' fit
+
+
+def check_motion_fit(cfg, motion_duration_s: float) -> None:
+    """What `validate` leaves until the motion is read: the motion has a duration and the sampler's bins
+    fit it. On its own only for a config that `validate` already passed (bmimic.task.build_task)."""
+    from bmimic.sampling.config import validate_sampler_config
+
+    if not math.isfinite(motion_duration_s) or motion_duration_s <= 0:
         _fail("motion", f"has no duration ({motion_duration_s} s)")
-    validate_sampler_config(cfg.sampler, motion_duration_s)  # without a motion: all but the bins' fit
+    validate_sampler_config(cfg.sampler, motion_duration_s)
 
 
 def check_whole_clip(eval_cfg: Any, step_dt: float) -> None:

@@ -91,7 +91,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         if torch.distributed.get_backend() == "nccl":
             device = f"cuda:{torchrun_env()[2]}"
     resolve_runtime(cfg, device)
-    validate(cfg)
+    validate(cfg, composed_checked=True)  # launch's check_config read every key; the runtime filled in values
     if stop_rule is not None:  # bmimic.race: it times evaluations, so one must run before the budget ends
         check_evaluates(cfg, default_budget and not device.startswith("cuda"))
     if rank == 0:
@@ -124,7 +124,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     cfg.seed = cfg.seed + rank
     seed_everything(cfg.seed)
 
-    task = build_task(cfg, device)
+    task = build_task(cfg, device, validated=True)
     if main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
         log.info(start_summary(cfg, requested, world, smoke, task.motion, task.layout, plan.run_dir))
     training = build_training(cfg, device, task)

@@ -8,6 +8,7 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
+from bmimic import BmimicError
 from bmimic.config import ConfigError, resolve_runtime
 from bmimic.config_checks import validate
 from tests.conftest import CONF, compose, run_train
@@ -214,3 +215,32 @@ def test_a_run_records_the_values_of_its_interpolations():
     assert recorded_config(composed, resolved) == {"seed": 7, "num_envs": None, "data": {"lafan_dir": "${oc.env:X,null}"},
                                                    "sampler": {"gamma": 0.5, "K": 5}, "run_name": "a-7"}
     assert composed["seed"].startswith("${")  # not changed in place
+
+
+def test_a_training_reads_its_config_keys_once_and_still_checks_the_motion_fit(tmp_path, monkeypatch):
+    """`python -m bmimic.train` merges its config into the schema once (check_composed, before the
+    runtime fills in values); validate and build_task after it check values and the motion's fit only,
+    and the motion's fit still refuses bins longer than the motion and a motion without a duration."""
+    import bmimic.config_checks as checks
+    from bmimic.task import build_task
+
+    merges = []
+    real = checks.check_known_keys
+    monkeypatch.setattr(checks, "check_known_keys", lambda cfg: (merges.append(1), real(cfg)))
+    code, out = run_train("device=cpu", "num_envs=2", "max_iterations=1", "ppo.num_steps_per_env=4",
+                          "ppo.num_mini_batches=2", "motion=easy_only", "motion.duration_s=7", "eval.horizon_s=0.2",
+                          "progress_bar=false", "logger=none", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert code == 0, out[-2000:]
+    assert len(merges) == 1
+
+    cfg = compose(["device=cpu", "num_envs=2", "motion=easy_only", "motion.duration_s=7"], return_hydra_config=True)
+    checks.check_composed(cfg, cfg.hydra.runtime.choices)
+    resolve_runtime(cfg, "cpu")
+    validate(cfg, composed_checked=True)
+    merges.clear()
+    task = build_task(cfg, "cpu", validated=True)
+    assert merges == [] and task.layout.num_bins == 7
+    with pytest.raises(BmimicError, match="bin_size_seconds"):  # 1 s bins on a motion of 0.5 s
+        checks.check_motion_fit(cfg, 0.5)
+    with pytest.raises(ConfigError, match="motion: has no duration"):
+        checks.check_motion_fit(cfg, float("nan"))
