@@ -214,12 +214,32 @@ class Simulator:
 
 
 def physics_bytes_per_world(mjm: mujoco.MjModel, cfg: SimConfig) -> int:
-    """Bytes of MuJoCo-Warp state one more world costs (measured: host data for 2 worlds minus 1)."""
-    def total(nworld: int) -> int:
-        with wp.ScopedDevice("cpu"):
-            return _array_bytes(mjw.make_data(mjm, nworld=nworld, nconmax=cfg.nconmax, njmax=cfg.njmax), set())
+    """Bytes of MuJoCo-Warp state one more world costs (measured: host data for 2 worlds minus 1).
 
-    return max(total(2) - total(1), 0)
+    Measured once per process for a model's sizes and the contact budgets: the training env, the
+    evaluation env and the checks before them ask for the same model (~0.4 s per measurement on a CPU)."""
+    key = (_model_sizes(mjm), int(cfg.nconmax), int(cfg.njmax))
+    if key not in _BYTES_PER_WORLD:
+        def total(nworld: int) -> int:
+            with wp.ScopedDevice("cpu"):
+                return _array_bytes(mjw.make_data(mjm, nworld=nworld, nconmax=cfg.nconmax, njmax=cfg.njmax), set())
+
+        _BYTES_PER_WORLD[key] = max(total(2) - total(1), 0)
+    return _BYTES_PER_WORLD[key]
+
+
+_BYTES_PER_WORLD: dict[tuple, int] = {}
+"""physics_bytes_per_world's measurements, by (model sizes, nconmax, njmax)."""
+
+
+def _model_sizes(mjm: mujoco.MjModel) -> tuple:
+    """Every integer size of the model and of its options (nq, nv, nbody, ngeom, ..., cone, jacobian): what
+    make_data's allocations follow."""
+    def ints(obj) -> tuple:
+        return tuple((name, value) for name in dir(obj) if not name.startswith("_")
+                     and isinstance(value := getattr(obj, name), int) and not isinstance(value, bool))
+
+    return ints(mjm), ints(mjm.opt)
 
 
 def _array_bytes(obj, seen: set) -> int:

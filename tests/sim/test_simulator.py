@@ -103,3 +103,16 @@ def test_bytes_per_world_grow_with_the_contact_and_constraint_buffers():
     small = physics_bytes_per_world(mjm, SimConfig())
     large = physics_bytes_per_world(mjm, dataclasses.replace(SimConfig(), nconmax=96, njmax=512))
     assert 0 < small < large
+    # measured once per model and budgets: asked again, the same answers, each for its own key
+    assert physics_bytes_per_world(mjm, SimConfig()) == small
+    assert physics_bytes_per_world(mjm, dataclasses.replace(SimConfig(), nconmax=96, njmax=512)) == large
+
+
+def test_bytes_per_world_are_measured_for_each_model_not_remembered_across_models():
+    """A model of other sizes (one free ball) is measured, not answered from the G1's measurement."""
+    mjm = load_mjmodel()
+    spec = mujoco.MjSpec.from_string("<mujoco><worldbody><body><freejoint/><geom size='0.1'/></body></worldbody></mujoco>")
+    ball = spec.compile()
+    g1 = physics_bytes_per_world(mjm, SimConfig())
+    one = physics_bytes_per_world(ball, SimConfig())
+    assert 0 < one < g1
