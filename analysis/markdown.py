@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 import pandas as pd
@@ -82,10 +83,18 @@ def summary_row(summary: pd.DataFrame, arm: str, metric: str):
 def cell(summary: pd.DataFrame, arm: str, metric: str) -> str:
     """The estimate_cell of `arm`'s `metric` in summary.csv (- when absent)."""
     r = summary_row(summary, arm, metric)
-    if r is None:
+    return "–" if r is None else row_cell(r)
+
+
+def row_cell(r: Mapping, prefix: str = "") -> str:
+    """The estimate_cell of one row of tables.summary_rows (a summary.csv row, or keys that each start
+    with `prefix` in a wider row): the IQM from MIN_SEEDS_IQM seeds, else the mean; - without seeds."""
+    n = r.get(f"{prefix}n_seeds")
+    if n is None or is_nan(n):
         return "–"
-    p = r["iqm"] if r["n_seeds"] >= MIN_SEEDS_IQM else r["mean"]
-    return estimate_cell(p, r["ci_low"], r["ci_high"], str(r["ci_method"]), int(r["n_seeds"]), str(r["per_seed"]))
+    point = r[f"{prefix}iqm"] if n >= MIN_SEEDS_IQM else r[f"{prefix}mean"]
+    return estimate_cell(point, r[f"{prefix}ci_low"], r[f"{prefix}ci_high"], str(r[f"{prefix}ci_method"]), int(n),
+                         str(r[f"{prefix}per_seed"]))
 
 
 def p_text(p: float, smallest: float, corrected: str = "uncorrected") -> str:

@@ -11,8 +11,7 @@ import numpy as np
 import pandas as pd
 
 from analysis.load import load_table
-from analysis.markdown import estimate_cell, fmt, md_table
-from analysis.stats import MIN_SEEDS_IQM
+from analysis.markdown import fmt, md_table, row_cell
 from analysis.tables import ReportOptions, learning_curves, summary_rows, use_bootstrap
 from bmimic.run_schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
 
@@ -105,12 +104,11 @@ def section(w: WholeClipReport) -> list[str]:
     f = w.final
     view = pd.DataFrame({
         "arm": f["arm"], "condition": f[CONDITION], "last whole-clip evaluation (iteration per seed)": f["iterations"],
-        "whole-clip success": [estimate_cell(r.iqm if r.n_seeds >= MIN_SEEDS_IQM else r.mean, r.ci_low, r.ci_high,
-                                             str(r.ci_method), int(r.n_seeds), str(r.per_seed)) for r in f.itertuples()],
+        "whole-clip success": [row_cell(r) for r in f.to_dict("records")],
         "rollouts per seed": f["rollouts_per_seed"].map(fmt),
         f"start transients (< {START_TRANSIENT_S:g} s) per seed": f["transient_failures_per_seed"].map(fmt),
         "later failures per seed": f["later_failures_per_seed"].map(fmt),
-        "seconds tracked per rollout": [_tracked_cell(r) for r in f.to_dict("records")],
+        "seconds tracked per rollout": [row_cell(r, f"{TRACKED_S}_") for r in f.to_dict("records")],
         "root-relative MPKPE of completed rollouts (mm)": f[MPKPE_REL_MM].map(fmt),
     })
     return ["## Whole clips", "", "Rollouts from each clip's first frame to its last (eval.whole_clip): `nominal` "
@@ -121,15 +119,6 @@ def section(w: WholeClipReport) -> list[str]:
             "tracked per rollout: the clip time a rollout tracked before it failed (its clip's length when it "
             "completed), mean over rollouts: the area under the survival curve, which separates policies that "
             "all fail somewhere.", "", md_table(view), ""]
-
-
-def _tracked_cell(r: dict) -> str:
-    n = r.get(f"{TRACKED_S}_n_seeds")
-    if n is None or not np.isfinite(r.get(f"{TRACKED_S}_mean", np.nan)):
-        return "–"
-    point = r[f"{TRACKED_S}_iqm"] if n >= MIN_SEEDS_IQM else r[f"{TRACKED_S}_mean"]
-    return estimate_cell(point, r[f"{TRACKED_S}_ci_low"], r[f"{TRACKED_S}_ci_high"], str(r[f"{TRACKED_S}_ci_method"]),
-                         int(n), str(r[f"{TRACKED_S}_per_seed"]))
 
 
 __all__ = ["WholeClipReport", "compute", "section"]
