@@ -319,3 +319,14 @@ _ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "sof
                 "identity")
 """rsl-rl-lib 5.5's activation names (rsl_rl.utils.resolve_nn_activation)."""
 
+
+def check_evaluates(cfg, cpu_default: bool) -> None:
+    """A race (training with a stopping rule after each periodic evaluation) needs one within its budget,
+    else it would train and have nothing to time: on a CPU the smoke-scale max_iterations=4 is below the
+    race's every-100 evaluations (`cpu_default`: that budget came from the CPU default). ConfigError."""
+    every, budget = int(cfg.eval.every_iters), int(cfg.max_iterations)
+    if not 0 < every <= budget:
+        where = " (the smoke-scale default on a CPU)" if cpu_default else ""
+        raise ConfigError(f"a race times evaluations, and with max_iterations={budget}{where} and eval.every_iters="
+                          f"{every} none would run; set max_iterations >= eval.every_iters >= 1 (on a CPU with "
+                          "max_cpu_hours=<h>), or train with bmimic-train instead")

@@ -141,3 +141,30 @@ def summary_block(title: str, rows: Sequence[tuple[str, str]]) -> str:
     """`title` then one aligned `name  value` line per row."""
     width = max((len(name) for name, _ in rows), default=0)
     return "\n".join([title, *(f"  {name:<{width}}  {value}" for name, value in rows)])
+
+
+def start_summary(cfg, requested_device: str, world: int, smoke: bool, motion, layout, run_dir) -> str:
+    """A training's start-up block: device, envs, motion, bins, sampler variant and run folder."""
+    from hydra.core.hydra_config import HydraConfig
+
+    choices = HydraConfig.get().runtime.choices if HydraConfig.initialized() else {}
+    m = cfg.motion
+    names = getattr(layout, "clip_names", ())
+    library = f"library of {len(names)} clips ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})"
+    source = {"builtin": f"built-in {m.builtin}", "lafan": f"LAFAN1 {m.clip}",
+              "library": library}.get(m.source, str(m.path))
+    if m.start_s is not None or m.end_s is not None:
+        source += f", {m.start_s or 0:g}-{'end' if m.end_s is None else format(m.end_s, 'g')} s"
+    variant = choices.get("sampler") or cfg.sampler.name
+    ranks = f" per rank, {world} ranks" if world > 1 else ""
+    title = ("no GPU: this is a smoke-scale run through the whole pipeline; on a GPU the same command "
+             "trains for real" if smoke else "training")
+    return summary_block(title, [
+        ("device", f"{cfg.device} (requested {requested_device})"),
+        ("envs", f"{cfg.num_envs}{ranks}"),
+        ("iterations", f"{cfg.max_iterations} of {cfg.ppo.num_steps_per_env} steps per env"),
+        ("motion", f"{choices.get('motion') or m.name}: {source}; {motion.duration_s:.1f} s at {motion.fps:g} Hz"),
+        ("bins", layout.describe()),
+        ("sampler", variant if variant == cfg.sampler.name else f"{variant} ({cfg.sampler.name})"),
+        ("run folder", str(run_dir)),
+    ])

@@ -13,6 +13,7 @@ import logging
 import math
 import sys
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -24,14 +25,13 @@ import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_s
 from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
 from bmimic.cli_common import first_line, shell_arg, user_errors
 from bmimic.config import (
-    ConfigError,
     interpolated_keys,
     recorded_config,
     resolve_runtime,
     with_schema_defaults,
 )
-from bmimic.config_checks import advisories, check_composed, validate
-from bmimic.console import quiet_stdout, quiet_warp, summary_block
+from bmimic.config_checks import advisories, check_composed, check_evaluates, validate
+from bmimic.console import quiet_stdout, quiet_warp, start_summary
 from bmimic.run_folder import (
     TENSORBOARD_DIR,
     RunLockedError,
@@ -43,6 +43,7 @@ from bmimic.run_folder import (
 from bmimic.run_record import metrics as run_metrics
 from bmimic.run_schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
 from bmimic.runtime import init_distributed, process_rank, resolve_device, seed_everything, torchrun_env
+from bmimic.sweeping.jobs import done_run_differences
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import (
     build_evaluator,
@@ -60,6 +61,27 @@ from bmimic.training.session import RunContext, commit, record_failure
 log = logging.getLogger("bmimic.train")  # the command line's logger, whichever entry point runs the job
 
 
+@dataclass(frozen=True)
+class Placement:
+    """Where and how big this process trains: the device asked for and the one resolved, its torchrun
+    rank among `world` ranks, and whether it is a smoke-scale pass (a CPU with no sizes given)."""
+
+    requested: str
+    """`device` as the config asked for it (auto, cpu, cuda, cuda:1)."""
+    device: str
+    """The torch device this process trains on (a torchrun rank's own GPU under NCCL)."""
+    rank: int
+    """This process's torchrun rank (0 without torchrun); rank 0 evaluates and writes the run folder."""
+    world: int
+    """Number of torchrun ranks (1 without torchrun)."""
+    smoke: bool
+    """No GPU and neither num_envs nor max_iterations set: the CPU's smoke-scale pass."""
+
+    @property
+    def main_rank(self) -> bool:
+        return self.rank == 0
+
+
 def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunContext | None = None,
           stop_rule: Callable | None = None, stop: StopSignals | None = None) -> float:
     """Train in a fresh run folder (`launch_dir`) or continue the run `cfg.resume` names; returns the
@@ -72,13 +94,55 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     loaded into the built trainer and the config is compared with the one it was trained with: a
     refused resume leaves the run it names byte-identical.
     """
-    import torch
-
-    from bmimic.sampling.config import describe as describe_sampler
-
     ctx = ctx if ctx is not None else RunContext(launch_dir)
     if stop is not None:  # nothing is written until commit: a signal ends the set-up at once (StopNow)
         stop.begin_at_once()
+    place = place_job(cfg, stop_rule)
+    plan, resolved, changes = plan_job(cfg, launch_dir, sweep_job, ctx, place)
+    # Distinct worlds per rank (rsl-rl broadcasts the policy), after the resume checks: the run's
+    # config, which its checkpoints record and every rank's resume compares with, holds the run's seed.
+    cfg.seed = cfg.seed + place.rank
+    seed_everything(cfg.seed)
+    task = build_task(cfg, device=place.device, validated=True)
+    if place.main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
+        log.info(start_summary(cfg, place.requested, place.world, place.smoke, task.motion, task.layout,
+                               plan.run_dir))
+    trainer, whole_clip = build_job(cfg, task, place, plan, resolved)
+    trainer.after_evaluation = stop_rule
+    trainer.whole_clip = whole_clip
+    env = trainer.env
+    try:
+        if stop is not None:
+            stop.end_at_once()  # from here the run has something to save: a signal ends the iteration
+        if place.main_rank:
+            commit(ctx, plan, resolved, place.device, changes, task.motion)
+        final, robust = learn_and_evaluate(trainer, task, place, stop)
+        if trainer.interrupted:
+            if place.main_rank:
+                trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
+                write_status(plan.run_dir, "interrupted", trainer.progress.iteration)
+            raise TrainingInterrupted(stop, trainer.progress.iteration, plan.run_dir)
+        if place.main_rank:
+            trainer.save_checkpoint()
+    finally:
+        try:
+            trainer.close()
+        finally:
+            env.close()
+            if whole_clip is not None:
+                whole_clip.close()
+            if place.world > 1:
+                import torch
+
+                torch.distributed.destroy_process_group()
+    return finish_job(cfg, trainer, task, place, plan.run_dir, final, robust, sweep_job)
+
+
+def place_job(cfg: DictConfig, stop_rule: Callable | None = None) -> Placement:
+    """Resolve the device (and the torchrun rank's) and fill in the runtime values of `cfg` (sizes for
+    this machine), then check the values; launch's check_config already read every key."""
+    import torch
+
     requested = cfg.device
     smoke_defaults = cfg.num_envs is None and cfg.max_iterations is None
     default_budget = cfg.max_iterations is None
@@ -97,8 +161,13 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     if rank == 0:
         for note in advisories(cfg):
             log.warning(note)
-    smoke = not device.startswith("cuda") and smoke_defaults
-    main_rank = rank == 0  # under torchrun only rank 0 writes the run folder
+    return Placement(requested, device, rank, world, smoke=not device.startswith("cuda") and smoke_defaults)
+
+
+def plan_job(cfg: DictConfig, launch_dir: Path, sweep_job: bool, ctx: RunContext, place: Placement):
+    """The run folder this job trains in and what it continues: (plan, the resolved config as a dict, the
+    config changes a resume was allowed). Refuses a resume that changes what it may not, a finished run,
+    and on a CPU a size that cannot fit or would train past max_cpu_hours; then rank 0 locks the folder."""
     resolved = OmegaConf.to_container(cfg, resolve=True)
     ctx.hydra_record = record_values(ctx.hydra_record, ctx.composed_config, resolved)
     allowed = list(cfg.resume_allow_changes or [])
@@ -110,87 +179,81 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     changes = check_resume_changes(plan, resolved, allowed, fill_defaults=with_schema_defaults)
     if plan.continues:
         refuse_finished(plan, cfg.max_iterations)
-    if device == "cpu" and not sweep_job:  # a sweep's jobs were estimated together when it started (cli)
+    if place.device == "cpu" and not sweep_job:  # a sweep's jobs were estimated together when it started (cli)
         from bmimic.robot import load_mjmodel
 
         # A size that cannot fit in memory is refused as such first (its training time is moot).
-        check_num_envs_fit(cfg, load_mjmodel(cfg=cfg.robot), device, cfg.num_envs, cfg.ppo.num_steps_per_env)
+        check_num_envs_fit(cfg, load_mjmodel(cfg=cfg.robot), place.device, cfg.num_envs, cfg.ppo.num_steps_per_env)
         done = int(plan.state.get("iter", 0)) if plan.state else 0
         check_cpu_budget([cpu_training_s(cfg, done)], cfg.max_cpu_hours, describe_sizes([cfg]))
-    if main_rank and not ctx.holds(plan.run_dir):
+    if place.main_rank and not ctx.holds(plan.run_dir):
         ctx.lock(plan.run_dir)
-    # Distinct worlds per rank (rsl-rl broadcasts the policy), after the resume checks: the run's
-    # config, which its checkpoints record and every rank's resume compares with, holds the run's seed.
-    cfg.seed = cfg.seed + rank
-    seed_everything(cfg.seed)
+    return plan, resolved, changes
 
-    task = build_task(cfg, device, validated=True)
-    if main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
-        log.info(start_summary(cfg, requested, world, smoke, task.motion, task.layout, plan.run_dir))
-    training = build_training(cfg, device, task)
-    env, layout = training.env, task.layout
-    for line in describe_sampler(cfg.sampler, layout, training.sampler):
+
+def build_job(cfg: DictConfig, task, place: Placement, plan, resolved: dict):
+    """The training environment, sampler, evaluators and trainer of `task`, with the checkpoint that
+    `plan` continues restored: (trainer, whole-clip evaluator or None)."""
+    from bmimic.sampling.config import describe as describe_sampler
+
+    training = build_training(cfg, place.device, task)
+    for line in describe_sampler(cfg.sampler, task.layout, training.sampler):
         log.info("%s", line)
-    evaluator = build_evaluator(task) if main_rank else None  # rank 0 evaluates
-    whole_clip = build_whole_clip(task) if main_rank and whole_clip_wanted(cfg) else None
+    evaluator = build_evaluator(task) if place.main_rank else None  # rank 0 evaluates
+    whole_clip = build_whole_clip(task) if place.main_rank and whole_clip_wanted(cfg) else None
     if whole_clip is not None:
         whole_clip.build()
-    run_dir = plan.run_dir
     with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
-        trainer = build_trainer(training, evaluator, run_dir, is_main_rank=main_rank, run_config=resolved)
+        trainer = build_trainer(training, evaluator, plan.run_dir, is_main_rank=place.main_rank, run_config=resolved)
     if plan.state is not None:
-        trainer.restore(plan.state, plan.checkpoint, allowed)
-        if world > 1:
+        trainer.restore(plan.state, plan.checkpoint, list(cfg.resume_allow_changes or []))
+        if place.world > 1:
             # A checkpoint holds rank 0's random state alone, which the restore gave every rank: each
             # rank draws a stream of its own again (its worlds' resets, noise and actions), one that
             # differs from every earlier segment's.
             stream = (cfg.seed + 1_000_003 * trainer.progress.iteration) % 2**62
             seed_everything(stream)
             log.info("rank %d: random streams reseeded from %d (the run's seed + rank + 1000003 x %d iterations)",
-                     rank, stream, trainer.progress.iteration)
-    trainer.after_evaluation = stop_rule
-    trainer.whole_clip = whole_clip
+                     place.rank, stream, trainer.progress.iteration)
+    return trainer, whole_clip
+
+
+def learn_and_evaluate(trainer, task, place: Placement, stop: StopSignals | None) -> tuple[dict, dict]:
+    """Train to the budget (or the race's stop), then the final evaluations rank 0 owes the run: the
+    window evaluation unless the last iteration had one, the robust one (eval.robust) and the whole
+    clips (eval.whole_clip.at_end). (final summary, metrics.json's final_robust_* and final_whole_clip_*);
+    both empty when a signal interrupted (trainer.interrupted)."""
+    cfg = task.cfg
+    final, robust = {}, {}
     try:
-        if stop is not None:
-            stop.end_at_once()  # from here the run has something to save: a signal ends the iteration
-        if main_rank:
-            commit(ctx, plan, resolved, device, changes, task.motion)
-        try:
-            trainer.learn(signals=stop)
-            if not trainer.interrupted:
-                final = trainer.progress.last_eval
-                # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
-                # their graphs and leave the process group meanwhile, and return NaN.
-                if not main_rank:
-                    final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
-                elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
-                    # (a resume of a run that reached max_iterations already holds its final evaluation)
-                    final = trainer.evaluate()
-                robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
-                    cfg.eval.robust and main_rank) else {}
-                if whole_clip is not None and cfg.eval.whole_clip.at_end and (
-                        trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
-                    trainer.evaluate_whole_clip()
-                if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
-                    robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
-        except StopNow:  # a signal during an evaluation (bmimic.training.interrupts): the iteration is kept
-            trainer.interrupted = True
+        trainer.learn(signals=stop)
         if trainer.interrupted:
-            if main_rank:
-                trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
-                write_status(run_dir, "interrupted", trainer.progress.iteration)
-            raise TrainingInterrupted(stop, trainer.progress.iteration, run_dir)
-        if main_rank:
-            trainer.save_checkpoint()
-    finally:
-        try:
-            trainer.close()
-        finally:
-            env.close()
-            if whole_clip is not None:
-                whole_clip.close()
-            if world > 1:
-                torch.distributed.destroy_process_group()
+            return final, robust
+        final = trainer.progress.last_eval
+        # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
+        # their graphs and leave the process group meanwhile, and return NaN.
+        if not place.main_rank:
+            final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
+        elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
+            # (a resume of a run that reached max_iterations already holds its final evaluation)
+            final = trainer.evaluate()
+        robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
+            cfg.eval.robust and place.main_rank) else {}
+        whole_clip = trainer.whole_clip
+        if whole_clip is not None and cfg.eval.whole_clip.at_end and (
+                trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
+            trainer.evaluate_whole_clip()
+        if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
+            robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
+    except StopNow:  # a signal during an evaluation (bmimic.training.interrupts): the iteration is kept
+        trainer.interrupted = True
+    return final, robust
+
+
+def finish_job(cfg: DictConfig, trainer, task, place: Placement, run_dir: Path, final: dict, robust: dict,
+               sweep_job: bool) -> float:
+    """metrics.json and status `done` (rank 0), the closing lines; returns the final failure rate."""
+    env = trainer.env
     train_rows = trainer.record.rows("train_metrics")
     metrics = run_metrics(final, robust, {
         "iterations": trainer.progress.iteration,
@@ -198,15 +261,16 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         WALL_TIME_S: trainer.progress.wall_time_s,
         "mean_episode_length": train_rows[-1]["mean_episode_length"] if train_rows else math.nan,
         "max_episode_length": env.max_episode_length,
-        "num_bins": layout.num_bins,
+        "num_bins": task.layout.num_bins,
         "num_envs": cfg.num_envs,
-        "device": device,
+        "device": place.device,
         **trainer.total_resets,
         "overflow_world_steps": trainer.overflow_world_steps,
     })
-    if not main_rank:
+    if not place.main_rank:
         log.info("rank %d done: %d iterations, %d env steps, learning rate %.6e (rank 0 evaluates and writes %s)",
-                 rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate, run_dir)
+                 place.rank, trainer.progress.iteration, trainer.progress.env_steps, trainer.alg.learning_rate,
+                 run_dir)
         return float(metrics["final_eval_failure_rate"])
     write_metrics(run_dir, metrics)
     write_status(run_dir, "done", trainer.progress.iteration)
@@ -225,39 +289,6 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     return float(metrics["final_eval_failure_rate"])
 
 
-def done_run_differences(cfg: DictConfig, run_dir: Path) -> str | bool:
-    """Whether a sweep job may skip the done run in its folder: False (the same job: skip it), True
-    (other settings that a resume may change, and the job says resume=true: continue it), or the
-    one-line reason it must not touch it (a run of other settings, e.g. a smoke run's budget).
-    Compared on this job's device, as the job would train (bmimic.sweeping.jobs.recorded_differences)."""
-    from bmimic.sweeping.jobs import describe_differences, recorded_differences
-    from bmimic.training.resume import RESUME_FREE_KEYS, key_allowed
-
-    task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
-    differs = recorded_differences(run_dir, task, resolve_device(cfg.device))
-    if not differs:
-        return False
-    allowed = (*RESUME_FREE_KEYS, *(cfg.resume_allow_changes or []))
-    extendable = all(key_allowed(k, allowed) for k in differs)
-    if extendable and resume_request(cfg.get("resume")) is not None:
-        return True
-    return (f"holds a run done with other settings ({describe_differences(differs)}); this job leaves it as it "
-            "is" + ("; resume=true continues it with this job's budget" if extendable else "")
-            + " (a smoke test or variant belongs under its own sweep_name=...)")
-
-
-def check_evaluates(cfg: DictConfig, cpu_default: bool) -> None:
-    """A race (training with a stopping rule after each periodic evaluation) needs one within its budget,
-    else it would train and have nothing to time: on a CPU the smoke-scale max_iterations=4 is below the
-    race's every-100 evaluations (`cpu_default`: that budget came from the CPU default). ConfigError."""
-    every, budget = int(cfg.eval.every_iters), int(cfg.max_iterations)
-    if not 0 < every <= budget:
-        where = " (the smoke-scale default on a CPU)" if cpu_default else ""
-        raise ConfigError(f"a race times evaluations, and with max_iterations={budget}{where} and eval.every_iters="
-                          f"{every} none would run; set max_iterations >= eval.every_iters >= 1 (on a CPU with "
-                          "max_cpu_hours=<h>), or train with bmimic-train instead")
-
-
 def robust_evaluation(trainer, evaluator, stop: StopSignals | None = None) -> dict:
     """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
     on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
@@ -274,32 +305,6 @@ def robust_evaluation(trainer, evaluator, stop: StopSignals | None = None) -> di
     log.info("robust eval at iteration %d: failure rate %.3f (clean: see eval.parquet)", p.iteration,
              summary["robust_eval_failure_rate"])
     return {f"final_{k}": v for k, v in summary.items()}
-
-
-def start_summary(cfg: DictConfig, requested_device: str, world: int, smoke: bool, motion, layout,
-                  run_dir: Path) -> str:
-    """The start-up block: device, envs, motion, bins, sampler variant and run folder."""
-    choices = HydraConfig.get().runtime.choices if HydraConfig.initialized() else {}
-    m = cfg.motion
-    names = getattr(layout, "clip_names", ())
-    library = f"library of {len(names)} clips ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})"
-    source = {"builtin": f"built-in {m.builtin}", "lafan": f"LAFAN1 {m.clip}",
-              "library": library}.get(m.source, str(m.path))
-    if m.start_s is not None or m.end_s is not None:
-        source += f", {m.start_s or 0:g}-{'end' if m.end_s is None else format(m.end_s, 'g')} s"
-    variant = choices.get("sampler") or cfg.sampler.name
-    ranks = f" per rank, {world} ranks" if world > 1 else ""
-    title = ("no GPU: this is a smoke-scale run through the whole pipeline; on a GPU the same command "
-             "trains for real" if smoke else "training")
-    return summary_block(title, [
-        ("device", f"{cfg.device} (requested {requested_device})"),
-        ("envs", f"{cfg.num_envs}{ranks}"),
-        ("iterations", f"{cfg.max_iterations} of {cfg.ppo.num_steps_per_env} steps per env"),
-        ("motion", f"{choices.get('motion') or m.name}: {source}; {motion.duration_s:.1f} s at {motion.fps:g} Hz"),
-        ("bins", layout.describe()),
-        ("sampler", variant if variant == cfg.sampler.name else f"{variant} ({cfg.sampler.name})"),
-        ("run folder", str(run_dir)),
-    ])
 
 
 def hydra_record(cfg: DictConfig) -> dict[str, str] | None:

@@ -314,3 +314,24 @@ def format_jobs(sweep_dir: Path, jobs: Sequence[Job]) -> str:
                + (f" (continuing {continued} run{'s' if continued > 1 else ''} with this budget)" if continued else ""))
     lines.append(f"{len(jobs)} job{'' if len(jobs) == 1 else 's'} ({summary}); {outcome}")
     return "\n".join(lines)
+
+
+def done_run_differences(cfg: DictConfig, run_dir: Path) -> str | bool:
+    """Whether a sweep job may skip the done run in its folder: False (the same job: skip it), True
+    (other settings that a resume may change, and the job says resume=true: continue it), or the
+    one-line reason it must not touch it (a run of other settings, e.g. a smoke run's budget).
+    Compared on this job's device, as the job would train (bmimic.sweeping.jobs.recorded_differences)."""
+    from bmimic.runtime import resolve_device
+    from bmimic.training.resume import RESUME_FREE_KEYS, key_allowed, resume_request
+
+    task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    differs = recorded_differences(run_dir, task, resolve_device(cfg.device))
+    if not differs:
+        return False
+    allowed = (*RESUME_FREE_KEYS, *(cfg.resume_allow_changes or []))
+    extendable = all(key_allowed(k, allowed) for k in differs)
+    if extendable and resume_request(cfg.get("resume")) is not None:
+        return True
+    return (f"holds a run done with other settings ({describe_differences(differs)}); this job leaves it as it "
+            "is" + ("; resume=true continues it with this job's budget" if extendable else "")
+            + " (a smoke test or variant belongs under its own sweep_name=...)")

@@ -306,7 +306,7 @@ def test_a_sweep_over_a_smoke_runs_folder_refuses_before_any_job_and_writes_noth
 
 
 def test_a_job_compares_a_done_run_on_its_own_device(tmp_path, hydra_config_restored):
-    from bmimic.job import done_run_differences
+    from bmimic.sweeping.jobs import done_run_differences
 
     run = _done_run(tmp_path, "max_iterations=4")
     cfg = compose_study("sampler_ablation", "seed=0", "sampler=uniform", "motion=default", "max_iterations=10000")
