@@ -66,6 +66,7 @@ class Rollout:
         self._bad = mujoco.mjtWarning.mjWARN_BADQACC
         self._terms = [(getattr(self, "_t_" + f), p) for _, f, p in spec.terminations]
         self._obs_fns = [getattr(self, "_o_" + t.func) for t in spec.obs_terms]
+        self._error_fns = [getattr(self, "_e_" + name) for name in ERROR_NAMES]
         self._version = 0  # bumped by every change of the physics state
         self._cached: tuple = (None, None)
 
@@ -203,18 +204,32 @@ class Rollout:
 
     # ---------------------------------------------------------------------------------- errors
     def errors(self) -> np.ndarray:
-        """The ERROR_NAMES at the current state and frame (bmimic.training.evaluator's definitions)."""
+        """The ERROR_NAMES at the current state and frame, each by its `_e_<name>` (the evaluation env's
+        definitions, bmimic.training.evaluator.ERROR_TERMS, with rotations as matrices)."""
         s = self.state()
-        a, ee = self.anchor, self.ee
-        return np.array((
-            1000.0 * np.linalg.norm(s["ref_pos"] - s["pos"], axis=-1).mean(),
-            1000.0 * np.linalg.norm((s["ref_pos"] - s["ref_pos"][a]) - (s["pos"] - s["pos"][a]), axis=-1).mean(),
-            float(rotation_angle(s["ref_mat"][a], s["mat"][a])),
-            float(rotation_angle(s["rel_mat"], s["mat"]).mean()),
-            float(np.abs(s["ref_joint_pos"] - s["joint_pos"]).mean()),
-            float(np.abs(s["ref_joint_vel"] - s["joint_vel"]).mean()),
-            1000.0 * np.linalg.norm(s["rel_pos"][ee] - s["pos"][ee], axis=-1).mean(),
-        ))
+        return np.array([float(fn(s)) for fn in self._error_fns])
+
+    def _e_mpkpe_mm(self, s):
+        return 1000.0 * np.linalg.norm(s["ref_pos"] - s["pos"], axis=-1).mean()
+
+    def _e_mpkpe_rel_mm(self, s):
+        a = self.anchor
+        return 1000.0 * np.linalg.norm((s["ref_pos"] - s["ref_pos"][a]) - (s["pos"] - s["pos"][a]), axis=-1).mean()
+
+    def _e_anchor_ori_err_rad(self, s):
+        return rotation_angle(s["ref_mat"][self.anchor], s["mat"][self.anchor])
+
+    def _e_body_ori_err_rad(self, s):
+        return rotation_angle(s["rel_mat"], s["mat"]).mean()
+
+    def _e_joint_pos_err_rad(self, s):
+        return np.abs(s["ref_joint_pos"] - s["joint_pos"]).mean()
+
+    def _e_joint_vel_err_radps(self, s):
+        return np.abs(s["ref_joint_vel"] - s["joint_vel"]).mean()
+
+    def _e_ee_pos_err_mm(self, s):
+        return 1000.0 * np.linalg.norm(s["rel_pos"][self.ee] - s["pos"][self.ee], axis=-1).mean()
 
     def smoothness(self, last_actions: np.ndarray, last_joint_vel: np.ndarray) -> np.ndarray:
         """The SMOOTHNESS_NAMES of the step just taken from `last_actions` and `last_joint_vel`."""

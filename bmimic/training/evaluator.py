@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bmimic.envs.quat import quat_error_magnitude
+from bmimic.envs.measures import smoothness, step_errors
 from bmimic.run_schema import (  # noqa: F401  (the tables' columns, re-exported for the evaluators)
     BIN,
     BIN_COLUMNS,
@@ -270,7 +270,7 @@ class Evaluator:
                 # A world that broke was put back at the initial pose: its errors this step are not
                 # the policy's tracking, so the step is not measured (the episode fails here).
                 measured_f = (alive & ~broke).float()[:, None]
-                err = torch.cat((_errors(env), _smoothness(env, prev_joint_vel)), dim=-1)
+                err = torch.cat((step_errors(env), smoothness(env, prev_joint_vel)), dim=-1)
                 err = torch.where(measured_f > 0, err, 0.0)
                 sums += err
                 steps += measured_f[:, 0]
@@ -324,36 +324,6 @@ class Evaluator:
         per_bin.insert(0, ENV_STEPS, int(env_steps))
         per_bin.insert(0, "iteration", int(iteration))
         return per_bin
-
-
-def _errors(env) -> torch.Tensor:
-    """[N, len(ERROR_COLUMNS)] per-step tracking errors of the current state."""
-    s = env.state
-    a = env.bodies.anchor
-    ee = env.bodies.end_effectors
-    body_err = (s.ref_body_pos - s.robot_body_pos).norm(dim=-1)
-    ref_rel = s.ref_body_pos - s.ref_anchor_pos[:, None]
-    rob_rel = s.robot_body_pos - s.robot_anchor_pos[:, None]
-    rel_err = (ref_rel - rob_rel).norm(dim=-1)
-    return torch.stack(
-        (
-            1000.0 * body_err.mean(-1),
-            1000.0 * rel_err.mean(-1),
-            quat_error_magnitude(s.ref_body_quat[:, a], s.robot_body_quat[:, a]),
-            quat_error_magnitude(s.ref_body_quat_relative, s.robot_body_quat).mean(-1),
-            (s.ref_joint_pos - s.joint_pos).abs().mean(-1),
-            (s.ref_joint_vel - s.joint_vel).abs().mean(-1),
-            1000.0 * (s.ref_body_pos_relative[:, ee] - s.robot_body_pos[:, ee]).norm(dim=-1).mean(-1),
-        ),
-        dim=-1,
-    )
-
-
-def _smoothness(env, prev_joint_vel: torch.Tensor) -> torch.Tensor:
-    """[N, len(SMOOTHNESS_COLUMNS)] the policy's action rate and joint acceleration this step."""
-    action_rate = (env.actions - env.last_actions).square().sum(-1)
-    joint_acc = ((env.state.joint_vel - prev_joint_vel).abs() / env.step_dt).mean(-1)
-    return torch.stack((action_rate, joint_acc), dim=-1)
 
 
 def summarize(per_bin: pd.DataFrame, prefix: str = "eval") -> dict[str, float]:

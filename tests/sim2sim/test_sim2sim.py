@@ -203,7 +203,8 @@ def test_sim2sim_control_step_equals_the_training_envs(task):
 
 
 def test_reference_targets_and_errors_equal_the_training_envs(task):
-    from bmimic.training.evaluator import ERROR_COLUMNS, _errors
+    from bmimic.envs.measures import step_errors as _errors
+    from bmimic.training.evaluator import ERROR_COLUMNS
 
     env, _, paths = task
     assert tuple(sim2sim.ERROR_NAMES) == tuple(ERROR_COLUMNS)
@@ -393,9 +394,9 @@ def test_sim2sim_accounts_episodes_exactly_as_the_warp_evaluator(task, monkeypat
             stop = torch.tensor([pair in PLANTED_FAILURES for pair in zip(self.start, judged)])
             return obs, rew, dones, {**extras, "terminated": stop}
 
-    monkeypatch.setattr(evaluator, "_errors",
+    monkeypatch.setattr(evaluator, "step_errors",
                         lambda e: torch.as_tensor(planted_errors(e.time_steps.numpy()), dtype=torch.float32))
-    monkeypatch.setattr(evaluator, "_smoothness",
+    monkeypatch.setattr(evaluator, "smoothness",
                         lambda e, _: torch.as_tensor(planted_smoothness(e.time_steps.numpy()), dtype=torch.float32))
     spec = sim2sim.read_policy(paths[1])
     ev = Evaluator(Planted(), env.layout, spec.segments, per_bin, horizon_s, max_rel_mm)
