@@ -258,7 +258,7 @@ def validate(cfg, motion_duration_s: float | None = None, composed_checked: bool
 
 def check_motion_fit(cfg, motion_duration_s: float) -> None:
     """What `validate` leaves until the motion is read: the motion has a duration and the sampler's bins
-    fit it. On its own only for a config that `validate` already passed (bmimic.task.build_task)."""
+    fit it (bmimic.task.build_task, on a config that `validate` passed)."""
     from bmimic.sampling.config import validate_sampler_config
 
     if not math.isfinite(motion_duration_s) or motion_duration_s <= 0:

@@ -103,7 +103,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     # config, which its checkpoints record and every rank's resume compares with, holds the run's seed.
     cfg.seed = cfg.seed + place.rank
     seed_everything(cfg.seed)
-    task = build_task(cfg, device=place.device, validated=True)
+    task = build_task(cfg, device=place.device)
     if place.main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
         log.info(start_summary(cfg, place.requested, place.world, place.smoke, task.motion, task.layout,
                                plan.run_dir))

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from bmimic.config import ConfigError
-from bmimic.config_checks import check_motion_fit, validate
+from bmimic.config_checks import check_motion_fit
 
 
 @dataclass
@@ -57,10 +57,10 @@ class Training:
     """bmimic.envs.TrackingEnv in `mode="train"` with `cfg.num_envs` worlds."""
 
 
-def build_task(cfg, device: str, validated: bool = False) -> Task:
-    """Robot model, robot info, motion and bins of a runtime-resolved config (validated against the motion).
-    `validated`: `validate` already passed on this config, so only what needs the motion is checked here
-    (training checks a config once: bmimic.job)."""
+def build_task(cfg, device: str) -> Task:
+    """Robot model, robot info, motion and bins of a runtime-resolved config that `validate` passed (the
+    caller checks a config once: bmimic.job, bmimic.evaluation.saved_run); here only what needs the
+    motion is checked (check_motion_fit, the motion's speeds)."""
     from bmimic.motion.library import clip_names, load_any
     from bmimic.robot import load_mjmodel, resolve_robot
     from bmimic.sampling.config import layout_for, min_motion_bin_s
@@ -69,10 +69,7 @@ def build_task(cfg, device: str, validated: bool = False) -> Task:
     robot = resolve_robot(cfg.robot, mjm)
     motion = load_any(cfg.motion, mjm, bin_size_s=min_motion_bin_s(cfg.sampler), lafan_dir=cfg.data.lafan_dir,
                          control_fps=1.0 / (cfg.sim.timestep_s * cfg.sim.decimation))
-    if validated:
-        check_motion_fit(cfg, motion.duration_s)
-    else:
-        validate(cfg, motion.duration_s)
+    check_motion_fit(cfg, motion.duration_s)
     names = clip_names(cfg.motion, motion)
     check_motion_speeds(motion, cfg.sim.max_abs_qvel, names)
     layout = layout_for(cfg.sampler, motion.num_frames, motion.fps, device=device, clip_starts=motion.clip_starts,

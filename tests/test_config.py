@@ -238,7 +238,7 @@ def test_a_training_reads_its_config_keys_once_and_still_checks_the_motion_fit(t
     resolve_runtime(cfg, "cpu")
     validate(cfg, composed_checked=True)
     merges.clear()
-    task = build_task(cfg, "cpu", validated=True)
+    task = build_task(cfg, "cpu")
     assert merges == [] and task.layout.num_bins == 7
     with pytest.raises(BmimicError, match="bin_size_seconds"):  # 1 s bins on a motion of 0.5 s
         checks.check_motion_fit(cfg, 0.5)

@@ -121,7 +121,7 @@ def pre_training(cfg) -> None:
     device = resolve_device(cfg.device)
     resolve_runtime(cfg, device)
     validate(cfg, composed_checked=True)
-    task = tasks.build_task(cfg, device, validated=True)
+    task = tasks.build_task(cfg, device)
     tasks.check_num_envs_fit(cfg, task.mjm, device, cfg.num_envs, cfg.ppo.num_steps_per_env)
     tasks.check_networks_fit(cfg, task.mjm, device)
     assert cfg.num_envs >= 1 and 0 <= cfg.max_iterations and math.isfinite(cfg.sim.timestep_s)

@@ -177,6 +177,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     A run folder may come from someone else: a config whose terms import modules outside bmimic
     (`func: package.module:function`) is refused unless `trust` (--trust-checkpoint)."""
     from bmimic.config import resolve_runtime
+    from bmimic.config_checks import validate
     from bmimic.envs.config import foreign_term_modules
     from bmimic.runtime import resolve_device
     from bmimic.task import build_task
@@ -190,6 +191,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     anchor_relative_paths(cfg, run_dir)
     device = resolve_device(cfg.device)
     resolve_runtime(cfg, device)
+    validate(cfg)
     return LoadedRun(run_dir, checkpoint, build_task(cfg, device), tuple(overrides))
 
 

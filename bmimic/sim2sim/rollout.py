@@ -205,7 +205,7 @@ class Rollout:
     # ---------------------------------------------------------------------------------- errors
     def errors(self) -> np.ndarray:
         """The ERROR_NAMES at the current state and frame, each by its `_e_<name>` (the evaluation env's
-        definitions, bmimic.training.evaluator.ERROR_TERMS, with rotations as matrices)."""
+        definitions, bmimic.envs.measures.ERROR_TERMS, with rotations as matrices)."""
         s = self.state()
         return np.array([float(fn(s)) for fn in self._error_fns])
 

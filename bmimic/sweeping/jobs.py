@@ -320,7 +320,7 @@ def done_run_differences(cfg: DictConfig, run_dir: Path) -> str | bool:
     """Whether a sweep job may skip the done run in its folder: False (the same job: skip it), True
     (other settings that a resume may change, and the job says resume=true: continue it), or the
     one-line reason it must not touch it (a run of other settings, e.g. a smoke run's budget).
-    Compared on this job's device, as the job would train (bmimic.sweeping.jobs.recorded_differences)."""
+    Compared on this job's device, as the job would train (recorded_differences)."""
     from bmimic.runtime import resolve_device
     from bmimic.training.resume import RESUME_FREE_KEYS, key_allowed, resume_request
 
