@@ -99,6 +99,41 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+RANKS_GROUP = pytest.mark.xdist_group("ranks")
+"""Tests that start several ranks (torch.multiprocessing, torchrun) run one after another on one
+pytest-xdist worker (`--dist loadgroup`): side by side on a 2-core machine, two of them
+(4+ processes, each with gloo's threads) lost a rank to SIGABRT twice in CI."""
+
+
+def _rank_entry(rank: int, fn, world: int, folder: str, backend: str, args: tuple) -> None:
+    # Each rank's output to its own file, so a rank that dies says why in the test's failure.
+    log = os.open(os.path.join(folder, f"rank{rank}.log"), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(log, 1)
+    os.dup2(log, 2)
+    import torch.distributed as dist
+
+    # A file store: no TCP port to pick, so nothing else on the machine can take it first.
+    dist.init_process_group(backend, init_method=f"file://{os.path.join(folder, 'store')}", rank=rank,
+                            world_size=world)
+    try:
+        fn(rank, *args)
+    finally:
+        dist.destroy_process_group()
+
+
+def spawn_ranks(fn, args: tuple, world: int, folder: Path, backend: str = "gloo") -> None:
+    """`fn(rank, *args)` on `world` processes in one process group; each rank's output in
+    folder/rank<r>.log, whose tail a failure shows."""
+    import torch.multiprocessing as mp
+
+    try:
+        mp.spawn(_rank_entry, args=(fn, world, str(folder), backend, args), nprocs=world, join=True)
+    except Exception as e:
+        logs = "\n".join(f"--- rank {r}:\n" + (folder / f"rank{r}.log").read_text(errors="replace")[-3000:]
+                         for r in range(world) if (folder / f"rank{r}.log").exists())
+        raise AssertionError(f"{e}\n{logs}") from e
+
+
 def cli_env() -> dict:
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")

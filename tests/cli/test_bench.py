@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from tests.conftest import REPO, cli_env
+from tests.conftest import RANKS_GROUP, REPO, cli_env
 
 
 @pytest.mark.slow
@@ -72,6 +72,7 @@ def test_multigpu_json_that_is_not_a_row_list_is_refused_untouched(tmp_path, tex
     assert path.read_text() == text
 
 
+@RANKS_GROUP
 @pytest.mark.slow
 def test_multigpu_json_from_two_ranks_and_one(tmp_path):
     """The benchmark under torchrun (2 CPU ranks, gloo), then alone: one row each, scaled to the 1-rank row."""

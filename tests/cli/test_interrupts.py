@@ -19,7 +19,7 @@ import pytest
 from bmimic.run_folder import lock_held, lock_run, write_status
 from bmimic.training.interrupts import StopSignals
 from tests.cli.test_sweeps import hydra_config_restored  # noqa: F401  (a fixture)
-from tests.conftest import REPO, TINY, cli_env, run_train, wait_for
+from tests.conftest import RANKS_GROUP, REPO, TINY, cli_env, run_train, wait_for
 
 
 def _status(run) -> dict:
@@ -163,6 +163,7 @@ def test_sigterm_during_the_set_up_or_an_evaluation_ends_it_at_once(tmp_path, mo
     assert sorted(set(pd.read_parquet(run / "eval.parquet")["iteration"])) == [4]
 
 
+@RANKS_GROUP
 @pytest.mark.slow
 def test_a_torchrun_rank_without_peers_ends_in_one_line_or_at_sigterm(tmp_path):
     """Issue 47: WORLD_SIZE=2 RANK=0 MASTER_ADDR/PORT without the other rank printed nothing for 10

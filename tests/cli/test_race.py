@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import pytest
 
 from bmimic.race import WHOLE_CLIP_METRIC, Race, Threshold, parse_args, race_overrides
-from tests.conftest import TINY, cli_env
+from tests.conftest import RANKS_GROUP, TINY, cli_env
 
 RANKS = 3
 """Ranks of the torchrun races: more than two, so that nothing is written for a pair only (issue 48)."""
@@ -175,6 +175,7 @@ def _torchrun_race(tmp_path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=900, env=cli_env())
 
 
+@RANKS_GROUP
 @pytest.mark.slow
 def test_a_torchrun_race_on_three_cpu_ranks_is_one_race_that_rank_zero_writes(tmp_path):
     run, out = tmp_path / "run", tmp_path / "race.json"
@@ -201,6 +202,7 @@ def test_a_torchrun_race_on_three_cpu_ranks_is_one_race_that_rank_zero_writes(tm
     assert metrics["iterations"] == 2 and metrics["env_steps"] == 2 * 8 * 2 * RANKS
 
 
+@RANKS_GROUP
 @pytest.mark.slow
 @pytest.mark.parametrize("extra, message", [
     (["resume=true"], "resume is not raced"),

@@ -22,46 +22,40 @@ import pandas as pd
 import pytest
 import torch
 import torch.distributed as dist
-import torch.multiprocessing as mp
 
-from tests.conftest import REPO, TINY, cli_env, free_port
+from tests.conftest import RANKS_GROUP, REPO, TINY, cli_env, free_port, spawn_ranks
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, RANKS_GROUP]
 WORLD = 2
 
 
-def _rank_steps_env(rank: int, port: int, out_dir: str, sampler_name: str) -> None:
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
-    dist.init_process_group("gloo", rank=rank, world_size=WORLD)
-    try:
-        from bmimic.config import resolve_runtime
-        from bmimic.runtime import seed_everything
-        from bmimic.task import build_training
-        from tests.conftest import compose
+def _rank_steps_env(rank: int, out_dir: str, sampler_name: str) -> None:
+    from bmimic.config import resolve_runtime
+    from bmimic.runtime import seed_everything
+    from bmimic.task import build_training
+    from tests.conftest import compose
 
-        cfg = compose(["motion=easy_only", "num_envs=4", "device=cpu", f"seed={rank}", f"sampler={sampler_name}"])
-        resolve_runtime(cfg, "cpu")
-        seed_everything(cfg.seed)  # different worlds per rank, as train.py does
-        training = build_training(cfg, "cpu")
-        sampler, env = training.sampler, training.env
-        assert env.feedback.world_size == WORLD
-        for _ in range(40):  # random actions: episodes end, and differently on each rank
-            env.step(torch.randn(env.num_envs, env.num_actions))
-        env.end_rollout()
-        probs = sampler.probabilities().double()
-        gathered = [torch.zeros_like(probs) for _ in range(WORLD)]
-        dist.all_gather(gathered, probs)
-        counted = torch.as_tensor(env.pop_iteration_stats()["bin_episodes"])
-        torch.save({"probs": [g for g in gathered], "episodes": counted, "seg_start": env.segment_start.clone()},
-                   os.path.join(out_dir, f"rank{rank}.pt"))
-    finally:
-        dist.destroy_process_group()
+    cfg = compose(["motion=easy_only", "num_envs=4", "device=cpu", f"seed={rank}", f"sampler={sampler_name}"])
+    resolve_runtime(cfg, "cpu")
+    seed_everything(cfg.seed)  # different worlds per rank, as train.py does
+    training = build_training(cfg, "cpu")
+    sampler, env = training.sampler, training.env
+    assert env.feedback.world_size == WORLD
+    for _ in range(40):  # random actions: episodes end, and differently on each rank
+        env.step(torch.randn(env.num_envs, env.num_actions))
+    env.end_rollout()
+    probs = sampler.probabilities().double()
+    gathered = [torch.zeros_like(probs) for _ in range(WORLD)]
+    dist.all_gather(gathered, probs)
+    counted = torch.as_tensor(env.pop_iteration_stats()["bin_episodes"])
+    torch.save({"probs": [g for g in gathered], "episodes": counted, "seg_start": env.segment_start.clone()},
+               os.path.join(out_dir, f"rank{rank}.pt"))
 
 
 # update_every iteration, step; egm: per-bin tracking errors, all-reduced at the end of the rollout
 @pytest.mark.parametrize("sampler_name", ["adaptive", "adaptive_hybrid", "egm"])
 def test_ranks_share_one_sampling_distribution(tmp_path, sampler_name):
-    mp.spawn(_rank_steps_env, args=(free_port(), str(tmp_path), sampler_name), nprocs=WORLD, join=True)
+    spawn_ranks(_rank_steps_env, (str(tmp_path), sampler_name), WORLD, tmp_path)
     r0 = torch.load(tmp_path / "rank0.pt")
     r1 = torch.load(tmp_path / "rank1.pt")
     p0, p1 = r0["probs"]

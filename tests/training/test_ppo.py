@@ -15,7 +15,7 @@ from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 
 from bmimic.training.ppo import GraphPPO
-from tests.conftest import free_port
+from tests.conftest import RANKS_GROUP, free_port, spawn_ranks
 
 N, T, A = 16, 6, 3  # envs, steps per rollout, actions
 
@@ -204,23 +204,18 @@ def _updates(alg, batches: list[dict], seeds: list[int]) -> dict:
     return {"params": _params(alg), "lr": float(alg.learning_rate), "losses": losses}
 
 
-def _rank_updates(rank: int, port: int, folder: str) -> None:
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
-    dist.init_process_group("gloo", rank=rank, world_size=WORLD)
-    try:
-        batches = torch.load(os.path.join(folder, "batches.pt"), weights_only=True)["ranks"][rank]
-        seeds = [SEED_RANK + 10 * u + rank for u in range(UPDATES)]
-        multi = {"global_rank": rank, "local_rank": rank, "world_size": WORLD}
-        out = {}
-        for name, kw in SCHEDULES.items():
-            for variant, cls in (("graph", GraphPPO), ("rsl_rl", PPO), ("no_grad_all_reduce", GraphPPO)):
-                alg = _make(cls, "cpu", num_envs=E_RANK, multi_gpu_cfg=multi, **kw)
-                if variant == "no_grad_all_reduce":  # the negative control: each rank steps alone
-                    alg.reduce_parameters = lambda: None
-                out[f"{name}/{variant}"] = _updates(alg, batches, seeds)
-        torch.save(out, os.path.join(folder, f"rank{rank}.pt"))
-    finally:
-        dist.destroy_process_group()
+def _rank_updates(rank: int, folder: str) -> None:
+    batches = torch.load(os.path.join(folder, "batches.pt"), weights_only=True)["ranks"][rank]
+    seeds = [SEED_RANK + 10 * u + rank for u in range(UPDATES)]
+    multi = {"global_rank": rank, "local_rank": rank, "world_size": WORLD}
+    out = {}
+    for name, kw in SCHEDULES.items():
+        for variant, cls in (("graph", GraphPPO), ("rsl_rl", PPO), ("no_grad_all_reduce", GraphPPO)):
+            alg = _make(cls, "cpu", num_envs=E_RANK, multi_gpu_cfg=multi, **kw)
+            if variant == "no_grad_all_reduce":  # the negative control: each rank steps alone
+                alg.reduce_parameters = lambda: None
+            out[f"{name}/{variant}"] = _updates(alg, batches, seeds)
+    torch.save(out, os.path.join(folder, f"rank{rank}.pt"))
 
 
 @pytest.fixture(scope="module")
@@ -229,7 +224,7 @@ def ranks_and_one(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ranks")
     batches = _split_batches()
     torch.save(batches, folder / "batches.pt")
-    mp.spawn(_rank_updates, args=(free_port(), str(folder)), nprocs=WORLD, join=True)
+    spawn_ranks(_rank_updates, (str(folder),), WORLD, folder)
     ranks = [torch.load(folder / f"rank{r}.pt", weights_only=True) for r in range(WORLD)]
     one = {name: _updates(_make(GraphPPO, "cpu", num_envs=WORLD * E_RANK, **kw), batches["one"],
                           [SEED_ONE + u for u in range(UPDATES)]) for name, kw in SCHEDULES.items()}
@@ -243,6 +238,7 @@ def _assert_params_close(got: dict, want: dict) -> None:
 
 
 @pytest.mark.slow  # two spawned CPU ranks
+@RANKS_GROUP
 @pytest.mark.parametrize("schedule", list(SCHEDULES))
 def test_two_ranks_update_as_one_rank_with_the_union_of_their_data(ranks_and_one, schedule):
     ranks, one = ranks_and_one
