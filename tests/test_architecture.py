@@ -350,7 +350,7 @@ def upward_imports(graph: dict[str, set[str]]) -> list[tuple[str, str, str, str]
 
 
 def test_the_floor_table_is_read_as_drawn():
-    heights = [floor_of(m) for m in ("bmimic.robot.g1", "bmimic.motion.motion", "bmimic.sim.simulator",
+    heights = [floor_of(m) for m in ("bmimic.robot.models.g1", "bmimic.motion.motion", "bmimic.sim.simulator",
                                      "bmimic.sampling.bins", "bmimic.envs.tracking_env", "bmimic.training.runner",
                                      "bmimic.task", "bmimic.evaluation.saved_run", "bmimic.train")]
     assert heights == sorted(heights) and len(set(heights)) == len(heights)
@@ -358,8 +358,8 @@ def test_the_floor_table_is_read_as_drawn():
     assert floor_of("bmimic") == floor_of("bmimic.run_folder") == 0
     # The command lines are on top; the CSV converter is also the motion floor's (load_motion uses it).
     assert [e for e in ENTRY_POINTS if floor_of(e) != len(FLOORS) - 1] == ["bmimic.motion.convert"]
-    assert upward_imports({"bmimic.robot.g1": {"bmimic.task"}, "bmimic.task": {"bmimic.robot.g1"}}) == [
-        ("bmimic.robot.g1", "robot", "bmimic.task", "composition")]
+    assert upward_imports({"bmimic.robot.models.g1": {"bmimic.task"}, "bmimic.task": {"bmimic.robot.models.g1"}}) == [
+        ("bmimic.robot.models.g1", "robot", "bmimic.task", "composition")]
 
 
 def test_every_module_is_drawn_on_a_floor_and_every_drawn_name_exists():

@@ -29,38 +29,10 @@ from bmimic.motion.math import output_times, quat_slerp
 from bmimic.motion.model import find_joint_limit_violation
 from bmimic.motion.motion import Motion
 from bmimic.motion.segments import MotionDataError, Segment
+from bmimic.robot.models.g1 import G1_JOINT_NAMES
 
-CSV_JOINT_NAMES = (
-    "left_hip_pitch_joint",
-    "left_hip_roll_joint",
-    "left_hip_yaw_joint",
-    "left_knee_joint",
-    "left_ankle_pitch_joint",
-    "left_ankle_roll_joint",
-    "right_hip_pitch_joint",
-    "right_hip_roll_joint",
-    "right_hip_yaw_joint",
-    "right_knee_joint",
-    "right_ankle_pitch_joint",
-    "right_ankle_roll_joint",
-    "waist_yaw_joint",
-    "waist_roll_joint",
-    "waist_pitch_joint",
-    "left_shoulder_pitch_joint",
-    "left_shoulder_roll_joint",
-    "left_shoulder_yaw_joint",
-    "left_elbow_joint",
-    "left_wrist_roll_joint",
-    "left_wrist_pitch_joint",
-    "left_wrist_yaw_joint",
-    "right_shoulder_pitch_joint",
-    "right_shoulder_roll_joint",
-    "right_shoulder_yaw_joint",
-    "right_elbow_joint",
-    "right_wrist_roll_joint",
-    "right_wrist_pitch_joint",
-    "right_wrist_yaw_joint",
-)
+CSV_JOINT_NAMES = G1_JOINT_NAMES
+"""Column order of the 29 joint angles: the LAFAN1 G1 retargets list them in the G1's MuJoCo order."""
 NUM_COLUMNS = 7 + len(CSV_JOINT_NAMES)
 QUAT_NORM_TOLERANCE = 1e-3
 JOINT_LIMIT_TOLERANCE_RAD = 0.1

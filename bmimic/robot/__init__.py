@@ -1,5 +1,5 @@
-"""The Unitree G1 robot model: MjSpec builder (g1.py; the generic MjSpec steps in spec.py),
-`load_mjmodel`, `RobotConfig` and `resolve_robot`.
+"""Robot models: the built-in robots by name (registry.py; their bodies in models/, their numbers in
+conf/robot/), the generic MjSpec steps (spec.py), `RobotConfig` and `resolve_robot` (config.py).
 
 The names below are imported on first use (PEP 562), as in bmimic.motion: the config schema
 (`bmimic.robot.config`) imports without mujoco, so composing or printing a config (`--help`, `--cfg
@@ -18,12 +18,15 @@ _SOURCES = {
     "RobotInfo": "bmimic.robot.config",
     "RobotModelError": "bmimic.robot.config",
     "resolve_robot": "bmimic.robot.config",
-    "G1_BODY_NAMES": "bmimic.robot.g1",
-    "G1_JOINT_NAMES": "bmimic.robot.g1",
-    "G1_SIM_OPTIONS": "bmimic.robot.g1",
-    "build_g1_spec": "bmimic.robot.g1",
-    "configure_spec": "bmimic.robot.g1",
-    "load_mjmodel": "bmimic.robot.g1",
+    "G1_BODY_NAMES": "bmimic.robot.models.g1",
+    "G1_JOINT_NAMES": "bmimic.robot.models.g1",
+    "G1_SIM_OPTIONS": "bmimic.robot.models.g1",
+    "build_spec": "bmimic.robot.registry",
+    "load_mjmodel": "bmimic.robot.registry",
+    "load_user_spec": "bmimic.robot.registry",
+    "robot_config": "bmimic.robot.registry",
+    "robot_names": "bmimic.robot.registry",
+    "RobotModel": "bmimic.robot.spec",
     "SimOptions": "bmimic.robot.spec",
 }
 
@@ -34,12 +37,15 @@ __all__ = [
     "G1_SIM_OPTIONS",
     "RobotConfig",
     "RobotInfo",
+    "RobotModel",
     "RobotModelError",
     "SimOptions",
-    "build_g1_spec",
-    "configure_spec",
+    "build_spec",
     "load_mjmodel",
+    "load_user_spec",
     "resolve_robot",
+    "robot_config",
+    "robot_names",
 ]
 
 if TYPE_CHECKING:
@@ -50,14 +56,8 @@ if TYPE_CHECKING:
         RobotModelError,
         resolve_robot,
     )
-    from bmimic.robot.g1 import (
-        G1_BODY_NAMES,
-        G1_JOINT_NAMES,
-        G1_SIM_OPTIONS,
-        build_g1_spec,
-        configure_spec,
-        load_mjmodel,
-    )
-    from bmimic.robot.spec import SimOptions
+    from bmimic.robot.models.g1 import G1_BODY_NAMES, G1_JOINT_NAMES, G1_SIM_OPTIONS
+    from bmimic.robot.registry import build_spec, load_mjmodel, load_user_spec, robot_config, robot_names
+    from bmimic.robot.spec import RobotModel, SimOptions
 
 __getattr__ = names_on_first_use(__name__, _SOURCES, globals())

@@ -1,7 +1,7 @@
 """Robot configuration (conf/robot/*.yaml) and its resolution into per-joint arrays.
 
-`RobotConfig` holds the numbers BeyondMimic uses for the G1 (motor classes, PD design, action scale,
-default pose, tracked bodies). `resolve_robot` turns it, together with a compiled `MjModel`, into a
+`RobotConfig` is the schema of a robot's numbers (motor classes, PD design, action scale, default pose,
+tracked bodies), which conf/robot/<name>.yaml holds (BeyondMimic's G1: conf/robot/g1.yaml). `resolve_robot` turns it, together with a compiled `MjModel`, into a
 `RobotInfo` of numpy arrays in model joint order, which the simulator and the environment consume.
 """
 
@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Dict, List, Optional
 
 import numpy as np
+from omegaconf import MISSING
 
 from bmimic import BmimicError
 
@@ -38,81 +39,36 @@ class ActuatorClassConfig:
     """Peak torque in Nm: actuator force range is +-this value; also sets the action scale."""
 
 
-def _g1_actuator_classes() -> List[ActuatorClassConfig]:
-    # Unitree G1 motor classes as used by BeyondMimic (notes/beyondmimic.md section 3.7).
-    return [
-        ActuatorClassConfig(
-            "5020",
-            [".*_shoulder_pitch_joint", ".*_shoulder_roll_joint", ".*_shoulder_yaw_joint", ".*_elbow_joint",
-             ".*_wrist_roll_joint"],
-            0.003609725, 25.0),
-        ActuatorClassConfig(
-            "7520_14", [".*_hip_pitch_joint", ".*_hip_yaw_joint", "waist_yaw_joint"], 0.010177520, 88.0),
-        ActuatorClassConfig("7520_22", [".*_hip_roll_joint", ".*_knee_joint"], 0.025101925, 139.0),
-        ActuatorClassConfig("4010", [".*_wrist_pitch_joint", ".*_wrist_yaw_joint"], 0.00425, 5.0),
-        # Two 5020 motors drive each ankle and the waist roll/pitch through a parallel linkage.
-        ActuatorClassConfig(
-            "2x5020", [".*_ankle_pitch_joint", ".*_ankle_roll_joint", "waist_roll_joint", "waist_pitch_joint"],
-            0.00721945, 50.0),
-    ]
-
-
-def _g1_default_joint_pos() -> Dict[str, float]:
-    return {
-        ".*_hip_pitch_joint": -0.312,
-        ".*_knee_joint": 0.669,
-        ".*_ankle_pitch_joint": -0.363,
-        ".*_elbow_joint": 0.6,
-        ".*_shoulder_pitch_joint": 0.2,
-        "left_shoulder_roll_joint": 0.2,
-        "right_shoulder_roll_joint": -0.2,
-    }
-
-
-def _g1_tracked_bodies() -> List[str]:
-    return [
-        "pelvis",
-        "left_hip_roll_link", "left_knee_link", "left_ankle_roll_link",
-        "right_hip_roll_link", "right_knee_link", "right_ankle_roll_link",
-        "torso_link",
-        "left_shoulder_roll_link", "left_elbow_link", "left_wrist_yaw_link",
-        "right_shoulder_roll_link", "right_elbow_link", "right_wrist_yaw_link",
-    ]
-
-
-def _g1_end_effector_bodies() -> List[str]:
-    return ["left_ankle_roll_link", "right_ankle_roll_link", "left_wrist_yaw_link", "right_wrist_yaw_link"]
-
-
 @dataclass
 class RobotConfig:
-    """The robot model and its actuation, as BeyondMimic configures the Unitree G1."""
+    """A robot model and its actuation. Every value comes from conf/robot/<name>.yaml (a robot's numbers
+    live there only; `bmimic.robot.registry.robot_config` reads one outside Hydra)."""
 
-    name: str = "g1"
-    """Built-in model to build when `mjcf_path` is not set (only "g1" exists)."""
+    name: str = MISSING
+    """Built-in robot: its body is bmimic/robot/models/<name>.py (`bmimic.robot.registry`)."""
     mjcf_path: Optional[str] = None
     """Optional user MJCF (e.g. the Menagerie G1 with meshes); must have the 29 G1 hinge joints by name."""
-    actuator_classes: List[ActuatorClassConfig] = field(default_factory=_g1_actuator_classes)
+    actuator_classes: List[ActuatorClassConfig] = MISSING
     """Motor classes; each joint must match exactly one class."""
-    natural_frequency_hz: float = 10.0
+    natural_frequency_hz: float = MISSING
     """PD natural frequency f: Kp = armature * (2 pi f)^2."""
-    damping_ratio: float = 2.0
+    damping_ratio: float = MISSING
     """PD damping ratio zeta: Kd = 2 zeta armature (2 pi f)."""
-    action_scale_factor: float = 0.25
+    action_scale_factor: float = MISSING
     """Action scale per joint = factor * effort_limit / Kp (target = default + scale * action)."""
-    soft_joint_limit_factor: float = 0.9
+    soft_joint_limit_factor: float = MISSING
     """Soft joint limits are the hard range shrunk by this factor about its midpoint."""
-    default_root_height_m: float = 0.76
+    default_root_height_m: float = MISSING
     """Pelvis height of the default (knees-bent) pose."""
-    default_joint_pos: Dict[str, float] = field(default_factory=_g1_default_joint_pos)
+    default_joint_pos: Dict[str, float] = MISSING
     """Default pose: joint-name regex -> angle in rad; unmatched joints are 0, a joint may match one key only."""
-    anchor_body: str = "torso_link"
+    anchor_body: str = MISSING
     """Body whose pose anchors the reference motion to the robot."""
-    tracked_bodies: List[str] = field(default_factory=_g1_tracked_bodies)
+    tracked_bodies: List[str] = MISSING
     """Bodies whose pose and velocity are tracked (rewards, critic observations), in this order."""
-    end_effector_bodies: List[str] = field(default_factory=_g1_end_effector_bodies)
+    end_effector_bodies: List[str] = MISSING
     """Bodies checked by the end-effector height termination."""
-    foot_friction: float = 0.6
+    foot_friction: float = MISSING
     """Sliding friction of the built-in G1's foot contact geoms (they have priority over the floor)."""
 
 

@@ -5,7 +5,7 @@ joints, the solver options, the default keyframe; reading, checking and compilin
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import mujoco
 import numpy as np
@@ -32,6 +32,20 @@ class SimOptions(NamedTuple):
     ls_iterations: int = 20
     cone: int = mujoco.mjtCone.mjCONE_PYRAMIDAL
 
+
+
+class RobotModel(NamedTuple):
+    """A built-in robot's body, as its module in bmimic.robot.models declares it (`ROBOT`)."""
+
+    joint_names: tuple[str, ...]
+    """Its hinge joints in MuJoCo's depth-first order; actuator i drives joint i. A user's MJCF of this
+    robot must have exactly these."""
+    sim_options: SimOptions
+    """MuJoCo solver settings."""
+    build: Callable[[RobotConfig], mujoco.MjSpec]
+    """The robot on a floor as an MjSpec (not compiled), configured by its RobotConfig."""
+    what: str
+    """How errors name the robot's joint set."""
 
 
 def _look_at_xyaxes(eye: np.ndarray, target: np.ndarray) -> list[float]:

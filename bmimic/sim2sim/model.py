@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+from typing import cast
 from pathlib import Path
 
 from bmimic.run_folder import HYDRA_DIR
@@ -36,20 +37,19 @@ def find_menagerie() -> Path:
 
 def _project_spec(run_dir: Path | None):
     """The G1 of the run's robot config (the built-in default without a run), and a description."""
-    from bmimic.robot import RobotConfig, build_g1_spec
-    from bmimic.robot.g1 import load_user_spec
+    from bmimic.robot import RobotConfig, build_spec, load_user_spec, robot_config
 
     if run_dir is None:
-        return build_g1_spec(RobotConfig()), "built-in G1 (default robot config; no run folder)"
+        return build_spec(robot_config()), "built-in G1 (default robot config; no run folder)"
     from omegaconf import OmegaConf
 
     try:
         robot = OmegaConf.merge(OmegaConf.structured(RobotConfig), OmegaConf.load(run_dir / HYDRA_DIR / "config.yaml").robot)
-        cfg: RobotConfig = OmegaConf.to_object(robot)
+        cfg = cast(RobotConfig, OmegaConf.to_object(robot))
     except Exception as e:  # omegaconf raises many types; all mean the same to the user
         raise Sim2SimError(f"{run_dir / HYDRA_DIR / 'config.yaml'}: robot config unreadable: {first_line(e)}") from None
     if not cfg.mjcf_path:
-        return build_g1_spec(cfg), "built-in G1 (the run's robot config)"
+        return build_spec(cfg), f"built-in {cfg.name.upper()} (the run's robot config)"
     mjcf = Path(cfg.mjcf_path).expanduser()
     if not mjcf.is_absolute() and not mjcf.exists():
         try:  # relative to where training was started (as bmimic.eval resolves it)

@@ -20,9 +20,11 @@ from bmimic.robot import (
     ActuatorClassConfig,
     RobotConfig,
     RobotModelError,
-    build_g1_spec,
+    build_spec,
     load_mjmodel,
     resolve_robot,
+    robot_config,
+    robot_names,
 )
 from tests.conftest import REPO
 
@@ -47,7 +49,7 @@ def model() -> mujoco.MjModel:
 
 @pytest.fixture(scope="module")
 def info(model):
-    return resolve_robot(RobotConfig(), model)
+    return resolve_robot(robot_config(), model)
 
 
 def _reference_model() -> mujoco.MjModel:
@@ -133,7 +135,7 @@ def test_geoms_are_primitives_with_mjlab_contact_settings(model):
     visual = robot & ~colliding
     assert (model.geom_group[visual] == 1).sum() > 20  # the renderer has something to draw
     assert model.body_mass.sum() == pytest.approx(model.body_subtreemass[1])  # geoms add no mass
-    foot_friction = load_mjmodel(cfg=RobotConfig(foot_friction=0.9))
+    foot_friction = load_mjmodel(cfg=dataclasses.replace(robot_config(), foot_friction=0.9))
     np.testing.assert_allclose(foot_friction.geom_friction[feet, 0], 0.9)
 
 
@@ -211,7 +213,7 @@ def test_default_pose_under_beyondmimic_pd_is_finite_and_lands_on_its_feet(model
 
 def test_default_pose_stands_with_stiffer_motors():
     # Ten times the reflected inertia gives ten times the Kp, enough to hold the bent-knee pose statically.
-    cfg = RobotConfig()
+    cfg = robot_config()
     cfg.actuator_classes = [dataclasses.replace(c, armature=10 * c.armature) for c in cfg.actuator_classes]
     pelvis, lowest = _simulate(load_mjmodel(cfg=cfg), 2.0)
     assert pelvis.min() > 0.6 and pelvis[-1] > 0.7
@@ -219,18 +221,18 @@ def test_default_pose_stands_with_stiffer_motors():
 
 
 def test_every_joint_matches_exactly_one_actuator_class():
-    cfg = RobotConfig()
+    cfg = robot_config()
     for joint in G1_JOINT_NAMES:
         matches = [c.name for c in cfg.actuator_classes if any(re.fullmatch(p, joint) for p in c.joints)]
         assert len(matches) == 1, (joint, matches)
 
 
 def test_ambiguous_or_missing_actuator_class_names_the_joint(model):
-    cfg = RobotConfig()
+    cfg = robot_config()
     cfg.actuator_classes.append(ActuatorClassConfig("dup", ["left_knee_joint"], 0.01, 10.0))
     with pytest.raises(RobotModelError, match="left_knee_joint"):
         resolve_robot(cfg, model)
-    cfg = RobotConfig()
+    cfg = robot_config()
     cfg.actuator_classes = [c for c in cfg.actuator_classes if c.name != "4010"]
     with pytest.raises(RobotModelError, match="wrist_pitch_joint"):
         load_mjmodel(cfg=cfg)
@@ -238,25 +240,25 @@ def test_ambiguous_or_missing_actuator_class_names_the_joint(model):
 
 def test_resolve_rejects_a_model_built_from_another_config(model):
     with pytest.raises(RobotModelError, match="kp="):
-        resolve_robot(RobotConfig(natural_frequency_hz=5.0), model)
+        resolve_robot(dataclasses.replace(robot_config(), natural_frequency_hz=5.0), model)
 
 
 def test_resolve_bodies(info, model):
     assert info.anchor_body_id == model.body("torso_link").id
-    assert [model.body(b).name for b in info.tracked_body_ids] == RobotConfig().tracked_bodies
+    assert [model.body(b).name for b in info.tracked_body_ids] == robot_config().tracked_bodies
     assert len(info.tracked_body_ids) == 14
     assert [model.body(b).name for b in info.end_effector_body_ids] == [
         "left_ankle_roll_link", "right_ankle_roll_link", "left_wrist_yaw_link", "right_wrist_yaw_link"]
     np.testing.assert_array_equal(info.qpos_adr, np.arange(7, 36))
     np.testing.assert_array_equal(info.dof_adr, np.arange(6, 35))
     with pytest.raises(RobotModelError, match="tracked_bodies.*'hand'"):
-        resolve_robot(RobotConfig(tracked_bodies=["pelvis", "hand"]), model)
+        resolve_robot(dataclasses.replace(robot_config(), tracked_bodies=["pelvis", "hand"]), model)
 
 
 @settings(max_examples=50, deadline=None)
 @given(factor=st.floats(0.05, 1.0))
 def test_soft_limits_shrink_about_the_midpoint(model, factor):
-    info = resolve_robot(RobotConfig(soft_joint_limit_factor=factor), model)
+    info = resolve_robot(dataclasses.replace(robot_config(), soft_joint_limit_factor=factor), model)
     hard, soft = info.joint_limits, info.soft_joint_limits
     np.testing.assert_allclose(soft.mean(axis=1), hard.mean(axis=1), atol=1e-12)
     np.testing.assert_allclose(soft[:, 1] - soft[:, 0], factor * (hard[:, 1] - hard[:, 0]), rtol=1e-9)
@@ -265,16 +267,16 @@ def test_soft_limits_shrink_about_the_midpoint(model, factor):
 
 def test_user_mjcf_roundtrip_keeps_the_interface(tmp_path, model):
     path = tmp_path / "g1_user.xml"
-    path.write_text(build_g1_spec().to_xml())
+    path.write_text(build_spec(robot_config()).to_xml())
     user = load_mjmodel(mjcf_path=str(path))
     assert user.nu == 29 and user.nkey == 1 and user.nsensor == 0
     np.testing.assert_allclose(user.actuator_gainprm[:, 0], model.actuator_gainprm[:, 0])
     np.testing.assert_allclose(user.key_qpos, model.key_qpos)
-    resolve_robot(RobotConfig(), user)
+    resolve_robot(robot_config(), user)
 
 
 def test_user_mjcf_with_a_renamed_joint_fails_listing_missing_and_extra(tmp_path):
-    spec = build_g1_spec()
+    spec = build_spec(robot_config())
     for element in [*spec.actuators, *spec.keys]:  # a user file would not drive the old name
         spec.delete(element)
     spec.nkey = 0
@@ -304,17 +306,30 @@ def test_reference_model_without_meshes_fails_clearly_and_stripped_loads(tmp_pat
     path = tmp_path / "menagerie_stripped.xml"
     path.write_text(spec.to_xml())
     user = load_mjmodel(mjcf_path=str(path))
-    info = resolve_robot(RobotConfig(), user)
+    info = resolve_robot(robot_config(), user)
     assert info.joint_names == G1_JOINT_NAMES and user.nsensor == 0
     assert user.body_subtreemass[1] == pytest.approx(reference.body_subtreemass[1])
     assert "floor" in [user.geom(g).name for g in range(user.ngeom)]
     assert not user.dof_frictionloss.any()
 
 
-def test_yaml_sets_every_field_and_equals_the_schema_defaults():
+def test_the_g1s_numbers_live_in_its_yaml_only():
     raw = OmegaConf.load(REPO / "conf" / "robot" / "g1.yaml")
     assert list(raw.defaults) == ["robot_schema", "_self_"]
     values = OmegaConf.masked_copy(raw, [k for k in raw if k != "defaults"])
     assert set(values) == {f.name for f in dataclasses.fields(RobotConfig)}
-    merged = OmegaConf.merge(OmegaConf.structured(RobotConfig), values)
-    assert dataclasses.asdict(OmegaConf.to_object(merged)) == dataclasses.asdict(RobotConfig())
+    schema = OmegaConf.structured(RobotConfig)  # no robot's numbers: every value but mjcf_path is missing
+    assert [k for k in schema if not OmegaConf.is_missing(schema, k)] == ["mjcf_path"]
+    from tests.conftest import compose
+
+    assert robot_config("g1") == OmegaConf.to_object(compose(["robot=g1"]).robot)
+    assert robot_config("g1").foot_friction == 0.6 and robot_config().name == "g1"
+
+
+def test_built_in_robots_are_found_by_their_two_files():
+    assert robot_names() == ["g1"]  # bmimic/robot/models/g1.py and conf/robot/g1.yaml
+    for bad in ("h1", "config", "../g1", ""):
+        with pytest.raises(RobotModelError, match=r"robot.name: unknown robot .*; built-in robots: \['g1'\]"):
+            robot_config(bad)
+    with pytest.raises(RobotModelError, match="'h1' asked for, the robot config is 'g1'"):
+        load_mjmodel("h1", cfg=robot_config())

@@ -277,10 +277,10 @@ def test_bad_policy_files_are_refused_in_one_line(task, tmp_path):
 
 
 def test_a_model_with_other_joint_names_is_refused(task, tmp_path):
-    from bmimic.robot import build_g1_spec
+    from bmimic.robot import build_spec, robot_config
 
     _, _, paths = task
-    spec = build_g1_spec()
+    spec = build_spec(robot_config())
     spec.joint("left_knee_joint").name = "left_knee"
     for a in list(spec.actuators):
         spec.delete(a)
@@ -297,10 +297,10 @@ def test_a_model_is_matched_by_joint_name_not_order(task, tmp_path):
     """A model listing the same joints in another qpos order runs the same control step."""
     import xml.etree.ElementTree as ET
 
-    from bmimic.robot import build_g1_spec
+    from bmimic.robot import build_spec, robot_config
 
     _, _, paths = task
-    root = ET.fromstring(build_g1_spec().to_xml())
+    root = ET.fromstring(build_spec(robot_config()).to_xml())
     pelvis = root.find(".//body[@name='pelvis']")
     leg = pelvis.find("body[@name='right_hip_pitch_link']")
     pelvis.remove(leg)

@@ -1,5 +1,5 @@
-"""The 29-DoF Unitree G1 (rev 1.0) as MjSpec code, and `load_mjmodel` (the generic MjSpec steps are
-in `bmimic.robot.spec`).
+"""The 29-DoF Unitree G1 (rev 1.0) as MjSpec code (the generic MjSpec steps are in `bmimic.robot.spec`;
+its numbers, from motor classes to tracked bodies, in conf/robot/g1.yaml).
 
 The kinematic and inertial figures below (body offsets, joint axes and ranges, masses, inertias) are
 those of the public Unitree G1 descriptions (MuJoCo Menagerie `unitree_g1`, mjlab); the collision
@@ -13,22 +13,19 @@ BeyondMimic default pose. There are no sensors: they cost simulation time and no
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
-from bmimic.robot.config import RobotConfig, RobotModelError
+from bmimic.robot.config import RobotConfig
 from bmimic.robot.spec import (
     FLOOR_GROUP,
+    RobotModel,
     SimOptions,
     add_tracking_camera,
     add_world,
-    compile_spec,
     configure_robot_spec,
-    missing_mesh_files,
-    parse_mjcf,
 )
 
 
@@ -254,9 +251,8 @@ def _add_visual_geoms(bodies: dict) -> None:
                                                    rgba=_JOINT_RGBA, **visual)
 
 
-def build_g1_spec(cfg: RobotConfig | None = None) -> mujoco.MjSpec:
-    """The G1 on a floor as an MjSpec (not compiled), configured by `cfg` (defaults if None)."""
-    cfg = cfg or RobotConfig()
+def build_g1_spec(cfg: RobotConfig) -> mujoco.MjSpec:
+    """The G1 on a floor as an MjSpec (not compiled), configured by `cfg` (conf/robot/g1.yaml)."""
     spec = mujoco.MjSpec()
     spec.modelname = "g1_29dof_rev_1_0"
     spec.compiler.degree = False
@@ -281,48 +277,9 @@ def build_g1_spec(cfg: RobotConfig | None = None) -> mujoco.MjSpec:
     add_tracking_camera(spec, bodies["pelvis"])
     spec.visual.global_.offwidth = 1280
     spec.visual.global_.offheight = 720
-    configure_spec(spec, cfg)
+    configure_robot_spec(spec, cfg, G1_JOINT_NAMES, ROBOT.what, G1_SIM_OPTIONS)
     return spec
 
 
-def configure_spec(spec: mujoco.MjSpec, cfg: RobotConfig, options: SimOptions = G1_SIM_OPTIONS) -> None:
-    """Give a G1 spec the project's interface (`bmimic.robot.spec.configure_robot_spec`): PD actuators,
-    armature, options, floor, camera, keyframe. Its hinges must be the 29 of G1_JOINT_NAMES."""
-    configure_robot_spec(spec, cfg, G1_JOINT_NAMES, "the G1 (the 29 hinge joints of bmimic.robot.G1_JOINT_NAMES)",
-                         options)
-
-
-def load_user_spec(mjcf_path: str | Path, cfg: RobotConfig) -> mujoco.MjSpec:
-    """A user's G1 MJCF (e.g. with meshes), checked and configured like the built-in model."""
-    path = Path(mjcf_path).expanduser().resolve()
-    spec = parse_mjcf(path, "robot.mjcf_path")
-    missing = missing_mesh_files(spec, path)
-    if missing:
-        raise RobotModelError(
-            f"robot.mjcf_path: {path} references {len(missing)} missing mesh files (first: {missing[0]}); "
-            "put the model's assets next to it or leave robot.mjcf_path unset to use the built-in G1")
-    try:
-        configure_spec(spec, cfg)
-    except RobotModelError as exc:
-        raise RobotModelError(f"robot.mjcf_path: {path}: {exc}") from None
-    return spec
-
-
-_BUILDERS = {"g1": build_g1_spec}
-
-
-def load_mjmodel(name: str | None = None, mjcf_path: str | Path | None = None,
-                 cfg: RobotConfig | None = None) -> mujoco.MjModel:
-    """The compiled robot on its floor: the built-in `name` model, or the user's `mjcf_path` if given.
-
-    Arguments left as None come from `cfg` (the RobotConfig defaults if `cfg` is None).
-    """
-    cfg = cfg or RobotConfig()
-    name = name or cfg.name
-    mjcf_path = mjcf_path if mjcf_path is not None else cfg.mjcf_path
-    if mjcf_path:
-        return compile_spec(load_user_spec(mjcf_path, cfg), f"robot.mjcf_path: {mjcf_path}")
-    if name not in _BUILDERS:
-        raise RobotModelError(f"robot.name: unknown robot {name!r}; built-in robots: {sorted(_BUILDERS)}")
-    return compile_spec(_BUILDERS[name](cfg), f"built-in robot {name!r}")
-
+ROBOT = RobotModel(joint_names=G1_JOINT_NAMES, sim_options=G1_SIM_OPTIONS, build=build_g1_spec,
+                   what="the G1 (the 29 hinge joints of bmimic.robot.G1_JOINT_NAMES)")
