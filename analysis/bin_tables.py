@@ -8,6 +8,7 @@ Same conventions as ``analysis.tables`` (its ``ReportOptions``; fixed RNG seeds)
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -74,7 +75,7 @@ def speedups(times: pd.DataFrame, mastery_seed_df: pd.DataFrame, baseline: str, 
     iterations, env steps and wall time) and the per-bin mastery speedups (``arm, baseline, bin`` then
     the same columns), each arm against ``baseline`` (metrics.speedup)."""
     boot = use_bootstrap(runs)
-    kw = dict(bootstrap=boot, n_resamples=opts.n_resamples, confidence=opts.confidence, seed=opts.bootstrap_seed,
+    kw: dict[str, Any] = dict(bootstrap=boot, n_resamples=opts.n_resamples, confidence=opts.confidence, seed=opts.bootstrap_seed,
               n_permutations=opts.n_permutations)
     rows, bin_rows = [], []
     base_t = times[times["arm"] == baseline].sort_values("seed")

@@ -19,7 +19,7 @@ def threshold_ranges(values, grid) -> str:
     for i in pos:
         if start is None:
             start = prev = i
-        elif i == prev + 1:
+        elif prev is not None and i == prev + 1:
             prev = i
         else:
             runs.append((start, prev))

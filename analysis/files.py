@@ -15,7 +15,7 @@ import pandas as pd
 from bmimic.run_folder import atomic_write as _atomic_write
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
+def atomic_write(path: str | Path, write: Callable[[Path], object]) -> Path:
     """Call ``write(tmp_path)`` on a fresh temp file in ``path``'s folder, then move it onto ``path``."""
     return _atomic_write(path, lambda tmp: write(Path(tmp)))
 

@@ -79,7 +79,8 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
         metrics = read_metrics(run_dir)  # {} when absent or broken: the run's status says why
         config = read_resolved_config(run_dir) or read_hydra_config(run_dir) or {}
         provenance = read_provenance(run_dir)
-        git = provenance.get("git") if isinstance(provenance.get("git"), dict) else {}
+        git_entry = provenance.get("git")
+        git = git_entry if isinstance(git_entry, dict) else {}
         dead = run.status == "running" and not lock_held(run_dir)  # killed: no process holds its lock
         rows.append({
             "job": run_dir.relative_to(sweep_dir).as_posix() if run_dir != sweep_dir else ".",

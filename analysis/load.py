@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -58,7 +59,7 @@ RUN_COLUMNS = [
 
 def _read_run(run_dir: Path, root: Path) -> dict:
     """One row of the runs frame (without the arm of single runs, filled in later)."""
-    row = {"run_dir": str(run_dir), "error": None, ITERATION: None, "problem": None}
+    row: dict[str, Any] = {"run_dir": str(run_dir), "error": None, ITERATION: None, "problem": None}
     problems = []
     try:
         cfg = read_config(run_dir)
@@ -81,7 +82,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
 
     seed = cfg.get("seed", seed_from_name(run_dir))
     whole = (isinstance(seed, int) and not isinstance(seed, bool)) or (isinstance(seed, float) and seed.is_integer())
-    row["seed"] = int(seed) if whole else None
+    row["seed"] = int(seed) if whole and seed is not None else None
     if row["seed"] is None:
         problems.append(f"its seed {seed!r} is not a whole number (.hydra/config.yaml)")
     row["sampler"] = config_value(cfg, "sampler.name")
@@ -140,7 +141,7 @@ def _missing_jobs(rows: list[dict]) -> list[dict]:
     for sweep_dir, group in sweeps.items():
         present = {r["run_dir"] for r in group}
         arm_dirs = {r["arm"]: Path(r["run_dir"]).parent for r in group}
-        seeds = sorted({seed_from_name(Path(r["run_dir"])) for r in group} - {None})
+        seeds = sorted(s for s in {seed_from_name(Path(r["run_dir"])) for r in group} if s is not None)
         expected = {
             str(arm_dir / f"seed={seed}"): (arm, seed) for arm, arm_dir in arm_dirs.items() for seed in seeds
         }
@@ -344,7 +345,7 @@ def _with_checkpoint_whole_clips(run_dir: Path, name: str, table: pd.DataFrame |
         if rows.empty:  # a whole_clip_failures.csv of an evaluation where every rollout completed
             continue
         rows.insert(0, ITERATION, iteration)
-        if isinstance(summary.get(ENV_STEPS), int):
+        if isinstance(summary, dict) and isinstance(summary.get(ENV_STEPS), int):
             rows.insert(1, ENV_STEPS, summary[ENV_STEPS])
         _check_read(path, name, rows, run_dir)
         extra.append(rows)

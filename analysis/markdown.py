@@ -39,7 +39,7 @@ def fmt(x, digits: int = 3) -> str:
     if isinstance(x, float | np.floating):
         if math.isinf(x):
             return "∞" if x > 0 else "-∞"
-        if float(x).is_integer() and abs(x) < 1e7:
+        if float(x).is_integer() and abs(float(x)) < 1e7:
             return str(int(x))
         return f"{x:.{digits}g}"
     return str(x)

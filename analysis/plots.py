@@ -95,14 +95,14 @@ def _mark_segments(ax, bins: pd.DataFrame | None, axis: str = "x", hatch_above: 
     if not names:
         return
     centres = ((spans["first"] + spans["last"]) / 2.0).to_list()
-    names = [n if len(n) <= 18 else n[:17] + "…" for n in spans["name"].astype(str)]
+    labels = [n if len(n) <= 18 else n[:17] + "…" for n in spans["name"].astype(str)]
     twin = ax.secondary_xaxis("top") if axis == "x" else ax.secondary_yaxis("right")
     # Characters that fit a segment's span at fontsize 7 on a ~5 inch axis: about 70 per axis width.
     width_bins = max(len(bins), 1)
-    fits = all(len(n) <= 70 * (r.last - r.first + 1) / width_bins for n, r in zip(names, spans.itertuples(),
+    fits = all(len(n) <= 70 * (r.last - r.first + 1) / width_bins for n, r in zip(labels, spans.itertuples(),
                                                                                  strict=True))
     rotation = 0 if (fits or axis != "x") else 90
-    twin.set_ticks(centres, labels=names, fontsize=7, rotation=rotation)
+    twin.set_ticks(centres, labels=labels, fontsize=7, rotation=rotation)
     twin.tick_params(length=0)
 
 
@@ -240,7 +240,7 @@ def plot_bin_heatmaps(
         ax.set_xlabel("bin" if bottom else "")
     for ax in axes[len(arms):]:
         ax.set_visible(False)
-    if shared:
+    if shared and image is not None:
         fig.colorbar(image, ax=list(axes[:len(arms)]), label=value.replace("_", " "), shrink=0.9,
                      extend=_extend(df[value].to_numpy(float), vmax))
     return fig

@@ -74,14 +74,14 @@ def read_race(path: str | Path) -> dict:
     evals = data.get("evaluations")
     if not isinstance(evals, list):
         raise AnalysisError(f"{path}: 'evaluations' is not a list")
-    for i, e in enumerate(evals):
-        missing = [k for k in EVALUATION_KEYS if not isinstance(e, dict) or k not in e]
+    for i, ev in enumerate(evals):
+        missing = [k for k in EVALUATION_KEYS if not isinstance(ev, dict) or k not in ev]
         if missing:
             raise AnalysisError(f"{path}: evaluation {i} lacks {', '.join(missing)}")
-        bad = [k for k in EVALUATION_KEYS if not _number_or_null(e[k])]
-        if bad or not (isinstance(e[ITERATION], int) and not isinstance(e[ITERATION], bool) and e[ITERATION] >= 0):
+        bad = [k for k in EVALUATION_KEYS if not _number_or_null(ev[k])]
+        if bad or not (isinstance(ev[ITERATION], int) and not isinstance(ev[ITERATION], bool) and ev[ITERATION] >= 0):
             key = bad[0] if bad else ITERATION
-            raise AnalysisError(f"{path}: evaluation {i}: {key} is {e[key]!r}, not a number"
+            raise AnalysisError(f"{path}: evaluation {i}: {key} is {ev[key]!r}, not a number"
                                 f"{'' if bad else ' of iterations (an integer >= 0)'}")
     thresholds = data.get("thresholds") or []
     if not isinstance(thresholds, list) or not all(
@@ -180,7 +180,8 @@ def race_summary(races: list[tuple[str, dict]]) -> pd.DataFrame:
     rows = []
     for name, data in races:
         last = data["evaluations"][-1] if data["evaluations"] else {}
-        end = float(last.get("wall_from_launch_s") if last.get("wall_from_launch_s") is not None else math.nan)
+        wall = last.get("wall_from_launch_s")
+        end = float(wall) if wall is not None else math.nan
         per_it = (float(last["training_s"]) / last[ITERATION]
                   if last.get("training_s") is not None and last.get(ITERATION) else math.nan)
         row = {**_identity(name, data), "startup_s": data.get("startup_s"), "training_s_per_iteration": per_it,

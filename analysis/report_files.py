@@ -72,6 +72,7 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
         write_csv(out / "speedup.csv", d.speed)
         write_csv(out / "speedup_curve.csv", d.curve)
         write_csv(out / "iso_failure.csv", d.iso)
+        assert d.dots is not None and d.iso is not None  # built with the speedups (report_compute)
         dots = d.dots[d.dots["measure"].isin(d.measures)]
         save_figure(out / "speedup.png", plots.plot_speedup(d.speed, dots, colors=colors))
         figures.append(("speedup.png", f"Speedup vs `{d.baseline}` at overall success ≥ {opts.success_threshold:g} "
@@ -92,7 +93,7 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
         save_figure(out / "sampling_support.png", curve_plots.plot_sampling_support(d.support_sum, colors=colors))
         figures.append(("sampling_support.png", "Effective support and largest probability relative to uniform of "
                                                 "the sampling distribution over training (mean over seeds)"))
-        if len(d.clip_evals):
+        if d.clip_evals is not None and len(d.clip_evals):
             write_csv(out / "clip_eval.csv", d.clip_evals)
     if d.whole_clip is not None:
         w = d.whole_clip

@@ -130,7 +130,8 @@ def _with_values(cfg: dict, resolved: dict) -> dict:
     out = {}
     for key, value in cfg.items():
         if isinstance(value, dict):
-            out[key] = _with_values(value, resolved.get(key) if isinstance(resolved.get(key), dict) else {})
+            nested = resolved.get(key)
+            out[key] = _with_values(value, nested if isinstance(nested, dict) else {})
         elif isinstance(value, str) and "${" in value and key in resolved:
             out[key] = resolved[key]
         else:

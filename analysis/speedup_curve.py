@@ -23,6 +23,7 @@ One speedup number hides its threshold: an arm can be as fast as the baseline to
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -52,7 +53,7 @@ def speedup_curve(overall: pd.DataFrame, baseline: str, runs: pd.DataFrame, opts
     """CURVE_COLUMNS for every arm against ``baseline`` (module docstring); ``overall`` is
     metrics.overall_failure of every run."""
     boot = use_bootstrap(runs)
-    kw = dict(bootstrap=boot, n_resamples=opts.n_resamples, confidence=opts.confidence, seed=opts.bootstrap_seed,
+    kw: dict[str, Any] = dict(bootstrap=boot, n_resamples=opts.n_resamples, confidence=opts.confidence, seed=opts.bootstrap_seed,
               n_permutations=opts.n_permutations)
     rows = []
     for threshold in thresholds:

@@ -183,8 +183,8 @@ def curve_intervals(
             method[j] = "range" if not bootstrap or count[j] < 2 else "bootstrap_percentile"
     todo = [j for j in range(cols) if not method[j] and count[j] > 0]
     patterns: dict[bytes, list[int]] = {}
-    for j in todo:
-        patterns.setdefault(present[:, j].tobytes(), []).append(j)
+    for col in todo:
+        patterns.setdefault(present[:, col].tobytes(), []).append(col)
     for cols_j in patterns.values():
         sub = m[present[:, cols_j[0]]][:, cols_j]
         n = sub.shape[0]
@@ -195,10 +195,10 @@ def curve_intervals(
                 res = _scipy_stats().bootstrap((sub,), stat, n_resamples=n_resamples, confidence_level=confidence,
                                     vectorized=True, axis=0, method=kind, rng=np.random.default_rng(seed))
             lo, hi = np.atleast_1d(res.confidence_interval.low), np.atleast_1d(res.confidence_interval.high)
-            for k, j in enumerate(cols_j):
-                if not method[j] and np.isfinite(lo[k]) and np.isfinite(hi[k]) and lo[k] <= hi[k]:
-                    low[j], high[j] = lo[k], hi[k]
-                    method[j] = "bootstrap_bca" if kind == "BCa" else "bootstrap_percentile"
+            for k, col in enumerate(cols_j):
+                if not method[col] and np.isfinite(lo[k]) and np.isfinite(hi[k]) and lo[k] <= hi[k]:
+                    low[col], high[col] = lo[k], hi[k]
+                    method[col] = "bootstrap_bca" if kind == "BCa" else "bootstrap_percentile"
     return pt, low, high, method
 
 
@@ -266,16 +266,16 @@ def _exact_permutation_pvalue(a: np.ndarray, b: np.ndarray, statistic: Callable)
     2 x min(P(T >= t), P(T <= t)), capped at 1 (for groups too small for scipy)."""
     pooled = np.concatenate([a, b])
     idx = np.arange(len(pooled))
-    null = []
+    null_list = []
     for chosen in itertools.combinations(idx, len(a)):
         mask = np.zeros(len(pooled), dtype=bool)
         mask[list(chosen)] = True
-        null.append(float(statistic(pooled[mask], pooled[~mask], axis=-1)))
-    null = np.asarray(null)
+        null_list.append(float(statistic(pooled[mask], pooled[~mask], axis=-1)))
+    null = np.asarray(null_list)
     observed = float(statistic(a, b, axis=-1))
     tol = 1e-12 * max(1.0, abs(observed))
-    greater = np.mean(null >= observed - tol)
-    less = np.mean(null <= observed + tol)
+    greater = float(np.mean(null >= observed - tol))
+    less = float(np.mean(null <= observed + tol))
     return float(min(1.0, 2.0 * min(greater, less)))
 
 

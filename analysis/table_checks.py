@@ -56,8 +56,8 @@ def motion_duration_s(run_dir: str | Path) -> float | None:
     or None when the file is absent or holds no usable segment."""
     data = read_json(Path(run_dir) / MOTION_SEGMENTS)
     ends = [s.get("end_s") for s in data if isinstance(s, dict)] if isinstance(data, list) else []
-    ends = [float(e) for e in ends if isinstance(e, int | float) and not isinstance(e, bool) and math.isfinite(e)]
-    return max(ends) if ends else None
+    finite = [float(e) for e in ends if isinstance(e, int | float) and not isinstance(e, bool) and math.isfinite(e)]
+    return max(finite) if finite else None
 
 
 def recorded_bins(run_dir: str | Path) -> int | None:

@@ -293,7 +293,7 @@ def summary(per_run: dict[str, pd.DataFrame], runs: pd.DataFrame, opts: ReportOp
 def arm_overview(summary_df: pd.DataFrame, time_df: pd.DataFrame) -> pd.DataFrame:
     """One row per arm, wide: ``<metric>`` point, ``<metric>_low``/``_high``, ``<metric>_method`` for every
     summary metric, and ``time_<measure>`` (Kaplan-Meier median) with ``n_reached``."""
-    rows = {}
+    rows: dict[str, dict] = {}
     for r in summary_df.itertuples(index=False):
         row = rows.setdefault(r.arm, {"arm": r.arm, "n_seeds": r.n_seeds})
         row[r.metric] = r.iqm if not (isinstance(r.iqm, float) and math.isnan(r.iqm)) else r.mean

@@ -63,7 +63,7 @@ def _fsync_path(path: str | os.PathLike, directory: bool = False) -> None:
         os.close(fd)
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
+def atomic_write(path: str | os.PathLike, write: Callable[[str], object]) -> Path:
     """Call `write(tmp_path)`, fsync, and rename the result onto `path`; the one writer of the project.
 
     The temp file `.<name>.tmp-<random><ext>` lies in the target's folder (so the rename is atomic) and

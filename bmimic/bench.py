@@ -33,6 +33,7 @@ import tempfile
 import time
 from importlib.metadata import version
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -166,7 +167,7 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     if "breakdown" in only:
         out["breakdown_ms"] = breakdown(env, alg, device, sim_steps)
     if device.startswith("cuda"):
-        out["mem_used_gib"] = _mem_used(device) - (mem0 or 0.0)
+        out["mem_used_gib"] = (_mem_used(device) or 0.0) - (mem0 or 0.0)
         out["torch_max_allocated_gib"] = torch.cuda.max_memory_allocated() / 2**30
     if "physics_steps_per_s" in out:
         for k in ("collect_steps_per_s", "train_steps_per_s"):
@@ -260,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)
         return 2
-    results = {"environment": environment_info(device), "overrides": overrides, "runs": []}
+    results: dict[str, Any] = {"environment": environment_info(device), "overrides": overrides, "runs": []}
     if results["environment"]["git_commit"] is None:  # a copy of the tree without .git (a lent machine)
         print("warning: no git commit found for this code; set BMIMIC_SOURCE_COMMIT=<commit> so that the results "
               "record which code they measured", file=sys.stderr)

@@ -74,7 +74,8 @@ def check_sweep(jobs: Sequence[Any]) -> None:
     from bmimic.config import resolve_runtime
     from bmimic.runtime import resolve_device
 
-    cfgs, devices = [], {}
+    cfgs: list = []
+    devices: dict = {}
     for job in jobs:
         if job.config is None or job.status == "done":
             continue

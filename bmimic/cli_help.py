@@ -16,7 +16,7 @@ import inspect
 import re
 import shutil
 import textwrap
-from typing import Any
+from typing import Any, cast
 
 SCHEMA_SUFFIX = "_schema"
 
@@ -50,7 +50,7 @@ def _value(cfg: Any, key: str) -> str:
     try:
         value = OmegaConf.select(cfg, key, throw_on_resolution_failure=True)
     except Exception:  # e.g. an interpolation that cannot be resolved here: show it as written
-        value = OmegaConf.to_container(cfg, resolve=False).get(key.split(".")[0])
+        value = cast(dict, OmegaConf.to_container(cfg, resolve=False)).get(key.split(".")[0])
     if value is None:
         return "null"
     if isinstance(value, bool):
@@ -80,7 +80,7 @@ def train_help(root: Any, schema: type, loader: Any = None) -> str:
     fields = {f.name: f for f in dataclasses.fields(schema) if f.name != "defaults"}
     # The loader's own listing copies its whole repository per call (Hydra 1.3): ask the repository.
     repository = getattr(loader, "repository", None)
-    lister = repository if hasattr(repository, "get_group_options") else loader
+    lister: Any = repository if hasattr(repository, "get_group_options") else loader
     top_groups = set(lister.get_group_options("", ObjectType.GROUP))
     groups = [g for g in fields if g in top_groups]
     lines = [
@@ -127,7 +127,7 @@ def _is_node(root: Any, name: str) -> bool:
     from omegaconf import OmegaConf
 
     # (not root.get(name): that resolves a value, and `seed=${oc.env:UNSET}` would end --help in a traceback)
-    return isinstance(OmegaConf.to_container(root, resolve=False).get(name), dict)
+    return isinstance(cast(dict, OmegaConf.to_container(root, resolve=False)).get(name), dict)
 
 
 def _node_docs(schema: type, name: str, node: Any) -> dict[str, str]:

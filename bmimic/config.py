@@ -15,7 +15,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, List, Optional, Sequence
+from typing import Any, List, Optional, Sequence, cast
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
@@ -308,7 +308,7 @@ def override_error(e: BaseException, overrides: Sequence[str] = ()) -> str:
         return f"{override or 'override'}: not a valid override: {problem} (https://hydra.cc/docs/advanced/override_grammar/basic/)"
     if isinstance(e, MissingConfigException) and getattr(e, "options", None) is not None:
         group, _, option = str(e.missing_cfg_file or "").rpartition("/")
-        options = sorted(o for o in e.options if not o.endswith(SCHEMA_SUFFIX))
+        options = sorted(o for o in e.options or () if not o.endswith(SCHEMA_SUFFIX))
         return f"{group}={option}: no such option of the config group {group}; options: {', '.join(options)}"
     if isinstance(e, MissingConfigException):  # its further lines are Hydra's search path
         return lines[0] if lines else type(e).__name__
@@ -350,7 +350,8 @@ def with_schema_defaults(config: dict) -> dict:
     """A plain (resolved) config with the schema's defaults for the keys it lacks, e.g. one saved by
     an earlier bmimic before an option existed; unchanged when it does not fit the schema."""
     try:
-        filled = OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(TrainConfig), config), resolve=True)
+        filled = cast(dict, OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(TrainConfig), config),
+                                                   resolve=True))
     except (OmegaConfBaseException, ValueError, TypeError):
         return config
     if "defaults" not in config:  # Hydra's defaults list is not part of a composed config
@@ -388,7 +389,8 @@ def recorded_config(composed: dict, resolved: dict) -> dict:
     out = copy.deepcopy(composed)
     for key in interpolated_keys(composed):
         *parents, leaf = key.split(".")
-        source, target = resolved, out
+        source: Any = resolved
+        target = out
         for part in parents:
             source, target = (source or {}).get(part) if isinstance(source, dict) else None, target[part]
         if isinstance(source, dict) and leaf in source:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any
+from typing import Any, cast
 
 from bmimic.config import ConfigError, TrainConfig
 from bmimic.envs.config import EnvConfigError, check_env
@@ -46,7 +46,7 @@ def check_resolvable(cfg, prefix: str = "") -> None:
     from omegaconf import DictConfig, ListConfig
     from omegaconf.errors import OmegaConfBaseException
 
-    keys = [k for k in cfg if not (k == "hydra" and not prefix)] if isinstance(cfg, DictConfig) else \
+    keys: list[Any] | range = [k for k in cfg if not (k == "hydra" and not prefix)] if isinstance(cfg, DictConfig) else \
         range(len(cfg)) if isinstance(cfg, ListConfig) else []
     for key in keys:
         name = f"{prefix}{key}" if isinstance(key, str) else f"{prefix[:-1]}[{key}]"
@@ -81,7 +81,7 @@ def check_known_keys(cfg) -> None:
     from omegaconf import DictConfig, OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    plain = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
+    plain = cast(dict, OmegaConf.to_container(cfg, resolve=False)) if isinstance(cfg, DictConfig) else dict(cfg)
     plain.pop("hydra", None)
     if isinstance(plain.get("sampler"), dict):
         sampler_config(plain["sampler"])  # the sampler's keys are its variant's schema's
@@ -109,9 +109,9 @@ def check_finite(cfg, prefix: str = "") -> None:
     from omegaconf import DictConfig, ListConfig, OmegaConf
 
     if isinstance(cfg, DictConfig) and "hydra" in cfg:
-        cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+        cfg = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
     tree = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, (DictConfig, ListConfig)) else cfg
-    items = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, list) else ()
+    items: Any = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, list) else ()
     for key, value in items:
         name = f"{prefix}{key}" if isinstance(key, str) else f"{prefix[:-1]}[{key}]"
         if isinstance(value, float) and not math.isfinite(value):
@@ -136,7 +136,7 @@ def check_resume_allow_changes(cfg) -> None:
 
     from bmimic.training.resume import flatten_config
 
-    keys = flatten_config({k: v for k, v in OmegaConf.to_container(cfg, resolve=False).items() if k != "hydra"})
+    keys = flatten_config({k: v for k, v in cast(dict, OmegaConf.to_container(cfg, resolve=False)).items() if k != "hydra"})
     for name in cfg.resume_allow_changes or []:
         if not any(k == name or k.startswith(f"{name}.") for k in keys):
             _fail("resume_allow_changes", f"{name!r} is not a config key")

@@ -79,7 +79,7 @@ def quiet_warp(verbose: bool = False) -> None:
 
     if verbose:
         return
-    wp.config.quiet = True  # older Warp releases; current ones read log_level only
+    wp.config.quiet = True  # type: ignore[attr-defined]  # older Warp releases; current ones read log_level only
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     with _native_stderr_filtered(_NO_DRIVER):
         wp.init()

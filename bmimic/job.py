@@ -15,7 +15,7 @@ import sys
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, cast
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
@@ -121,7 +121,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             if place.main_rank:
                 trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
                 write_status(plan.run_dir, "interrupted", trainer.progress.iteration)
-            raise TrainingInterrupted(stop, trainer.progress.iteration, plan.run_dir)
+            raise TrainingInterrupted(cast(StopSignals, stop), trainer.progress.iteration, plan.run_dir)
         if place.main_rank:
             trainer.save_checkpoint()
     finally:
@@ -168,7 +168,7 @@ def plan_job(cfg: DictConfig, launch_dir: Path, sweep_job: bool, ctx: RunContext
     """The run folder this job trains in and what it continues: (plan, the resolved config as a dict, the
     config changes a resume was allowed). Refuses a resume that changes what it may not, a finished run,
     and on a CPU a size that cannot fit or would train past max_cpu_hours; then rank 0 locks the folder."""
-    resolved = OmegaConf.to_container(cfg, resolve=True)
+    resolved = cast(dict, OmegaConf.to_container(cfg, resolve=True))
     ctx.hydra_record = record_values(ctx.hydra_record, ctx.composed_config, resolved)
     allowed = list(cfg.resume_allow_changes or [])
     plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint),
@@ -224,7 +224,7 @@ def learn_and_evaluate(trainer, task, place: Placement, stop: StopSignals | None
     clips (eval.whole_clip.at_end). (final summary, metrics.json's final_robust_* and final_whole_clip_*);
     both empty when a signal interrupted (trainer.interrupted)."""
     cfg = task.cfg
-    final, robust = {}, {}
+    final, robust = dict[str, Any](), dict[str, Any]()
     try:
         trainer.learn(signals=stop)
         if trainer.interrupted:
@@ -312,7 +312,7 @@ def hydra_record(cfg: DictConfig) -> dict[str, str] | None:
     records the values of its interpolations (record_values)."""
     if not HydraConfig.initialized():
         return None
-    hc = HydraConfig.instance().cfg
+    hc: Any = HydraConfig.instance().cfg
     return {"config.yaml": OmegaConf.to_yaml(cfg), "hydra.yaml": OmegaConf.to_yaml(hc),
             "overrides.yaml": OmegaConf.to_yaml(hc.hydra.overrides.task)}
 
@@ -337,7 +337,7 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
     multirun = hc.mode == RunMode.MULTIRUN
     ctx = RunContext(launch_dir)
     ctx.hydra_record = hydra_record(cfg)
-    ctx.composed_config = OmegaConf.to_container(cfg, resolve=False)
+    ctx.composed_config = cast(dict, OmegaConf.to_container(cfg, resolve=False))
     outcome, message = "failed", None
     stop = StopSignals()
     try:

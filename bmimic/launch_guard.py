@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-from typing import Any
+from typing import Any, cast
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, read_write
@@ -56,7 +56,7 @@ class LaunchGuard(Callback):
         from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.training.resume import resume_request
 
-        template = str(OmegaConf.to_container(config.hydra.run, resolve=False).get("dir", ""))
+        template = str(cast(dict, OmegaConf.to_container(config.hydra.run, resolve=False)).get("dir", ""))
         pinned = "${now:" not in template
         if process_rank() != 0:
             with contextlib.suppress(Exception):  # under torchrun rank 0 owns the (pinned) folder

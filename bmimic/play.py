@@ -95,7 +95,7 @@ def rollout_frames(env, policy, renderer, start_frame: int, steps_at_frame: Sequ
             image = renderer.render(env.sim.data, reference_qpos(env) if ghost else None)
             if text:
                 frame = int(env.time_steps[0])
-                segment = segment_at(motion.segments, [frame / motion.fps])[0][0]
+                segment = segment_at(motion.segments, np.array([frame / motion.fps]))[0][0]
                 recent = bool(falls) and step * env.step_dt - falls[-1] < 0.5
                 lines = [f"t {step * env.step_dt:5.2f} s   motion {frame / motion.fps:6.2f} s  {segment}",
                          f"falls {len(falls)}" + ("  (reset to reference)" if recent else "")]

@@ -15,7 +15,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -250,6 +250,7 @@ def _write_mp4(frames: Sequence[np.ndarray], tmp: str, fps: float) -> None:
     import imageio.v2 as imageio
 
     # macro_block_size=1: keep the requested size (ffmpeg would otherwise round up to multiples of 16).
+    writer: Any
     with imageio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", quality=8,
                             pixelformat="yuv420p", macro_block_size=1) as writer:
         for frame in frames:

@@ -145,13 +145,12 @@ def claim(run_dir: str | os.PathLike, pinned: bool, resume: bool, log_name: str 
             raise ClaimError(f"hydra.run.dir={run_dir}: holds files that are not a bmimic run ("
                              f"{', '.join(foreign[:4])}{', ...' if len(foreign) > 4 else ''}); a launch writes only "
                              "into a new or empty folder, or continues its own run: choose another folder")
-        if path.is_dir():
-            probe = lock_run(path) if (path / LOCK).exists() else True
+        if path.is_dir() and (path / LOCK).exists():
+            probe = lock_run(path)
             if probe is None:
                 raise ClaimError(f"hydra.run.dir={run_dir}: is being trained by another process (its {LOCK} is "
                                  "held); wait for it or stop it first")
-            if probe is not True:
-                probe.close()
+            probe.close()  # the lock was free: let it go at once
         try:
             created = _mkdirs(path, exist_ok=True)
         except OSError as e:

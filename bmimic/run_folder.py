@@ -19,7 +19,7 @@ import json
 import os
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from bmimic import BmimicError
 from bmimic.atomic_io import (  # noqa: F401  (the writer of every run-folder file, re-exported)
@@ -311,7 +311,7 @@ class RunLockedError(BmimicError):
     """Another live process is training in this run folder."""
 
 
-def lock_run(run_dir: str | os.PathLike):
+def lock_run(run_dir: str | os.PathLike) -> TextIO | None:
     """Take the exclusive lock of a run folder; returns the open lock file (the lock lives while it is
     open and dies with the process, so a killed run never leaves a stale lock), or None when another
     process holds it.

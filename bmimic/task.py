@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from bmimic.config import ConfigError
 from bmimic.config_checks import check_motion_fit
@@ -153,6 +153,7 @@ def _whole_clip_evaluator(task: Task, condition: str, per_clip: int):
 
     from omegaconf import OmegaConf
 
+    from bmimic.envs.config import EnvConfig
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.robot import load_mjmodel
     from bmimic.training.clip_rollouts import clip_bounds
@@ -165,7 +166,7 @@ def _whole_clip_evaluator(task: Task, condition: str, per_clip: int):
     check_num_envs_fit(cfg, mjm, device, n, 0)
     step_dt = cfg.sim.timestep_s * cfg.sim.decimation
     steps = int((ends - starts).max())  # more than the longest rollout's steps: its time-out never comes
-    env_cfg = OmegaConf.to_object(cfg.env)
+    env_cfg = cast(EnvConfig, OmegaConf.to_object(cfg.env))
     env_cfg = dataclasses.replace(env_cfg, episode_length_s=max(float(env_cfg.episode_length_s), steps * step_dt))
     env = TrackingEnv(env_cfg, cfg.sim, mjm, task.robot, task.reference(), n, device, mode="eval",
                       robust=condition != "nominal", layout=layout)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 import torch
 
@@ -19,13 +19,14 @@ class UniformNoise:
         self._half_widths: dict[tuple, torch.Tensor] = {}
 
     def __call__(self, shape: Sequence[int], half_width: float | Sequence[float]) -> torch.Tensor:
+        hw: torch.Tensor | float
         if isinstance(half_width, (list, tuple)):
             key = tuple(float(x) for x in half_width)
-            hw = self._half_widths.get(key)
-            if hw is None:
-                hw = self._half_widths[key] = torch.tensor(key, dtype=torch.float32, device=self.device)
+            if key not in self._half_widths:
+                self._half_widths[key] = torch.tensor(key, dtype=torch.float32, device=self.device)
+            hw = self._half_widths[key]
         else:
-            hw = float(half_width)
+            hw = float(cast(float, half_width))
         u = torch.rand(shape, device=self.device)
         return (2.0 * u - 1.0) * hw
 

@@ -25,6 +25,7 @@ def write_reference_state(sim: Simulator, ref: ReferenceMotion, mask: torch.Tens
     q = ref.joint_pos[frames]
     qd = ref.joint_vel[frames]
     if noise is not None:
+        assert uniform is not None and soft_joint_limits is not None, "reset noise needs uniform and the limits"
         n = frames.shape[0]
         pos = pos + uniform((n, 3), list(noise.root_pos_range_m))
         rpy = uniform((n, 3), list(noise.root_rot_range_rad))

@@ -17,6 +17,8 @@ On a GPU the torch parts of 1, 2-3 and 4 are captured as CUDA graphs (`graphs.St
 
 from __future__ import annotations
 
+from typing import cast
+
 import mujoco
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -59,7 +61,7 @@ class TrackingEnv(VecEnv):
             raise ValueError("a training environment needs the sampler's feedback; an evaluation one takes none")
         # Plain dataclasses, not OmegaConf nodes: the step reads config fields every call, and plain
         # attribute access is cheaper and can be traced by torch.compile.
-        self.cfg = cfg = OmegaConf.to_object(env_cfg) if isinstance(env_cfg, DictConfig) else env_cfg
+        self.cfg = cfg = cast(EnvConfig, OmegaConf.to_object(env_cfg)) if isinstance(env_cfg, DictConfig) else env_cfg
         self.mode, self.num_envs, self.device = mode, num_envs, torch.device(device)
         self.robust = robust and mode == "eval"
         perturbed = mode == "train" or self.robust
@@ -109,20 +111,22 @@ class TrackingEnv(VecEnv):
             self.reset_to_frames(torch.zeros(num_envs, dtype=torch.long, device=self.device))
         self.sim.forward_kinematics()
         self._observe()
-        if mode == "train" and self.device.type == "cuda" and self.sim.use_graph:
+        if feedback is not None and self.device.type == "cuda" and self.sim.use_graph:  # training
             self._actions_in.zero_()
             self._graphs = StepGraphs((self._pre_physics, self._post_physics, self._observe), self.sim,
                                       self.sim.cfg.compile_env_step)
-            self.feedback.discard()  # the warm-up steps' counts and statistics
+            feedback.discard()  # the warm-up steps' counts and statistics
             self.pop_iteration_stats()
 
     # ----------------------------------------------------------------------------------- resets
     def start_segments(self, mask: torch.Tensor, new_episode: torch.Tensor) -> None:
         """Masked envs start a reference segment at a frame the sampler draws, with RSI noise; those
         also in `new_episode` start an episode there (a clip-end resample keeps the episode's start bin)."""
-        bins = self.feedback.sampler.sample(self.num_envs)
-        frames = self.segments.start(mask, self.layout.sample_frames(bins))
-        self.feedback.start_episodes(mask & new_episode, bins)
+        feedback = self.feedback
+        assert feedback is not None, "only a training environment draws its starts"
+        bins = feedback.sampler.sample(self.num_envs)
+        frames = self.segments.start(mask, feedback.layout.sample_frames(bins))
+        feedback.start_episodes(mask & new_episode, bins)
         write_reference_state(self.sim, self.reference, mask, frames, self.cfg.reset, self.uniform,
                               self.soft_joint_limits)
 
@@ -194,14 +198,16 @@ class TrackingEnv(VecEnv):
         self.stats.step(self.state)
         dones = terminated | truncated
         if self.mode == "train":
+            feedback = self.feedback
+            assert feedback is not None
             state = self.state  # the errors are computed only for a sampler that declares them
-            self.feedback.measure(self.time_steps, broken, dones, self.rew_buf, lambda: tracking_errors(state))
+            feedback.measure(self.time_steps, broken, dones, self.rew_buf, lambda: tracking_errors(state))
             self.stats.end_episodes(dones, terminated | broken, self.episode_length_buf)
             self.rewards.end_episodes(dones)
             # What ends now, counted in one pass: finished episodes (at this frame) and, for
             # attribution=failure, continuing episodes whose clip ends on the next frame.
             clip_end, end_frames = self.segments.ending(dones)
-            counts = self.feedback.count(dones, clip_end, end_frames, self.segment_start, terminated, broken,
+            counts = feedback.count(dones, clip_end, end_frames, self.segment_start, terminated, broken,
                                            self.episode_length_buf)
             self.start_segments(dones, dones)
             self.episode_length_buf.masked_fill_(dones, 0)
@@ -213,7 +219,7 @@ class TrackingEnv(VecEnv):
             self.start_segments(self.segments.advance(), dones)
             # After this step's resets were drawn, as in the released code: the sampler update
             # (update_every=step), or the counts wait for end_rollout (update_every=iteration).
-            self.feedback.record(counts)
+            feedback.record(counts)
             self.events.reset(self, dones)
             self.events.interval(self, self.step_dt)
         else:
@@ -238,10 +244,7 @@ class TrackingEnv(VecEnv):
 
     def pop_iteration_stats(self) -> dict:
         """Per-iteration statistics (one host transfer each), then reset the accumulators."""
-        if self.feedback is not None:
-            bin_episodes, bin_failures = self.feedback.pop_counts()
-        else:
-            bin_episodes = bin_failures = None
+        bin_episodes, bin_failures = self.feedback.pop_counts() if self.feedback is not None else (None, None)
         # Per bin, as the sampler was fed them (after end_rollout for update_every=iteration).
         counts, metrics, steps = self.stats.pop()
         return {"bin_episodes": bin_episodes, "bin_failures": bin_failures, **counts,

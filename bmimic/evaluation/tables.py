@@ -84,8 +84,8 @@ def segment_table(rollouts, episodes: pd.DataFrame, motion) -> pd.DataFrame:
     the same per-visit accounting as the bins: visits, failures where they happened, start counts."""
     from bmimic.training.evaluator import aggregate
 
-    names, levels = segment_at(motion.segments, np.arange(motion.num_frames) / motion.fps)
-    names = np.asarray(names, dtype=object)
+    labels, levels = segment_at(motion.segments, np.arange(motion.num_frames) / motion.fps)
+    names = np.asarray(labels, dtype=object)
     stretch = np.r_[0, np.cumsum(names[1:] != names[:-1])]  # contiguous frames of one label
     per_seg = aggregate(rollouts.episodes, stretch, rollouts.frame_errors)
     ids = per_seg.pop(BIN).to_numpy()

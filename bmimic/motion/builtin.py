@@ -129,6 +129,7 @@ def _ik_targets(plan: dict[str, np.ndarray], stance: Stance) -> IKTargets:
 
 def _check_ik(name: str, plan: Plan, errors: np.ndarray) -> None:
     """Planted feet, centre of mass and pelvis must be met; a swing foot may be off a little in the air."""
+    assert plan.targets.foot_ori_weight is not None  # the built-in plans weigh every foot orientation
     planted = plan.targets.foot_ori_weight >= 1.0
     bad = np.zeros(errors.shape)
     for k in range(2):

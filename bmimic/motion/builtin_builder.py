@@ -108,7 +108,7 @@ def neutral_stance(mjmodel: mujoco.MjModel) -> Stance:
     data.qpos[:3] = 0.0
     data.qpos[3:7] = (1.0, 0.0, 0.0, 0.0)
     mujoco.mj_kinematics(mjmodel, data)
-    feet = tuple(foot_geometry(mjmodel, f) for f in FEET)
+    feet = (foot_geometry(mjmodel, FEET[0]), foot_geometry(mjmodel, FEET[1]))
     xpos = np.stack([data.body(f).xpos for f in FEET])
     mid = xpos[:, :2].mean(axis=0)
     return Stance(

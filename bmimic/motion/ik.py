@@ -51,9 +51,9 @@ class FootGeometry:
 def _geom_points(mjmodel: mujoco.MjModel, g: int) -> tuple[np.ndarray, float]:
     """Points in the body frame whose radius-inflation bounds the geom, and that radius."""
     pos, size, kind = mjmodel.geom_pos[g], mjmodel.geom_size[g], mjmodel.geom_type[g]
-    rot = np.empty(9)
-    mujoco.mju_quat2Mat(rot, mjmodel.geom_quat[g])
-    rot = rot.reshape(3, 3)
+    flat = np.empty(9)
+    mujoco.mju_quat2Mat(flat, mjmodel.geom_quat[g])
+    rot = flat.reshape(3, 3)
     if kind == mujoco.mjtGeom.mjGEOM_SPHERE:
         return pos[None], float(size[0])
     if kind in (mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER):

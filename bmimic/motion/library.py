@@ -26,7 +26,7 @@ import fnmatch
 import glob as globlib
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import mujoco
 
@@ -106,8 +106,9 @@ def _entry(k: int, raw: Any) -> ClipEntry:
     start, end = _number(f"{where}.start_s", raw.get("start_s")), _number(f"{where}.end_s", raw.get("end_s"))
     if start is not None and end is not None and not end > start:
         raise MotionDataError(f"{where}: end_s {end} must be after start_s {start}")
-    weight = _number(f"{where}.weight", raw.get("weight", 1.0), positive=True, optional=False)
-    duration = _number(f"{where}.duration_s", raw.get("duration_s", 10.0), positive=True, optional=False)
+    # optional=False: a number, never None
+    weight = cast(float, _number(f"{where}.weight", raw.get("weight", 1.0), positive=True, optional=False))
+    duration = cast(float, _number(f"{where}.duration_s", raw.get("duration_s", 10.0), positive=True, optional=False))
     source = {"path": "file", "clip": "lafan", "builtin": "builtin"}[key]
     default_name = {"file": Path(value).stem, "lafan": Path(value).stem, "builtin": f"{value}_{seed}"}[source]
     name = raw.get("name") if raw.get("name") is not None else default_name

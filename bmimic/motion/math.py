@@ -67,7 +67,7 @@ def axis_angle_to_quat(rotvec: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cos(half), rotvec * k], axis=-1)
 
 
-def quat_from_euler_zyx(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+def quat_from_euler_zyx(roll: np.ndarray | float, pitch: np.ndarray | float, yaw: np.ndarray | float) -> np.ndarray:
     """Quaternion of R = Rz(yaw) Ry(pitch) Rx(roll) (extrinsic x, y, z; intrinsic z, y', x'')."""
     roll, pitch, yaw = np.broadcast_arrays(
         np.asarray(roll, float), np.asarray(pitch, float), np.asarray(yaw, float)
@@ -119,7 +119,7 @@ def angular_velocity_from_quats(quat: np.ndarray, dt: float) -> np.ndarray:
     return omega
 
 
-def yaw_quat(yaw: np.ndarray) -> np.ndarray:
+def yaw_quat(yaw: np.ndarray | float) -> np.ndarray:
     """Quaternion of a rotation by yaw about the world z axis."""
     yaw = np.asarray(yaw, dtype=float)
     zeros = np.zeros_like(yaw)

@@ -88,7 +88,7 @@ class Motion:
             raise MotionDataError("motion has no frames")
         dist = np.linalg.norm(self.body_pos_w, axis=-1)
         if dist.size and dist.max() > MAX_DISTANCE_M:
-            frame, body = np.unravel_index(int(np.argmax(dist)), dist.shape)
+            frame, body = (int(i) for i in np.unravel_index(int(np.argmax(dist)), dist.shape))
             raise MotionDataError(
                 f"body '{self.body_names[body]}' at frame {frame} is {dist[frame, body]:.4g} m from the origin, "
                 f"beyond {MAX_DISTANCE_M:g} m (float32 positions lose precision there); shift the motion "

@@ -5,7 +5,7 @@ and the sampler's feedback count with. A sampler subclasses BinSampler and imple
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Generic, TypeVar, cast
 
 import torch
 
@@ -22,6 +22,7 @@ orientation and linear-velocity errors, and the largest body position error."""
 # (written out where used: a module-level torch value would import torch with the config checks, which
 # read the sampler classes' checks, bmimic.sampling.config).
 METHODS = ("inverse_cdf", "multinomial")
+ConfigT = TypeVar("ConfigT", bound="SamplerConfig")
 
 
 def bin_counts(bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None = None) -> torch.Tensor:
@@ -40,7 +41,7 @@ def bin_counts(bins: torch.Tensor, num_bins: int, weights: torch.Tensor | None =
     return out.to(weights.dtype)
 
 
-class BinSampler:
+class BinSampler(Generic[ConfigT]):
     """Shared plumbing: cached probabilities and CDF, sampling, update(), state dict. `kind` is the
     name it is registered under and `schema` its config dataclass
     (`bmimic.sampling.registry.register_sampler` sets both)."""
@@ -52,7 +53,10 @@ class BinSampler:
     feedback measures each and delivers it, at its cadence, to the method the signal names
     (:meth:`update_counts`, :meth:`update_errors`, :meth:`observe_eval`). None: it never changes."""
 
-    def __init__(self, num_bins: int, cfg: SamplerConfig | None = None, device: Any = "cpu",
+    cfg: ConfigT
+    """The validated config the sampler was built with."""
+
+    def __init__(self, num_bins: int, cfg: ConfigT | None = None, device: Any = "cpu",
                  method: str = "inverse_cdf"):
         """`cfg`: the sampler's validated config (an instance of its `schema`, checked by
         `bmimic.sampling.config.validate_sampler_config`); None: the schema's defaults."""
@@ -60,7 +64,7 @@ class BinSampler:
             raise SamplerConfigError(f"sampler num_bins must be an integer >= 1, got {num_bins!r}")
         if method not in METHODS:
             raise SamplerConfigError(f"sampler method must be one of {', '.join(METHODS)}, got {method!r}")
-        self.cfg = cfg if cfg is not None or self.schema is None else self.schema()
+        self.cfg = cast(ConfigT, cfg if cfg is not None or self.schema is None else self.schema())
         self.num_bins = num_bins
         self.device = torch.device(device)
         self.method = method

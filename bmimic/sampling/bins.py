@@ -117,6 +117,15 @@ def bins_of_time(t_s: torch.Tensor, bin_size_seconds: float, num_bins: int) -> t
     return q.floor().long().clamp_(0, num_bins - 1)
 
 
+def bin_size_s(kind: str, bin_size_seconds: float | None) -> float:
+    """The bin size of time bins (0.0 for released bins, which have none)."""
+    if kind != "time":
+        return 0.0
+    if bin_size_seconds is None:
+        raise SamplerConfigError("sampler.bin_size_seconds: time bins need a size in seconds, got null")
+    return float(bin_size_seconds)
+
+
 class _FrameBins:
     """Frame <-> bin maps of one motion (N frames at ``fps``), precomputed on ``device``.
 
@@ -248,7 +257,8 @@ class ReleasedBinLayout(_FrameBins):
         return f"ReleasedBinLayout(num_frames={self.num_frames}, fps={self.fps:g}, num_bins={self.num_bins})"
 
 
-Layout = BinLayout | ReleasedBinLayout
+Layout = _FrameBins
+"""Any bin layout: BinLayout, ReleasedBinLayout, or a library's ClipLayout (bmimic.sampling.clips)."""
 
 
 def visits_histogram(

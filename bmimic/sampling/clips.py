@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 import torch
 
-from bmimic.sampling.bins import BinLayout, ReleasedBinLayout, _FrameBins
+from bmimic.sampling.bins import BinLayout, ReleasedBinLayout, _FrameBins, bin_size_s
 from bmimic.sampling.checks import SamplerConfigError
 
 
@@ -37,8 +37,9 @@ class ClipLayout(_FrameBins):
         ends = [*starts[1:], num_frames]
         self.kind = kind
         self.bin_size_seconds = None if bin_size_seconds is None else float(bin_size_seconds)
+        size_s = bin_size_s(kind, bin_size_seconds)
         # A clip shorter than one bin is one bin of its own length.
-        clips = [BinLayout(e - a, fps, min(float(bin_size_seconds), (e - a) / fps)) if kind == "time"
+        clips = [BinLayout(e - a, fps, min(size_s, (e - a) / fps)) if kind == "time"
                  else ReleasedBinLayout(e - a, fps) for a, e in zip(starts, ends)]
         self._clips = clips
         offsets = torch.tensor([0, *[c.num_bins for c in clips]]).cumsum(0)
@@ -83,7 +84,7 @@ class ClipLayout(_FrameBins):
         return self.bins_of(self.clip_starts[clip] + torch.as_tensor(frame_in_clip, device=self.device).long())
 
     def describe(self) -> str:
-        per = "time bins of %g s" % self.bin_size_seconds if self.kind == "time" else "released bins"
+        per = f"time bins of {self.bin_size_seconds:g} s" if self.kind == "time" else "released bins"
         return f"{self.num_bins} {per} over {self.num_clips} clips ({self.duration_s:g} s)"
 
     def __repr__(self) -> str:

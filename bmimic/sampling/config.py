@@ -27,7 +27,7 @@ into today's layout, so they can still be evaluated and resumed.
 from __future__ import annotations
 
 from dataclasses import asdict, fields
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from bmimic.sampling.checks import SamplerConfigError, check_choice, fail
 from bmimic.sampling.registry import SCHEMAS, sampler_entry, schema_of
@@ -68,14 +68,13 @@ def sampler_config(cfg: Any) -> SamplerConfig:
     from omegaconf import DictConfig, OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    if isinstance(cfg, DictConfig) and isinstance(OmegaConf.get_type(cfg), type) and \
-            issubclass(OmegaConf.get_type(cfg), SamplerConfig):
-        return OmegaConf.to_object(cfg)
-    plain = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-    plain = _upgrade(plain)
+    node_type = OmegaConf.get_type(cfg) if isinstance(cfg, DictConfig) else None
+    if isinstance(node_type, type) and issubclass(node_type, SamplerConfig):
+        return cast(SamplerConfig, OmegaConf.to_object(cfg))
+    plain = _upgrade(cast(dict, OmegaConf.to_container(cfg, resolve=True)) if isinstance(cfg, DictConfig) else dict(cfg))
     kind = plain.get("kind")
     try:
-        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema_of(kind)), plain))
+        return cast(SamplerConfig, OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema_of(kind)), plain)))
     except OmegaConfBaseException as e:
         key = getattr(e, "full_key", "") or "?"
         raise SamplerConfigError(f"sampler.{key}: does not fit the {kind} sampler's schema "
@@ -174,7 +173,7 @@ def load_variant(name: str) -> SamplerConfig:
     from bmimic import CONF_DIR
 
     check_choice("name", name, variant_names())
-    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml"))
+    node = cast(dict, OmegaConf.to_container(OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml")))
     schemas = [d for d in node.pop("defaults", []) if isinstance(d, str) and d.endswith("_schema")]
     kinds = [k for k in SCHEMAS if f"{k}_schema" in schemas]
     if len(kinds) != 1:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from bmimic.sampling.bins import LAYOUTS, BinLayout, Layout, ReleasedBinLayout
+from bmimic.sampling.bins import LAYOUTS, BinLayout, Layout, ReleasedBinLayout, bin_size_s
 from bmimic.sampling.checks import check_choice
 from bmimic.sampling.clips import ClipLayout
 
@@ -20,7 +20,7 @@ def make_layout(bins: str, num_frames: int, fps: float, bin_size_seconds: float 
     if bins == "released":
         layout: Layout = ReleasedBinLayout(num_frames, fps, device=device)
     else:
-        layout = BinLayout(num_frames, fps, bin_size_seconds, device=device)
+        layout = BinLayout(num_frames, fps, bin_size_s(bins, bin_size_seconds), device=device)
     if clip_names is not None and len(clip_names) == 1:
         layout.clip_names = (str(clip_names[0]),)
     return layout

@@ -27,7 +27,7 @@ used, so every state tensor has a fixed shape whatever the motion library.
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, Optional, TypeVar
 
 import torch
 
@@ -42,11 +42,14 @@ def _optional_float(x: Optional[float]) -> Optional[float]:
     return None if x is None else float(x)
 
 
-class GroupSampler(BinSampler):
+GroupConfigT = TypeVar("GroupConfigT", bound=ClipWeightingConfig)
+
+
+class GroupSampler(BinSampler[GroupConfigT]):
     """A sampler whose weights live on groups of consecutive bins (clips or sub-clips); each group's
     share is spread evenly over its bins."""
 
-    def __init__(self, num_bins: int, cfg: ClipWeightingConfig | None = None, device: Any = "cpu"):
+    def __init__(self, num_bins: int, cfg: GroupConfigT | None = None, device: Any = "cpu"):
         super().__init__(num_bins, cfg, device=device)
         self._set_groups(torch.zeros(num_bins, dtype=torch.long))
 
@@ -88,7 +91,7 @@ class GroupSampler(BinSampler):
 # ------------------------------------------------------------------------------------------------ PHC
 
 @register_sampler("phc", PHCConfig)
-class PHCSampler(GroupSampler):
+class PHCSampler(GroupSampler[PHCConfig]):
     """Clip weights from evaluation failures (module doc)."""
 
     signals = (CLIP_OUTCOMES,)
@@ -126,7 +129,7 @@ class PHCSampler(GroupSampler):
 
 # ---------------------------------------------------------------------------------------- ProtoMotions
 @register_sampler("protomotions", ProtoMotionsConfig)
-class ProtoMotionsSampler(GroupSampler):
+class ProtoMotionsSampler(GroupSampler[ProtoMotionsConfig]):
     """Multiplicative clip weights from evaluations with a floor (module doc)."""
 
     signals = (CLIP_OUTCOMES,)

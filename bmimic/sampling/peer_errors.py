@@ -46,7 +46,7 @@ UNSET_SCHEDULE_ITERATIONS = 1000
 
 # ------------------------------------------------------------------------------------------------ EGM
 @register_sampler("egm", EGMConfig)
-class EGMSampler(BinSampler):
+class EGMSampler(BinSampler[EGMConfig]):
     """EMA of a composite tracking error per bin, normalised, raised to a scheduled power, mixed with
     a scheduled uniform ratio (module doc)."""
 
@@ -107,7 +107,7 @@ class EGMSampler(BinSampler):
 
 # ------------------------------------------------------------------------------------------------ GMT
 @register_sampler("gmt", GMTConfig)
-class GMTSampler(GroupSampler):
+class GMTSampler(GroupSampler[GMTConfig]):
     """Completion levels per sub-clip, then the largest body error once mastered (module doc)."""
 
     signals = (EPISODE_OUTCOMES, TRACKING_ERRORS)

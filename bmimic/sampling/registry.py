@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Protocol, TypeVar
 
 from hydra.core.config_store import ConfigStore
 
@@ -51,6 +51,16 @@ CLASS_MODULES: dict[str, str] = {}
 """The module that registers each kind's class (imported when the class is first needed)."""
 
 T = TypeVar("T", bound=type)
+
+
+class _Registered(Protocol):
+    """What registration sets on a sampler class (a BinSampler)."""
+
+    kind: str
+    schema: Any
+
+
+S = TypeVar("S", bound=type[_Registered])
 
 
 def schema_name(kind: str) -> str:
@@ -81,10 +91,10 @@ def sampler_schema(kind: str, module: str) -> Callable[[T], T]:
     return register
 
 
-def register_sampler(kind: str, config: type) -> Callable[[T], T]:
+def register_sampler(kind: str, config: type) -> Callable[[S], S]:
     """Class decorator: register a sampler class under `kind` with its config schema."""
 
-    def register(cls: T) -> T:
+    def register(cls: S) -> S:
         if kind in SAMPLERS and SAMPLERS[kind].cls.__qualname__ != cls.__qualname__:
             raise ValueError(f"sampler kind {kind!r} is already registered by {SAMPLERS[kind].cls.__name__}")
         register_schema(kind, config, cls.__module__)

@@ -83,7 +83,7 @@ accumulate no visible rounding error; the cost is negligible at S <= 10^4.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -116,7 +116,7 @@ def lookahead_index(num_bins: int, K: int, device: Any = "cpu", last: torch.Tens
 
 
 @register_sampler("uniform", UniformConfig)
-class UniformSampler(BinSampler):
+class UniformSampler(BinSampler[UniformConfig]):
     """P_s = 1/S; updates are accepted and ignored."""
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
@@ -126,12 +126,15 @@ class UniformSampler(BinSampler):
         return torch.full((self.num_bins,), float("nan"), dtype=torch.float64, device=self.device)
 
 
-class _LookaheadSampler(BinSampler):
+LookaheadConfigT = TypeVar("LookaheadConfigT", bound="AdaptiveConfig | BeyondMimicConfig")
+
+
+class _LookaheadSampler(BinSampler[LookaheadConfigT]):
     """A sampler whose weights are smoothed with the look-ahead kernel and whose state is an EMA."""
 
     signals = (EPISODE_OUTCOMES,)
 
-    def __init__(self, num_bins: int, cfg: AdaptiveConfig | BeyondMimicConfig | None, device: Any, method: str):
+    def __init__(self, num_bins: int, cfg: LookaheadConfigT | None, device: Any, method: str):
         super().__init__(num_bins, cfg, device=device, method=method)
         self.gamma = float(self.cfg.gamma)
         self.K = int(self.cfg.K)
@@ -159,7 +162,7 @@ class _LookaheadSampler(BinSampler):
 
 
 @register_sampler("adaptive", AdaptiveConfig)
-class AdaptiveSampler(_LookaheadSampler):
+class AdaptiveSampler(_LookaheadSampler[AdaptiveConfig]):
     """The design: EMA of per-bin failure rates, look-ahead kernel, uniform mixture (see module doc);
     its parameters and their defaults (the design's): :class:`AdaptiveConfig`."""
 
@@ -201,7 +204,7 @@ class AdaptiveSampler(_LookaheadSampler):
 
 
 @register_sampler("beyondmimic", BeyondMimicConfig)
-class BeyondMimicSampler(_LookaheadSampler):
+class BeyondMimicSampler(_LookaheadSampler[BeyondMimicConfig]):
     """Released-code form: EMA of failure counts plus uniform_ratio/S, look-ahead kernel (see module doc);
     its parameters and their defaults (the released code's, HybridRobotics/whole_body_tracking
     ``MotionCommandCfg``): :class:`BeyondMimicConfig`."""
@@ -238,7 +241,7 @@ class BeyondMimicSampler(_LookaheadSampler):
 
 
 @register_sampler("low_return", LowReturnConfig)
-class LowReturnSampler(BinSampler):
+class LowReturnSampler(BinSampler[LowReturnConfig]):
     """Softmax over the negated EMA of each bin's mean episode return, with a uniform share (module doc)."""
 
     signals = (EPISODE_RETURNS,)

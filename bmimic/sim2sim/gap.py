@@ -8,6 +8,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from bmimic.run_folder import (
     EVAL_DIR,
@@ -18,6 +19,9 @@ from bmimic.run_folder import (
     table_path,
 )
 from bmimic.run_schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION, MPKPE_REL_MM
+
+if TYPE_CHECKING:
+    import pandas as pd
 from bmimic.sim2sim.spec import Sim2SimError
 
 log = logging.getLogger("bmimic.sim2sim")
@@ -34,7 +38,7 @@ class WarpEval:
 
     source: str
     """Where it was read."""
-    bins: object
+    bins: pd.DataFrame
     """pandas DataFrame: bin, visits, failures, success_rate (1 - failures / visits), mpkpe_rel_mm, and
     where the table has them start_episodes and eval_steps."""
     success_rate: float
@@ -118,7 +122,7 @@ def eval_settings(run_dir: Path | None, warp: WarpEval | None, episodes_per_bin:
     config = _run_eval_config(run_dir)  # a null max_mpkpe_rel_mm is a setting ("not set"), other nulls are not
     known |= {k: config[k] for k in SETTINGS if k in config and (config[k] is not None or k == "max_mpkpe_rel_mm")}
     known |= warp.settings if warp is not None else {}
-    out = {k: given[k] if given[k] is not None else known[k] for k in SETTINGS}
+    out: dict[str, Any] = {k: given[k] if given[k] is not None else known[k] for k in SETTINGS}
     def positive(x) -> bool:
         return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import os
 import re
-from typing import cast
 from pathlib import Path
+from typing import cast
 
 from bmimic.run_folder import HYDRA_DIR
 from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, first_line, policy_error

@@ -23,7 +23,7 @@ but from numpy's generator, so the same seed does not give the same numbers as o
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -96,7 +96,8 @@ def perturbations_from_env(env: dict, spec: PolicySpec, source: str) -> Perturba
             continue
         func, mode, params = str(term.get("func")), term.get("mode", "startup"), term.get("params") or {}
         if func == PUSH_EVENT and mode in ("interval", "reset"):
-            interval = tuple(float(x) for x in term["interval_range_s"]) if mode == "interval" else None
+            interval = cast(tuple[float, float], tuple(float(x) for x in term["interval_range_s"])) \
+                if mode == "interval" else None
             out.pushes.append(Push(name, np.asarray(params["lin_vel_mps"], dtype=float),
                                    np.asarray(params["ang_vel_radps"], dtype=float), interval))
         elif func == "randomize_foot_friction" and mode == "startup":
@@ -159,6 +160,7 @@ class Draw:
         rollout.obs_noise, rollout.rng = (p.obs_noise, self.rng) if p.obs_noise.any() else (None, None)
 
     def _draw_interval(self, push: Push) -> float:
+        assert push.interval_range_s is not None, "only an interval push draws its next time"
         lo, hi = push.interval_range_s
         return lo + (hi - lo) * self.rng.random()
 

@@ -148,7 +148,7 @@ class Rollout:
         for fn, term in zip(self._obs_fns, self.spec.obs_terms):
             self._obs[0, i:i + term.dim] = fn(s)
             i += term.dim
-        if self.obs_noise is not None:
+        if self.obs_noise is not None and self.rng is not None:  # both set together (perturb.apply)
             self._obs[0] += (2.0 * self.rng.random(self.spec.obs_dim) - 1.0) * self.obs_noise
         return self._obs
 

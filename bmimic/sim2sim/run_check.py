@@ -38,10 +38,10 @@ def differences(spec: PolicySpec, run_dir: Path) -> list[str]:
                        f"{len(ours)} ending at {ours[-1][2] if ours else 0} s)")
     config = read_resolved_config(run_dir) or {}
     sim, sampler = config.get("sim") or {}, config.get("sampler") or {}
-    for name, ours, theirs in (("sim.timestep_s", sim.get("timestep_s"), spec.physics_dt_s),
-                               ("sim.decimation", sim.get("decimation"), spec.decimation)):
-        if ours is not None and not _close(ours, theirs):
-            out.append(f"{name} ({theirs:g}, the run's {ours})")
+    for name, mine, given in (("sim.timestep_s", sim.get("timestep_s"), spec.physics_dt_s),
+                             ("sim.decimation", sim.get("decimation"), spec.decimation)):
+        if mine is not None and not _close(mine, given):
+            out.append(f"{name} ({given:g}, the run's {mine})")
     if sampler.get("bins") is not None and str(sampler.get("bins")) != spec.bin_layout:
         out.append(f"sampler.bins ({spec.bin_layout}, the run's {sampler.get('bins')})")
     elif spec.bin_layout == "time" and sampler.get("bin_size_seconds") is not None and not _close(

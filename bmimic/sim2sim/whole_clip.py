@@ -26,7 +26,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Sequence, cast
 
 import numpy as np
 import pandas as pd
@@ -87,10 +87,10 @@ def run_config_section(run_dir: Path | None, key: str) -> tuple[dict | None, str
     composed = run_dir / HYDRA_DIR / "config.yaml"
     if not composed.is_file():
         return None, ""
-    from omegaconf import OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
     try:
-        section = OmegaConf.to_container(OmegaConf.load(composed)[key], resolve=True)
+        section = OmegaConf.to_container(cast(DictConfig, OmegaConf.load(composed))[key], resolve=True)
     except Exception as e:  # omegaconf raises many types; all mean the same to the user
         raise Sim2SimError(f"{composed}: its {key} config is unreadable: {first_line(e)}") from None
     return (section, f"{composed} ({key})") if isinstance(section, dict) else (None, "")
@@ -118,7 +118,7 @@ def robust_perturbations(run_dir: Path | None, spec: PolicySpec) -> Perturbation
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("train")
-    return perturbations_from_env(OmegaConf.to_container(cfg.env, resolve=True), spec,
+    return perturbations_from_env(cast(dict, OmegaConf.to_container(cfg.env, resolve=True)), spec,
                                   "bmimic's default env config (no run config found)")
 
 

@@ -61,9 +61,9 @@ def check_visible_devices(environ: Mapping[str, str] | None = None) -> None:
 
 def visible_gpus(environ: dict[str, str] | None = None) -> list[str]:
     """GPUs this process may use, without initialising CUDA: CUDA_VISIBLE_DEVICES, else nvidia-smi."""
-    environ = os.environ if environ is None else environ
-    if "CUDA_VISIBLE_DEVICES" in environ:
-        return parse_visible_devices(environ["CUDA_VISIBLE_DEVICES"])
+    env = os.environ if environ is None else environ
+    if "CUDA_VISIBLE_DEVICES" in env:
+        return parse_visible_devices(env["CUDA_VISIBLE_DEVICES"])
     try:
         out = subprocess.run(["nvidia-smi", "--query-gpu=index", "--format=csv,noheader"],
                              capture_output=True, text=True, timeout=30, check=True)

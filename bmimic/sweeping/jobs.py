@@ -11,7 +11,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -148,9 +148,9 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
             state = status.get("status")
             if state == "running" and not lock_held(run_dir):
                 state = "dead"  # its status says running, but no process holds its lock: killed
-            task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+            task = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
             differs = recorded_differences(run_dir, task) if state != "missing" else {}
-            jobs.append(Job(num, tuple(job_overrides), run_dir, "new" if state == "missing" else state,
+            jobs.append(Job(num, tuple(job_overrides), run_dir, "new" if state == "missing" else cast(str, state),
                             status.get(ITERATION), task, differs))
     finally:
         if saved is not None:
@@ -174,7 +174,7 @@ def check_job(cfg: DictConfig) -> None:
     from bmimic.config_checks import check_composed, validate
 
     check_composed(cfg, cfg.hydra.runtime.choices)
-    task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    task = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
     device = str(task.device) if str(task.device).startswith("cuda") else "cpu"
     resolve_runtime(task, device)
     validate(task, composed_checked=True)
@@ -198,10 +198,10 @@ def recorded_differences(run_dir: Path, task: DictConfig, device: str | None = N
         resolved = copy.deepcopy(task)
         kind = device or ("cuda" if str(recorded.get("device", "")).startswith("cuda") else "cpu")
         resolve_runtime(resolved, kind)
-        new = OmegaConf.to_container(resolved, resolve=True)
+        new = cast(dict, OmegaConf.to_container(resolved, resolve=True))
     else:
         recorded = read_hydra_config(run_dir)
-        new = OmegaConf.to_container(task, resolve=False)
+        new = cast(dict, OmegaConf.to_container(task, resolve=False))
     return job_differences(recorded, new)
 
 
@@ -324,7 +324,7 @@ def done_run_differences(cfg: DictConfig, run_dir: Path) -> str | bool:
     from bmimic.runtime import resolve_device
     from bmimic.training.resume import RESUME_FREE_KEYS, key_allowed, resume_request
 
-    task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    task = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
     differs = recorded_differences(run_dir, task, resolve_device(cfg.device))
     if not differs:
         return False

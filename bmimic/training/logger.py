@@ -14,6 +14,7 @@ import math
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from bmimic.extras import require_extra
 from bmimic.run_folder import TENSORBOARD_DIR
@@ -65,7 +66,7 @@ class RunLogger:
         self.progress_bar = progress_bar and enabled and sys.stderr.isatty()  # tqdm redraws a terminal line
         self._line_every, self._end_it = 10, 0
         self.enabled = enabled
-        self.writer = None
+        self.writer: Any = None
         self._opened = False
         self._bar = None
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from itertools import chain
+from typing import Any
 
 import torch
 import torch.nn as nn
@@ -35,6 +36,8 @@ from rsl_rl.algorithms import PPO
 
 class GraphPPO(PPO):
     """rsl-rl's PPO whose update never waits for the GPU; CUDA-graph replay with `cuda_graphs`."""
+
+    optimizer: torch.optim.Optimizer
 
     def __init__(self, *args, cuda_graphs: bool = False, **kwargs) -> None:
         super().__init__(*args, **kwargs)
@@ -52,13 +55,13 @@ class GraphPPO(PPO):
         self.optimizer.param_groups[0]["lr"] = self._lr
         self.cuda_graphs = bool(cuda_graphs) and on_gpu
         self._loss_sums = torch.zeros(3, device=self.device)
-        self._adv = None  # flat advantages: compute_returns rebinds the storage's tensor each iteration
-        self._perm = None
+        self._adv: Any = None  # flat advantages: compute_returns rebinds the storage's tensor each iteration
+        self._perm: Any = None
         self._updates_done = 0
         self._update_graphs: list[torch.cuda.CUDAGraph] | None = None
-        self._act_graph = None
+        self._act_graph: tuple | None = None
         self._act_calls = 0
-        self._stream = None
+        self._stream: Any = None
         self._grad_flat: torch.Tensor | None = None  # the gradient all-reduce's buffer (torchrun)
 
     # ------------------------------------------------------------------ learning rate on the device

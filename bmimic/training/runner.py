@@ -19,7 +19,7 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from rsl_rl.runners import OnPolicyRunner
@@ -42,6 +42,9 @@ from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
 from bmimic.training.run_state import Progress
 from bmimic.training.schedule import Schedule, WholeClipSchedule
+
+if TYPE_CHECKING:
+    from bmimic.training.whole_clip import WholeClipEvaluation
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +103,7 @@ class Trainer:
         self.health = Health(env.num_envs * self.ppo_cfg.num_steps_per_env)
         self.schedule = Schedule(cfg.eval.every_iters, self.ppo_cfg.save_interval)
         w = cfg.eval.whole_clip
-        self.whole_clip = None
+        self.whole_clip: WholeClipEvaluation | None = None
         """The whole-clip evaluation (bmimic.training.whole_clip.WholeClipEvaluation; rank 0, when configured)."""
         self.whole_clip_schedule = WholeClipSchedule(w.every_iters, w.max_share, w.after_success)
         self.last_whole_clip: tuple[int, dict] | None = None
@@ -153,9 +156,11 @@ class Trainer:
 
     def evaluate_whole_clip(self) -> dict:
         """Evaluate whole clips with the current policy (whole_clip*.parquet rows, logged); returns the summary."""
+        whole_clip = self.whole_clip
+        assert whole_clip is not None, "no whole-clip evaluation is configured"
         t0 = time.perf_counter()
         with eval_mode(self.alg.get_policy()) as policy:
-            result = self.whole_clip.evaluate(policy)
+            result = whole_clip.evaluate(policy)
         p = self.progress
         keys = {ITERATION: p.iteration, ENV_STEPS: p.env_steps}
         self.record.append("whole_clip", result.clips.assign(**keys, **{WALL_TIME_S: p.wall_time_s})[
@@ -169,7 +174,7 @@ class Trainer:
         self.logger.whole_clip(p.iteration, result.summary)
         log.info("whole clips at iteration %d (%.0f s): %s", p.iteration, self._whole_clip_s, ", ".join(
             f"{c} {result.summary[whole_clip_key(c, 'completed')]}/{result.summary[whole_clip_key(c, 'rollouts')]}"
-            for c in self.whole_clip.conditions))
+            for c in whole_clip.conditions))
         return result.summary
 
     def _whole_clip_due(self, summary: dict) -> bool:

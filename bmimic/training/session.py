@@ -14,6 +14,7 @@ import json
 import logging
 import os
 from pathlib import Path
+from typing import Any, TextIO
 
 from bmimic.run_claim import RunClaim
 from bmimic.run_claim import current as current_claim
@@ -56,7 +57,7 @@ class RunContext:
         """The config as composed, unresolved (its interpolations get their values in hydra_record)."""
         self.claim: RunClaim | None = current_claim(launch_dir)
         """What the launch found and created at launch_dir (bmimic.run_claim; None for a sweep job)."""
-        self._locks: dict[Path, object] = {}
+        self._locks: dict[Path, TextIO] = {}
 
     def holds(self, run_dir: Path) -> bool:
         """This launch holds the lock of `run_dir`."""
@@ -90,7 +91,7 @@ def commit(ctx: RunContext, plan: RunPlan, resolved: dict, device: str, changes:
         move_file_logs(ctx.launch_dir, run_dir, ctx.claim)  # a resumed run logs into its own folder
         ctx.discard()  # no empty timestamped folder is left behind
     ctx.run_dir = run_dir
-    entry = {"checkpoint": str(plan.checkpoint), ITERATION: int((plan.state or {}).get("iter", 0)),
+    entry: dict[str, Any] = {"checkpoint": str(plan.checkpoint), ITERATION: int((plan.state or {}).get("iter", 0)),
              "changes": {k: list(v) for k, v in changes.items()}, "note": plan.note or None}
     note_previous_attempt(run_dir, read_status(run_dir))  # a sweep job's killed or failed attempt
     if plan.continues:
@@ -182,7 +183,7 @@ def move_file_logs(src_dir: Path, dst_dir: Path, claim: RunClaim | None = None) 
                 earlier = ""
         else:
             earlier = ""
-        if earlier:
+        if earlier and new.stream is not None:
             new.stream.write(earlier)
             new.flush()
         root.addHandler(new)

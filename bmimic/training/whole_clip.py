@@ -102,10 +102,10 @@ def clip_tables(episodes: pd.DataFrame, condition: str, layout, step_dt: float, 
                     tracking_failures=per_clip(failed & ~terminated & ~broken), broken=per_clip(failed & broken),
                     evaluation_s=float(evaluation_s))
         done_steps = np.bincount(clip, weights=np.where(completed, steps, 0.0), minlength=len(starts))
-        for c in measured:
-            sums = np.bincount(clip, weights=np.where(completed, episodes[c].to_numpy(float) * steps, 0.0),
+        for col in measured:
+            sums = np.bincount(clip, weights=np.where(completed, episodes[col].to_numpy(float) * steps, 0.0),
                                minlength=len(starts))
-            rows[c] = sums / np.where(done_steps > 0, done_steps, np.nan)
+            rows[col] = sums / np.where(done_steps > 0, done_steps, np.nan)
     clips = pd.DataFrame(rows, columns=[*WHOLE_CLIP_COLUMNS, *measured])
 
     survival = []

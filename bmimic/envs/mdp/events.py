@@ -74,12 +74,12 @@ def randomize_foot_friction(env, envs: torch.Tensor, friction_range: Sequence[fl
     if not feet:
         ee = set(int(i) for i in env.robot.end_effector_body_ids)
         feet = [g for g in range(mjm.ngeom) if int(mjm.geom_bodyid[g]) in ee and mjm.geom_contype[g]]
-    feet = torch.as_tensor(feet, dtype=torch.long, device=env.device)
+    ids = torch.as_tensor(feet, dtype=torch.long, device=env.device)
     n = env.num_envs
     lo, hi = friction_range
     mu = lo + (hi - lo) * torch.rand(n, 1, device=env.device)
     friction = env.sim.geom_friction
-    friction[:, feet, 0] = torch.where(envs[:, None], mu.expand(n, len(feet)), friction[:, feet, 0])
+    friction[:, ids, 0] = torch.where(envs[:, None], mu.expand(n, len(ids)), friction[:, ids, 0])
 
 
 @event(modes=("startup",), model_fields=("body_ipos",), check=_check_com)

@@ -268,7 +268,7 @@ def build_g1_spec(cfg: RobotConfig) -> mujoco.MjSpec:
         if link.joint is None:
             body.add_freejoint(name="floating_base_joint")
         else:
-            body.add_joint(name=link.joint, type=mujoco.mjtJoint.mjJNT_HINGE, axis=_AXES[link.axis],
+            body.add_joint(name=link.joint, type=mujoco.mjtJoint.mjJNT_HINGE, axis=_AXES[str(link.axis)],
                            range=link.range, limited=mujoco.mjtLimited.mjLIMITED_TRUE)
         bodies[link.name] = body
 
