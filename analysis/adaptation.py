@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from bmimic.run_schema import BIN, ITERATION
+from bmimic.runs.schema import BIN, ITERATION
 
 FLAT_TOLERANCE = 1e-9
 """Relative spread below which a signal counts as equal in every bin."""

@@ -25,7 +25,7 @@ from analysis.metrics import (
 )
 from analysis.stats import MIN_SEEDS_IQM, curve_intervals, seed_interval
 from analysis.tables import SPEEDUP_COLUMNS, ReportOptions, per_seed_text, use_bootstrap
-from bmimic.run_schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
+from bmimic.runs.schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
 
 
 def run_times(overall: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:

@@ -17,7 +17,7 @@ from analysis.markdown import estimate_cell
 from analysis.metrics import at_budget, start_failure
 from analysis.stats import seed_interval
 from analysis.tables import ReportOptions, use_bootstrap
-from bmimic.run_schema import BIN, FAILURE_RATE, ITERATION
+from bmimic.runs.schema import BIN, FAILURE_RATE, ITERATION
 
 FAILURE_HEADER = "final failure (failed / started episodes, by start clip)"
 MASS_HEADER = "sampling probability mass (mean over training)"

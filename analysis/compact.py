@@ -13,9 +13,9 @@ studies allowed more, each with its reason. tests/test_results_size.py holds eve
 docs/results to its budget.
 """
 
-from bmimic.startup import leave_working_directory
+from bmimic.cli.startup import leave_working_directory
 
-leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.startup); no MuJoCo here
 
 import argparse
 import io
@@ -27,8 +27,8 @@ import pyarrow.parquet as pq
 
 from analysis import AnalysisError
 from analysis.run_files import REPORT_COLUMNS, find_run_dirs
-from bmimic.atomic_io import atomic_write_bytes
-from bmimic.run_folder import table_path
+from bmimic.runs.atomic_io import atomic_write_bytes
+from bmimic.runs.folder import table_path
 
 STUDY_BUDGET_MB = 10.0
 """Largest size of one study's folder under docs/results (runs, report.md, figures; not the report's CSVs,

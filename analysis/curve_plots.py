@@ -8,7 +8,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from analysis.plots import IntegerTicks, _axes, _marker, arm_colors, plot_learning_curve
-from bmimic.run_schema import CLIP_TIME_S, CONDITION, ITERATION
+from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION
 
 CURVE_MARKERS = {"estimate": "o", "lower_bound": "^", "upper_bound": "v"}
 """Marker of each speedup status on the curve figures (not estimable: not drawn)."""

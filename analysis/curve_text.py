@@ -8,7 +8,7 @@ import pandas as pd
 
 from analysis.markdown import fmt, is_nan, mastery_speedup_line, md_table, p_text, plural, speedup_phrase
 from analysis.tables import ReportOptions
-from bmimic.run_schema import ENV_STEPS, ITERATION, WALL_TIME_S
+from bmimic.runs.schema import ENV_STEPS, ITERATION, WALL_TIME_S
 
 
 def threshold_ranges(values, grid) -> str:

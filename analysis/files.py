@@ -1,4 +1,4 @@
-"""Atomic writes of report artefacts, through bmimic's one atomic writer (bmimic.run_folder.atomic_write):
+"""Atomic writes of report artefacts, through bmimic's one atomic writer (bmimic.runs.folder.atomic_write):
 a temp file beside the target, fsynced, then renamed over it, with the umask's permissions.
 
 A reader (or a second writer) never sees a half-written file; of two concurrent writers the last
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bmimic.run_folder import atomic_write as _atomic_write
+from bmimic.runs.folder import atomic_write as _atomic_write
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], object]) -> Path:

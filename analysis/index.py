@@ -7,9 +7,9 @@ lock while it reads the folders and writes a unique temp file that os.replace mo
 the file is always complete and the last rebuild saw every status written before it started.
 """
 
-from bmimic.startup import leave_working_directory
+from bmimic.cli.startup import leave_working_directory
 
-leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.startup); no MuJoCo here
 
 import contextlib
 import fcntl
@@ -27,8 +27,8 @@ from analysis import AnalysisError
 from analysis.files import write_csv
 from analysis.load import load_runs
 from analysis.run_files import find_run_dirs
-from bmimic.cli_common import path_arg
-from bmimic.run_folder import (
+from bmimic.cli.common import path_arg
+from bmimic.runs.folder import (
     MULTIRUN_RECORD,
     SWEEP_INDEX,
     is_run_folder,
@@ -38,7 +38,7 @@ from bmimic.run_folder import (
     read_provenance,
     read_resolved_config,
 )
-from bmimic.run_schema import ENV_STEPS, WALL_TIME_S
+from bmimic.runs.schema import ENV_STEPS, WALL_TIME_S
 
 log = logging.getLogger("analysis.index")
 

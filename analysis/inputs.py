@@ -11,8 +11,8 @@ from pathlib import Path
 
 from analysis import AnalysisError
 from analysis.run_files import NEEDED_TABLES, config_value
-from bmimic.run_folder import table_path
-from bmimic.run_schema import ITERATION
+from bmimic.runs.folder import table_path
+from bmimic.runs.schema import ITERATION
 
 BIN_KEYS = ("sampler.bins", "sampler.bin_size_seconds")
 """Config keys that define a run's time bins (with its motion)."""

@@ -21,7 +21,7 @@ from analysis.knobs import THRESHOLDS
 from analysis.markdown import fmt, md_table
 from analysis.speedup_curve import speedup_curve
 from analysis.tables import ReportOptions
-from bmimic.run_schema import BIN, FAILURE_RATE, ITERATION
+from bmimic.runs.schema import BIN, FAILURE_RATE, ITERATION
 
 
 def _file_key(knob: str) -> str:

@@ -35,7 +35,7 @@ from analysis.run_files import (
     table_problem,
 )
 from analysis.table_checks import check_table
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     EVAL_DIR,
     EVALUATION_TABLES,
     MOTION_SEGMENTS,
@@ -47,7 +47,7 @@ from bmimic.run_folder import (
     read_resolved_config,
     table_path,
 )
-from bmimic.run_schema import CONDITION, ENV_STEPS, ITERATION
+from bmimic.runs.schema import CONDITION, ENV_STEPS, ITERATION
 
 log = logging.getLogger("analysis")
 
@@ -257,7 +257,7 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
     many iterations: evaluation rows (``iteration`` = iterations done) up to it, training and sampler rows
     (``iteration`` = the iteration's 0-based index) below it.
 
-    ``name`` is a key of bmimic.run_folder.TABLES (schemas in docs/architecture.md). Runs without the file are skipped
+    ``name`` is a key of bmimic.runs.folder.TABLES (schemas in docs/architecture.md). Runs without the file are skipped
     (only possible for the optional tables); a file
     that is unreadable, lacks a needed column or breaks the run record's contract (analysis.table_checks:
     no rows, values out of range, bins the run does not have) raises AnalysisError naming it. With no rows, an

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from bmimic.run_folder import read_provenance
+from bmimic.runs.folder import read_provenance
 
 UNKNOWN = "unknown"
 

@@ -11,7 +11,7 @@ import pandas as pd
 from analysis import tables
 from analysis.stats import MIN_SEEDS_BOOTSTRAP, MIN_SEEDS_IQM
 from analysis.tables import ReportOptions
-from bmimic.run_schema import BIN, ENV_STEPS, HORIZON_TRUNCATED, ITERATION, WALL_TIME_S
+from bmimic.runs.schema import BIN, ENV_STEPS, HORIZON_TRUNCATED, ITERATION, WALL_TIME_S
 
 MEASURE_WORDS = {ITERATION: "iterations", ENV_STEPS: "env steps", WALL_TIME_S: "wall time (s)"}
 

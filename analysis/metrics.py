@@ -46,7 +46,7 @@ from analysis.stats import (
     km_median,
     restricted_km_median,
 )
-from bmimic.run_schema import (  # training's rule too
+from bmimic.runs.schema import (  # training's rule too
     BIN,
     ENV_STEPS,
     FAILURE_RATE,

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.ticker import MaxNLocator
 
-from bmimic.run_schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
+from bmimic.runs.schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
 
 FIGSIZE = (6.0, 3.6)
 """Default size of a single-panel figure in inches (about 600x360 px at the report's 100 dpi)."""

@@ -21,9 +21,9 @@ is only comparable between races on the same card kind under the same load; the 
 GPU count when more than one) is part of every label for that reason.
 """
 
-from bmimic.startup import leave_working_directory
+from bmimic.cli.startup import leave_working_directory
 
-leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.startup); no MuJoCo here
 
 import argparse
 import json
@@ -40,8 +40,8 @@ from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
 from analysis.plots import arm_colors
 from bmimic import BmimicError
-from bmimic.cli_common import path_arg
-from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
+from bmimic.cli.common import path_arg
+from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
 
 EVALUATION_KEYS = (ITERATION, ENV_STEPS, "wall_from_launch_s", SUCCESS_RATE, MPKPE_REL_MM)
 """Keys every evaluation record of a race JSON must have."""
@@ -273,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         written = write_race_curves(args.paths, args.out)
-    except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.atomic_io)
+    except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.runs.atomic_io)
         print(f"error: {str(e).strip().splitlines()[0]}", file=sys.stderr)
         return 2
     for path in written:

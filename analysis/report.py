@@ -12,9 +12,9 @@ Machine-readable outputs: ``summary.csv`` (tables.SUMMARY_COLUMNS), ``speedup.cs
 plus per-seed and per-bin tables beside them.
 """
 
-from bmimic.startup import leave_working_directory
+from bmimic.cli.startup import leave_working_directory
 
-leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.startup); no MuJoCo here
+leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.startup); no MuJoCo here
 
 import argparse
 import os
@@ -29,7 +29,7 @@ from analysis.report_files import write_files
 from analysis.report_views import body, header
 from analysis.tables import ReportOptions
 from bmimic import BmimicError
-from bmimic.cli_common import path_arg
+from bmimic.cli.common import path_arg
 
 
 def default_out(paths: list[Path]) -> Path:
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
                              success_threshold=args.success_threshold, baseline=args.baseline,
                              n_resamples=args.resamples, max_iteration=args.max_iteration)
         out = build_report(args.paths, args.out, opts, allow_mixed=args.allow_mixed)
-    except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.atomic_io)
+    except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.runs.atomic_io)
         print(f"error: {str(e).strip().splitlines()[0]}", file=sys.stderr)
         return 2
     print(f"report written to {out / 'report.md'}")

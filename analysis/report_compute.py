@@ -30,7 +30,7 @@ from analysis.plots import arm_colors
 from analysis.speedup_curve import iso_failure, speedup_curve
 from analysis.stats import bootstrap_coverage
 from analysis.tables import ReportOptions
-from bmimic.run_schema import BIN, ITERATION, WALL_TIME_S
+from bmimic.runs.schema import BIN, ITERATION, WALL_TIME_S
 
 
 def _portable_path(path):

@@ -14,7 +14,7 @@ from analysis.files import save_figure, write_csv
 from analysis.knob_report import write_knob_files
 from analysis.report_compute import ReportData
 from analysis.stats import MIN_SEEDS_IQM
-from bmimic.run_schema import FAILURE_RATE
+from bmimic.runs.schema import FAILURE_RATE
 
 
 def _sensitivity_figure(sens: pd.DataFrame, key: str, reference: dict, per_run: dict) -> Figure:

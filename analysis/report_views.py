@@ -26,7 +26,7 @@ from analysis.markdown import (
 from analysis.metrics import SMOOTHNESS_METRICS
 from analysis.report_compute import ReportData, Runs
 from analysis.stats import MIN_SEEDS_IQM
-from bmimic.run_schema import JOINT_VEL_ERR_RADPS, MPKPE_REL_MM
+from bmimic.runs.schema import JOINT_VEL_ERR_RADPS, MPKPE_REL_MM
 
 TRACKING_HEADLINE = (MPKPE_REL_MM, JOINT_VEL_ERR_RADPS)
 """Tracking errors the Tracking quality section compares between arms in words (position and velocity

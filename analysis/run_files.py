@@ -1,4 +1,4 @@
-"""One run folder's files, read through bmimic.run_folder (the owner of the layout, torch-free):
+"""One run folder's files, read through bmimic.runs.folder (the owner of the layout, torch-free):
 finding run folders, their JSON and Hydra records, and whether a table can be used.
 """
 
@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import yaml
 
 from analysis import AnalysisError
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     CHECKPOINTS_DIR,
     HYDRA_DIR,
     RESOLVED_CONFIG,
@@ -20,7 +20,7 @@ from bmimic.run_folder import (
     load_json,
     table_path,
 )
-from bmimic.run_schema import (
+from bmimic.runs.schema import (
     BIN_COLUMNS,
     CLIP_TIME_S,
     CONDITION,

@@ -31,7 +31,7 @@ import pandas as pd
 from analysis.metrics import event_times, speedup, time_to_threshold
 from analysis.stats import point, smallest_pvalue
 from analysis.tables import ReportOptions, use_bootstrap
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION
+from bmimic.runs.schema import ENV_STEPS, FAILURE_RATE, ITERATION
 
 THRESHOLDS = tuple(p / 100 for p in (*range(50, 80, 5), *range(80, 100)))
 """Success thresholds of the speedup curve: 0.50 to 0.80 in steps of 0.05, then to 0.99 in steps of 0.01."""

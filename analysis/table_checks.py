@@ -1,4 +1,4 @@
-"""A run table checked on load against the run record's contract (bmimic.run_schema) and the run's own
+"""A run table checked on load against the run record's contract (bmimic.runs.schema) and the run's own
 motion (motion_segments.json, metrics.json): a damaged or hand-edited table (a failure rate of 5.0, a
 bin the motion does not have, no rows, a needed column without a single number, an iteration that is
 not a count) is one AnalysisError naming the file and the column, never a report computed from it.
@@ -15,8 +15,8 @@ import numpy as np
 import pandas as pd
 
 from analysis import AnalysisError
-from bmimic.run_folder import METRICS, MOTION_SEGMENTS, read_json
-from bmimic.run_schema import (
+from bmimic.runs.folder import METRICS, MOTION_SEGMENTS, read_json
+from bmimic.runs.schema import (
     BIN,
     BIN_COLUMNS,
     CONDITION,

@@ -29,7 +29,7 @@ from analysis.stats import (
     iqm,
     seed_interval,
 )
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION, MPKPE_REL_MM, WALL_TIME_S, summary_key
+from bmimic.runs.schema import ENV_STEPS, FAILURE_RATE, ITERATION, MPKPE_REL_MM, WALL_TIME_S, summary_key
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import pandas as pd
 from analysis.load import load_table
 from analysis.markdown import fmt, md_table, row_cell
 from analysis.tables import ReportOptions, learning_curves, summary_rows, use_bootstrap
-from bmimic.run_schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
+from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
 
 COUNTS = ["rollouts", "completed", "transient_failures", "later_failures"]
 TRACKED_S = "tracked_s"

@@ -1,7 +1,7 @@
 """bmimic: Hydra-configured ablations of adaptive motion sampling for BeyondMimic-style tracking.
 
 Importing it changes nothing (sys.path, the process, MuJoCo's GL backend): a command does what it
-needs first, in bmimic.startup. `python -m bmimic.<command>` imports this module before the command
+needs first, in bmimic.cli.startup. `python -m bmimic.<command>` imports this module before the command
 takes the working directory off sys.path, so it imports nothing a planted module could shadow.
 """
 

@@ -20,9 +20,9 @@ rank, the slowest rank's iteration time) and merges one row per env count into P
         --multigpu-json docs/bench/$(date +%F)_h200_multigpu.json; done
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import json
@@ -38,7 +38,7 @@ from typing import Any
 import torch
 
 from bmimic import BmimicError
-from bmimic.cli_common import path_arg
+from bmimic.cli.common import path_arg
 
 
 def _sync(device: str) -> None:
@@ -82,7 +82,7 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
     import bmimic.config  # noqa: F401
     from bmimic import CONF_DIR
     from bmimic.config import resolve_runtime
-    from bmimic.config_checks import validate
+    from bmimic.config.checks import validate
     from bmimic.runtime import seed_everything
     from bmimic.task import build_trainer, build_training
 
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
                         "into PATH (one row per GPU count and env count, scaling against the 1-GPU row)")
     args = p.parse_args(argv)
     from bmimic.bench_checks import checked_args
-    from bmimic.cli_common import first_line, user_errors
+    from bmimic.cli.common import first_line, user_errors
 
     try:
         if args.multigpu_json:  # a malformed file is one line, before the checks that start Warp
@@ -271,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(r), flush=True)
     print(format_table(results["runs"]))
     if args.json:
-        from bmimic.run_folder import atomic_write_json
+        from bmimic.runs.folder import atomic_write_json
 
         atomic_write_json(args.json, results)
     return 0
@@ -306,7 +306,7 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
     """Merge one measurement's rows into `path` (atomically) and return the file's rows: a row with
     the same gpus and num_envs_per_gpu is replaced, and every row's scaling is its env steps/s over
     the 1-GPU row's with the same num_envs_per_gpu (null until that row exists)."""
-    from bmimic.run_folder import atomic_write_json
+    from bmimic.runs.folder import atomic_write_json
 
     rows = {(r["gpus"], r["num_envs_per_gpu"]): r for r in read_multigpu_rows(path)}
     for r in new_rows:

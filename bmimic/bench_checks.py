@@ -22,9 +22,9 @@ def checked_args(args: argparse.Namespace, overrides: list[str]) -> tuple[list[i
 
     import bmimic.config  # noqa: F401  (the config schemas)
     from bmimic import CONF_DIR
-    from bmimic.cli_common import check_output_file, first_line
+    from bmimic.cli.common import check_output_file, first_line
     from bmimic.config import check_overrides, resolve_runtime
-    from bmimic.config_checks import check_composed, validate
+    from bmimic.config.checks import check_composed, validate
     from bmimic.robot import load_mjmodel
     from bmimic.runtime import resolve_device, torchrun_env
     from bmimic.task import check_networks_fit, check_num_envs_fit

@@ -43,9 +43,9 @@ Bad input (missing folder, no checkpoint, a checkpoint that does not match the r
 `error: ...` line and exits with status 2, writing nothing.
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import logging
@@ -55,8 +55,8 @@ from pathlib import Path
 from typing import Sequence
 
 from bmimic import BmimicError
-from bmimic.cli_common import add_trust_flag, first_line, path_arg, user_errors
-from bmimic.console import quiet_warp
+from bmimic.cli.common import add_trust_flag, first_line, path_arg, user_errors
+from bmimic.cli.console import quiet_warp
 from bmimic.evaluation.report import format_report
 from bmimic.evaluation.saved_run import (
     LoadedRun,
@@ -67,8 +67,8 @@ from bmimic.evaluation.saved_run import (
 )
 from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table, write_tables
 from bmimic.evaluation.whole_clip import evaluate_whole_clip, format_whole_clip, write_whole_clip_tables
-from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR, WHOLE_CLIP_DIR
-from bmimic.run_schema import HORIZON_TRUNCATED, WHOLE_CLIP_CONDITIONS
+from bmimic.runs.folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR, WHOLE_CLIP_DIR
+from bmimic.runs.schema import HORIZON_TRUNCATED, WHOLE_CLIP_CONDITIONS
 
 log = logging.getLogger("bmimic.eval")
 

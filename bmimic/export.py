@@ -11,9 +11,9 @@ The run's config is reloaded as `bmimic.eval` does, and a one-world evaluation e
 supplies the robot, motion and observation layout. Bad input prints one `error: ...` line (status 2).
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import logging
@@ -21,8 +21,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from bmimic.cli_common import add_trust_flag, first_line, path_arg, user_errors
-from bmimic.run_folder import checkpoints_dir, make_folder
+from bmimic.cli.common import add_trust_flag, first_line, path_arg, user_errors
+from bmimic.runs.folder import checkpoints_dir, make_folder
 
 log = logging.getLogger("bmimic.export")
 
@@ -55,7 +55,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from bmimic.console import quiet_warp
+    from bmimic.cli.console import quiet_warp
 
     args = parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")

@@ -22,17 +22,17 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
-from bmimic.budget import check_cpu_budget, cpu_training_s, describe_sizes
-from bmimic.cli_common import first_line, shell_arg, user_errors
+from bmimic.cli.common import first_line, shell_arg, user_errors
+from bmimic.cli.console import quiet_stdout, quiet_warp, start_summary
 from bmimic.config import (
     interpolated_keys,
     recorded_config,
     resolve_runtime,
     with_schema_defaults,
 )
-from bmimic.config_checks import advisories, check_composed, check_evaluates, validate
-from bmimic.console import quiet_stdout, quiet_warp, start_summary
-from bmimic.run_folder import (
+from bmimic.config.budget import check_cpu_budget, cpu_training_s, describe_sizes
+from bmimic.config.checks import advisories, check_composed, check_evaluates, validate
+from bmimic.runs.folder import (
     TENSORBOARD_DIR,
     RunLockedError,
     read_metrics,
@@ -40,8 +40,8 @@ from bmimic.run_folder import (
     write_metrics,
     write_status,
 )
-from bmimic.run_record import metrics as run_metrics
-from bmimic.run_schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
+from bmimic.runs.record import metrics as run_metrics
+from bmimic.runs.schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
 from bmimic.runtime import init_distributed, process_rank, resolve_device, seed_everything, torchrun_env
 from bmimic.sweeping.jobs import done_run_differences
 from bmimic.sweeping.outcomes import record_job_outcome

@@ -8,20 +8,20 @@ The dry run expands a multirun exactly as `python -m bmimic.train -m <same overr
 already done. It keeps torch and the simulator out of its imports.
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import sys
 from typing import Sequence
 
-from bmimic.deferred import defer
+from bmimic.cli.deferred import defer
 from bmimic.sweeping.jobs import SweepListError, available_studies, check_job_runs, format_jobs, list_jobs
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    if argv is None:  # this process is the command: nothing else will need them (bmimic.deferred)
+    if argv is None:  # this process is the command: nothing else will need them (bmimic.cli.deferred)
         # The config checks import the env terms and sampler classes, whose modules import torch (and
         # mujoco) at their top, for their signatures and checks alone.
         for name in ("torch", "mujoco"):
@@ -39,8 +39,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from omegaconf.errors import OmegaConfBaseException
 
     from bmimic import BmimicError
+    from bmimic.cli.extras import check_launcher
     from bmimic.config import check_additions, override_error
-    from bmimic.extras import check_launcher
 
     try:
         check_launcher(args.overrides)

@@ -2,14 +2,14 @@
 creates or writes anything.
 
 - A single run (`on_run_start`): the folder names are plain names, the run folder is claimed
-  (bmimic.run_claim: a fresh folder per launch, a pinned folder holding a run refused without
+  (bmimic.runs.claim: a fresh folder per launch, a pinned folder holding a run refused without
   resume), and a study's sweep parameters given without `-m` are said to be ignored.
 - A multirun (`on_multirun_start`): `sweep_name` is a plain name (the sweep folder stays under
   outputs/sweeps/), and every job is expanded, composed and checked as `python -m bmimic.launch list`
   does (bmimic.sweeping.jobs.check_jobs): a job that would be refused, or two jobs that map to one
   folder, stop the sweep before any job runs; so does a job folder that holds a run trained with
   other settings (a smoke run's budget: bmimic.sweeping.jobs.check_job_runs), and a sweep whose jobs
-  would train longer on this CPU than max_cpu_hours (bmimic.budget).
+  would train longer on this CPU than max_cpu_hours (bmimic.config.budget).
 - Both: a CUDA_VISIBLE_DEVICES that names a GPU twice (CUDA then sees none) is refused first.
 
 A refusal is one `error:` line and exit status 2; nothing has been written.
@@ -29,14 +29,14 @@ from bmimic import BmimicError
 
 
 def _refuse(e: BaseException) -> None:
-    from bmimic.cli_common import first_line
+    from bmimic.cli.common import first_line
 
     print(f"error: {first_line(e)}", file=sys.stderr)
     sys.exit(2)
 
 
 def _folder_name(config: DictConfig, key: str) -> None:
-    from bmimic.run_folder import check_folder_name
+    from bmimic.runs.folder import check_folder_name
 
     try:
         value = config[key]
@@ -51,7 +51,7 @@ class LaunchGuard(Callback):
     """Checks and claims before Hydra writes (module doc)."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from bmimic.run_claim import claim, observe
+        from bmimic.runs.claim import claim, observe
         from bmimic.runtime import process_rank
         from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.training.resume import resume_request
@@ -89,8 +89,8 @@ class LaunchGuard(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from hydra.core.global_hydra import GlobalHydra
 
-        from bmimic.budget import check_sweep
-        from bmimic.extras import require_slurm
+        from bmimic.cli.extras import require_slurm
+        from bmimic.config.budget import check_sweep
         from bmimic.sweeping.gpu_slots import check_visible_devices
         from bmimic.sweeping.jobs import check_job_runs, check_jobs, expand_jobs
 

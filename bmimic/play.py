@@ -15,9 +15,9 @@ or .gif when imageio/imageio-ffmpeg are not installed. Exit status 2 with a one-
 on bad input or when no OpenGL backend is available.
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import logging
@@ -28,8 +28,8 @@ from typing import Sequence
 
 import numpy as np
 
-from bmimic.cli_common import add_trust_flag, first_line, path_arg, user_errors
-from bmimic.run_folder import VIDEOS_DIR
+from bmimic.cli.common import add_trust_flag, first_line, path_arg, user_errors
+from bmimic.runs.folder import VIDEOS_DIR
 
 log = logging.getLogger("bmimic.play")
 
@@ -124,7 +124,7 @@ def check_video_fits(seconds: float, fps: float, width: int, height: int) -> Non
 
 def play(args: argparse.Namespace) -> Path:
     """Build the run's single-world eval environment and policy, render, write the video."""
-    from bmimic.cli_common import check_output_file
+    from bmimic.cli.common import check_output_file
     from bmimic.evaluation.saved_run import checkpoint_label, load_run, load_run_checkpoint
     from bmimic.render import RenderError, TrackingRenderer, video_path, write_video
     from bmimic.task import build_evaluator
@@ -175,7 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}", file=sys.stderr)
         return 2
 
-    from bmimic.console import quiet_warp
+    from bmimic.cli.console import quiet_warp
 
     quiet_warp()
     try:

@@ -44,9 +44,9 @@ duration), stay within 10% of the wall time since the first iteration: beside th
 one every 15 minutes of racing, so whole-clip times are that coarse (docs/benchmarks.md).
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import math
@@ -54,8 +54,8 @@ import sys
 from pathlib import Path
 
 from bmimic import BmimicError
-from bmimic.cli_common import check_output_file, first_line, path_arg
-from bmimic.race_record import LAUNCH_UNIX_S, WHOLE_CLIP_METRIC, Race, Threshold
+from bmimic.cli.common import check_output_file, first_line, path_arg
+from bmimic.runs.race_record import LAUNCH_UNIX_S, WHOLE_CLIP_METRIC, Race, Threshold
 from bmimic.runtime import (
     exit_rank,
     gather_floats,
@@ -205,7 +205,7 @@ def _race(argv: list[str] | None) -> int:
 
     from bmimic import CONF_DIR
     from bmimic.job import launch
-    from bmimic.run_folder import PROVENANCE, RACE, atomic_write_json, read_json
+    from bmimic.runs.folder import PROVENANCE, RACE, atomic_write_json, read_json
 
     # An absolute config path: the app runs from this module whether started with -m or imported.
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")

@@ -213,7 +213,7 @@ def annotate(image: np.ndarray, lines: Sequence[str], alert: bool = False) -> np
 # --------------------------------------------------------------------------------------------- video
 def mp4_available() -> bool:
     """imageio with its ffmpeg plugin is installed."""
-    from bmimic.extras import missing_packages
+    from bmimic.cli.extras import missing_packages
 
     return not missing_packages("video")
 
@@ -224,7 +224,7 @@ def video_path(path: Path) -> Path:
     if suffix not in (".mp4", ".gif"):
         raise RenderError(f"--out {path}: the video must end in .mp4 or .gif")
     if suffix == ".mp4" and not mp4_available():
-        from bmimic.extras import install_command, missing_packages
+        from bmimic.cli.extras import install_command, missing_packages
 
         log.warning("MP4 needs the video extra (%s not installed): writing a GIF instead (%s); for MP4: %s",
                     ", ".join(missing_packages("video")), path.with_suffix(".gif").name, install_command("video"))
@@ -234,7 +234,7 @@ def video_path(path: Path) -> Path:
 
 def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float) -> Path:
     """Write frames ([H, W, 3] uint8) atomically as MP4 or GIF (by suffix, see `video_path`)."""
-    from bmimic.run_folder import atomic_write
+    from bmimic.runs.folder import atomic_write
 
     path = video_path(Path(path))
     if not frames:

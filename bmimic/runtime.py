@@ -3,7 +3,7 @@
 `resolve_device` turns `device=auto|cpu|cuda|cuda:N` into a torch device, `seed_everything` seeds
 python, numpy, torch and warp from one integer, `rng_state`/`set_rng_state` carry every stream in a
 checkpoint, `init_distributed` joins torchrun's process group, and `provenance` records what
-produced a run (bmimic.run_folder writes it to provenance.json).
+produced a run (bmimic.runs.folder writes it to provenance.json).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from bmimic import BmimicError
-from bmimic.run_folder import now
+from bmimic.runs.folder import now
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, cast
 
 from bmimic.config import ConfigError
-from bmimic.config_checks import check_motion_fit
+from bmimic.config.checks import check_motion_fit
 
 
 @dataclass

@@ -12,9 +12,9 @@ outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/. Returns the final evaluate
 (lower is better) so Hydra's optimising sweepers can use it.
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import sys
 
@@ -25,9 +25,9 @@ from omegaconf.errors import OmegaConfBaseException
 
 import bmimic.sweeping.gpu_slots  # noqa: F401  (registers the bmimic.gpu_slots resolver of the launchers)
 from bmimic import CONF_DIR
-from bmimic.cli_common import first_line, shell_arg
+from bmimic.cli.common import first_line, shell_arg
+from bmimic.cli.extras import MissingExtraError, check_launcher
 from bmimic.config import ConfigError, check_hydra_flags, check_overrides, config_loader
-from bmimic.extras import MissingExtraError, check_launcher
 
 
 # An absolute config path: the console script imports this module, for which Hydra would otherwise look for
@@ -64,13 +64,13 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
 
 
 def help_text(argv: list[str]) -> str | None:
-    """`--help`'s text (bmimic.cli_help) for a command line that asks for it, composed once; None for
+    """`--help`'s text (bmimic.cli.help_text) for a command line that asks for it, composed once; None for
     any other command line (and for --hydra-help or another config tree: Hydra's own). Hydra's own
     --help would compose the config again for every config group it lists (its template does not use
     them), several seconds on a small machine. ConfigError (one line) for overrides that do not compose."""
     from hydra._internal.utils import get_args_parser
 
-    from bmimic.cli_help import train_help
+    from bmimic.cli.help_text import train_help
     from bmimic.config import TrainConfig
 
     try:

@@ -6,17 +6,17 @@
 - bmimic.task is the one composition root: the only module that constructs the environment, the
   evaluator and the trainer;
 - entry points use public interfaces only (no `obj._private` of other modules' objects);
-- bmimic.run_folder and the analysis are torch-free (checked by importing them in a fresh process), and
+- bmimic.runs.folder and the analysis are torch-free (checked by importing them in a fresh process), and
   every bmimic module the analysis reaches (imports, lazy ones included) names no torch import;
-- no string literal spells a measured, progress or failure column of the run schema (bmimic.run_schema)
+- no string literal spells a measured, progress or failure column of the run schema (bmimic.runs.schema)
   outside it, and none names the key columns (`iteration`, `bin`) where a column or record key is named;
-- run-folder tables are written through bmimic.run_record only: no other module names the table writers
+- run-folder tables are written through bmimic.runs.record only: no other module names the table writers
   (atomic_write_parquet, atomic_write_csv), and evaluation's producers (bmimic.eval, bmimic.evaluation,
   bmimic.sim2sim) name no atomic writer at all;
 - every module is on a floor of docs/architecture.md's floor table, and every import goes down the
   floors or stays on its floor (a lower floor never imports a higher one: the env hands the sampler's
   feedback what it measured);
-- every run-folder file name is spelled in bmimic.run_folder only;
+- every run-folder file name is spelled in bmimic.runs.folder only;
 - no module is over 400 lines.
 
 Imports inside functions count: a lazy import is still a dependency.
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import pytest
 
-from bmimic import run_schema
+from bmimic.runs import schema as run_schema
 from tests.conftest import REPO
 
 PACKAGES = ("bmimic", "analysis")
@@ -206,7 +206,7 @@ def test_entry_points_use_public_interfaces_only():
     assert private == []
 
 
-@pytest.mark.parametrize("module", ["bmimic.run_folder", "analysis.report", "analysis.index"])
+@pytest.mark.parametrize("module", ["bmimic.runs.folder", "analysis.report", "analysis.index"])
 def test_run_folder_and_analysis_are_torch_free(module):
     code = f"import sys, {module}; assert 'torch' not in sys.modules, 'torch imported'"
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
@@ -239,7 +239,7 @@ def test_analysis_reaches_only_torch_free_bmimic_modules():
 
 SCHEMA_NAMES = {*run_schema.ERROR_COLUMNS, *run_schema.SMOOTHNESS_COLUMNS, run_schema.TRACKED_THROUGH,
                 run_schema.ENV_STEPS, run_schema.WALL_TIME_S, run_schema.FAILURE_RATE, run_schema.HORIZON_TRUNCATED}
-"""The measured columns and the progress and failure columns: spelled in bmimic.run_schema only, used
+"""The measured columns and the progress and failure columns: spelled in bmimic.runs.schema only, used
 through its names everywhere else."""
 
 KEY_NAMES = {run_schema.ITERATION, run_schema.BIN}
@@ -284,14 +284,14 @@ def column_positions(tree: ast.AST) -> list[ast.Constant]:
 
 
 def test_measured_columns_are_spelled_only_in_the_run_schema():
-    spelled = sorted((name, node.value, node.lineno) for name, module in MODULES.items() if name != "bmimic.run_schema"
+    spelled = sorted((name, node.value, node.lineno) for name, module in MODULES.items() if name != "bmimic.runs.schema"
                      for node in ast.walk(module.tree)
                      if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in SCHEMA_NAMES)
     assert spelled == []
 
 
 def test_key_columns_are_named_through_the_run_schema():
-    spelled = sorted((name, node.value, node.lineno) for name, module in MODULES.items() if name != "bmimic.run_schema"
+    spelled = sorted((name, node.value, node.lineno) for name, module in MODULES.items() if name != "bmimic.runs.schema"
                      for node in column_positions(module.tree) if node.value in KEY_NAMES)
     assert spelled == []
 
@@ -355,7 +355,7 @@ def test_the_floor_table_is_read_as_drawn():
                                      "bmimic.task", "bmimic.evaluation.saved_run", "bmimic.train")]
     assert heights == sorted(heights) and len(set(heights)) == len(heights)
     assert floor_of("bmimic.sweeping.gpu_slots") == 0 < floor_of("bmimic.sweeping.jobs")  # the longest name wins
-    assert floor_of("bmimic") == floor_of("bmimic.run_folder") == 0
+    assert floor_of("bmimic") == floor_of("bmimic.runs.folder") == 0
     # The command lines are on top; the CSV converter is also the motion floor's (load_motion uses it).
     assert [e for e in ENTRY_POINTS if floor_of(e) != len(FLOORS) - 1] == ["bmimic.motion.convert"]
     assert upward_imports({"bmimic.robot.models.g1": {"bmimic.task"}, "bmimic.task": {"bmimic.robot.models.g1"}}) == [
@@ -375,10 +375,10 @@ def test_every_import_goes_down_the_floors_or_stays_on_its_floor():
 
 
 TABLE_WRITERS = ("atomic_write_parquet", "atomic_write_csv")
-TABLE_WRITING_MODULES = ("bmimic.atomic_io", "bmimic.run_folder", "bmimic.run_record")
+TABLE_WRITING_MODULES = ("bmimic.runs.atomic_io", "bmimic.runs.folder", "bmimic.runs.record")
 """atomic_io defines the writers, run_folder re-exports them, run_record writes every run-folder table."""
 EVALUATION_PRODUCERS = ("bmimic.eval", "bmimic.evaluation", "bmimic.sim2sim")
-"""They write an evaluation's files through bmimic.run_record.write_evaluation (the summary JSON too)."""
+"""They write an evaluation's files through bmimic.runs.record.write_evaluation (the summary JSON too)."""
 
 
 def _writers_named(tree: ast.AST, prefixes: tuple[str, ...]) -> list[tuple[str, int]]:
@@ -398,7 +398,7 @@ def _writers_named(tree: ast.AST, prefixes: tuple[str, ...]) -> list[tuple[str, 
 
 
 def test_the_writer_finder_sees_calls_attributes_and_imports():
-    planted = ast.parse("from bmimic.run_folder import atomic_write_csv\nimport bmimic.run_folder as rf\n"
+    planted = ast.parse("from bmimic.runs.folder import atomic_write_csv\nimport bmimic.runs.folder as rf\n"
                         "def f(df):\n    atomic_write_csv('a.csv', df)\n"
                         "    rf.atomic_write_parquet('b', df)\n")
     assert sorted(_writers_named(planted, TABLE_WRITERS)) == [
@@ -425,10 +425,10 @@ def _string_constants(tree: ast.AST) -> list[ast.Constant]:
 
 
 def test_run_folder_file_names_are_spelled_only_in_the_run_folder_module():
-    names = {c.value for c in _string_constants(MODULES["bmimic.run_folder"].tree)
+    names = {c.value for c in _string_constants(MODULES["bmimic.runs.folder"].tree)
              if c.value.endswith(FILE_SUFFIXES) and "*" not in c.value and "\\" not in c.value}
     assert {"metrics.json", "eval.parquet", "race.json", "index.csv"} <= names
-    spelled = sorted((name, c.value, c.lineno) for name, module in MODULES.items() if name != "bmimic.run_folder"
+    spelled = sorted((name, c.value, c.lineno) for name, module in MODULES.items() if name != "bmimic.runs.folder"
                      for c in _string_constants(module.tree)
                      if c.value in names and (name, c.value) not in REPORT_FILES)
     assert spelled == []

@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from bmimic import BmimicError
 from bmimic.config import ConfigError, resolve_runtime
-from bmimic.config_checks import validate
+from bmimic.config.checks import validate
 from tests.conftest import CONF, compose, run_train
 
 GROUPS = ["robot", "motion", "sampler", "ppo", "sim", "env", "eval"]
@@ -221,7 +221,7 @@ def test_a_training_reads_its_config_keys_once_and_still_checks_the_motion_fit(t
     """`python -m bmimic.train` merges its config into the schema once (check_composed, before the
     runtime fills in values); validate and build_task after it check values and the motion's fit only,
     and the motion's fit still refuses bins longer than the motion and a motion without a duration."""
-    import bmimic.config_checks as checks
+    import bmimic.config.checks as checks
     from bmimic.task import build_task
 
     merges = []

@@ -114,7 +114,7 @@ def pre_training(cfg) -> None:
     motion, bins) and the memory checks of the environment and the networks."""
     from bmimic import task as tasks
     from bmimic.config import resolve_runtime
-    from bmimic.config_checks import check_composed, validate
+    from bmimic.config.checks import check_composed, validate
     from bmimic.runtime import resolve_device
 
     check_composed(cfg, cfg.hydra.runtime.choices)
@@ -132,7 +132,7 @@ def _config_property(overrides: list[str], tmp_path: Path, monkeypatch) -> None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from bmimic.cli_common import user_errors
+    from bmimic.cli.common import user_errors
 
     monkeypatch.chdir(tmp_path)  # motion caches, if any, land here
     monkeypatch.delenv("BMIMIC_UNSET_GENERATED", raising=False)
@@ -225,7 +225,7 @@ def _mutate(d: dict, m) -> None:
 
 
 def _motion_property(arrays: dict, mutations: list, folder: Path) -> None:
-    from bmimic.cli_common import user_errors
+    from bmimic.cli.common import user_errors
     from bmimic.motion.config import MotionConfig, load_motion
     from bmimic.robot import load_mjmodel
 

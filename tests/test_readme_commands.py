@@ -100,7 +100,7 @@ class Workspace:
     def comparable_pair(self) -> tuple[Path, Path]:
         """Two runs a report may compare, as a reader's two arms would be: one motion, one budget (the
         README's first run was resumed to a longer budget than the examples)."""
-        from bmimic.run_folder import read_resolved_config
+        from bmimic.runs.folder import read_resolved_config
 
         def key(run: Path) -> str:
             cfg = read_resolved_config(run) or {}

@@ -8,7 +8,7 @@ import pytest
 
 from analysis.compact import STUDY_BUDGET_MB, STUDY_BUDGETS_MB
 from analysis.run_files import REPORT_COLUMNS, find_run_dirs
-from bmimic.run_folder import table_path
+from bmimic.runs.folder import table_path
 from tests.conftest import REPO
 
 RESULTS = REPO / "docs" / "results"

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from bmimic import runtime
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     atomic_write_json,
     atomic_write_text,
     read_status,
@@ -51,7 +51,7 @@ def test_atomic_write_failure_keeps_old_content(tmp_path):
             raise RuntimeError("boom")
 
     with pytest.raises(RuntimeError):
-        from bmimic.run_folder import atomic_write
+        from bmimic.runs.folder import atomic_write
 
         atomic_write(path, lambda tmp: (open(tmp, "w").write("partial"), str(Boom())))
     assert path.read_text() == "old"

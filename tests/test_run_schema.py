@@ -1,4 +1,4 @@
-"""The run schema (bmimic.run_schema): the contract between what a run writes and what reads it."""
+"""The run schema (bmimic.runs.schema): the contract between what a run writes and what reads it."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pandas as pd
 
 from analysis.metrics import ERROR_METRICS, SMOOTHNESS_METRICS
 from analysis.run_files import IGNORED_OVERRIDE_KEYS
-from bmimic import run_schema as rs
+from bmimic.runs import schema as rs
 from tests.conftest import compose
 
 

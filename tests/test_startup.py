@@ -1,9 +1,9 @@
-"""Importing bmimic changes nothing; its commands protect themselves (bmimic.startup).
+"""Importing bmimic changes nothing; its commands protect themselves (bmimic.cli.startup).
 
 Importing the package root, the run-folder module or the analysis leaves sys.path as it was and imports
 no MuJoCo, even inside another program's `python -m` start-up with a broken MUJOCO_GL (the root used
 to take the working directory off sys.path and exit there). The commands themselves, whose first
-statement is bmimic.startup's, never import a module planted in the working directory, the
+statement is bmimic.cli.startup's, never import a module planted in the working directory, the
 standard-library names that `python -m` has not loaded yet included (the ones tests/cli/test_entry_points.py
 plants are third-party or `logging`)."""
 
@@ -15,7 +15,7 @@ import sys
 
 import pytest
 
-from bmimic import startup
+from bmimic.cli import startup
 from tests.conftest import REPO
 
 
@@ -30,7 +30,7 @@ def test_importing_bmimic_and_the_analysis_has_no_side_effect(tmp_path):
     # Another program's package imports them in its __init__ and is run with `python -m` from its folder.
     (tmp_path / "userpkg").mkdir()
     (tmp_path / "userpkg" / "__init__.py").write_text(
-        "import sys\nBEFORE = list(sys.path)\nimport bmimic, bmimic.run_folder, analysis  # noqa\n")
+        "import sys\nBEFORE = list(sys.path)\nimport bmimic, bmimic.runs.folder, analysis  # noqa\n")
     (tmp_path / "userpkg" / "tool.py").write_text(
         "import sys\nfrom userpkg import BEFORE\n"
         "print('path unchanged' if sys.path == BEFORE else f'path changed: {BEFORE} -> {sys.path}')\n"

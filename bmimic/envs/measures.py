@@ -1,5 +1,5 @@
 """What an evaluation measures at every step of an evaluation env (bmimic.envs.TrackingEnv in eval mode):
-the tracking errors, each by the name bmimic.run_schema.TRACKING_ERRORS declares with its unit and
+the tracking errors, each by the name bmimic.runs.schema.TRACKING_ERRORS declares with its unit and
 label, and the policy's smoothness. The evaluators (bmimic.training.evaluator, whole_clip) stack them
 per step in the schema's column order; sim2sim computes the same names from native MuJoCo
 (bmimic.sim2sim.rollout.Rollout's `_e_<name>`)."""
@@ -11,7 +11,7 @@ from typing import Any, Callable
 import torch
 
 from bmimic.envs.quat import quat_error_magnitude
-from bmimic.run_schema import (
+from bmimic.runs.schema import (
     ANCHOR_ORI_ERR_RAD,
     BODY_ORI_ERR_RAD,
     EE_POS_ERR_MM,
@@ -69,7 +69,7 @@ ERROR_TERMS: dict[str, Callable[[Any], torch.Tensor]] = {
     JOINT_VEL_ERR_RADPS: _joint_vel_err_radps,
     EE_POS_ERR_MM: _ee_pos_err_mm,
 }
-"""How each tracking error (bmimic.run_schema.TRACKING_ERRORS: name, unit, label) is computed from an
+"""How each tracking error (bmimic.runs.schema.TRACKING_ERRORS: name, unit, label) is computed from an
 evaluation env's state, [N] per env; sim2sim computes the same names from native MuJoCo
 (bmimic.sim2sim.rollout.Rollout's `_e_<name>`). Mean over tracked bodies (end-effectors for ee_pos),
 global positions for mpkpe, anchor-relative ones for mpkpe_rel and the anchor-centred targets for ee_pos."""

@@ -7,7 +7,7 @@ import math
 import pandas as pd
 
 from bmimic.evaluation.tables import EvalResult
-from bmimic.run_schema import BIN, HORIZON_TRUNCATED, ITERATION, MPKPE_MM, TRACKING_ERRORS
+from bmimic.runs.schema import BIN, HORIZON_TRUNCATED, ITERATION, MPKPE_MM, TRACKING_ERRORS
 
 _ERROR_TITLES = ("MPKPE_mm", "rel_MPKPE_mm", "anchor_ori_rad", "body_ori_rad", "joint_pos_rad", "joint_vel_radps",
                  "ee_pos_mm")

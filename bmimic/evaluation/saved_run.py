@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 from bmimic import BmimicError
-from bmimic.cli_common import first_line
-from bmimic.run_folder import (
+from bmimic.cli.common import first_line
+from bmimic.runs.folder import (
     CHECKPOINTS_DIR,
     HYDRA_DIR,
     LATEST_CHECKPOINT,
@@ -21,7 +21,7 @@ from bmimic.run_folder import (
     read_json,
     read_resolved_config,
 )
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     checkpoint_label as run_checkpoint_label,
 )
 
@@ -95,7 +95,7 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
     from omegaconf.errors import OmegaConfBaseException
 
     from bmimic.config import READER_ENV_KEYS, TrainConfig, recorded_config
-    from bmimic.config_checks import check_resolvable
+    from bmimic.config.checks import check_resolvable
     from bmimic.training.resume import flatten_config
 
     path = run_dir / HYDRA_DIR / "config.yaml"
@@ -177,7 +177,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     A run folder may come from someone else: a config whose terms import modules outside bmimic
     (`func: package.module:function`) is refused unless `trust` (--trust-checkpoint)."""
     from bmimic.config import resolve_runtime
-    from bmimic.config_checks import validate
+    from bmimic.config.checks import validate
     from bmimic.envs.config import foreign_term_modules
     from bmimic.runtime import resolve_device
     from bmimic.task import build_task
@@ -271,7 +271,7 @@ def evaluation_record(run: LoadedRun, state: dict, overrides: Sequence[str]) -> 
     steps, the run, motion, seed and device, the overrides, when, and the results' label."""
     import datetime as _dt
 
-    from bmimic.run_schema import ENV_STEPS, ITERATION
+    from bmimic.runs.schema import ENV_STEPS, ITERATION
 
     cfg = run.task.cfg
     progress = state.get("progress") or {}

@@ -1,6 +1,6 @@
 """The tables of one evaluation of a saved policy: one row per episode, per time bin and per motion
 segment, with the MuJoCo-Warp evaluator's accounting (bmimic.training.evaluator.aggregate); they are
-written by bmimic.run_record.write_evaluation. sim2sim builds the same tables from native-MuJoCo episodes.
+written by bmimic.runs.record.write_evaluation. sim2sim builds the same tables from native-MuJoCo episodes.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bmimic.run_record import write_evaluation
-from bmimic.run_schema import BIN, ERROR_COLUMNS, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
+from bmimic.runs.record import write_evaluation
+from bmimic.runs.schema import BIN, ERROR_COLUMNS, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
 
 
 def segment_at(segments, t_s: np.ndarray) -> tuple[list[str], list[str]]:
@@ -120,7 +120,7 @@ class EvalResult:
 def write_tables(result: EvalResult, out_dir: Path, gap: pd.DataFrame | None = None,
                  tables: dict[str, pd.DataFrame] | None = None) -> Path:
     """Write the four tables (run_folder.EVAL_TABLES), sim2sim's `gap` and other `tables` (CSVs by file
-    name), if any, through the run record (bmimic.run_record.write_evaluation: atomically, the summary
+    name), if any, through the run record (bmimic.runs.record.write_evaluation: atomically, the summary
     last)."""
     result.out_dir = write_evaluation(out_dir, result.episodes, result.bins, result.segments,
                                       result.summary, gap, tables)

@@ -12,9 +12,9 @@ from typing import Sequence
 import pandas as pd
 
 from bmimic.evaluation.saved_run import LoadedRun, evaluation_record, load_run_checkpoint
-from bmimic.run_folder import WHOLE_CLIP_FILES
-from bmimic.run_record import write_whole_clip
-from bmimic.run_schema import (
+from bmimic.runs.folder import WHOLE_CLIP_FILES
+from bmimic.runs.record import write_whole_clip
+from bmimic.runs.schema import (
     BIN,
     CONDITION,
     ITERATION,

@@ -6,13 +6,13 @@ helpers from `bmimic.motion.math` and must choose MuJoCo's GL backend before muj
 submodule imported with the package would make `python -m bmimic.motion.convert` warn under runpy.
 """
 
-from bmimic.startup import leave_working_directory
+from bmimic.cli.startup import leave_working_directory
 
 leave_working_directory(__name__)  # first: `python -m bmimic.motion.convert` runs this before convert
 
 from typing import TYPE_CHECKING
 
-from bmimic.deferred import names_on_first_use
+from bmimic.cli.deferred import names_on_first_use
 
 _SOURCES = {
     "BUILTIN_MOTIONS": "bmimic.motion.builtin",

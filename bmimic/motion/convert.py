@@ -9,9 +9,9 @@ root orientation by slerp), velocities come from finite differences and body sta
 kinematics of the project's G1 model (`bmimic.motion.kinematics.kinematic_motion`).
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import sys
@@ -22,7 +22,7 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
-from bmimic.cli_common import path_arg
+from bmimic.cli.common import path_arg
 from bmimic.motion.kinematics import kinematic_motion
 from bmimic.motion.limits import check_motion_size, check_plausible
 from bmimic.motion.math import output_times, quat_slerp

@@ -245,8 +245,8 @@ class Motion:
 
     # -- I/O ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
-        """Write the npz atomically (bmimic.run_folder.atomic_write); `path` must end in .npz."""
-        from bmimic.run_folder import atomic_write
+        """Write the npz atomically (bmimic.runs.folder.atomic_write); `path` must end in .npz."""
+        from bmimic.runs.folder import atomic_write
 
         path = Path(path)
         if path.suffix != ".npz":

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from bmimic.deferred import names_on_first_use
+from bmimic.cli.deferred import names_on_first_use
 
 _SOURCES = {
     "ActuatorClassConfig": "bmimic.robot.config",

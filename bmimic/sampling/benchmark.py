@@ -27,9 +27,9 @@ CPU with ``time.perf_counter``. The test suite runs 10^4 sequential updates; the
 check of 10^6 updates is ``--iters 1000000``.
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 import argparse
 import math

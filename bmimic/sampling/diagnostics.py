@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bmimic.run_schema import BIN, FAILURE_RATE, ITERATION
+from bmimic.runs.schema import BIN, FAILURE_RATE, ITERATION
 from bmimic.sampling.checks import SamplerConfigError
 
 MAX_SAMPLER_ROWS = 1_000_000

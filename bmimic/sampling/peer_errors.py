@@ -33,7 +33,7 @@ from typing import Any
 
 import torch
 
-from bmimic.run_schema import ITERATION
+from bmimic.runs.schema import ITERATION
 from bmimic.sampling.base import BinSampler
 from bmimic.sampling.feedback import EPISODE_OUTCOMES, TRACKING_ERRORS
 from bmimic.sampling.peer_clips import GroupSampler

@@ -57,9 +57,9 @@ command's bookkeeping (bins, start frames, tables) reuses bmimic.evaluation's, s
 comparable row by row.
 """
 
-from bmimic.startup import start_command
+from bmimic.cli.startup import start_command
 
-start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.startup)
+start_command(__spec__.name)  # first: the working directory off sys.path, MUJOCO_GL (bmimic.cli.startup)
 
 from bmimic.sim2sim.cli import main, parser, render_video
 from bmimic.sim2sim.gap import GAP_FILE, SETTINGS, WarpEval, format_gap, gap_table, warp_eval

@@ -11,16 +11,16 @@ from typing import Sequence
 
 import numpy as np
 
-from bmimic.cli_common import check_output_file, path_arg, user_errors
-from bmimic.extras import require_extra
-from bmimic.run_folder import (
+from bmimic.cli.common import check_output_file, path_arg, user_errors
+from bmimic.cli.extras import require_extra
+from bmimic.runs.folder import (
     EVAL_TABLES,
     SIM2SIM_DIR,
     SIM2SIM_WHOLE_CLIP,
     SIM2SIM_WHOLE_CLIP_GAP,
     WHOLE_CLIP_SURVIVAL,
 )
-from bmimic.run_schema import WHOLE_CLIP_CONDITIONS
+from bmimic.runs.schema import WHOLE_CLIP_CONDITIONS
 from bmimic.sim2sim.gap import GAP_FILE, format_gap
 from bmimic.sim2sim.model import build_model, model_label
 from bmimic.sim2sim.native_eval import evaluate, locate

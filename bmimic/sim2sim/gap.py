@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     EVAL_DIR,
     EVAL_SUMMARY,
     EVAL_TABLES,
@@ -18,7 +18,7 @@ from bmimic.run_folder import (
     read_resolved_config,
     table_path,
 )
-from bmimic.run_schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION, MPKPE_REL_MM
+from bmimic.runs.schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION, MPKPE_REL_MM
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -27,7 +27,7 @@ from bmimic.sim2sim.spec import Sim2SimError
 log = logging.getLogger("bmimic.sim2sim")
 
 GAP_FILE = SIM2SIM_GAP
-"""The gap table's file name (bmimic.run_folder spells it)."""
+"""The gap table's file name (bmimic.runs.folder spells it)."""
 SETTINGS = ("episodes_per_bin", "horizon_s", "max_mpkpe_rel_mm")
 """Evaluation settings two evaluations must share to be compared bin by bin."""
 

@@ -8,7 +8,7 @@ import re
 from pathlib import Path
 from typing import cast
 
-from bmimic.run_folder import HYDRA_DIR
+from bmimic.runs.folder import HYDRA_DIR
 from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, first_line, policy_error
 
 MODELS = ("project", "menagerie")

@@ -10,9 +10,9 @@ from typing import Sequence
 
 import numpy as np
 
-from bmimic.run_folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
-from bmimic.run_folder import checkpoint_label as run_checkpoint_label
-from bmimic.run_schema import BIN, HORIZON_TRUNCATED, ITERATION
+from bmimic.runs.folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
+from bmimic.runs.folder import checkpoint_label as run_checkpoint_label
+from bmimic.runs.schema import BIN, HORIZON_TRUNCATED, ITERATION
 from bmimic.sim2sim.gap import eval_settings, gap_table, restrict, setting_differences, warp_eval
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.rollout import Episode
@@ -30,7 +30,7 @@ from bmimic.sim2sim.workers import run_episodes
 log = logging.getLogger("bmimic.sim2sim")
 
 MOTION_FILE = MOTION_POLICY
-"""File name of the BeyondMimic-compatible export of a checkpoint (bmimic.run_folder's)."""
+"""File name of the BeyondMimic-compatible export of a checkpoint (bmimic.runs.folder's)."""
 
 
 def locate(path: str | Path) -> tuple[Path, Path | None]:
@@ -67,7 +67,7 @@ def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int
     and per motion frame the steps judged at it and their error sums."""
     import pandas as pd
 
-    from bmimic.run_schema import ERROR_COLUMNS, SMOOTHNESS_COLUMNS
+    from bmimic.runs.schema import ERROR_COLUMNS, SMOOTHNESS_COLUMNS
     from bmimic.training.evaluator import Rollouts
 
     rows = pd.DataFrame([e.row for e in episodes])

@@ -11,17 +11,17 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol
 import numpy as np
 
 from bmimic.motion.math import quat_to_matrix, rotation_angle
-from bmimic.run_schema import ERROR_COLUMNS, HORIZON_TRUNCATED, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
+from bmimic.runs.schema import ERROR_COLUMNS, HORIZON_TRUNCATED, MPKPE_REL_MM, SMOOTHNESS_COLUMNS
 from bmimic.sim2sim.spec import PolicySpec
 
 if TYPE_CHECKING:
     from bmimic.motion.motion import Motion
 
 ERROR_NAMES = ERROR_COLUMNS
-"""Per-step tracking errors, named and ordered as the run schema's (bmimic.run_schema.ERROR_COLUMNS)."""
+"""Per-step tracking errors, named and ordered as the run schema's (bmimic.runs.schema.ERROR_COLUMNS)."""
 REL_MPKPE = ERROR_NAMES.index(MPKPE_REL_MM)
 SMOOTHNESS_NAMES = SMOOTHNESS_COLUMNS
-"""The policy's per-step smoothness (bmimic.run_schema.SMOOTHNESS_COLUMNS)."""
+"""The policy's per-step smoothness (bmimic.runs.schema.SMOOTHNESS_COLUMNS)."""
 MEASURED = (*ERROR_NAMES, *SMOOTHNESS_NAMES)
 
 

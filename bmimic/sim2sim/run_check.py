@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from bmimic.run_folder import MOTION_SEGMENTS, read_json, read_resolved_config, read_status
-from bmimic.run_schema import ITERATION
+from bmimic.runs.folder import MOTION_SEGMENTS, read_json, read_resolved_config, read_status
+from bmimic.runs.schema import ITERATION
 from bmimic.sim2sim.spec import PolicySpec, Sim2SimError
 
 TOLERANCE = 1e-6

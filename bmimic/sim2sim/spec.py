@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from bmimic import BmimicError
-from bmimic.run_schema import ITERATION
+from bmimic.runs.schema import ITERATION
 
 if TYPE_CHECKING:
     from bmimic.motion.motion import Motion

@@ -31,8 +31,8 @@ from typing import Sequence, cast
 import numpy as np
 import pandas as pd
 
-from bmimic.run_folder import HYDRA_DIR, RESOLVED_CONFIG, read_resolved_config
-from bmimic.run_schema import (
+from bmimic.runs.folder import HYDRA_DIR, RESOLVED_CONFIG, read_resolved_config
+from bmimic.runs.schema import (
     ERROR_COLUMNS,
     ITERATION,
     START_TRANSIENT_S,
@@ -177,7 +177,7 @@ def condition_summary(rollouts: pd.DataFrame) -> dict:
 # ============================================================================================ the evaluation
 @dataclass
 class WholeClipResult:
-    """The whole-clip rollouts of one checkpoint, as tables (written by bmimic.run_record.write_evaluation)."""
+    """The whole-clip rollouts of one checkpoint, as tables (written by bmimic.runs.record.write_evaluation)."""
 
     rollouts: pd.DataFrame
     """One row per rollout (WHOLE_CLIP_ROLLOUT_COLUMNS, then sim2sim's episode columns)."""

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bmimic.run_folder import EVAL_DIR, EVAL_TABLES, WHOLE_CLIP_DIR, WHOLE_CLIP_FILES, table_path
-from bmimic.run_schema import BIN, CONDITION, HORIZON_TRUNCATED, ITERATION
+from bmimic.runs.folder import EVAL_DIR, EVAL_TABLES, WHOLE_CLIP_DIR, WHOLE_CLIP_FILES, table_path
+from bmimic.runs.schema import BIN, CONDITION, HORIZON_TRUNCATED, ITERATION
 from bmimic.sim2sim.gap import readable
 from bmimic.sim2sim.spec import PolicySpec
 

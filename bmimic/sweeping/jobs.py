@@ -17,8 +17,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bmimic import CONF_DIR, BmimicError
 from bmimic.config import config_loader, override_error
-from bmimic.run_folder import lock_held, read_status
-from bmimic.run_schema import ITERATION
+from bmimic.runs.folder import lock_held, read_status
+from bmimic.runs.schema import ITERATION
 
 SWEEPS_DIR = CONF_DIR / "sweep"
 
@@ -39,7 +39,7 @@ class Job:
     iteration: int | None
     """Last iteration recorded in status.json (None for new jobs)."""
     config: Any = field(default=None, compare=False, repr=False)
-    """The job's composed config, without its `hydra` node (bmimic.budget estimates from it)."""
+    """The job's composed config, without its `hydra` node (bmimic.config.budget estimates from it)."""
     differs: dict = field(default_factory=dict, compare=False)
     """{key: (recorded, this job's)} where the run already in the folder was trained with other
     settings that change results (a smoke run's budget, another motion...): it is not this job."""
@@ -109,7 +109,7 @@ def expand_jobs(loader, master: DictConfig) -> list[Job]:
     SweepListError (one line naming the job) for the first job that would be refused."""
     from hydra.core.hydra_config import HydraConfig
 
-    from bmimic.config_checks import check_seed
+    from bmimic.config.checks import check_seed
 
     batch = _batch(loader, master)
     saved = HydraConfig.instance().cfg
@@ -171,7 +171,7 @@ def check_job(cfg: DictConfig) -> None:
     """What a sweep job checks before it trains, without a device or a motion: the composed config
     (unknown keys, NaN, the sampler group) and its meaning (ranges, terms), resolved as on a CPU."""
     from bmimic.config import resolve_runtime
-    from bmimic.config_checks import check_composed, validate
+    from bmimic.config.checks import check_composed, validate
 
     check_composed(cfg, cfg.hydra.runtime.choices)
     task = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
@@ -190,7 +190,7 @@ def recorded_differences(run_dir: Path, task: DictConfig, device: str | None = N
     on its own device before it skips a done run, bmimic.job); a run without one (an earlier
     bmimic's) is compared by its composed .hydra/config.yaml."""
     from bmimic.config import resolve_runtime
-    from bmimic.run_folder import read_hydra_config, read_resolved_config
+    from bmimic.runs.folder import read_hydra_config, read_resolved_config
     from bmimic.training.resume import job_differences
 
     recorded = read_resolved_config(run_dir)
@@ -258,10 +258,10 @@ def _continues(job: Job) -> bool:
 def check_jobs(jobs: Sequence[Job], sweep_dir: str | os.PathLike | None = None, log_name: str | None = None) -> None:
     """Refuse a multirun in which two jobs map to one folder: the second would be skipped as done or
     locked and the sweep would report success for an arm it never trained. With `sweep_dir`, also one
-    whose sweep folder or a job's folder holds files that are not bmimic's (bmimic.run_claim: a launch
+    whose sweep folder or a job's folder holds files that are not bmimic's (bmimic.runs.claim: a launch
     writes only into its own folders; `log_name`: Hydra's log of a job, which a killed job leaves), or a
     job whose folder would lie outside the sweep folder."""
-    from bmimic.run_claim import check_sweep_folder, foreign_entries, holds_run
+    from bmimic.runs.claim import check_sweep_folder, foreign_entries, holds_run
 
     if sweep_dir is not None:
         if not any(job.run_dir.is_dir() and holds_run(job.run_dir) for job in jobs):  # else: this sweep's folder

@@ -18,8 +18,8 @@ from typing import Any, Sequence
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from bmimic.cli_common import shell_arg
-from bmimic.run_folder import atomic_write_json
+from bmimic.cli.common import shell_arg
+from bmimic.runs.folder import atomic_write_json
 
 log = logging.getLogger("bmimic.launch")
 

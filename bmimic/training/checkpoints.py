@@ -2,7 +2,7 @@
 
 Checkpoints are read only with `torch.load(weights_only=True)`: loading a shared checkpoint never
 runs code, trusted or not (a trusted format-1 file only widens the allowlist by numpy's array
-reconstruction). Where they lie and what they are called is bmimic.run_folder's business.
+reconstruction). Where they lie and what they are called is bmimic.runs.folder's business.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from bmimic import BmimicError
-from bmimic.run_folder import LATEST_CHECKPOINT, atomic_write, checkpoint_files
+from bmimic.runs.folder import LATEST_CHECKPOINT, atomic_write, checkpoint_files
 
 CHECKPOINT_FORMAT = "bmimic-checkpoint-2"
 """Tensors and plain values only: readable with torch.load(weights_only=True)."""

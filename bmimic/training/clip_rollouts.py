@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bmimic.run_schema import CLIP_ROLLOUT_COLUMNS
+from bmimic.runs.schema import CLIP_ROLLOUT_COLUMNS
 
 
 def clip_bounds(layout) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,7 @@ Failures are charged where they happen. A 2 s horizon spans two or three 1 s bin
   `horizon_s` (the clip's last bins): its failure rate comes from shorter exposure;
 - `tracked_through`: episodes that entered the bin from an earlier bin and were still alive at its
   last frame, i.e. tracked all of the bin's frames after a run-up. A horizon-truncated bin counts as
-  mastered only when this is at least 1 (bmimic.run_schema.counts_as_mastered), so the clip's last
+  mastered only when this is at least 1 (bmimic.runs.schema.counts_as_mastered), so the clip's last
   bins are not "mastered" by an untrained policy whose episodes simply run out of clip.
 
 An episode fails when it terminates (any termination but a time-out), when its world breaks (the
@@ -41,7 +41,7 @@ import pandas as pd
 import torch
 
 from bmimic.envs.measures import smoothness, step_errors
-from bmimic.run_schema import (  # noqa: F401  (the tables' columns, re-exported for the evaluators)
+from bmimic.runs.schema import (  # noqa: F401  (the tables' columns, re-exported for the evaluators)
     BIN,
     BIN_COLUMNS,
     ENV_STEPS,

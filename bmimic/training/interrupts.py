@@ -24,7 +24,7 @@ import signal
 import threading
 from typing import Any, Iterator
 
-from bmimic.cli_common import override_arg
+from bmimic.cli.common import override_arg
 
 log = logging.getLogger("bmimic.train")
 

@@ -16,9 +16,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bmimic.extras import require_extra
-from bmimic.run_folder import TENSORBOARD_DIR
-from bmimic.run_schema import FAILURE_RATE
+from bmimic.cli.extras import require_extra
+from bmimic.runs.folder import TENSORBOARD_DIR
+from bmimic.runs.schema import FAILURE_RATE
 
 log = logging.getLogger(__name__)
 

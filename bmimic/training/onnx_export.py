@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bmimic.run_folder import atomic_write, motion_policy_onnx_name, policy_onnx_name
-from bmimic.run_schema import ITERATION
+from bmimic.runs.folder import atomic_write, motion_policy_onnx_name, policy_onnx_name
+from bmimic.runs.schema import ITERATION
 
 METADATA_VERSION = "3"
 """Version of the metadata key set (1: today's keys only; 2: BeyondMimic keys + sim2sim keys; 3: + the

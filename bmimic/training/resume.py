@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from bmimic import BmimicError
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     CHECKPOINTS_DIR,
     checkpoint_files,
     checkpoint_iteration,

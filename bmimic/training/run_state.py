@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from bmimic import BmimicError
-from bmimic.run_folder import checkpoint_path, checkpoints_dir, latest_checkpoint
+from bmimic.runs.folder import checkpoint_path, checkpoints_dir, latest_checkpoint
 from bmimic.runtime import rng_state, set_rng_state
 from bmimic.training.checkpoints import (
     CHECKPOINT_FORMAT,

@@ -1,5 +1,5 @@
 """The PPO training loop, in the manner of rsl-rl's runner: it loops and hands off. Its parts: the
-run's tables (`bmimic.run_record.RunRecord`), when to evaluate and checkpoint (`schedule.Schedule`),
+run's tables (`bmimic.runs.record.RunRecord`), when to evaluate and checkpoint (`schedule.Schedule`),
 what a checkpoint holds and the resume (`run_state`), what the sampler hears (the task's
 `SamplerFeedback`); TensorBoard / W&B / console output goes through one RunLogger (logger.py).
 
@@ -24,11 +24,11 @@ from typing import TYPE_CHECKING, Callable
 import torch
 from rsl_rl.runners import OnPolicyRunner
 
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     write_status,
 )
-from bmimic.run_record import RunRecord
-from bmimic.run_schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S, whole_clip_key
+from bmimic.runs.record import RunRecord
+from bmimic.runs.schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S, whole_clip_key
 from bmimic.runtime import any_rank, torchrun_env
 from bmimic.sampling import diagnostics
 from bmimic.training import run_state

@@ -3,7 +3,7 @@
 A launch writes nothing until every check has passed (`RunContext` holds the run locks meanwhile);
 `commit` then makes its first writes; `record_failure` records a failed attempt where it cannot
 damage anything; what the launch created for a run that it then continued elsewhere (or that was
-refused) is removed (`RunContext.discard`, after bmimic.run_claim's record of what it created), its
+refused) is removed (`RunContext.discard`, after bmimic.runs.claim's record of what it created), its
 own log lines carried over (`move_file_logs`).
 """
 
@@ -16,9 +16,9 @@ import os
 from pathlib import Path
 from typing import Any, TextIO
 
-from bmimic.run_claim import RunClaim
-from bmimic.run_claim import current as current_claim
-from bmimic.run_folder import (
+from bmimic.runs.claim import RunClaim
+from bmimic.runs.claim import current as current_claim
+from bmimic.runs.folder import (
     LOCK,
     RESOLVED_CONFIG,
     RunLockedError,
@@ -35,7 +35,7 @@ from bmimic.run_folder import (
     write_resolved_config,
     write_status,
 )
-from bmimic.run_schema import ITERATION
+from bmimic.runs.schema import ITERATION
 from bmimic.runtime import process_rank, provenance
 from bmimic.training.resume import RunPlan
 
@@ -56,7 +56,7 @@ class RunContext:
         self.composed_config: dict = {}
         """The config as composed, unresolved (its interpolations get their values in hydra_record)."""
         self.claim: RunClaim | None = current_claim(launch_dir)
-        """What the launch found and created at launch_dir (bmimic.run_claim; None for a sweep job)."""
+        """What the launch found and created at launch_dir (bmimic.runs.claim; None for a sweep job)."""
         self._locks: dict[Path, TextIO] = {}
 
     def holds(self, run_dir: Path) -> bool:

@@ -1,5 +1,5 @@
 """Whole-clip evaluation: rollouts from each clip's first frame to its last, deterministic policy, under
-named conditions (bmimic.run_schema.WHOLE_CLIP_CONDITIONS).
+named conditions (bmimic.runs.schema.WHOLE_CLIP_CONDITIONS).
 
 It generalises the PHC / ProtoMotions signal (bmimic.training.clip_rollouts: one rollout per clip from
 its first frame) to R rollouts per clip and no time cap: `nominal` runs in an evaluation environment
@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bmimic.run_schema import (
+from bmimic.runs.schema import (
     BIN,
     CLIP_TIME_S,
     CONDITION,

@@ -24,7 +24,7 @@ from analysis.races import (
     summary_markdown,
 )
 from bmimic.race import WHOLE_CLIP_METRIC, Race, Threshold
-from bmimic.run_schema import ENV_STEPS, ITERATION, MPKPE_REL_MM
+from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

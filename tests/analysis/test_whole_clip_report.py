@@ -10,7 +10,7 @@ import pytest
 
 from analysis.report import build_report
 from analysis.tables import ReportOptions
-from bmimic.run_schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM
+from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM
 from tests.analysis.synthetic_runs import write_run
 
 OPTS = ReportOptions(n_resamples=200, n_permutations=999)

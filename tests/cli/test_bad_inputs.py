@@ -323,7 +323,7 @@ def _resume(*extra: str, iters: int = 3) -> Callable[[Workspace], list[str]]:
 
 @contextlib.contextmanager
 def _held_lock(ws: Workspace):
-    from bmimic.run_folder import lock_run
+    from bmimic.runs.folder import lock_run
 
     f = lock_run(ws.run)
     try:
@@ -818,7 +818,7 @@ def test_enough_cases() -> None:
 
 def test_run_files_honour_the_umask(ws: Workspace) -> None:
     """Run folders, checkpoints and motion caches get 0666 & ~umask (0644 under umask 022)."""
-    from bmimic.run_folder import current_umask
+    from bmimic.runs.folder import current_umask
 
     want = 0o666 & ~current_umask()
     files = [ws.run / "status.json", ws.run / "checkpoints" / "latest.pt", ws.run / "train_metrics.parquet",
@@ -912,7 +912,7 @@ def test_contact_overflow_is_counted_in_the_done_line_and_metrics_and_beyond_a_s
 
 
 def test_atomic_write_keeps_the_extension_and_honours_the_umask(tmp_path) -> None:
-    from bmimic.run_folder import atomic_write
+    from bmimic.runs.folder import atomic_write
 
     seen = []
     old = os.umask(0o022)
@@ -945,7 +945,7 @@ def test_error_log_appends_are_atomic_and_complete(tmp_path) -> None:
 
 
 def _append_many(folder: Path, k: int) -> None:
-    from bmimic.run_folder import append_error_log
+    from bmimic.runs.folder import append_error_log
 
     for i in range(25):
         append_error_log(folder, f"writer {k} entry {i} attempt")

@@ -173,9 +173,9 @@ def _other_motion_run(ws: Workspace) -> Path:
 def _read_only(ws: Workspace, where: str = "copies"):
     """Writes below ws.root/<where> are refused as in an immutable folder (root ignores chmod)."""
     try:
-        from bmimic import atomic_io
+        from bmimic.runs import atomic_io
     except ImportError:  # bmimic before issue 36 (the survey of the unfixed code)
-        from bmimic import run_folder as atomic_io
+        from bmimic.runs import folder as atomic_io
 
     real = atomic_io.tempfile.mkstemp
     folder = str(ws.root / where)

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from bmimic.budget import (
+from bmimic.config.budget import (
     CPU_S_PER_ENV_STEP,
     CPU_S_PER_STEP,
     BudgetError,

@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from bmimic import render
-from bmimic.cli_help import field_docs
+from bmimic.cli.help_text import field_docs
 from bmimic.config import TrainConfig
 from tests.conftest import TINY, cli_env
 

@@ -26,7 +26,7 @@ from bmimic import render
 from bmimic.evaluation.saved_run import anchor_relative_paths, checkpoint_label
 from bmimic.evaluation.tables import segment_at
 from bmimic.motion.motion import Segment
-from bmimic.run_folder import EVAL_TABLES
+from bmimic.runs.folder import EVAL_TABLES
 from bmimic.training.evaluator import ERROR_COLUMNS
 from tests.conftest import REPO, train_in_process
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from bmimic.extras import EXTRAS, LAUNCHER_EXTRAS, MissingExtraError, require_extra
+from bmimic.cli.extras import EXTRAS, LAUNCHER_EXTRAS, MissingExtraError, require_extra
 from tests.conftest import REPO
 
 CASES = [

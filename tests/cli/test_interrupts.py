@@ -16,7 +16,7 @@ import time
 import pandas as pd
 import pytest
 
-from bmimic.run_folder import lock_held, lock_run, write_status
+from bmimic.runs.folder import lock_held, lock_run, write_status
 from bmimic.training.interrupts import StopSignals
 from tests.cli.test_sweeps import hydra_config_restored  # noqa: F401  (a fixture)
 from tests.conftest import RANKS_GROUP, REPO, TINY, cli_env, run_train, wait_for

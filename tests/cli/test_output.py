@@ -13,7 +13,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from bmimic.eval import EarlierEvaluationError, keep_earlier
-from bmimic.run_folder import EVAL_DIR, EVAL_SUMMARY, SIM2SIM_DIR
+from bmimic.runs.folder import EVAL_DIR, EVAL_SUMMARY, SIM2SIM_DIR
 from bmimic.sweeping.outcomes import OUTCOMES_ENV, SweepOutcomesCallback, record_job_outcome
 from bmimic.training.logger import LINES_PER_RUN, RunLogger, line_every
 
@@ -57,7 +57,7 @@ def test_the_commands_printed_paste_back_as_one_argument(tmp_path, capsys):
 
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from bmimic.cli_common import override_arg
+    from bmimic.cli.common import override_arg
 
     sweep = tmp_path / "my sweeps" / "it's $HOME"
     config = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}})

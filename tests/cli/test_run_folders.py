@@ -40,7 +40,7 @@ def train_ok(cwd: Path, *args: str) -> str:
 
 # --------------------------------------------------------------------------------------------- fast
 def test_claim_gives_a_same_second_launch_its_own_folder(tmp_path) -> None:
-    from bmimic.run_claim import claim
+    from bmimic.runs.claim import claim
 
     first = claim(tmp_path / "runs" / "stamp", pinned=False, resume=False, log_name="train.log")
     second = claim(tmp_path / "runs" / "stamp", pinned=False, resume=False, log_name="train.log")
@@ -53,8 +53,8 @@ def test_claim_gives_a_same_second_launch_its_own_folder(tmp_path) -> None:
 
 
 def test_claim_refuses_a_pinned_folder_holding_a_run_without_resume(tmp_path) -> None:
-    from bmimic.run_claim import ClaimError, claim
-    from bmimic.run_folder import write_status
+    from bmimic.runs.claim import ClaimError, claim
+    from bmimic.runs.folder import write_status
 
     run = tmp_path / "run"
     write_status(run, "done", 3)
@@ -69,8 +69,8 @@ def test_claim_refuses_a_pinned_folder_holding_a_run_without_resume(tmp_path) ->
 
 
 def test_release_keeps_what_the_folder_held_before_the_launch(tmp_path) -> None:
-    from bmimic.run_claim import claim
-    from bmimic.run_folder import LOCK, lock_run, write_status
+    from bmimic.runs.claim import claim
+    from bmimic.runs.folder import LOCK, lock_run, write_status
 
     (tmp_path / "train.log").write_text("earlier lines\n")
     write_status(tmp_path, "failed", 0)  # a run: its owner's notes stay
@@ -90,8 +90,8 @@ def test_claim_refuses_a_pinned_folder_of_someone_elses_files_even_with_resume(t
     """Issue 47: a folder holding a user's own metrics.json, provenance.json and checkpoints/policy_1.onnx
     (no status.json, no .hydra) was written into with exit status 0. A launch writes only into a new or
     empty folder or its own run; what a killed launch leaves (its lock, its log) does not count."""
-    from bmimic.run_claim import ClaimError, check_sweep_folder, claim
-    from bmimic.run_folder import LOCK
+    from bmimic.runs.claim import ClaimError, check_sweep_folder, claim
+    from bmimic.runs.folder import LOCK
 
     mine = tmp_path / "mine"
     (mine / "checkpoints").mkdir(parents=True)
@@ -113,8 +113,8 @@ def test_claim_refuses_a_pinned_folder_of_someone_elses_files_even_with_resume(t
 
 
 def test_a_lock_is_never_removed_by_a_process_that_does_not_hold_it(tmp_path) -> None:
-    from bmimic.run_claim import claim
-    from bmimic.run_folder import LOCK, holds_lock, lock_run
+    from bmimic.runs.claim import claim
+    from bmimic.runs.folder import LOCK, holds_lock, lock_run
 
     c = claim(tmp_path / "run", pinned=False, resume=False, log_name=None)
     winner = lock_run(c.run_dir)  # another launch took the lock meanwhile
@@ -130,7 +130,7 @@ def test_lock_run_relocks_a_lock_file_replaced_while_locking(tmp_path, monkeypat
     file the path names now, so two processes can never both believe they hold the run."""
     import fcntl
 
-    from bmimic import run_folder
+    from bmimic.runs import folder as run_folder
 
     real = fcntl.flock
     calls = {"n": 0}
@@ -150,7 +150,7 @@ def test_lock_run_relocks_a_lock_file_replaced_while_locking(tmp_path, monkeypat
 
 def test_resume_true_takes_the_newest_run_with_a_matching_config(tmp_path) -> None:
     """Issue 35, 5: `sampler=uniform seed=3 resume=true` must not continue an adaptive run."""
-    from bmimic.run_folder import write_resolved_config
+    from bmimic.runs.folder import write_resolved_config
     from bmimic.training.resume import ResumeRefusedError, matching_run
 
     base = {"seed": 0, "sampler": {"name": "adaptive", "gamma": 0.9}, "max_iterations": 10, "device": "cpu"}
@@ -171,7 +171,8 @@ def test_resume_true_takes_the_newest_run_with_a_matching_config(tmp_path) -> No
 
 
 def test_status_is_rewritten_in_place_when_the_disk_is_full(tmp_path, monkeypatch) -> None:
-    from bmimic import atomic_io, run_folder
+    from bmimic.runs import atomic_io
+    from bmimic.runs import folder as run_folder
 
     run_folder.write_status(tmp_path, "running", 5)
 
@@ -257,7 +258,7 @@ def test_resume_true_continues_the_run_with_this_config_and_lists_candidates_oth
 def test_resume_of_a_run_at_max_iterations_adds_no_second_final_evaluation(tmp_path) -> None:
     """Killed after its last checkpoint, before the status write: the resume finishes the run
     without evaluating the final iteration again."""
-    from bmimic.run_folder import write_status
+    from bmimic.runs.folder import write_status
 
     run = tmp_path / "run"
     train_ok(tmp_path, "max_iterations=2", "eval.every_iters=1", f"hydra.run.dir={run}")
@@ -285,7 +286,7 @@ def test_resume_into_another_folder_does_not_copy_that_folders_log(tmp_path) -> 
 def _full_disk_after(monkeypatch, name_part: str, nth: int = 1) -> None:
     """From the `nth` atomic write of a file whose name contains `name_part` on, no new file can be
     created (ENOSPC), as on a full disk; files already there can still be rewritten in place."""
-    from bmimic import atomic_io
+    from bmimic.runs import atomic_io
 
     real = atomic_io.tempfile.mkstemp
     state = {"seen": 0}

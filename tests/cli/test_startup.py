@@ -1,7 +1,7 @@
 """The command line answers before the heavy libraries load: composing a config, `--help`, `--cfg job`
 and the sweep dry run import neither torch nor Warp (nor MuJoCo-Warp, nor MuJoCo for the config
 alone); the dry run, which validates every job's env terms and sampler checks as the job will, reads
-their modules with torch deferred (bmimic.deferred), and never runs it. Their start-up times are a
+their modules with torch deferred (bmimic.cli.deferred), and never runs it. Their start-up times are a
 benchmark (docs/benchmarks.md), not a test; what a test can hold is that the slow imports stay out."""
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ def _loaded(out: subprocess.CompletedProcess) -> list[str]:
     return [line.split(" ", 1)[1] for line in out.stdout.splitlines() if line.startswith("LOADED ")]
 
 
-# A module deferred by bmimic.deferred sits in sys.modules without having run: not loaded.
+# A module deferred by bmimic.cli.deferred sits in sys.modules without having run: not loaded.
 LOADED = f"[m for m in {HEAVY!r} if m in sys.modules and type(sys.modules[m]).__name__ != 'DeferredModule']"
 REPORT = f"import sys; print(*('LOADED ' + m for m in {LOADED}), sep='\\n')"
 
@@ -37,7 +37,7 @@ def test_composing_a_config_imports_neither_torch_nor_warp(tmp_path):
     code = f"""
 from hydra import compose, initialize_config_dir
 import bmimic, bmimic.config
-from bmimic.config_checks import check_composed
+from bmimic.config.checks import check_composed
 for sampler in ("adaptive", "egm", "phc", "uniform"):
     with initialize_config_dir(config_dir=str(bmimic.CONF_DIR), version_base="1.3"):
         cfg = compose("train", overrides=[f"sampler={{sampler}}", "sampler.bin_size_seconds=0.5"])
@@ -84,7 +84,7 @@ print("BUILT", type(s.AdaptiveSampler(3)).__name__)
 def test_a_deferred_module_runs_on_first_use_and_is_then_the_module_itself(tmp_path):
     code = """
 import sys, types
-from bmimic.deferred import defer, is_deferred
+from bmimic.cli.deferred import defer, is_deferred
 defer("colorsys"); defer("email"); defer("no_such_module_anywhere")
 import colorsys, email                                  # an import statement binds the stand-in
 assert is_deferred("colorsys") and is_deferred("email") and "no_such_module_anywhere" not in sys.modules

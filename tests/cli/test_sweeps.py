@@ -24,7 +24,7 @@ from omegaconf import OmegaConf, open_dict, read_write
 import bmimic.config  # noqa: F401  (registers the config schemas, as bmimic.train does)
 from analysis.index import SweepIndexCallback
 from bmimic import CONF_DIR, BmimicError, launch
-from bmimic.run_folder import append_error_log
+from bmimic.runs.folder import append_error_log
 from bmimic.sweeping import gpu_slots
 from bmimic.sweeping import jobs as sweep_jobs
 from bmimic.sweeping.gpu_slots import (
@@ -233,7 +233,7 @@ def _done_run(tmp_path: Path, *overrides: str) -> Path:
 
 
 def test_every_key_left_out_of_job_folder_names_is_result_neutral_or_a_budget():
-    from bmimic.run_schema import LOGISTICS_KEYS
+    from bmimic.runs.schema import LOGISTICS_KEYS
     from bmimic.training.resume import BUDGET_KEYS, RESULT_NEUTRAL_KEYS
 
     # The seed and the study name make the folder; num_envs changes results and no resume may change it.

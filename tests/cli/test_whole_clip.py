@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 
 from bmimic import eval as bm_eval
-from bmimic.run_folder import WHOLE_CLIP_FILES, table_path
-from bmimic.run_schema import (
+from bmimic.runs.folder import WHOLE_CLIP_FILES, table_path
+from bmimic.runs.schema import (
     CLIP_TIME_S,
     CONDITION,
     ITERATION,

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from bmimic.envs.measures import ERROR_TERMS, step_errors
-from bmimic.run_schema import ERROR_COLUMNS
+from bmimic.runs.schema import ERROR_COLUMNS
 from bmimic.sim2sim.rollout import Rollout
 
 

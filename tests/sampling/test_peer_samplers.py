@@ -261,7 +261,7 @@ def test_egm_schedule_spans_the_run_unless_set():
 
 def test_eval_driven_sampler_needs_the_periodic_evaluation():
     from bmimic.config import ConfigError, resolve_runtime
-    from bmimic.config_checks import validate
+    from bmimic.config.checks import validate
     from tests.conftest import compose
 
     cfg = compose(["sampler=phc", "eval.every_iters=0"])
@@ -272,7 +272,7 @@ def test_eval_driven_sampler_needs_the_periodic_evaluation():
 
 def test_an_evaluation_interval_beyond_the_budget_is_flagged_for_eval_driven_samplers():
     from bmimic.config import resolve_runtime
-    from bmimic.config_checks import advisories
+    from bmimic.config.checks import advisories
     from tests.conftest import compose
 
     def notes(*overrides):

@@ -562,7 +562,7 @@ def test_a_policy_from_another_run_in_this_runs_folder_is_refused(task, tmp_path
     """Issue 47: sim2sim evaluated an ONNX copied from another run into this run's checkpoints/ and wrote
     its results (and a gap to this run's evaluation) under this run. The policy's metadata must match
     the run's record: motion segments, control and physics step, bins, an iteration the run reached."""
-    from bmimic.run_folder import write_motion_segments, write_resolved_config, write_status
+    from bmimic.runs.folder import write_motion_segments, write_resolved_config, write_status
     from bmimic.sim2sim.run_check import check_policy_of_run
 
     env, _, paths = task

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from bmimic import sim2sim
-from bmimic.run_schema import START_TRANSIENT_S, WHOLE_CLIP_ROLLOUT_COLUMNS, WHOLE_CLIP_SURVIVAL_COLUMNS
+from bmimic.runs.schema import START_TRANSIENT_S, WHOLE_CLIP_ROLLOUT_COLUMNS, WHOLE_CLIP_SURVIVAL_COLUMNS
 from bmimic.sim2sim.perturb import Draw, Perturbations, Push, foot_geoms, perturbations_from_env
 from bmimic.sim2sim.whole_clip import condition_summary, run_whole_clip, survival_table
 from bmimic.sim2sim.whole_clip_gap import WarpWholeClip, gap_table
@@ -276,7 +276,7 @@ def test_bmimics_own_whole_clip_evaluation_is_the_gaps_first_source(tmp_path):
     at the checkpoint's iteration; each condition it has, robust too."""
     from types import SimpleNamespace
 
-    from bmimic.run_folder import WHOLE_CLIP_DIR, WHOLE_CLIP_FILES, table_path
+    from bmimic.runs.folder import WHOLE_CLIP_DIR, WHOLE_CLIP_FILES, table_path
     from bmimic.sim2sim.whole_clip_gap import warp_whole_clip
 
     spec = SimpleNamespace(clip_starts=[0, 50], num_frames=120)

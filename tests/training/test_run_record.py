@@ -7,9 +7,9 @@ import math
 import pandas as pd
 import pytest
 
-from bmimic.run_folder import EVAL_TABLES, SIM2SIM_GAP, table_path
-from bmimic.run_record import RunRecord, RunRecordError, metrics, write_evaluation
-from bmimic.run_schema import FINAL_METRICS, RUN_METRICS
+from bmimic.runs.folder import EVAL_TABLES, SIM2SIM_GAP, table_path
+from bmimic.runs.record import RunRecord, RunRecordError, metrics, write_evaluation
+from bmimic.runs.schema import FINAL_METRICS, RUN_METRICS
 from bmimic.training.schedule import Schedule
 
 
@@ -48,7 +48,7 @@ def test_a_whole_table_is_written_at_once_and_a_row_table_is_refused(tmp_path):
 
 
 def test_an_evaluation_is_written_whole_with_the_summary_last(tmp_path, monkeypatch):
-    import bmimic.atomic_io as atomic_io
+    import bmimic.runs.atomic_io as atomic_io
 
     written, write = [], atomic_io.atomic_write
     monkeypatch.setattr(atomic_io, "atomic_write",

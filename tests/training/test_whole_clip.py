@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import torch
 
-from bmimic.run_schema import (
+from bmimic.runs.schema import (
     BIN,
     CLIP_TIME_S,
     CONDITION,

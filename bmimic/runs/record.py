@@ -7,7 +7,7 @@ snapshot or round of clip rollouts), `flush` writes each table atomically (rank 
 made with `enabled=False` never writes), and on resume `truncate` reads the folder's tables back and
 keeps the rows of the iterations the checkpoint had completed; a table made whole at once
 (eval_robust) is written by `write_table`. `metrics` assembles metrics.json in the run schema's
-order. Names are `bmimic.run_folder`'s (files) and `bmimic.run_schema`'s (columns and keys).
+order. Names are `bmimic.runs.folder`'s (files) and `bmimic.runs.schema`'s (columns and keys).
 Torch-free.
 """
 
@@ -20,7 +20,7 @@ from typing import Any, Mapping
 import pandas as pd
 
 from bmimic import BmimicError
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     EVAL_TABLES,
     EVALUATION_TABLES,
     SIM2SIM_GAP,
@@ -31,7 +31,7 @@ from bmimic.run_folder import (
     make_folder,
     table_path,
 )
-from bmimic.run_schema import FINAL_METRICS, ITERATION, RUN_METRICS
+from bmimic.runs.schema import FINAL_METRICS, ITERATION, RUN_METRICS
 
 TRAINING_TABLES = ("train_metrics", "sampler", "eval", "clip_eval", "whole_clip", "whole_clip_survival",
                    "whole_clip_failures")

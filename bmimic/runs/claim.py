@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bmimic import BmimicError
-from bmimic.run_folder import (
+from bmimic.runs.folder import (
     LOCK,
     MULTIRUN_RECORD,
     SWEEP_INDEX,
@@ -35,7 +35,7 @@ from bmimic.run_folder import (
     lock_run,
     read_status,
 )
-from bmimic.run_schema import ITERATION
+from bmimic.runs.schema import ITERATION
 
 MAX_SUFFIX = 1000
 """Most `_<n>` suffixes tried for a generated folder taken in the same second."""

@@ -62,6 +62,6 @@ def start_command(module: str) -> None:
     """What the command `module` (its `__spec__.name`) runs first: the working directory off sys.path
     under `python -m`, then the MUJOCO_GL check (exit status 2 with one line when it is broken)."""
     leave_working_directory(module)
-    from bmimic.console import exit_if_mujoco_gl_is_broken  # after: it imports logging, tempfile, ...
+    from bmimic.cli.console import exit_if_mujoco_gl_is_broken  # after: it imports logging, tempfile, ...
 
     exit_if_mujoco_gl_is_broken()

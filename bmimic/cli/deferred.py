@@ -2,7 +2,7 @@
 and `names_on_first_use`, the lazy names of a package (PEP 562).
 
 The sweep dry run (`bmimic-launch list`) checks every arm's config as the sweep will, which reads the
-env terms' signatures and the sampler classes' signals (bmimic.config_checks.validate): those
+env terms' signatures and the sampler classes' signals (bmimic.config.checks.validate): those
 modules `import torch` at their top, but a check calls nothing of torch's, and importing it is about
 half of the dry run's time on a small machine. Deferred, the module is a stand-in in `sys.modules`
 that `import torch` binds as usual; the first attribute read beyond the import system's own (`__spec__`,

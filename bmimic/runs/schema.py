@@ -2,7 +2,7 @@
 keys, the mastery rule and the logistics keys. Producers (training, `bmimic.eval`, sim2sim) and
 readers (evaluation's report, the analysis) spell these names through this module only.
 
-File names are `bmimic.run_folder`'s; this module says what the files hold. It is torch-free and imports
+File names are `bmimic.runs.folder`'s; this module says what the files hold. It is torch-free and imports
 nothing heavy (the analysis imports it without torch; sim2sim, numpy only, imports it too).
 A test (tests/test_run_schema.py) holds LOGISTICS_KEYS equal to conf/train.yaml's
 `hydra.job.config.override_dirname.exclude_keys`; tests/test_architecture.py fails on a string literal

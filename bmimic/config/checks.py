@@ -10,10 +10,10 @@ import functools
 import math
 from typing import Any, cast
 
+from bmimic.cli.extras import require_extra
 from bmimic.config import ConfigError, TrainConfig
 from bmimic.envs.config import EnvConfigError, check_env
-from bmimic.extras import require_extra
-from bmimic.run_folder import check_folder_name
+from bmimic.runs.folder import check_folder_name
 from bmimic.sampling.config import sampler_config
 from bmimic.training.checkpoints import MAX_ITERATION
 
@@ -268,7 +268,7 @@ def check_motion_fit(cfg, motion_duration_s: float) -> None:
 
 def check_whole_clip(eval_cfg: Any, step_dt: float) -> None:
     """The eval.whole_clip keys (bmimic.training.config.WholeClipConfig), one line naming the first bad one."""
-    from bmimic.run_schema import WHOLE_CLIP_CONDITIONS
+    from bmimic.runs.schema import WHOLE_CLIP_CONDITIONS
 
     w = eval_cfg.whole_clip
     if w.rollouts is not None and w.rollouts < 1:

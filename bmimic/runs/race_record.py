@@ -10,7 +10,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
-from bmimic.run_schema import (
+from bmimic.runs.schema import (
     ENV_STEPS,
     ITERATION,
     MPKPE_REL_MM,

@@ -2,7 +2,7 @@
 
 Hydra's own help lists the `*_schema` entries of the ConfigStore as options and prints the whole
 composed config. conf/train.yaml sets `hydra.help.template: ${bmimic.help:}` instead; that resolver
-(registered in bmimic/config.py) calls `train_help`, which lists each group's selectable options
+(registered in bmimic/config/__init__.py) calls `train_help`, which lists each group's selectable options
 (schemas left out, the current choice starred) and every top-level key with its current value and
 the docstring its schema dataclass carries. Overrides on the command line show in the values and
 choices: `python -m bmimic.train --help motion=lafan_dance1`.

@@ -4,7 +4,7 @@ A temp file in the target's folder is written, fsynced and renamed over the targ
 fsynced: an interrupted run never leaves a half-written checkpoint, table or status file behind, and
 files get the permissions the umask asks for (0644 under umask 022). A write the operating system
 refuses (a full disk, a quota, a read-only or immutable folder) is a `WriteError`: one line naming
-the file. Torch-free; bmimic.run_folder re-exports these names.
+the file. Torch-free; bmimic.runs.folder re-exports these names.
 """
 
 from __future__ import annotations

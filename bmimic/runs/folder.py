@@ -5,7 +5,7 @@ schemas); training writes through these functions, and `bmimic.eval`, `play`, `e
 the sweep tools and `analysis` read through them. This module is torch-free (analysis imports it on
 machines without torch): checkpoints are found here by name, read by `bmimic.training.checkpoints`.
 
-Every file bmimic writes goes through `atomic_write` (bmimic.atomic_io, re-exported here: a temp file
+Every file bmimic writes goes through `atomic_write` (bmimic.runs.atomic_io, re-exported here: a temp file
 in the same folder, fsynced, then renamed over the target), so an interrupted run never leaves a
 half-written checkpoint, table or status file behind, and files get the permissions the umask asks
 for (0644 under umask 022), so a team can read each other's runs.
@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from bmimic import BmimicError
-from bmimic.atomic_io import (  # noqa: F401  (the writer of every run-folder file, re-exported)
+from bmimic.runs.atomic_io import (  # noqa: F401  (the writer of every run-folder file, re-exported)
     WriteError,
     atomic_append_text,
     atomic_write,
@@ -36,7 +36,7 @@ from bmimic.atomic_io import (  # noqa: F401  (the writer of every run-folder fi
     make_folder,
     rewrite_in_place,
 )
-from bmimic.run_schema import ITERATION
+from bmimic.runs.schema import ITERATION
 
 # --------------------------------------------------------------------------------------------- layout
 HYDRA_DIR = ".hydra"
@@ -318,7 +318,7 @@ def lock_run(run_dir: str | os.PathLike) -> TextIO | None:
 
     The lock is the flock of the file `.bmimic.lock` *now at that path*: a file unlinked (or replaced)
     while it was being locked is not the run's lock, so the lock is taken again on the file the path
-    names; a lock file is only ever removed by the process holding it (bmimic.run_claim)."""
+    names; a lock file is only ever removed by the process holding it (bmimic.runs.claim)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / LOCK

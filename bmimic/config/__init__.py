@@ -4,7 +4,7 @@ Each config group is a YAML file in conf/<group>/ backed by a dataclass schema r
 `<group>/<group>_schema` (the sampler group's: one per sampler kind, `sampler/<kind>_schema`, registered
 with the sampler class, bmimic.sampling.registry); the YAML lists it first in its defaults, so a typo or a wrong type fails at
 composition with Hydra's own message. Meaning (ranges, divisibility, motion length) is checked once
-after composition by `bmimic.config_checks.validate`, which raises `ConfigError` with one line
+after composition by `bmimic.config.checks.validate`, which raises `ConfigError` with one line
 naming the key.
 """
 
@@ -72,7 +72,7 @@ class TrainConfig:
     sweep_name: str = "default"
     """Multirun jobs go to outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/."""
     max_cpu_hours: Optional[float] = 1.0
-    """On a CPU, refuse to start a run or sweep whose estimated training time (bmimic.budget: env steps
+    """On a CPU, refuse to start a run or sweep whose estimated training time (bmimic.config.budget: env steps
     at a measured CPU rate, sweep jobs summed) is over this many hours; null: no limit. GPUs are not
     limited."""
     time_limit_s: Optional[float] = None
@@ -127,7 +127,7 @@ def _arm_dir(override_dirname: str) -> str:
 
 def _train_help(*, _root_) -> str:
     """`--help`'s text (conf/train.yaml: hydra.help.template); `$` escaped for Hydra's string.Template."""
-    from bmimic.cli_help import train_help
+    from bmimic.cli.help_text import train_help
 
     return train_help(_root_, TrainConfig).replace("$", "$$")
 
@@ -294,7 +294,7 @@ def override_error(e: BaseException, overrides: Sequence[str] = ()) -> str:
     from hydra.errors import MissingConfigException, OverrideParseException
     from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-    from bmimic.cli_help import SCHEMA_SUFFIX
+    from bmimic.cli.help_text import SCHEMA_SUFFIX
 
     text = str(e).strip()
     lines = [line.strip() for line in text.splitlines() if line.strip()]
@@ -331,7 +331,7 @@ def override_error(e: BaseException, overrides: Sequence[str] = ()) -> str:
 
 def resolve_runtime(cfg, device: str) -> None:
     """Fill the `auto`/null top-level values in place for this machine; called once before
-    bmimic.config_checks.validate."""
+    bmimic.config.checks.validate."""
     on_gpu = device.startswith("cuda")
     cfg.device = device
     if cfg.num_envs is None:

@@ -5,7 +5,7 @@ runner is built; both stay off unless `verbose=true`, so a run shows its start-u
 progress bar. Console log lines are the bare message (warnings and errors say so); the run folder's
 train.log keeps timestamps.
 
-Every command imports this module first (bmimic.startup), so it imports nothing heavy at module level.
+Every command imports this module first (bmimic.cli.startup), so it imports nothing heavy at module level.
 """
 
 from __future__ import annotations
