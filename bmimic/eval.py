@@ -73,7 +73,7 @@ from bmimic.runs.schema import HORIZON_TRUNCATED, WHOLE_CLIP_CONDITIONS
 log = logging.getLogger("bmimic.eval")
 
 
-def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False) -> EvalResult:
+def evaluate(run: LoadedRun, overrides: Sequence[str] = ()) -> EvalResult:
     """Run the sampler-independent evaluation of `run.checkpoint` and build the tables."""
     from bmimic.runtime import seed_everything
     from bmimic.task import build_evaluator
@@ -82,7 +82,7 @@ def evaluate(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False)
 
     task = run.task
     cfg, device, motion, layout = task.cfg, task.device, task.motion, task.layout
-    state = load_run_checkpoint(run, trust)
+    state = load_run_checkpoint(run)
     seed_everything(cfg.seed)
     evaluator = build_evaluator(task)
     env = evaluator.env
@@ -205,17 +205,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.out is None:  # RUN/eval/<checkpoint>: checked before the evaluation's minutes
             from bmimic.training.checkpoints import load_checkpoint_file
 
-            state = load_checkpoint_file(run.checkpoint, "cpu", args.trust_checkpoint)
+            state = load_checkpoint_file(run.checkpoint, "cpu")
             out_dir = run.run_dir / EVAL_DIR / evaluation_label(run, state)
             out_dir = out_dir / WHOLE_CLIP_DIR if args.whole_clip is not None else out_dir
         else:
             out_dir = args.out
         if args.whole_clip is not None:
-            whole = evaluate_whole_clip(run, overrides, trust=args.trust_checkpoint)
+            whole = evaluate_whole_clip(run, overrides)
             write_whole_clip_tables(whole, out_dir.resolve())
         else:
             keep_earlier(out_dir.resolve(), run.run_dir, args.force)
-            result = evaluate(run, overrides, trust=args.trust_checkpoint)
+            result = evaluate(run, overrides)
             write_tables(result, out_dir.resolve())
     except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)

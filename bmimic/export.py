@@ -29,7 +29,8 @@ log = logging.getLogger("bmimic.export")
 
 def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False) -> list[Path]:
     """Export the run's latest checkpoint (or the given one); returns the written files. `trust`
-    (--trust-checkpoint) also reads a format-1 checkpoint (still weights-only), as bmimic.eval does."""
+    (--trust-checkpoint): a run config whose env terms import code outside bmimic is loaded, as
+    bmimic.eval does."""
     from bmimic.evaluation.saved_run import load_run, load_run_checkpoint
     from bmimic.task import build_evaluator
     from bmimic.training.onnx_export import export_checkpoint_onnx
@@ -39,7 +40,7 @@ def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = Fals
         make_folder(out_dir)
     run = load_run(path, ["device=cpu", "eval.max_envs=1"], trust=trust)
     task = run.task
-    state = load_run_checkpoint(run, trust=trust)
+    state = load_run_checkpoint(run)
     env = build_evaluator(task).env
     policy = build_policy(state, env, task.cfg.ppo, task.device, run.checkpoint)
     iteration = int(state.get("iter", -1))

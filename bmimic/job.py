@@ -171,7 +171,7 @@ def plan_job(cfg: DictConfig, launch_dir: Path, sweep_job: bool, ctx: RunContext
     resolved = cast(dict, OmegaConf.to_container(cfg, resolve=True))
     ctx.hydra_record = record_values(ctx.hydra_record, ctx.composed_config, resolved)
     allowed = list(cfg.resume_allow_changes or [])
-    plan = plan_run(cfg.resume, launch_dir, sweep_job, trust=bool(cfg.trust_checkpoint),
+    plan = plan_run(cfg.resume, launch_dir, sweep_job,
                     pinned=ctx.claim is not None and ctx.claim.pinned, config=resolved, allowed=allowed,
                     fill_defaults=with_schema_defaults)
     if plan.note:

@@ -137,7 +137,7 @@ def play(args: argparse.Namespace) -> Path:
     overrides = [*args.overrides, "eval.max_envs=1", *([f"device={args.device}"] if args.device else [])]
     run = load_run(args.path, overrides, trust=args.trust_checkpoint)
     task = run.task
-    state = load_run_checkpoint(run, args.trust_checkpoint)
+    state = load_run_checkpoint(run)
     motion = task.motion
     if not 0 <= args.start_s < motion.duration_s:
         raise RenderError(f"--start-s {args.start_s}: must be in [0, {motion.duration_s:g}) s, the motion's length")

@@ -290,17 +290,13 @@ def rng_state() -> dict:
 
 
 def set_rng_state(state: dict) -> None:
-    """Restore `rng_state()`; also reads the pickled tuples of format-1 checkpoints."""
+    """Restore `rng_state()`."""
     import torch
 
     py, npy = state["python"], state["numpy"]
-    if isinstance(py, dict):
-        py = (py["version"], tuple(int(x) for x in py["state"].tolist()), py["gauss"])
-    random.setstate(py)
-    if isinstance(npy, dict):
-        npy = (npy["bit_generator"], np.asarray(npy["keys"].tolist(), dtype=np.uint32), npy["pos"],
-               npy["has_gauss"], npy["cached_gaussian"])
-    np.random.set_state(npy)
+    random.setstate((py["version"], tuple(int(x) for x in py["state"].tolist()), py["gauss"]))
+    np.random.set_state((npy["bit_generator"], np.asarray(npy["keys"].tolist(), dtype=np.uint32), npy["pos"],
+                         npy["has_gauss"], npy["cached_gaussian"]))
     torch.set_rng_state(state["torch"].cpu())
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])

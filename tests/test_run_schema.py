@@ -16,9 +16,9 @@ def test_logistics_keys_are_the_composed_configs_exclude_keys():
 
 
 def test_the_analysis_ignores_every_logistics_key_in_arm_names():
-    # The drift issue 34 found: the analysis lacked resume_allow_changes and trust_checkpoint.
+    # The drift issue 34 found: the analysis lacked resume_allow_changes.
     assert set(rs.LOGISTICS_KEYS) <= IGNORED_OVERRIDE_KEYS
-    assert {"resume_allow_changes", "trust_checkpoint", "max_cpu_hours"} <= IGNORED_OVERRIDE_KEYS
+    assert {"resume_allow_changes", "max_cpu_hours"} <= IGNORED_OVERRIDE_KEYS
 
 
 def test_every_measured_column_has_a_unit_in_its_name_and_a_label():

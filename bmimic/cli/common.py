@@ -27,8 +27,8 @@ def user_errors() -> tuple[type[BaseException], ...]:
 def add_trust_flag(p: argparse.ArgumentParser) -> None:
     """Add --trust-checkpoint to a command's parser."""
     p.add_argument("--trust-checkpoint", action="store_true",
-                   help="also read bmimic checkpoint format 1 (pickled numpy RNG state), still weights-only: "
-                        "numpy arrays are admitted, any other global is refused")
+                   help="trust the run folder: load a run config whose env terms import modules outside "
+                        "bmimic (their code runs); the checkpoint itself is read weights-only either way")
 
 
 def check_output_file(flag: str, path: str | os.PathLike) -> Path:

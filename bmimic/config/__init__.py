@@ -86,9 +86,6 @@ class TrainConfig:
     """Config keys (or key prefixes, e.g. `env.rewards`) a resume may change; the changes are recorded
     in the run's resumes.json. Budget and logistics keys (max_iterations, time_limit_s, device, logger,
     progress_bar, ...: bmimic.training.resume.RESUME_FREE_KEYS) never need naming."""
-    trust_checkpoint: bool = False
-    """Also read a resume checkpoint of bmimic format 1 (pickled numpy RNG state), still with
-    torch.load(weights_only=True): numpy's array reconstruction is admitted, any other global refused."""
     logger: str = "tensorboard"
     """`tensorboard`, `wandb` (offline-capable via WANDB_MODE) or `none`."""
     wandb_project: str = "bmimic"
@@ -356,7 +353,7 @@ def with_schema_defaults(config: dict) -> dict:
         return config
     if "defaults" not in config:  # Hydra's defaults list is not part of a composed config
         filled.pop("defaults", None)
-    if isinstance(filled.get("sampler"), dict):  # its variant's schema (an earlier bmimic's layout too)
+    if isinstance(filled.get("sampler"), dict):  # its variant's schema
         try:
             filled["sampler"] = as_dict(filled["sampler"])
         except BmimicError:

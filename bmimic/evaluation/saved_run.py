@@ -195,7 +195,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     return LoadedRun(run_dir, checkpoint, build_task(cfg, device), tuple(overrides))
 
 
-def load_run_checkpoint(run: LoadedRun, trust: bool = False) -> dict:
+def load_run_checkpoint(run: LoadedRun) -> dict:
     """The run's checkpoint (weights-only), checked to belong to the run: its own config and meta
     (bmimic checkpoint format 2) must agree with the run's on the TASK_KEYS and the motion, except
     where a command-line override names the key. A checkpoint copied from another run would otherwise
@@ -203,7 +203,7 @@ def load_run_checkpoint(run: LoadedRun, trust: bool = False) -> dict:
     from bmimic.training.checkpoints import load_checkpoint_file, motion_meta
     from bmimic.training.resume import config_changes, key_allowed
 
-    state = load_checkpoint_file(run.checkpoint, run.task.device, trust)
+    state = load_checkpoint_file(run.checkpoint, run.task.device)
     named = [o.partition("=")[0] for o in run.overrides]
     allowed = [*named, *accepted_changes(run.run_dir)]
     differ = []

@@ -40,7 +40,7 @@ class WholeClipEval:
     out_dir: Path | None = None
 
 
-def evaluate_whole_clip(run: LoadedRun, overrides: Sequence[str] = (), trust: bool = False) -> WholeClipEval:
+def evaluate_whole_clip(run: LoadedRun, overrides: Sequence[str] = ()) -> WholeClipEval:
     """Whole-clip rollouts of `run.checkpoint` under eval.whole_clip's conditions (bmimic.training.whole_clip)."""
     import time
 
@@ -52,7 +52,7 @@ def evaluate_whole_clip(run: LoadedRun, overrides: Sequence[str] = (), trust: bo
     task = run.task
     cfg, device, layout = task.cfg, task.device, task.layout
     whole = build_whole_clip(task)  # refuses a clip it cannot hold, before the checkpoint is read
-    state = load_run_checkpoint(run, trust)
+    state = load_run_checkpoint(run)
     seed_everything(cfg.seed)
     iteration = int(state.get("iter", -1))
     try:

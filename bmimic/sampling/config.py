@@ -18,20 +18,16 @@ them), each with a header saying what it is; the kinds are those of the registry
 
 ``enabled: false`` draws start bins uniformly whatever the variant (the design's switch back to
 uniform sampling); the run then equals ``sampler=uniform`` except for the recorded name.
-
-Run folders of earlier bmimic versions hold every key of every sampler at the top of ``sampler``
-(``sampler.attribution``, ``sampler.alpha`` under ``adaptive``...); :func:`sampler_config` reads them
-into today's layout, so they can still be evaluated and resumed.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, fields
+from dataclasses import asdict
 from typing import TYPE_CHECKING, Any, cast
 
 from bmimic.sampling.checks import SamplerConfigError, check_choice, fail
 from bmimic.sampling.registry import SCHEMAS, sampler_entry, schema_of
-from bmimic.sampling.schemas import AccountingConfig, SamplerConfig
+from bmimic.sampling.schemas import SamplerConfig
 
 if TYPE_CHECKING:
     from bmimic.sampling.bins import Layout
@@ -44,25 +40,10 @@ def sampler_class(kind: Any) -> type:
     """The sampler class registered for `kind` (its module imported on first use)."""
     return sampler_entry(kind).cls
 
-_LEGACY_KINDS = {"adaptive": "adaptive", "adaptive_hybrid": "adaptive", "beyondmimic": "beyondmimic",
-                 "uniform": "uniform"}
-"""The variants of bmimic before the registry, whose run folders have no `kind`."""
-
-
-def _upgrade(plain: dict) -> dict:
-    """A sampler node of an earlier bmimic (every key flat, no `kind`) in today's layout."""
-    if "kind" in plain or "accounting" in plain or plain.get("name") not in _LEGACY_KINDS:
-        return plain
-    kind = _LEGACY_KINDS[plain["name"]]
-    keep = {f.name for f in fields(schema_of(kind))}
-    accounting = {k: plain[k] for k in (f.name for f in fields(AccountingConfig)) if k in plain}
-    return {**{k: v for k, v in plain.items() if k in keep}, "kind": kind, "accounting": accounting}
-
 
 def sampler_config(cfg: Any) -> SamplerConfig:
-    """`cfg` (a SamplerConfig, the composed node, or a plain dict such as a run folder's, also one of
-    an earlier bmimic) as an instance of its kind's schema. SamplerConfigError names a key the
-    schema does not have."""
+    """`cfg` (a SamplerConfig, the composed node, or a plain dict such as a run folder's) as an
+    instance of its kind's schema. SamplerConfigError names a key the schema does not have."""
     if isinstance(cfg, SamplerConfig):
         return cfg
     from omegaconf import DictConfig, OmegaConf
@@ -71,7 +52,7 @@ def sampler_config(cfg: Any) -> SamplerConfig:
     node_type = OmegaConf.get_type(cfg) if isinstance(cfg, DictConfig) else None
     if isinstance(node_type, type) and issubclass(node_type, SamplerConfig):
         return cast(SamplerConfig, OmegaConf.to_object(cfg))
-    plain = _upgrade(cast(dict, OmegaConf.to_container(cfg, resolve=True)) if isinstance(cfg, DictConfig) else dict(cfg))
+    plain = cast(dict, OmegaConf.to_container(cfg, resolve=True)) if isinstance(cfg, DictConfig) else dict(cfg)
     kind = plain.get("kind")
     try:
         return cast(SamplerConfig, OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema_of(kind)), plain)))

@@ -26,7 +26,7 @@ from bmimic.runs.folder import (
 )
 from bmimic.training.checkpoints import is_latest, load_checkpoint_file, load_newest_intact
 
-LAUNCH_KEYS = ("resume", "resume_allow_changes", "trust_checkpoint")
+LAUNCH_KEYS = ("resume", "resume_allow_changes")
 """Keys that say how a launch treats an existing run, not how the run trains: never a change of the
 run (resumes.json does not list them)."""
 RESULT_NEUTRAL_KEYS = (*LAUNCH_KEYS, "device", "progress_bar", "verbose", "logger", "max_cpu_hours", "wandb_project",
@@ -119,14 +119,14 @@ class RunPlan:
     checkpoint: Path | None = None
     """The checkpoint loaded (None: a fresh run)."""
     state: dict | None = None
-    """Its contents, read with weights_only unless trusted."""
+    """Its contents (read with weights_only)."""
     continues: bool = False
     """run_dir is an existing run that this launch continues (not a new folder)."""
     note: str = ""
     """What the planner had to do that the user must hear (e.g. passed over a damaged latest.pt)."""
 
 
-def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool = False, pinned: bool = False,
+def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, pinned: bool = False,
              config: dict | None = None, allowed: list[str] | tuple[str, ...] = (),
              fill_defaults: Callable[[dict], dict] | None = None) -> RunPlan:
     """Decide where to train and from which checkpoint, reading but never writing.
@@ -163,7 +163,7 @@ def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool
         if not checkpoint_files(checkpoints_dir(target)):
             note = "" if sweep_job else f"resume=true: {target} holds no checkpoint; starting a fresh run there"
             return RunPlan(launch_dir, launch_dir, note=note)  # (a sweep job that never reached a checkpoint)
-        path, state, note = load_newest_intact(checkpoints_dir(target), trust)
+        path, state, note = load_newest_intact(checkpoints_dir(target))
         return RunPlan(target, launch_dir, path, state, True, note)
 
     path = Path(request).expanduser()
@@ -172,14 +172,14 @@ def plan_run(resume: Any, launch_dir: Path, sweep_job: bool = False, trust: bool
     if path.is_dir():
         ckpt_dir = checkpoints_dir(path) if checkpoints_dir(path).is_dir() else path
         run = ckpt_dir.parent if ckpt_dir.name == CHECKPOINTS_DIR else None
-        checkpoint, state, note = load_newest_intact(ckpt_dir, trust)
+        checkpoint, state, note = load_newest_intact(ckpt_dir)
     else:
         ckpt_dir = path.parent
         run = ckpt_dir.parent if ckpt_dir.name == CHECKPOINTS_DIR else None
         if is_latest(path):
-            checkpoint, state, note = load_newest_intact(ckpt_dir, trust)
+            checkpoint, state, note = load_newest_intact(ckpt_dir)
         else:
-            checkpoint, state, note = path, load_checkpoint_file(path, "cpu", trust), ""
+            checkpoint, state, note = path, load_checkpoint_file(path, "cpu"), ""
     if run is None or not is_run_folder(run):
         return RunPlan(launch_dir, launch_dir, checkpoint, state, False, note)
     run = run.resolve()

@@ -125,9 +125,9 @@ class Trainer:
         """Write model_<it>.pt and latest.pt (tables first) and their ONNX exports."""
         return run_state.save_checkpoint(self)
 
-    def load_checkpoint(self, path: str | os.PathLike, trust: bool = False) -> None:
-        """Read a checkpoint (weights_only unless `trust`) and `restore` it."""
-        self.restore(load_checkpoint_file(path, "cpu", trust), path)
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        """Read a checkpoint (weights_only) and `restore` it."""
+        self.restore(load_checkpoint_file(path, "cpu"), path)
 
     def restore(self, state: dict, path: str | os.PathLike = "checkpoint", allowed: tuple | list = ()) -> None:
         """Load networks, optimiser, counters, sampler and RNG states and read the run's tables back; writes

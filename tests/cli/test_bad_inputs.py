@@ -221,7 +221,8 @@ class Workspace:
         return path
 
     def legacy_run(self, name: str) -> Path:
-        """A copy of the fixture whose checkpoints are in format 1 (pickled numpy RNG state)."""
+        """A copy of the fixture whose checkpoints are in format 1 (pickled numpy RNG state, bmimic before
+        format 2): its pickle names numpy globals, so every loader refuses it."""
         run = self.root / "copies" / f"legacy_{name}"
         if not run.exists():
             shutil.copytree(self.run, run)
@@ -234,8 +235,7 @@ class Workspace:
                 torch.save(state, p)
             # ... and its resolved config predates the options added with format 2
             cfg = json.loads((run / "resolved_config.json").read_text())
-            for key in ("resume_allow_changes", "trust_checkpoint"):
-                del cfg[key]
+            del cfg["resume_allow_changes"]
             del cfg["sim"]["max_abs_qvel"], cfg["sim"]["max_root_distance_m"], cfg["env"]["max_abs_step_reward"]
             (run / "resolved_config.json").write_text(json.dumps(cfg))
         return run
@@ -604,12 +604,8 @@ def cases() -> list[Case]:
     add(Case("resume=an older checkpoint into its own run", "train", lambda ws: _train(
         f"resume={ws.run / 'checkpoints' / 'model_1.pt'}", f"hydra.run.dir={ws.run}", iters=3),
         match="older than"))
-    add(Case("resume=format-1 checkpoint without trust", "train", lambda ws: _train(
-        f"resume={ws.legacy_run('refused')}", iters=3), match="trust_checkpoint"))
-    add(Case("resume=format-1 checkpoint with trust_checkpoint=true", "train", lambda ws: _train(
-        f"resume={ws.legacy_run('trusted')}", "trust_checkpoint=true", "run_name=fixture", iters=3), "accept",
-        check=lambda ws, r: json.loads((ws.legacy_run("trusted") / "status.json").read_text())["iteration"] == 3,
-        slow=True))
+    add(Case("resume=format-1 checkpoint", "train", lambda ws: _train(
+        f"resume={ws.legacy_run('refused')}", iters=3), match="refused: its pickle needs the global numpy"))
     add(Case("resume of a run whose latest.pt is truncated", "train", lambda ws: _train(
         f"resume={_truncated_latest(ws)}", "run_name=fixture", iters=3), "accept",
         check=lambda ws, r: "latest.pt" in r.out and "resuming from model_2.pt" in r.out and json.loads(
@@ -627,8 +623,7 @@ def cases() -> list[Case]:
               "model_8.pt", (ws.run / "checkpoints" / "model_1.pt").read_bytes()[:30000])))], "not a readable"),
           ("empty checkpoint", lambda ws: [str(_in_run(ws, "empty_eval", ws.write("model_7.pt", b"")))],
            "not a readable"),
-          ("format-1 checkpoint without --trust-checkpoint", lambda ws: [str(ws.legacy_run("eval"))],
-           "--trust-checkpoint"),
+          ("format-1 checkpoint", lambda ws: [str(ws.legacy_run("eval"))], "refused: its pickle needs"),
           ("--episodes-per-bin 0", lambda ws: [str(ws.run), "--episodes-per-bin", "0"], "episodes_per_bin"),
           ("--horizon-s nan", lambda ws: [str(ws.run), "--horizon-s", "nan"], "horizon_s"),
           ("--horizon-s -1", lambda ws: [str(ws.run), "--horizon-s", "-1"], "horizon_s"),
@@ -645,9 +640,6 @@ def cases() -> list[Case]:
     for name, args, match in ev:
         add(Case(f"eval: {name}", "eval", args, match=match,
                  patch=_on_sys_path if "foreign" in name else None))
-    add(Case("eval: format-1 checkpoint with --trust-checkpoint", "eval", lambda ws: [
-        str(ws.legacy_run("eval")), "--trust-checkpoint", "--episodes-per-bin", "1", "--horizon-s", "0.2"],
-        "accept", check=lambda ws, r: (ws.legacy_run("eval") / "eval").is_dir(), slow=True))
     # ---------------------------------------------------------------- play (no OpenGL needed up to here)
     for name, args, match in (
         ("crafted checkpoint", lambda ws: [str(_in_run(ws, "evil_play", ws.evil_checkpoint("model_6.pt")))],
@@ -657,8 +649,7 @@ def cases() -> list[Case]:
         ("--start-s 999", lambda ws: [str(ws.run), "--start-s", "999"], "--start-s"),
         ("--out .avi", lambda ws: [str(ws.run), "--out", str(ws.root / "v.avi")], "v.avi"),
         ("--device cuda:x", lambda ws: [str(ws.run), "--device", "cuda:x"], "device"),
-        ("format-1 checkpoint without --trust-checkpoint", lambda ws: [str(ws.legacy_run("play"))],
-         "--trust-checkpoint"),
+        ("format-1 checkpoint", lambda ws: [str(ws.legacy_run("play"))], "refused: its pickle needs"),
     ):
         add(Case(f"play: {name}", "play", args, match=match))
     # ---------------------------------------------------------------- convert
@@ -837,10 +828,6 @@ def test_crafted_checkpoint_is_refused_by_every_loader(tmp_path) -> None:
     with pytest.raises(UnsafeCheckpointError) as err:
         load_checkpoint_file(path)
     assert "\n" not in str(err.value) and ("builtins.open" in str(err.value) or "io.open" in str(err.value))
-    assert not ws.sentinel.exists()
-    # Trust admits format-1 checkpoints (numpy arrays), never a global that would run code.
-    with pytest.raises(UnsafeCheckpointError, match="even with trust"):
-        load_checkpoint_file(path, trust=True)
     assert not ws.sentinel.exists()
 
 

@@ -352,13 +352,13 @@ def test_interpolated_values_are_recorded_as_the_values_the_run_trained_with(tmp
 
 
 def test_resumes_json_lists_changes_of_the_run_not_of_the_launch() -> None:
-    # resume: null -> "True" (and resume_allow_changes, trust_checkpoint) say how this launch treats the
+    # resume: null -> "True" (and resume_allow_changes) say how this launch treats the
     # run; they are no change of what the run trains.
     from bmimic.training.resume import RunPlan, check_resume_changes
 
-    old = {"resume": None, "resume_allow_changes": [], "trust_checkpoint": False, "max_iterations": 4,
+    old = {"resume": None, "resume_allow_changes": [], "max_iterations": 4,
            "sampler": {"gamma": 0.9}}
-    new = {**old, "resume": "True", "resume_allow_changes": ["sampler.gamma"], "trust_checkpoint": True,
+    new = {**old, "resume": "True", "resume_allow_changes": ["sampler.gamma"],
            "max_iterations": 6, "sampler": {"gamma": 0.5}}
     plan = RunPlan(Path("run"), Path("run"), Path("run/checkpoints/latest.pt"), {"config": json.dumps(old)}, True)
     assert check_resume_changes(plan, new, ["sampler.gamma"]) == {"max_iterations": (4, 6), "sampler.gamma": (0.9, 0.5)}

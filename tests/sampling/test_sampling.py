@@ -761,22 +761,15 @@ def test_named_variants_are_what_their_names_say():
                                                                            design.accounting)
 
 
-def test_run_folders_of_earlier_bmimic_are_read_in_todays_layout():
-    """Before the registry every variant held every key flat; such a config still validates, builds
-    the same sampler and fills the same defaults (so a resume across the upgrade sees no change)."""
+def test_a_flat_sampler_node_of_the_layout_before_the_registry_is_refused_in_one_line():
+    """Before the registry every variant held every key flat; bmimic no longer reads that layout (the
+    committed results were migrated), and says which key is missing."""
     flat = {"name": "beyondmimic", "enabled": True, "bins": "released", "bin_size_seconds": None, "gamma": 0.8,
             "lambda_uniform": 0.1, "K": 1, "alpha_smooth": 0.1, "empty_bins": "decay", "alpha": 0.001,
             "uniform_ratio": 0.1, "attribution": "failure", "failure": "terminated", "failure_threshold": 0.8,
             "update_every": "step", "log_every": None}
-    validate_sampler_config(flat, 30.0)
-    assert sampler_config(flat) == load_variant("beyondmimic")
-    from omegaconf import OmegaConf
-
-    from bmimic.config import with_schema_defaults
-    from tests.conftest import compose
-
-    new = OmegaConf.to_container(compose(["sampler=beyondmimic"]), resolve=True)
-    assert with_schema_defaults({**new, "sampler": flat})["sampler"] == new["sampler"]
+    with pytest.raises(SamplerConfigError, match=r"^sampler\.kind must be one of .*, got None$"):
+        validate_sampler_config(flat, 30.0)
 
 
 def test_disabled_sampler_draws_uniformly_and_says_so():
