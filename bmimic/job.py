@@ -119,11 +119,11 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         final, robust = learn_and_evaluate(trainer, task, place, stop)
         if trainer.interrupted:
             if place.main_rank:
-                trainer.save_checkpoint()  # the tables first, then model_<it>.pt and latest.pt
+                trainer.checkpoint.save()  # the tables first, then model_<it>.pt and latest.pt
                 write_status(plan.run_dir, "interrupted", trainer.progress.iteration)
             raise TrainingInterrupted(cast(StopSignals, stop), trainer.progress.iteration, plan.run_dir)
         if place.main_rank:
-            trainer.save_checkpoint()
+            trainer.checkpoint.save()
     finally:
         try:
             trainer.close()
@@ -206,7 +206,7 @@ def build_job(cfg: DictConfig, task, place: Placement, plan, resolved: dict):
     with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
         trainer = build_trainer(training, evaluator, plan.run_dir, is_main_rank=place.main_rank, run_config=resolved)
     if plan.state is not None:
-        trainer.restore(plan.state, plan.checkpoint, list(cfg.resume_allow_changes or []))
+        trainer.checkpoint.load(plan.state, plan.checkpoint, list(cfg.resume_allow_changes or []))
         if place.world > 1:
             # A checkpoint holds rank 0's random state alone, which the restore gave every rank: each
             # rank draws a stream of its own again (its worlds' resets, noise and actions), one that

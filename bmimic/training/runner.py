@@ -31,16 +31,12 @@ from bmimic.runs.record import RunRecord
 from bmimic.runs.schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S, whole_clip_key
 from bmimic.runtime import any_rank, torchrun_env
 from bmimic.sampling import diagnostics
-from bmimic.training import run_state
-from bmimic.training.checkpoints import (
-    load_checkpoint_file,
-)
 from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
 from bmimic.training.evaluator import summarize
 from bmimic.training.health import Health
 from bmimic.training.logger import RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
-from bmimic.training.run_state import Progress
+from bmimic.training.run_state import Checkpoint, Progress
 from bmimic.training.schedule import Schedule, WholeClipSchedule
 
 if TYPE_CHECKING:
@@ -66,8 +62,8 @@ class _Runner(OnPolicyRunner):
 
 class Trainer:
     """Owns the rsl-rl algorithm, the env, the evaluator and the run folder's tables. Nothing is written
-    into the run folder until `learn` (or `evaluate`, `save_checkpoint`) runs, so a resume refused by
-    `restore` leaves the folder as it was."""
+    into the run folder until `learn` (or `evaluate`, `checkpoint.save`) runs, so a resume refused by
+    `checkpoint.load` leaves the folder as it was."""
 
     def __init__(self, env, evaluator, sampler, feedback, cfg, run_dir: str | os.PathLike, device: str,
                  logger: RunLogger, is_main_rank: bool = True, run_config: dict | None = None) -> None:
@@ -95,6 +91,8 @@ class Trainer:
         self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
         self.overflow_world_steps = 0
         """World-steps whose contact or constraint buffers overflowed, over the run (metrics.json)."""
+        self.checkpoint = Checkpoint(self)
+        """Its checkpoint: meta, state, save, load (bmimic.training.run_state)."""
         # A stopping rule after each evaluation (its summary -> True: stop; bmimic.race), when learn()
         # began (time.time()) and the wall time the evaluations took.
         self.after_evaluation: Callable[[Trainer, dict], bool] | None = None
@@ -111,28 +109,6 @@ class Trainer:
         self._whole_clip_s: float | None = None  # how long the latest one took
         self.interrupted = False  # learn() stopped early on a signal (bmimic.training.interrupts)
         self.signals = None  # learn()'s StopSignals: a signal ends an evaluation at once (StopNow)
-
-    # ------------------------------------------------------------------ checkpoints (bmimic.training.run_state)
-    def meta(self) -> dict:
-        """What a checkpoint must match to be loaded into this trainer (plain values)."""
-        return run_state.meta(self)
-
-    def checkpoint_state(self) -> dict:
-        """Tensors and plain values only (CHECKPOINT_FORMAT): loads with torch.load(weights_only=True)."""
-        return run_state.checkpoint_state(self)
-
-    def save_checkpoint(self) -> Path:
-        """Write model_<it>.pt and latest.pt (tables first) and their ONNX exports."""
-        return run_state.save_checkpoint(self)
-
-    def load_checkpoint(self, path: str | os.PathLike) -> None:
-        """Read a checkpoint (weights_only) and `restore` it."""
-        self.restore(load_checkpoint_file(path, "cpu"), path)
-
-    def restore(self, state: dict, path: str | os.PathLike = "checkpoint", allowed: tuple | list = ()) -> None:
-        """Load networks, optimiser, counters, sampler and RNG states and read the run's tables back; writes
-        nothing (run_state.restore)."""
-        run_state.restore(self, state, path, allowed)
 
     # ------------------------------------------------------------------ tables
     def flush_tables(self) -> None:
@@ -277,7 +253,7 @@ class Trainer:
                 stop = any_rank(stop, self.device)
             self.feedback.after_evaluation(self._clip_outcomes, self.schedule.eval_every)
         if self.is_main and self.schedule.checkpoints(it, last):
-            self.save_checkpoint()
+            self.checkpoint.save()
             write_status(self.run_dir, "running", it)
         return stop
 

@@ -118,7 +118,7 @@ def test_resume_restores_exact_state(trained, tmp_path):
     trainer = build_trainer(training, build_evaluator(training.task), tmp_path)
     ckpt_path = trained / "checkpoints" / "model_2.pt"
     ckpt = torch.load(ckpt_path, weights_only=True)  # format 2: plain data only
-    trainer.load_checkpoint(ckpt_path)
+    trainer.checkpoint.load_file(ckpt_path)
     assert trainer.progress.iteration == 2
     assert trainer.alg.learning_rate == pytest.approx(ckpt["optimizer_state_dict"]["param_groups"][0]["lr"])
     from bmimic.sampling.config import make_sampler
