@@ -16,8 +16,7 @@ from analysis import bin_tables, clip_tables, comparisons, tables, whole_clip
 from analysis.adaptation import at_evaluations, sampling_support, signal_summary, support_summary
 from analysis.knobs import knob_arms, knob_levels, knob_summary
 from analysis.load import load_runs, load_segments, load_table, short_arm_labels
-from analysis.machines import kinds_text, machine_kinds, wall_time_comparable
-from analysis.markdown import fmt
+from analysis.machines import machine_kinds, wall_time_comparable
 from analysis.metrics import (
     ERROR_METRICS,
     MEASURES,
@@ -74,62 +73,125 @@ def read_runs(paths: list[Path], opts: ReportOptions, allow_mixed: bool = False)
 
 
 @dataclass
-class ReportData:
-    """Every table of one report, by section: inputs and budget, curves and bins, comparisons, speedups,
-    tracking, segments and clips, adaptation, sensitivity. Each attribute is the frame (or value) the
-    function named beside its computation in `compute` returns; `None` or empty where a section has
-    nothing (one arm: no speedups; one clip: no clip table)."""
+class Inputs:
+    """What the report is of and how it reads: the runs, the options, the baseline, the arms' colours, the
+    machine kinds and the measures of time it may compare."""
 
     runs: pd.DataFrame
     opts: ReportOptions
     baseline: Any
     baseline_note: str
-    eval_df: pd.DataFrame
-    bins: pd.DataFrame
     colors: dict
     kinds: dict
-    machines: str
+    wall_ok: bool
+    """Wall time may be compared: every run trained on one recorded machine kind."""
     measures: tuple
+    seeds: dict
+    final_iteration: Any
+    """The evaluation the final numbers are read at: the last one every run has."""
+    bootstrap: bool
+    """Intervals are bootstrap intervals (every arm has enough seeds), else the range of the seeds."""
+
+
+@dataclass
+class Curves:
+    """Learning curves: the overall evaluation per run and iteration, per seed and over seeds; the budgets."""
+
     overall: pd.DataFrame
-    mastery_seed_df: pd.DataFrame
-    mastery_df: pd.DataFrame
-    times: pd.DataFrame
-    time_df: pd.DataFrame
-    budget: pd.DataFrame
-    errors: pd.DataFrame
-    broken: pd.DataFrame
-    per_run: Any
-    summary: pd.DataFrame
-    at: str
     per_seed_curves: pd.DataFrame
     curves: pd.DataFrame
-    band: str
+    budget: pd.DataFrame
+
+
+@dataclass
+class Bins:
+    """Per bin: the evaluation, failure over training and at the end, the sampling distribution, mastery."""
+
+    eval_df: pd.DataFrame
+    bins: pd.DataFrame
     bin_fail: pd.DataFrame
     final_bins: pd.DataFrame
     samp: pd.DataFrame
+    mastery_seed_df: pd.DataFrame
+    mastery_df: pd.DataFrame
+
+
+@dataclass
+class Arms:
+    """Per run and per arm: final metrics, times to the success threshold, tracking errors, broken
+    episodes, and the comparisons between arms and against the baseline."""
+
+    per_run: Any
+    summary: pd.DataFrame
+    times: pd.DataFrame
+    time_df: pd.DataFrame
+    errors: pd.DataFrame
+    broken: pd.DataFrame
     comp: pd.DataFrame
     comp_robust: pd.DataFrame
-    shown: dict
-    smooth: dict
     comp_errors: dict
     comp_base: pd.DataFrame
+    shown: dict
+    """Tracking-error columns the runs have: column -> label."""
+    smooth: dict
+    """Smoothness columns the runs have: column -> label."""
+
+
+@dataclass
+class Speedups:
+    """Against the baseline (two or more arms): time to the success threshold, per bin, over thresholds,
+    iso-failure over training, and each seed's ratio."""
+
+    speed: pd.DataFrame
+    per_bin: pd.DataFrame
+    curve: pd.DataFrame
+    iso: pd.DataFrame
+    dots: pd.DataFrame
+
+
+@dataclass
+class Places:
+    """Failure per motion segment and per clip of a library."""
+
+    seg: pd.DataFrame
+    clip_tab: pd.DataFrame
+
+
+@dataclass
+class Adaptation:
+    """How the sampling distribution adapted: its support over training and the samplers' signals."""
+
     support: pd.DataFrame
     support_sum: pd.DataFrame
     signals: pd.DataFrame
-    seg: pd.DataFrame
-    clip_tab: pd.DataFrame
+    clip_evals: pd.DataFrame | None = None
+
+
+@dataclass
+class Sensitivity:
+    """Metrics against a swept key's values, and the knob study's levels against uniform sampling."""
+
     sens: pd.DataFrame
     ref: dict
-    seeds: dict
-    speed: pd.DataFrame | None = None
-    per_bin: pd.DataFrame | None = None
-    curve: pd.DataFrame | None = None
-    iso: pd.DataFrame | None = None
-    dots: pd.DataFrame | None = None
-    clip_evals: pd.DataFrame | None = None
     knob_levels: pd.DataFrame | None = None
     knob_summary: pd.DataFrame | None = None
     uniform_arm: str | None = None
+
+
+@dataclass
+class ReportData:
+    """Every table of one report, by section; each section is built in `compute` and read by the view and
+    the files of that section. A section without anything is empty (one clip: no clip table) or None
+    (one arm: no speedups; no whole-clip evaluation)."""
+
+    inputs: Inputs
+    curves: Curves
+    bins: Bins
+    arms: Arms
+    places: Places
+    adaptation: Adaptation
+    sensitivity: Sensitivity
+    speedups: Speedups | None = None
     whole_clip: whole_clip.WholeClipReport | None = None
 
 
@@ -143,9 +205,6 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     colors = arm_colors(runs["arm"].dropna())
     kinds = machine_kinds(runs)
     wall_ok = wall_time_comparable(kinds)
-    machines = "" if wall_ok else (
-        "Wall time is not compared (no wall-time speedup is printed, and the Arms table leaves wall time out): "
-        f"the runs trained on different or unrecorded machine kinds ({kinds_text(runs, kinds)}).")
     measures = MEASURES if wall_ok else tuple(m for m in MEASURES if m != WALL_TIME_S)
     overall = tables.overall(eval_df)
     robust_overall = tables.overall(robust_df) if len(robust_df) else None
@@ -160,10 +219,8 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     summary = tables.summary(per_run, runs, opts)
     overview = tables.arm_overview(summary, time_df)
     common = tables.common_budget(overall)
-    at = f"iteration {fmt(common[ITERATION])}, the last evaluation every run has"
     per_seed_curves = tables.seed_curves(train, overall, opts, errors)
     curves = tables.learning_curves(per_seed_curves, runs, opts)
-    band = ("band: bootstrap interval" if tables.use_bootstrap(runs) else "band: range of the seeds")
     bin_fail = bin_tables.bin_failure(eval_df)
     final_bins = bin_tables.final_bin_failure(eval_df, runs, opts).merge(bins[[BIN, "segment"]], on=BIN, how="left")
     samp = bin_tables.sampling(sampler_df, runs)
@@ -178,35 +235,40 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     support_eval = at_evaluations(support, sorted(overall[ITERATION].unique())) if len(support) else support
     support_sum = support_summary(support_eval) if len(support_eval) else pd.DataFrame()
     signals = signal_summary(support) if len(support) else pd.DataFrame()
-    extra = {}
+    speedups = None
     if baseline is not None and runs.loc[runs["included"], "arm"].nunique() > 1:
         speed, per_bin = bin_tables.speedups(times, mastery_seed_df, baseline, runs, opts)
-        extra = {"speed": speed[speed["measure"].isin(measures)].reset_index(drop=True), "per_bin": per_bin,
-                 "curve": speedup_curve(overall, baseline, runs, opts), "iso": iso_failure(overall, baseline),
-                 "dots": bin_tables.speedup_per_seed(times, baseline)}
+        speedups = Speedups(speed[speed["measure"].isin(measures)].reset_index(drop=True), per_bin,
+                            speedup_curve(overall, baseline, runs, opts), iso_failure(overall, baseline),
+                            bin_tables.speedup_per_seed(times, baseline))
     seeds = tables.seeds_per_arm(runs).to_dict()
     seg = bin_tables.segment_failure(eval_df, bins, mastery_df, segments, runs, opts)
     clip_tab = clip_tables.clip_failure(eval_df, sampler_df, mastery_df, runs, opts)
-    if len(support):
-        extra["clip_evals"] = load_table(runs, "clip_eval", opts.max_iteration)
+    adaptation = Adaptation(support, support_sum, signals,
+                            load_table(runs, "clip_eval", opts.max_iteration) if len(support) else None)
     whole = whole_clip.compute(runs, opts)
-    if whole is not None:
-        extra["whole_clip"] = whole
     sens = tables.sensitivity(runs, overview)
-    knobs = knob_arms(runs)
-    if len(knobs) and "final_failure" in per_run:
-        uniform = sorted(set(runs.loc[runs["included"] & (runs["sampler"] == "uniform"), "arm"]))
-        extra["uniform_arm"] = uniform[0] if len(uniform) == 1 else None
-        extra["knob_levels"] = knob_levels(knobs, per_run["final_failure"], overall, opts, extra["uniform_arm"])
-        extra["knob_summary"] = knob_summary(extra["knob_levels"], opts.alpha)
     ref = {}
     if len(sens) and baseline is not None and baseline in set(overview["arm"]):
         b = overview.set_index("arm").loc[baseline]
         ref = {m: {f"{baseline} (baseline)": float(b[m])} for m in tables.SENSITIVITY_METRICS if m in b}
-    return ReportData(runs, opts, baseline, baseline_note, eval_df, bins, colors, kinds, machines, measures, overall,
-                      mastery_seed_df, mastery_df, times, time_df, budget, errors, broken, per_run, summary, at,
-                      per_seed_curves, curves, band, bin_fail, final_bins, samp, comp, comp_robust, shown, smooth,
-                      comp_errors, comp_base, support, support_sum, signals, seg, clip_tab, sens, ref, seeds, **extra)
+    sensitivity = Sensitivity(sens, ref)
+    knobs = knob_arms(runs)
+    if len(knobs) and "final_failure" in per_run:
+        uniform = sorted(set(runs.loc[runs["included"] & (runs["sampler"] == "uniform"), "arm"]))
+        sensitivity.uniform_arm = uniform[0] if len(uniform) == 1 else None
+        sensitivity.knob_levels = knob_levels(knobs, per_run["final_failure"], overall, opts, sensitivity.uniform_arm)
+        sensitivity.knob_summary = knob_summary(sensitivity.knob_levels, opts.alpha)
+    return ReportData(
+        inputs=Inputs(runs, opts, baseline, baseline_note, colors, kinds, wall_ok, measures, seeds, common[ITERATION],
+                      tables.use_bootstrap(runs)),
+        curves=Curves(overall, per_seed_curves, curves, budget),
+        bins=Bins(eval_df, bins, bin_fail, final_bins, samp, mastery_seed_df, mastery_df),
+        arms=Arms(per_run, summary, times, time_df, errors, broken, comp, comp_robust, comp_errors, comp_base, shown,
+                  smooth),
+        places=Places(seg, clip_tab), adaptation=adaptation, sensitivity=sensitivity, speedups=speedups,
+        whole_clip=whole)
 
 
-__all__ = ["ReportData", "Runs", "compute", "read_runs"]
+__all__ = ["Adaptation", "Arms", "Bins", "Curves", "Inputs", "Places", "ReportData", "Runs", "Sensitivity", "Speedups",
+           "compute", "read_runs"]

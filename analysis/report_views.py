@@ -7,6 +7,7 @@ from analysis import clip_tables, tables, whole_clip
 from analysis.curve_text import adaptation_section, curve_view, iso_text, speedup_curve_text
 from analysis.definitions import definitions
 from analysis.knob_report import knob_section
+from analysis.machines import kinds_text
 from analysis.markdown import (
     FAILURE_UNIT,
     NOT_RECORDED,
@@ -14,6 +15,7 @@ from analysis.markdown import (
     baseline_text,
     budget_section,
     evaluation_notes,
+    fmt,
     mastery_view,
     md_table,
     plural,
@@ -24,13 +26,30 @@ from analysis.markdown import (
     winner_text,
 )
 from analysis.metrics import SMOOTHNESS_METRICS
-from analysis.report_compute import ReportData, Runs
+from analysis.report_compute import Inputs, ReportData, Runs
 from analysis.stats import MIN_SEEDS_IQM
 from bmimic.runs.schema import JOINT_VEL_ERR_RADPS, MPKPE_REL_MM
 
 TRACKING_HEADLINE = (MPKPE_REL_MM, JOINT_VEL_ERR_RADPS)
 """Tracking errors the Tracking quality section compares between arms in words (position and velocity
 tracking; the policy's smoothness is SMOOTHNESS_METRICS, compared in its own block)."""
+
+
+def at_text(inp: Inputs) -> str:
+    """Where the final numbers are read."""
+    return f"iteration {fmt(inp.final_iteration)}, the last evaluation every run has"
+
+
+def band_text(inp: Inputs) -> str:
+    """What a curve's band is."""
+    return "band: bootstrap interval" if inp.bootstrap else "band: range of the seeds"
+
+
+def machines_text(inp: Inputs) -> str:
+    """Why wall time is not compared ("" when it is)."""
+    return "" if inp.wall_ok else (
+        "Wall time is not compared (no wall-time speedup is printed, and the Arms table leaves wall time out): "
+        f"the runs trained on different or unrecorded machine kinds ({kinds_text(inp.runs, inp.kinds)}).")
 
 
 def header(paths: list, r: Runs) -> list[str]:
@@ -56,44 +75,47 @@ def header(paths: list, r: Runs) -> list[str]:
 
 
 def _tracking(d: ReportData) -> list[str]:
-    if not (d.shown or d.smooth or len(d.broken)):
+    inp, arms = d.inputs, d.arms
+    if not (arms.shown or arms.smooth or len(arms.broken)):
         return []
-    at, opts, shown, smooth = d.at, d.opts, d.shown, d.smooth
+    at, opts, shown, smooth = at_text(inp), inp.opts, arms.shown, arms.smooth
     md = ["## Tracking quality", "", f"Step-weighted mean errors of the evaluation at {at}, over the steps the "
           "evaluation episodes were alive (an arm that fails more is measured over fewer steps); lower is "
-          "better.", "", md_table(tracking_view(d.summary, {f"final_{c}": lab for c, lab in shown.items()}, d.seeds)),
+          "better.", "",
+          md_table(tracking_view(arms.summary, {f"final_{c}": lab for c, lab in shown.items()}, inp.seeds)),
           ""]
     for c in TRACKING_HEADLINE:
-        if c in d.comp_errors:
-            md += winner_text(d.comp_errors[c], d.summary, f"final_{c}", shown[c][0].upper() + shown[c][1:], at, opts,
-                              noun=shown[c])
+        if c in arms.comp_errors:
+            md += winner_text(arms.comp_errors[c], arms.summary, f"final_{c}", shown[c][0].upper() + shown[c][1:], at,
+                              opts, noun=shown[c])
     md += ["", "### Smoothness of the policy", "", "The policy's own action rate and joint acceleration at the "
            f"same evaluation ({at}) and the episodes whose world broke over all evaluations (each also a "
            "failure); lower is smoother. Joint-velocity error above is a tracking error, not smoothness. "
            f"\"{NOT_RECORDED}\": the runs' evaluation tables predate these columns.", "",
-           md_table(tracking_view(d.summary, {**{f"final_{c}": lab for c, lab in SMOOTHNESS_METRICS.items()},
-                                              "broken_episodes": "broken episodes (count, all evaluations)"},
-                                  d.seeds)), ""]
+           md_table(tracking_view(arms.summary, {**{f"final_{c}": lab for c, lab in SMOOTHNESS_METRICS.items()},
+                                                 "broken_episodes": "broken episodes (count, all evaluations)"},
+                                  inp.seeds)), ""]
     for c in smooth:
-        md += winner_text(d.comp_errors[c], d.summary, f"final_{c}", smooth[c][0].upper() + smooth[c][1:], at, opts,
-                          noun=smooth[c])
+        md += winner_text(arms.comp_errors[c], arms.summary, f"final_{c}", smooth[c][0].upper() + smooth[c][1:], at,
+                          opts, noun=smooth[c])
     return md + [""]
 
 
 def _segments_and_clips(d: ReportData) -> list[str]:
+    inp, places = d.inputs, d.places
     md = []
-    if len(d.seg):
-        md += ["## Segments", "", f"Failure per motion segment at {d.at}, in the unit of the overall failure "
+    if len(places.seg):
+        md += ["## Segments", "", f"Failure per motion segment at {at_text(inp)}, in the unit of the overall failure "
                f"({FAILURE_UNIT}, each episode charged to the segment it started in); bins not mastered: median "
-               "mastery over seeds not reached.", "", md_table(segment_view(d.seg)), ""]
-    if len(d.clip_tab):
-        md += ["## Clips", "", f"Per clip of the motion library at {d.at}: failure in the unit of the overall failure "
+               "mastery over seeds not reached.", "", md_table(segment_view(places.seg)), ""]
+    if len(places.clip_tab):
+        md += ["## Clips", "", f"Per clip of the motion library at {at_text(inp)}: failure in the unit of the overall failure "
                f"({FAILURE_UNIT}, each episode charged to the clip it started in, so the overall failure is their "
                "mean weighted by started episodes); bins not mastered: median mastery over seeds not reached; "
                "sampling probability mass: the training sampler's probability on the clip's bins, the mean over "
                "its logged iterations and seeds, the same quantity for every sampler.", "",
-               md_table(clip_tables.clip_view(d.clip_tab)), ""]
-        unused = clip_tables.never_started(d.clip_tab)
+               md_table(clip_tables.clip_view(places.clip_tab)), ""]
+        unused = clip_tables.never_started(places.clip_tab)
         md += [f"- No sampling probability at any logged iteration: {', '.join(unused)}." if unused else
                "- Every arm gave every clip sampling probability.", ""]
     return md
@@ -101,42 +123,45 @@ def _segments_and_clips(d: ReportData) -> list[str]:
 
 def body(d: ReportData, figures: list[tuple[str, str]], coverage: tuple | None) -> list[str]:
     """Every section after Runs, from the tables of `d` and the figures written."""
-    opts, at = d.opts, d.at
-    md = budget_section(d.budget, opts, d.kinds, d.machines) + evaluation_notes(d.eval_df, d.bins)
-    md += ["## Summary", "", *winner_text(d.comp, d.summary, "final_failure", f"Final overall failure ({FAILURE_UNIT})",
+    inp, cur, tab, arms, adapt, sens = d.inputs, d.curves, d.bins, d.arms, d.adaptation, d.sensitivity
+    opts, at, machines = inp.opts, at_text(inp), machines_text(inp)
+    md = budget_section(cur.budget, opts, inp.kinds, machines) + evaluation_notes(tab.eval_df, tab.bins)
+    md += ["## Summary", "", *winner_text(arms.comp, arms.summary, "final_failure",
+                                          f"Final overall failure ({FAILURE_UNIT})",
                                           at, opts, noun="final overall failure")]
-    if "final_failure_robust" in d.per_run:
-        md += winner_text(d.comp_robust, d.summary, "final_failure_robust",
+    if "final_failure_robust" in arms.per_run:
+        md += winner_text(arms.comp_robust, arms.summary, "final_failure_robust",
                           "Final overall failure, robust evaluation (DR, noise, pushes)", "last evaluation", opts)
-    md += baseline_text(d.comp_base, d.summary, "final_failure", "Final overall failure", at, opts)
-    md.append(f"- Speedups: {d.baseline_note}.")
-    if d.speed is not None:
-        md += speedup_curve_text(d.curve, d.speed, d.per_bin, d.time_df, opts, d.machines)
-        md += iso_text(d.iso)
-    if len(d.signals) and d.signals["degenerate"].any():
+    md += baseline_text(arms.comp_base, arms.summary, "final_failure", "Final overall failure", at, opts)
+    md.append(f"- Speedups: {inp.baseline_note}.")
+    sp = d.speedups
+    if sp is not None:
+        md += speedup_curve_text(sp.curve, sp.speed, sp.per_bin, arms.time_df, opts, machines)
+        md += iso_text(sp.iso)
+    if len(adapt.signals) and adapt.signals["degenerate"].any():
         md.append("- Degenerate sampler signals (see Adaptation): "
-                  + ", ".join(f"`{a}`" for a in d.signals.loc[d.signals["degenerate"], "arm"]) + ".")
-    md += ["", "## Arms", "", md_table(arms_view(d.summary, d.time_df, d.per_run, at, d.measures)), ""]
+                  + ", ".join(f"`{a}`" for a in adapt.signals.loc[adapt.signals["degenerate"], "arm"]) + ".")
+    md += ["", "## Arms", "", md_table(arms_view(arms.summary, arms.time_df, arms.per_run, at, inp.measures)), ""]
     md += _tracking(d) + _segments_and_clips(d)
     if d.whole_clip is not None:
         md += whole_clip.section(d.whole_clip)
-    if len(d.support):
-        md += adaptation_section(d.support_sum, d.signals, d.clip_evals)
-    if len(d.sens):
+    if len(adapt.support):
+        md += adaptation_section(adapt.support_sum, adapt.signals, adapt.clip_evals)
+    if len(sens.sens):
         md += ["## Sensitivity", ""]
-        for key in sorted(d.sens["key"].unique()):
-            view = d.sens[(d.sens["key"] == key)].pivot_table(index=["value", "series"], columns="metric",
+        for key in sorted(sens.sens["key"].unique()):
+            view = sens.sens[(sens.sens["key"] == key)].pivot_table(index=["value", "series"], columns="metric",
                                                               values="point")
             md += [f"`{key}`:", "", md_table(view.reset_index()), ""]
-    if d.knob_levels is not None:
-        md += knob_section(d.knob_levels, d.knob_summary, d.uniform_arm, opts.alpha)
-    if d.speed is not None:
+    if sens.knob_levels is not None:
+        md += knob_section(sens.knob_levels, sens.knob_summary, sens.uniform_arm, opts.alpha)
+    if sp is not None:
         md += ["## Speedup", "", f"At overall success ≥ {opts.success_threshold:g} (ratio = baseline median / arm "
-               "median; p: Gehan permutation test, uncorrected):", "", md_table(speed_view(d.speed, d.time_df)), ""]
+               "median; p: Gehan permutation test, uncorrected):", "", md_table(speed_view(sp.speed, arms.time_df)), ""]
         md += ["Over success thresholds (iterations; speedup_curve.csv has env steps too):", "",
-               md_table(curve_view(d.curve)), ""]
+               md_table(curve_view(sp.curve)), ""]
     md += ["## Per-bin mastery", "", "Median mastery iteration over seeds (Kaplan-Meier; `–` = not reached) and "
-           "(seeds that mastered the bin / seeds); † = horizon-truncated.", "", md_table(mastery_view(d.mastery_df)), ""]
+           "(seeds that mastered the bin / seeds); † = horizon-truncated.", "", md_table(mastery_view(tab.mastery_df)), ""]
     md += ["## Figures", ""] + [f"### {title}\n\n![{title}]({name})\n" for name, title in figures]
     return md + definitions(opts, coverage)
 
