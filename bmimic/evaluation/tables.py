@@ -119,7 +119,7 @@ class EvalResult:
 
 def write_tables(result: EvalResult, out_dir: Path, gap: pd.DataFrame | None = None,
                  tables: dict[str, pd.DataFrame] | None = None) -> Path:
-    """Write the four tables (run_folder.EVAL_TABLES), sim2sim's `gap` and other `tables` (CSVs by file
+    """Write the four tables (runs.folder.EVAL_TABLES), sim2sim's `gap` and other `tables` (CSVs by file
     name), if any, through the run record (bmimic.runs.record.write_evaluation: atomically, the summary
     last)."""
     result.out_dir = write_evaluation(out_dir, result.episodes, result.bins, result.segments,

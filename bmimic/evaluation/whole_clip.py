@@ -79,7 +79,7 @@ def evaluate_whole_clip(run: LoadedRun, overrides: Sequence[str] = ()) -> WholeC
 
 
 def write_whole_clip_tables(result: WholeClipEval, out_dir: Path) -> Path:
-    """Write run_folder.WHOLE_CLIP_FILES through the run record (atomically, the summary last)."""
+    """Write runs.folder.WHOLE_CLIP_FILES through the run record (atomically, the summary last)."""
     if (out_dir / WHOLE_CLIP_FILES[-1]).exists():
         log.warning("replacing the earlier whole-clip evaluation in %s", out_dir)
     result.out_dir = write_whole_clip(out_dir, result.clips, result.survival, result.failures, result.summary)

@@ -35,7 +35,7 @@ from bmimic.runs.schema import FINAL_METRICS, ITERATION, RUN_METRICS
 
 TRAINING_TABLES = ("train_metrics", "sampler", "eval", "clip_eval", "whole_clip", "whole_clip_survival",
                    "whole_clip_failures")
-"""The tables training writes (run_folder.TABLES names); eval_robust is written once, at the end."""
+"""The tables training writes (runs.folder.TABLES names); eval_robust is written once, at the end."""
 ROW_TABLES = ("train_metrics",)
 """Tables kept as one dict per row (the others as frames)."""
 
@@ -124,7 +124,7 @@ def write_evaluation(out_dir: str | os.PathLike, episodes: pd.DataFrame, bins: p
                      gap: pd.DataFrame | None = None, tables: Mapping[str, pd.DataFrame] | None = None) -> Path:
     """One finished evaluation of a saved policy into `out_dir` (eval/<label>/ for `bmimic.eval`,
     sim2sim/<model>/<label>/ for sim2sim, which adds its `gap` table; sim2sim's whole-clip rollouts add
-    `tables`, CSVs by run_folder file name): run_folder.EVAL_TABLES, each atomically, the summary last
+    `tables`, CSVs by runs.folder file name): runs.folder.EVAL_TABLES, each atomically, the summary last
     so that its presence means a complete set (a reader, or sim2sim's gap, never takes a half-written
     evaluation). Returns `out_dir` as a Path."""
     episodes_file, bins_file, segments_file, summary_file = EVAL_TABLES
@@ -143,7 +143,7 @@ def write_evaluation(out_dir: str | os.PathLike, episodes: pd.DataFrame, bins: p
 def write_whole_clip(out_dir: str | os.PathLike, clips: pd.DataFrame, survival: pd.DataFrame,
                      failures: pd.DataFrame, summary: dict[str, Any]) -> Path:
     """One whole-clip evaluation of a saved policy into `out_dir` (eval/<label>/whole_clip/ for
-    `bmimic.eval --whole-clip`): run_folder.WHOLE_CLIP_FILES, each atomically, the summary last.
+    `bmimic.eval --whole-clip`): runs.folder.WHOLE_CLIP_FILES, each atomically, the summary last.
     Returns `out_dir` as a Path."""
     clips_file, survival_file, failures_file, summary_file = WHOLE_CLIP_FILES
     out_dir = make_folder(out_dir)

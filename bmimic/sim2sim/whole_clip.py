@@ -3,7 +3,7 @@
 Each rollout starts at a clip's first frame, from the reference state, and runs the deterministic
 policy to the clip's last frame unless it fails first (sim2sim's failure rule: a termination, a
 broken world, or with --max-mpkpe-rel-mm a mean root-relative MPKPE above it). Conditions
-(run_schema.WHOLE_CLIP_CONDITIONS):
+(runs.schema.WHOLE_CLIP_CONDITIONS):
 
 - `nominal`: no perturbation. Native MuJoCo and onnxruntime run single-threaded and the start is
   exact, so every nominal rollout of a clip is the same rollout: one is run per clip, not R.

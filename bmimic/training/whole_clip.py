@@ -14,7 +14,7 @@ A robust evaluation draws from its own random stream, seeded by the run's seed a
 moves training's stream nor depends on when it runs, so every evaluation of a run sees the same draws
 (common random numbers over training) and `bmimic.eval --whole-clip` of a checkpoint repeats them.
 
-Per clip and condition the tables (run_schema's WHOLE_CLIP_* columns) give the fraction of rollouts
+Per clip and condition the tables (runs.schema's WHOLE_CLIP_* columns) give the fraction of rollouts
 that completed the clip, the survival curve (rollouts still tracking at every second), where the
 failed ones failed (frame, time, bin), failures within the first START_TRANSIENT_S seconds (start
 transients) apart from later ones, and the tracking errors over the completed rollouts.
