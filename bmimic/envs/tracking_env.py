@@ -122,8 +122,7 @@ class TrackingEnv(VecEnv):
     def start_segments(self, mask: torch.Tensor, new_episode: torch.Tensor) -> None:
         """Masked envs start a reference segment at a frame the sampler draws, with RSI noise; those
         also in `new_episode` start an episode there (a clip-end resample keeps the episode's start bin)."""
-        feedback = self.feedback
-        assert feedback is not None, "only a training environment draws its starts"
+        feedback = cast(SamplerFeedback, self.feedback)  # train mode: the constructor pairs it with a feedback
         bins = feedback.sampler.sample(self.num_envs)
         frames = self.segments.start(mask, feedback.layout.sample_frames(bins))
         feedback.start_episodes(mask & new_episode, bins)
@@ -198,8 +197,7 @@ class TrackingEnv(VecEnv):
         self.stats.step(self.state)
         dones = terminated | truncated
         if self.mode == "train":
-            feedback = self.feedback
-            assert feedback is not None
+            feedback = cast(SamplerFeedback, self.feedback)  # the constructor pairs train mode with a feedback
             state = self.state  # the errors are computed only for a sampler that declares them
             feedback.measure(self.time_steps, broken, dones, self.rew_buf, lambda: tracking_errors(state))
             self.stats.end_episodes(dones, terminated | broken, self.episode_length_buf)
