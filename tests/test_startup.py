@@ -67,3 +67,21 @@ def test_python_m_never_imports_a_planted_standard_module(tmp_path, module):
                          env=_env(), timeout=300)
     assert sorted(p.name for p in tmp_path.glob("RAN_*")) == []
     assert out.returncode == 0 and "usage" in out.stdout.lower(), out.stderr[-3000:]
+
+
+def test_checkout_root_is_the_folder_that_holds_bmimic():
+    assert startup.checkout_root() == os.path.realpath(REPO)
+    assert os.path.isfile(os.path.join(startup.checkout_root(), "bmimic", "__init__.py"))
+
+
+@pytest.mark.parametrize("in_checkout", [True, False])
+def test_python_m_keeps_the_checkout_root_on_sys_path(monkeypatch, tmp_path, in_checkout):
+    # On a machine where bmimic is not installed (a copy of the tree, PYTHONPATH at its root), a command
+    # run from the checkout's root must still find the analysis package beside bmimic (the sweep index
+    # callback): 5fca5e6 looked for the root one folder too deep and took it off sys.path.
+    cwd = os.path.realpath(REPO) if in_checkout else os.path.realpath(tmp_path)
+    monkeypatch.chdir(cwd)
+    monkeypatch.setattr(sys, "orig_argv", ["python", "-m", "bmimic.train"])
+    monkeypatch.setattr(sys, "path", [cwd, "/elsewhere", cwd])
+    startup.leave_working_directory("bmimic.train")
+    assert sys.path == ([cwd, "/elsewhere", cwd] if in_checkout else ["/elsewhere"])

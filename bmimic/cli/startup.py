@@ -43,6 +43,11 @@ def python_m_module() -> str | None:
     return None
 
 
+def checkout_root() -> str:
+    """The folder that holds the bmimic package (this file is bmimic/cli/startup.py): a checkout's root."""
+    return os.path.realpath(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+
+
 def leave_working_directory(module: str) -> None:
     """Take the working directory off sys.path when this process is `python -m <module>` (or a module
     inside it), unless the working directory is the checkout that holds bmimic."""
@@ -52,7 +57,7 @@ def leave_working_directory(module: str) -> None:
     cwd = os.path.realpath(os.getcwd())
     if os.path.realpath(sys.path[0] or ".") != cwd:
         return
-    if os.path.realpath(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) == cwd:
+    if checkout_root() == cwd:
         return
     # Every entry that is the working directory: an empty PYTHONPATH entry ("a:" or ":a") adds it again.
     sys.path[:] = [p for p in sys.path if os.path.realpath(p or ".") != cwd]
