@@ -182,7 +182,7 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
     """Milliseconds per environment step spent in each part, each timed alone through its public
     interface (the state, the observation, reward and termination managers, the sampler and its
-    feedback). `resets` starts a new segment in every world (`start_segments`: sampling, reference
+    feedback). `resets` starts a new segment in every world (`SampledEpisodes.start`: sampling, reference
     state, kinematics), the most a step's masked resets can cost."""
     ones = torch.ones(env.num_envs, dtype=torch.bool, device=env.device)
     zeros = torch.zeros_like(ones)
@@ -203,7 +203,7 @@ def breakdown(env, alg, device: str, n: int) -> dict[str, float]:
         # once per iteration for update_every=iteration).
         "sampler_update": lambda: acc.sampler.update_counts(
             *acc.count(ones, zeros, env.time_steps, env.segment_start, zeros, zeros, length)),
-        "resets": lambda: env.start_segments(zeros, zeros),
+        "resets": lambda: env.episodes.start(env, zeros, zeros),
         "policy": lambda: alg.act(obs),
     }
     out = {}

@@ -41,6 +41,116 @@ from bmimic.sampling.bins import Layout
 from bmimic.sampling.feedback import SamplerFeedback
 from bmimic.sim import SimConfig, Simulator
 
+# ------------------------------------------------------------------------------------- episodes
+# Who starts and ends the episodes: the one place where training and evaluation differ. The env asks
+# its episodes object and never its mode.
+
+
+class SampledEpisodes:
+    """Training: episodes start where the sampler of `feedback` draws, and end into its counts."""
+
+    mode = "train"
+    perturbed = True
+    """Events (domain randomisation, pushes) and observation noise are on."""
+    places_worlds = False
+    """Whether the caller places the worlds (evaluation) instead of the sampler."""
+
+    def __init__(self, feedback: SamplerFeedback) -> None:
+        self.feedback = feedback
+        self.layout: Layout = feedback.layout
+
+    def kinematics_after_step(self, env: TrackingEnv) -> bool:
+        """Whether the step recomputes kinematics after its state writes (resets move worlds every step)."""
+        return True
+
+    def begin(self, env: TrackingEnv) -> None:
+        """Every world starts at a sampled frame; the runner never calls reset."""
+        self.start(env, env._ones, env._ones)
+        env.events.reset(env, env._ones)
+
+    def start(self, env: TrackingEnv, mask: torch.Tensor, new_episode: torch.Tensor) -> None:
+        """Masked worlds start a reference segment at a frame the sampler draws, with RSI noise; those
+        also in `new_episode` start an episode there (a clip-end resample keeps the episode's start bin)."""
+        bins = self.feedback.sampler.sample(env.num_envs)
+        frames = env.segments.start(mask, self.layout.sample_frames(bins))
+        self.feedback.start_episodes(mask & new_episode, bins)
+        write_reference_state(env.sim, env.reference, mask, frames, env.cfg.reset, env.uniform,
+                              env.soft_joint_limits)
+
+    def end_step(self, env: TrackingEnv, dones: torch.Tensor, terminated: torch.Tensor,
+                 broken: torch.Tensor) -> None:
+        """Count what ended for the sampler, restart finished worlds, resample at clip ends, run events."""
+        feedback = self.feedback
+        state = env.state  # the errors are computed only for a sampler that declares them
+        feedback.measure(env.time_steps, broken, dones, env.rew_buf, lambda: tracking_errors(state))
+        env.stats.end_episodes(dones, terminated | broken, env.episode_length_buf)
+        env.rewards.end_episodes(dones)
+        # What ends now, counted in one pass: finished episodes (at this frame) and, for
+        # attribution=failure, continuing episodes whose clip ends on the next frame.
+        clip_end, end_frames = env.segments.ending(dones)
+        counts = feedback.count(dones, clip_end, end_frames, env.segment_start, terminated, broken,
+                                env.episode_length_buf)
+        self.start(env, dones, dones)
+        env.episode_length_buf.masked_fill_(dones, 0)
+        env.actions.masked_fill_(dones[:, None], 0.0)
+        env.last_actions.masked_fill_(dones[:, None], 0.0)
+        # End of the clip mid-episode: resample and teleport; the episode continues. This also
+        # catches a reset that started on the clip's last frame: that episode has not tracked a
+        # frame yet, so it starts (and counts for) the bin drawn now.
+        self.start(env, env.segments.advance(), dones)
+        # After this step's resets were drawn, as in the released code: the sampler update
+        # (update_every=step), or the counts wait for end_rollout (update_every=iteration).
+        feedback.record(counts)
+        env.events.reset(env, dones)
+        env.events.interval(env, env.step_dt)
+
+    def end_rollout(self) -> None:
+        """The sampler update of update_every=iteration (the design's runner hook)."""
+        self.feedback.end_rollout()
+
+    def pop_counts(self) -> tuple:
+        """Per bin, as the sampler was fed them (after end_rollout for update_every=iteration)."""
+        return self.feedback.pop_counts()
+
+
+class PlacedEpisodes:
+    """Evaluation: the caller places the worlds and reads the terminations; nothing is sampled."""
+
+    mode = "eval"
+    places_worlds = True
+
+    def __init__(self, robust: bool, layout: Layout | None) -> None:
+        self.perturbed = robust
+        """Events and observation noise as in training (robust evaluation), else none."""
+        self.feedback: SamplerFeedback | None = None
+        self.layout = layout
+        """For the exported metadata only."""
+
+    def kinematics_after_step(self, env: TrackingEnv) -> bool:
+        """Only pushes move a world after physics here."""
+        return env.events.has_interval
+
+    def begin(self, env: TrackingEnv) -> None:
+        """Every world at the first frame, until the caller places it."""
+        env.reset_to_frames(torch.zeros(env.num_envs, dtype=torch.long, device=env.device))
+
+    def end_step(self, env: TrackingEnv, dones: torch.Tensor, terminated: torch.Tensor,
+                 broken: torch.Tensor) -> None:
+        """The reference stops at each clip's end; pushes in a robust evaluation."""
+        env.segments.advance_to_clip_end()
+        if env.events.has_interval:
+            env.events.interval(env, env.step_dt)
+
+    def end_rollout(self) -> None:
+        """Nothing to update."""
+
+    def pop_counts(self) -> tuple:
+        return None, None
+
+
+Episodes = SampledEpisodes | PlacedEpisodes
+"""What a TrackingEnv asks about its episodes."""
+
 
 class TrackingEnv(VecEnv):
     """BeyondMimic tracking of a reference motion (one clip or a library of clips) by `num_envs` robots.
@@ -49,7 +159,8 @@ class TrackingEnv(VecEnv):
     resets at frames the sampler of `feedback` draws. `mode="eval"`: none of those; the caller places
     envs with `reset_to_frames` and reads terminations, and the reference stops at the end of each
     clip. `robust=True` (eval only) turns events and observation noise back on, as in training.
-    `layout` (eval only) is recorded for the exported metadata.
+    `layout` (eval only) is recorded for the exported metadata. The difference lives in one object,
+    `self.episodes` (SampledEpisodes or PlacedEpisodes, above); the env never branches on its mode.
     """
 
     def __init__(self, env_cfg: EnvConfig, sim_cfg: SimConfig, mjm: mujoco.MjModel, robot: RobotInfo,
@@ -59,14 +170,16 @@ class TrackingEnv(VecEnv):
             raise ValueError(f"mode must be train or eval, got {mode!r}")
         if (mode == "train") != (feedback is not None):
             raise ValueError("a training environment needs the sampler's feedback; an evaluation one takes none")
+        if robust and mode == "train":
+            raise ValueError("robust is an evaluation's option: a training environment is always perturbed")
+        self.episodes: Episodes = SampledEpisodes(feedback) if feedback is not None else PlacedEpisodes(robust, layout)
         # Plain dataclasses, not OmegaConf nodes: the step reads config fields every call, and plain
         # attribute access is cheaper and can be traced by torch.compile.
         self.cfg = cfg = cast(EnvConfig, OmegaConf.to_object(env_cfg)) if isinstance(env_cfg, DictConfig) else env_cfg
         self.mode, self.num_envs, self.device = mode, num_envs, torch.device(device)
-        self.robust = robust and mode == "eval"
-        perturbed = mode == "train" or self.robust
+        perturbed = self.episodes.perturbed
         self.feedback, self.reference, self.robot = feedback, reference, robot
-        self.layout = feedback.layout if feedback is not None else layout
+        self.layout = self.episodes.layout
         """The bin layout (training: the feedback's; evaluation: for the exported metadata only)."""
         self.segments = seg = ReferenceSegments(reference, sim_cfg, num_envs, self.device)
         self.bodies = TrackedBodies(mjm, robot, self.device)
@@ -104,14 +217,11 @@ class TrackingEnv(VecEnv):
         self._graphs: StepGraphs | None = None
         self.events.startup(self)  # per-world model fields and the first push times, before capture
         self.sim.capture()
-        if mode == "train":  # every env starts at a sampled frame; the runner never calls reset
-            self.start_segments(self._ones, self._ones)
-            self.events.reset(self, self._ones)
-        else:
-            self.reset_to_frames(torch.zeros(num_envs, dtype=torch.long, device=self.device))
+        self.episodes.begin(self)
         self.sim.forward_kinematics()
         self._observe()
         if feedback is not None and self.device.type == "cuda" and self.sim.use_graph:  # training
+            # Captured steps recompute kinematics after every step (StepGraphs), as training needs.
             self._actions_in.zero_()
             self._graphs = StepGraphs((self._pre_physics, self._post_physics, self._observe), self.sim,
                                       self.sim.cfg.compile_env_step)
@@ -119,16 +229,6 @@ class TrackingEnv(VecEnv):
             self.pop_iteration_stats()
 
     # ----------------------------------------------------------------------------------- resets
-    def start_segments(self, mask: torch.Tensor, new_episode: torch.Tensor) -> None:
-        """Masked envs start a reference segment at a frame the sampler draws, with RSI noise; those
-        also in `new_episode` start an episode there (a clip-end resample keeps the episode's start bin)."""
-        feedback = cast(SamplerFeedback, self.feedback)  # train mode: the constructor pairs it with a feedback
-        bins = feedback.sampler.sample(self.num_envs)
-        frames = self.segments.start(mask, feedback.layout.sample_frames(bins))
-        feedback.start_episodes(mask & new_episode, bins)
-        write_reference_state(self.sim, self.reference, mask, frames, self.cfg.reset, self.uniform,
-                              self.soft_joint_limits)
-
     def reset_to_frames(self, frames: torch.Tensor, mask: torch.Tensor | None = None) -> None:
         """Evaluation: put (masked) envs exactly at the reference state of `frames`, episode counters 0."""
         mask = self._ones if mask is None else mask
@@ -145,7 +245,7 @@ class TrackingEnv(VecEnv):
         """Evaluation: every world draws its startup events (domain randomisation of the model and the
         default pose, the first push times) anew from the nominal model, as a fresh environment would;
         the caller then places the worlds with `reset_to_frames`."""
-        if self.mode != "eval":
+        if not self.episodes.places_worlds:
             raise ValueError("redraw_startup_events is for an evaluation environment between its waves")
         self.sim.restore_model_fields(self.events.model_fields)
         self.default_joint_pos.copy_(self.nominal_joint_pos.expand_as(self.default_joint_pos))
@@ -163,7 +263,7 @@ class TrackingEnv(VecEnv):
             self._pre_physics()
             self.sim.step()
             self._post_physics()
-            if self.mode == "train":
+            if self.episodes.kinematics_after_step(self):
                 self.sim.forward_kinematics()
             self._observe()
         # A copy: rsl-rl keeps a reference to the observation it acted on until the transition is
@@ -196,35 +296,7 @@ class TrackingEnv(VecEnv):
         self.rewards.accumulate(rewards)
         self.stats.step(self.state)
         dones = terminated | truncated
-        if self.mode == "train":
-            feedback = cast(SamplerFeedback, self.feedback)  # the constructor pairs train mode with a feedback
-            state = self.state  # the errors are computed only for a sampler that declares them
-            feedback.measure(self.time_steps, broken, dones, self.rew_buf, lambda: tracking_errors(state))
-            self.stats.end_episodes(dones, terminated | broken, self.episode_length_buf)
-            self.rewards.end_episodes(dones)
-            # What ends now, counted in one pass: finished episodes (at this frame) and, for
-            # attribution=failure, continuing episodes whose clip ends on the next frame.
-            clip_end, end_frames = self.segments.ending(dones)
-            counts = feedback.count(dones, clip_end, end_frames, self.segment_start, terminated, broken,
-                                           self.episode_length_buf)
-            self.start_segments(dones, dones)
-            self.episode_length_buf.masked_fill_(dones, 0)
-            self.actions.masked_fill_(dones[:, None], 0.0)
-            self.last_actions.masked_fill_(dones[:, None], 0.0)
-            # End of the clip mid-episode: resample and teleport; the episode continues. This also
-            # catches a reset that started on the clip's last frame: that episode has not tracked a
-            # frame yet, so it starts (and counts for) the bin drawn now.
-            self.start_segments(self.segments.advance(), dones)
-            # After this step's resets were drawn, as in the released code: the sampler update
-            # (update_every=step), or the counts wait for end_rollout (update_every=iteration).
-            feedback.record(counts)
-            self.events.reset(self, dones)
-            self.events.interval(self, self.step_dt)
-        else:
-            self.segments.advance_to_clip_end()
-            if self.events.has_interval:  # robust evaluation: pushes
-                self.events.interval(self, self.step_dt)
-                self.sim.forward_kinematics()
+        self.episodes.end_step(self, dones, terminated, broken)
         self._dones_long = dones.long()
         # `broken` (a time-out for PPO's bootstrap) lets the evaluator count a broken world as a failure.
         self.extras = {"time_outs": truncated, "terminated": terminated, "broken": broken}
@@ -237,13 +309,11 @@ class TrackingEnv(VecEnv):
     def end_rollout(self) -> None:
         """Once per PPO iteration, after the rollout: the sampler update of update_every=iteration
         (the design's runner hook); the sampling distribution is fixed until then."""
-        if self.feedback is not None:
-            self.feedback.end_rollout()
+        self.episodes.end_rollout()
 
     def pop_iteration_stats(self) -> dict:
         """Per-iteration statistics (one host transfer each), then reset the accumulators."""
-        bin_episodes, bin_failures = self.feedback.pop_counts() if self.feedback is not None else (None, None)
-        # Per bin, as the sampler was fed them (after end_rollout for update_every=iteration).
+        bin_episodes, bin_failures = self.episodes.pop_counts()
         counts, metrics, steps = self.stats.pop()
         return {"bin_episodes": bin_episodes, "bin_failures": bin_failures, **counts,
                 **self.rewards.pop_log(counts["episodes"]), **self.terminations.pop_log(steps, self.num_envs),
@@ -256,4 +326,4 @@ class TrackingEnv(VecEnv):
             self._graphs = None
 
 
-__all__ = ["TrackingEnv", "episode_length_steps"]
+__all__ = ["Episodes", "PlacedEpisodes", "SampledEpisodes", "TrackingEnv", "episode_length_steps"]
