@@ -99,10 +99,9 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
         stop.begin_at_once()
     place = place_job(cfg, stop_rule)
     plan, resolved, changes = plan_job(cfg, launch_dir, sweep_job, ctx, place)
-    # Distinct worlds per rank (rsl-rl broadcasts the policy), after the resume checks: the run's
-    # config, which its checkpoints record and every rank's resume compares with, holds the run's seed.
-    cfg.seed = cfg.seed + place.rank
-    seed_everything(cfg.seed)
+    # Distinct worlds per rank (rsl-rl broadcasts the policy); the config keeps the run's seed, which its
+    # checkpoints record and every rank's resume compares with.
+    seed_everything(cfg.seed + place.rank)
     task = build_task(cfg, device=place.device)
     if place.main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
         log.info(start_summary(cfg, place.requested, place.world, place.smoke, task.motion, task.layout,
@@ -140,7 +139,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
 
 def place_job(cfg: DictConfig, stop_rule: Callable | None = None) -> Placement:
     """Resolve the device (and the torchrun rank's) and fill in the runtime values of `cfg` (sizes for
-    this machine), then check the values; launch's check_config already read every key."""
+    this machine), then check them (launch's check_config read every key); then `cfg` is read-only."""
     import torch
 
     requested = cfg.device
@@ -161,6 +160,7 @@ def place_job(cfg: DictConfig, stop_rule: Callable | None = None) -> Placement:
     if rank == 0:
         for note in advisories(cfg):
             log.warning(note)
+    OmegaConf.set_readonly(cfg, True)
     return Placement(requested, device, rank, world, smoke=not device.startswith("cuda") and smoke_defaults)
 
 
@@ -211,7 +211,7 @@ def build_job(cfg: DictConfig, task, place: Placement, plan, resolved: dict):
             # A checkpoint holds rank 0's random state alone, which the restore gave every rank: each
             # rank draws a stream of its own again (its worlds' resets, noise and actions), one that
             # differs from every earlier segment's.
-            stream = (cfg.seed + 1_000_003 * trainer.progress.iteration) % 2**62
+            stream = (cfg.seed + place.rank + 1_000_003 * trainer.progress.iteration) % 2**62
             seed_everything(stream)
             log.info("rank %d: random streams reseeded from %d (the run's seed + rank + 1000003 x %d iterations)",
                      place.rank, stream, trainer.progress.iteration)
@@ -262,7 +262,7 @@ def finish_job(cfg: DictConfig, trainer, task, place: Placement, run_dir: Path, 
         "mean_episode_length": train_rows[-1]["mean_episode_length"] if train_rows else math.nan,
         "max_episode_length": env.max_episode_length,
         "num_bins": task.layout.num_bins,
-        "num_envs": cfg.num_envs,
+        "num_envs": env.num_envs,  # what was built (the env owns its size)
         "device": place.device,
         **trainer.total_resets,
         "overflow_world_steps": trainer.overflow_world_steps,

@@ -244,3 +244,22 @@ def test_a_training_reads_its_config_keys_once_and_still_checks_the_motion_fit(t
         checks.check_motion_fit(cfg, 0.5)
     with pytest.raises(ConfigError, match="motion: has no duration"):
         checks.check_motion_fit(cfg, float("nan"))
+
+
+def test_a_placed_job_config_is_resolved_validated_and_read_only():
+    # compose -> resolve for this machine -> validate, once: afterwards nothing downstream may change it.
+    from omegaconf import OmegaConf
+    from omegaconf.errors import ReadonlyConfigError
+
+    from bmimic.job import place_job
+
+    cfg = compose(["device=cpu"])
+    assert cfg.num_envs is None and not OmegaConf.is_readonly(cfg)
+    place = place_job(cfg)
+    assert place.device == "cpu" and place.rank == 0
+    assert cfg.num_envs is not None and cfg.eval.episodes_per_bin is not None  # the runtime's values
+    assert OmegaConf.is_readonly(cfg)
+    with pytest.raises(ReadonlyConfigError):
+        cfg.num_envs = 8
+    with pytest.raises(ReadonlyConfigError):
+        cfg.sampler.gamma = 0.5
