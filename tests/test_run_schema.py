@@ -51,3 +51,14 @@ def test_summary_keys_are_prefixed():
     assert rs.summary_key(rs.MPKPE_REL_MM) == "eval_mpkpe_rel_mm"
     assert rs.summary_key("failure_rate", "robust_eval") == "robust_eval_failure_rate"
     assert rs.FINAL_METRICS[0] == "final_eval_failure_rate"
+
+
+def test_every_tracking_error_is_printed_under_its_own_title():
+    # The printed evaluation table iterates the declarations (it once zipped them with a separate
+    # tuple of titles, which would drop a column silently when one more error was declared).
+    from bmimic.evaluation.report import _SHOWN
+    from bmimic.runs.schema import TRACKING_ERRORS
+
+    titles = [c.title for c in TRACKING_ERRORS]
+    assert all(titles) and len(set(titles)) == len(titles)
+    assert [_SHOWN[c.name][0] for c in TRACKING_ERRORS] == titles

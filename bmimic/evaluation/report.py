@@ -9,15 +9,12 @@ import pandas as pd
 from bmimic.evaluation.tables import EvalResult
 from bmimic.runs.schema import BIN, HORIZON_TRUNCATED, ITERATION, MPKPE_MM, TRACKING_ERRORS
 
-_ERROR_TITLES = ("MPKPE_mm", "rel_MPKPE_mm", "anchor_ori_rad", "body_ori_rad", "joint_pos_rad", "joint_vel_radps",
-                 "ee_pos_mm")
-"""The printed table's short titles of ERROR_COLUMNS, in its order."""
 _SHOWN = {
     "visits": ("visits", "{:d}"),
     "failures": ("failures", "{:d}"),
     "success_rate": ("success", "{:.3f}"),
-    **{c.name: (title, "{:.1f}" if c.unit == "mm" else "{:.2f}" if c.unit == "rad/s" else "{:.3f}")
-       for c, title in zip(TRACKING_ERRORS, _ERROR_TITLES)},
+    **{c.name: (c.title or c.name, "{:.1f}" if c.unit == "mm" else "{:.2f}" if c.unit == "rad/s" else "{:.3f}")
+       for c in TRACKING_ERRORS},
 }
 MAX_BINS_SHOWN = 30
 

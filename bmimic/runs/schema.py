@@ -28,6 +28,8 @@ class Column:
     """The unit of its values ("" for counts, fractions and flags)."""
     label: str
     """What a report calls it (lower case, unit in parentheses)."""
+    title: str = ""
+    """Its short heading in `bmimic.eval`'s printed tables (the name when empty)."""
 
 
 # --------------------------------------------------------------------------------------------- keys
@@ -42,13 +44,13 @@ BIN = "bin"
 
 # --------------------------------------------------------------------------------------------- measures
 TRACKING_ERRORS = (
-    Column("mpkpe_mm", "mm", "global MPKPE (mm)"),
-    Column("mpkpe_rel_mm", "mm", "root-relative MPKPE (mm)"),
-    Column("anchor_ori_err_rad", "rad", "anchor orientation error (rad)"),
-    Column("body_ori_err_rad", "rad", "body orientation error (rad)"),
-    Column("joint_pos_err_rad", "rad", "joint position error (rad)"),
-    Column("joint_vel_err_radps", "rad/s", "joint velocity error (rad/s)"),
-    Column("ee_pos_err_mm", "mm", "end-effector position error (mm)"),
+    Column("mpkpe_mm", "mm", "global MPKPE (mm)", "MPKPE_mm"),
+    Column("mpkpe_rel_mm", "mm", "root-relative MPKPE (mm)", "rel_MPKPE_mm"),
+    Column("anchor_ori_err_rad", "rad", "anchor orientation error (rad)", "anchor_ori_rad"),
+    Column("body_ori_err_rad", "rad", "body orientation error (rad)", "body_ori_rad"),
+    Column("joint_pos_err_rad", "rad", "joint position error (rad)", "joint_pos_rad"),
+    Column("joint_vel_err_radps", "rad/s", "joint velocity error (rad/s)", "joint_vel_radps"),
+    Column("ee_pos_err_mm", "mm", "end-effector position error (mm)", "ee_pos_mm"),
 )
 """Per-step tracking errors, in the order the evaluation measures them; a per-bin table holds their
 means over the steps taken at the bin's frames."""
