@@ -49,7 +49,6 @@ from bmimic.sim import SimConfig, Simulator
 class SampledEpisodes:
     """Training: episodes start where the sampler of `feedback` draws, and end into its counts."""
 
-    mode = "train"
     perturbed = True
     """Events (domain randomisation, pushes) and observation noise are on."""
     places_worlds = False
@@ -116,7 +115,6 @@ class SampledEpisodes:
 class PlacedEpisodes:
     """Evaluation: the caller places the worlds and reads the terminations; nothing is sampled."""
 
-    mode = "eval"
     places_worlds = True
 
     def __init__(self, robust: bool, layout: Layout | None) -> None:
