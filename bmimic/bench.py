@@ -81,15 +81,16 @@ def bench_one(num_envs: int, device: str, iters: int, only: set[str], overrides:
 
     import bmimic.config  # noqa: F401
     from bmimic import CONF_DIR
-    from bmimic.config import resolve_runtime
+    from bmimic.config import placed, resolve_runtime
     from bmimic.config.checks import validate
     from bmimic.runtime import seed_everything
     from bmimic.task import build_trainer, build_training
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("train", overrides=[f"num_envs={num_envs}", f"device={device}", *overrides])
-    resolve_runtime(cfg, device)
-    validate(cfg)  # bench_checks checked these overrides at the largest size; this size's values too
+        composed = compose("train", overrides=[f"num_envs={num_envs}", f"device={device}", *overrides])
+    resolve_runtime(composed, device)
+    validate(composed)  # bench_checks checked these overrides at the largest size; this size's values too
+    cfg = placed(composed)
     seed_everything(cfg.seed + rank)  # distinct worlds per rank, as train.py does
     mem0 = _mem_used(device)
     t0 = time.perf_counter()

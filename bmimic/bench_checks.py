@@ -23,7 +23,7 @@ def checked_args(args: argparse.Namespace, overrides: list[str]) -> tuple[list[i
     import bmimic.config  # noqa: F401  (the config schemas)
     from bmimic import CONF_DIR
     from bmimic.cli.common import check_output_file, first_line
-    from bmimic.config import check_overrides, resolve_runtime
+    from bmimic.config import check_overrides, placed, resolve_runtime
     from bmimic.config.checks import check_composed, validate
     from bmimic.robot import load_mjmodel
     from bmimic.runtime import resolve_device, torchrun_env
@@ -53,7 +53,8 @@ def checked_args(args: argparse.Namespace, overrides: list[str]) -> tuple[list[i
     check_composed(cfg, cfg.hydra.runtime.choices)
     resolve_runtime(cfg, device)
     validate(cfg, composed_checked=True)
-    mjm = load_mjmodel(cfg=cfg.robot)
-    check_num_envs_fit(cfg, mjm, device, max(envs), cfg.ppo.num_steps_per_env)
-    check_networks_fit(cfg, mjm, device)
+    largest = placed(cfg)
+    mjm = load_mjmodel(cfg=largest.robot)
+    check_num_envs_fit(largest, mjm, device, max(envs), largest.ppo.num_steps_per_env)
+    check_networks_fit(largest, mjm, device)
     return envs, only, device

@@ -15,7 +15,7 @@ import sys
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, cast
+from typing import TYPE_CHECKING, Any, Callable, cast
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
@@ -24,12 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 import bmimic.sweeping.gpu_slots as gpu_slots  # also registers the bmimic.gpu_slots resolver of the launchers
 from bmimic.cli.common import first_line, shell_arg, user_errors
 from bmimic.cli.console import quiet_stdout, quiet_warp, start_summary
-from bmimic.config import (
-    interpolated_keys,
-    recorded_config,
-    resolve_runtime,
-    with_schema_defaults,
-)
+from bmimic.config import interpolated_keys, placed, recorded_config, resolve_runtime, with_schema_defaults
 from bmimic.config.budget import check_cpu_budget, cpu_training_s, describe_sizes
 from bmimic.config.checks import advisories, check_composed, check_evaluates, validate
 from bmimic.runs.folder import (
@@ -57,6 +52,9 @@ from bmimic.training.interrupts import StopNow, StopSignals, TrainingInterrupted
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
 from bmimic.training.schedule import whole_clip_wanted
 from bmimic.training.session import RunContext, commit, record_failure
+
+if TYPE_CHECKING:
+    from bmimic.config.placement import PlacedConfig
 
 log = logging.getLogger("bmimic.train")  # the command line's logger, whichever entry point runs the job
 
@@ -97,16 +95,16 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     ctx = ctx if ctx is not None else RunContext(launch_dir)
     if stop is not None:  # nothing is written until commit: a signal ends the set-up at once (StopNow)
         stop.begin_at_once()
-    place = place_job(cfg, stop_rule)
-    plan, resolved, changes = plan_job(cfg, launch_dir, sweep_job, ctx, place)
+    run_cfg, place = place_job(cfg, stop_rule)
+    plan, resolved, changes = plan_job(run_cfg, launch_dir, sweep_job, ctx, place)
     # Distinct worlds per rank (rsl-rl broadcasts the policy); the config keeps the run's seed, which its
     # checkpoints record and every rank's resume compares with.
-    seed_everything(cfg.seed + place.rank)
-    task = build_task(cfg, device=place.device)
+    seed_everything(run_cfg.seed + place.rank)
+    task = build_task(run_cfg, device=place.device)
     if place.main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
-        log.info(start_summary(cfg, place.requested, place.world, place.smoke, task.motion, task.layout,
+        log.info(start_summary(run_cfg, place.requested, place.world, place.smoke, task.motion, task.layout,
                                plan.run_dir))
-    trainer, whole_clip = build_job(cfg, task, place, plan, resolved)
+    trainer, whole_clip = build_job(run_cfg, task, place, plan, resolved)
     trainer.after_evaluation = stop_rule
     trainer.whole_clip = whole_clip
     env = trainer.env
@@ -134,12 +132,13 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
                 import torch
 
                 torch.distributed.destroy_process_group()
-    return finish_job(cfg, trainer, task, place, plan.run_dir, final, robust, sweep_job)
+    return finish_job(run_cfg, trainer, task, place, plan.run_dir, final, robust, sweep_job)
 
 
-def place_job(cfg: DictConfig, stop_rule: Callable | None = None) -> Placement:
+def place_job(cfg: DictConfig, stop_rule: Callable | None = None) -> tuple[PlacedConfig, Placement]:
     """Resolve the device (and the torchrun rank's) and fill in the runtime values of `cfg` (sizes for
-    this machine), then check them (launch's check_config read every key); then `cfg` is read-only."""
+    this machine), then check them (launch's check_config read every key); returns `cfg` read-only and
+    typed (bmimic.config.placed), the one config everything after this reads, and where it runs."""
     import torch
 
     requested = cfg.device
@@ -160,11 +159,10 @@ def place_job(cfg: DictConfig, stop_rule: Callable | None = None) -> Placement:
     if rank == 0:
         for note in advisories(cfg):
             log.warning(note)
-    OmegaConf.set_readonly(cfg, True)
-    return Placement(requested, device, rank, world, smoke=not device.startswith("cuda") and smoke_defaults)
+    return placed(cfg), Placement(requested, device, rank, world, smoke=not device.startswith("cuda") and smoke_defaults)
 
 
-def plan_job(cfg: DictConfig, launch_dir: Path, sweep_job: bool, ctx: RunContext, place: Placement):
+def plan_job(cfg: PlacedConfig, launch_dir: Path, sweep_job: bool, ctx: RunContext, place: Placement):
     """The run folder this job trains in and what it continues: (plan, the resolved config as a dict, the
     config changes a resume was allowed). Refuses a resume that changes what it may not, a finished run,
     and on a CPU a size that cannot fit or would train past max_cpu_hours; then rank 0 locks the folder."""
@@ -191,7 +189,7 @@ def plan_job(cfg: DictConfig, launch_dir: Path, sweep_job: bool, ctx: RunContext
     return plan, resolved, changes
 
 
-def build_job(cfg: DictConfig, task, place: Placement, plan, resolved: dict):
+def build_job(cfg: PlacedConfig, task, place: Placement, plan, resolved: dict):
     """The training environment, sampler, evaluators and trainer of `task`, with the checkpoint that
     `plan` continues restored: (trainer, whole-clip evaluator or None)."""
     from bmimic.sampling.config import describe as describe_sampler
@@ -250,7 +248,7 @@ def learn_and_evaluate(trainer, task, place: Placement, stop: StopSignals | None
     return final, robust
 
 
-def finish_job(cfg: DictConfig, trainer, task, place: Placement, run_dir: Path, final: dict, robust: dict,
+def finish_job(cfg: PlacedConfig, trainer, task, place: Placement, run_dir: Path, final: dict, robust: dict,
                sweep_job: bool) -> float:
     """metrics.json and status `done` (rank 0), the closing lines; returns the final failure rate."""
     env = trainer.env

@@ -14,18 +14,21 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from bmimic.config import ConfigError
 from bmimic.config.checks import check_motion_fit
+
+if TYPE_CHECKING:
+    from bmimic.config.placement import PlacedConfig
 
 
 @dataclass
 class Task:
     """What a runtime-resolved config describes, built: the robot, its motion and the bins over it."""
 
-    cfg: Any
-    """The composed, runtime-resolved config (DictConfig)."""
+    cfg: PlacedConfig
+    """The composed, runtime-resolved, validated config, read-only (bmimic.config.placed)."""
     device: str
     """Torch device of every tensor."""
     mjm: Any
@@ -57,7 +60,7 @@ class Training:
     """bmimic.envs.TrackingEnv in `mode="train"` with `cfg.num_envs` worlds."""
 
 
-def build_task(cfg, device: str) -> Task:
+def build_task(cfg: PlacedConfig, device: str) -> Task:
     """Robot model, robot info, motion and bins of a runtime-resolved config that `validate` passed (the
     caller checks a config once: bmimic.job, bmimic.evaluation.saved_run); here only what needs the
     motion is checked (check_motion_fit, the motion's speeds)."""
@@ -77,7 +80,7 @@ def build_task(cfg, device: str) -> Task:
     return Task(cfg, device, mjm, robot, motion, layout)
 
 
-def build_training(cfg, device: str, task: Task | None = None) -> Training:
+def build_training(cfg: PlacedConfig, device: str, task: Task | None = None) -> Training:
     """The sampler, its feedback and the training environment (`task`: build_task's result,
     when the caller has it)."""
     from bmimic.envs.config import episode_length_steps
@@ -212,7 +215,7 @@ def check_motion_speeds(motion, max_abs_qvel: float, clip_names=None) -> None:
 
 
 # --------------------------------------------------------------------------------------------- memory
-def check_num_envs_fit(cfg, mjm, device: str, num_worlds: int, rollout_steps: int) -> None:
+def check_num_envs_fit(cfg: PlacedConfig, mjm, device: str, num_worlds: int, rollout_steps: int) -> None:
     """Refuse `num_worlds` that would not fit in the device's free memory, before allocating them.
 
     The estimate per world is the MuJoCo-Warp state (measured on the host for one extra world) plus
@@ -234,7 +237,7 @@ def check_num_envs_fit(cfg, mjm, device: str, num_worlds: int, rollout_steps: in
             f"{device} has {_gib(free)} free; about {max(int(free // per_world), 0)} fit")
 
 
-def check_networks_fit(cfg, mjm, device: str) -> None:
+def check_networks_fit(cfg: PlacedConfig, mjm, device: str) -> None:
     """Refuse actor and critic layer sizes whose parameters would not fit in the device's free memory,
     before building them: weights, gradients and Adam's two moments (4 floats per parameter) plus a
     mini-batch's activations, inputs taken as 16 floats per degree of freedom (as check_num_envs_fit)."""
@@ -242,7 +245,7 @@ def check_networks_fit(cfg, mjm, device: str) -> None:
     batch = cfg.num_envs * cfg.ppo.num_steps_per_env // max(cfg.ppo.num_mini_batches, 1)
     need, worst = 0, ""
     for key, out in (("actor_hidden_dims", outputs), ("critic_hidden_dims", 1)):
-        sizes = [inputs, *[int(d) for d in cfg.ppo[key]], out]
+        sizes = [inputs, *[int(d) for d in getattr(cfg.ppo, key)], out]
         params = sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:]))
         need_here = 16 * params + 3 * 4 * batch * sum(sizes)
         need += need_here

@@ -255,7 +255,8 @@ def test_a_placed_job_config_is_resolved_validated_and_read_only():
 
     cfg = compose(["device=cpu"])
     assert cfg.num_envs is None and not OmegaConf.is_readonly(cfg)
-    place = place_job(cfg)
+    placed, place = place_job(cfg)
+    assert placed is cfg  # the same object, typed by its schema (bmimic.config.PlacedConfig)
     assert place.device == "cpu" and place.rank == 0
     assert cfg.num_envs is not None and cfg.eval.episodes_per_bin is not None  # the runtime's values
     assert OmegaConf.is_readonly(cfg)

@@ -1,4 +1,7 @@
-"""The top-level config schema, its registration in Hydra's ConfigStore, and runtime resolution.
+"""The schemas' registration in Hydra's ConfigStore, the resolvers, and a command line's overrides.
+
+The top-level schema is `schema.TrainConfig`; `placement` fills this machine's values in
+(resolve_runtime) and, once the config is validated, makes it read-only and typed (placed).
 
 Each config group is a YAML file in conf/<group>/ backed by a dataclass schema registered here as
 `<group>/<group>_schema` (the sampler group's: one per sampler kind, `sampler/<kind>_schema`, registered
@@ -13,92 +16,27 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, List, Optional, Sequence, cast
+from typing import Any, Sequence, cast
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from bmimic import BmimicError
+from bmimic.config.placement import placed as placed  # re-exported: callers import both from here
+from bmimic.config.placement import resolve_runtime as resolve_runtime
+from bmimic.config.schema import TrainConfig as TrainConfig
 from bmimic.envs.config import EnvConfig
-from bmimic.motion.config import DataConfig, MotionConfig
+from bmimic.motion.config import MotionConfig
 from bmimic.robot.config import RobotConfig
 from bmimic.sampling.config import as_dict
 from bmimic.sim.config import SimConfig
 from bmimic.training.config import EvalConfig, PPOConfig
 
-GPU_DEFAULT_NUM_ENVS = 4096
-CPU_DEFAULT_NUM_ENVS = 8
-CPU_DEFAULT_MAX_ITERATIONS = 4
-GPU_WHOLE_CLIP_ROLLOUTS = 128
-CPU_WHOLE_CLIP_ROLLOUTS = 2
-
 
 class ConfigError(BmimicError):
     """A composed config whose values make no sense together."""
-
-
-@dataclass
-class TrainConfig:
-    """Primary config of `python -m bmimic.train` (conf/train.yaml)."""
-
-    robot: RobotConfig = MISSING
-    """The robot model and its actuators (group `robot`)."""
-    motion: MotionConfig = MISSING
-    """The reference motion (group `motion`)."""
-    sampler: Any = MISSING
-    """How episode start frames are chosen (group `sampler`; each variant's schema is its sampler's,
-    bmimic.sampling.registry)."""
-    ppo: PPOConfig = MISSING
-    """PPO hyperparameters (group `ppo`)."""
-    sim: SimConfig = MISSING
-    """Physics options (group `sim`)."""
-    env: EnvConfig = MISSING
-    """The tracking MDP's terms (group `env`)."""
-    eval: EvalConfig = MISSING
-    """Sampler-independent evaluation during training (group `eval`)."""
-    seed: int = 0
-    """Derives every random stream: torch, numpy, python, warp and the motion sampler."""
-    device: str = "auto"
-    """`auto` (cuda when present, else cpu), `cpu`, `cuda` or `cuda:N`."""
-    num_envs: Optional[int] = None
-    """Parallel worlds; null: 4096 on a GPU, 8 on a CPU (smoke scale)."""
-    max_iterations: Optional[int] = None
-    """PPO iterations; null: ppo.max_iterations on a GPU, 4 on a CPU (smoke scale)."""
-    run_name: str = "default"
-    """Single runs go to outputs/runs/<run_name>/<timestamp>/."""
-    sweep_name: str = "default"
-    """Multirun jobs go to outputs/sweeps/<sweep_name>/<overrides>/seed=<seed>/."""
-    max_cpu_hours: Optional[float] = 1.0
-    """On a CPU, refuse to start a run or sweep whose estimated training time (bmimic.config.budget: env steps
-    at a measured CPU rate, sweep jobs summed) is over this many hours; null: no limit. GPUs are not
-    limited."""
-    time_limit_s: Optional[float] = None
-    """Stop after the iteration during which this much training wall time has passed (then the
-    final evaluation and checkpoint run as usual); null: no limit. For fixed-time budgets and queues."""
-    resume: Optional[str] = None
-    """`true`: continue the latest run of this run_name (a sweep job: its own folder); or a run folder
-    or checkpoint path. Continuing a run checks its config first and refuses any change not named in
-    resume_allow_changes; a refused resume writes nothing."""
-    resume_allow_changes: List[str] = field(default_factory=list)
-    """Config keys (or key prefixes, e.g. `env.rewards`) a resume may change; the changes are recorded
-    in the run's resumes.json. Budget and logistics keys (max_iterations, time_limit_s, device, logger,
-    progress_bar, ...: bmimic.training.resume.RESUME_FREE_KEYS) never need naming."""
-    logger: str = "tensorboard"
-    """`tensorboard`, `wandb` (offline-capable via WANDB_MODE) or `none`."""
-    wandb_project: str = "bmimic"
-    """W&B project when logger=wandb."""
-    progress_bar: bool = True
-    """On a terminal, a tqdm progress bar with ETA; elsewhere (SLURM logs, pipes), or when false, a
-    console line every few iterations (at most about 50 per run)."""
-    verbose: bool = False
-    """Also show Warp's start-up and kernel-module lines and rsl-rl's model printouts."""
-    data: DataConfig = field(default_factory=DataConfig)
-    """Where the user's motion datasets are (data.lafan_dir: the LAFAN1 G1 folder)."""
-    defaults: List[Any] = field(default_factory=list)
-    """Hydra defaults list (set in conf/train.yaml)."""
 
 
 def register_configs() -> None:
@@ -324,23 +262,6 @@ def override_error(e: BaseException, overrides: Sequence[str] = ()) -> str:
         given = next((o for o in overrides if o.split("=", 1)[0].lstrip("+~") == key), None)
         return f"{given or key or 'config'}: {problem}"
     return "; ".join(lines) if lines else type(e).__name__
-
-
-def resolve_runtime(cfg, device: str) -> None:
-    """Fill the `auto`/null top-level values in place for this machine; called once before
-    bmimic.config.checks.validate."""
-    on_gpu = device.startswith("cuda")
-    cfg.device = device
-    if cfg.num_envs is None:
-        cfg.num_envs = GPU_DEFAULT_NUM_ENVS if on_gpu else CPU_DEFAULT_NUM_ENVS
-    if cfg.max_iterations is None:
-        cfg.max_iterations = cfg.ppo.max_iterations if on_gpu else CPU_DEFAULT_MAX_ITERATIONS
-    if "schedule_iterations" in cfg.sampler and cfg.sampler.schedule_iterations is None:
-        cfg.sampler.schedule_iterations = cfg.max_iterations  # EGM: a schedule that spans training
-    if cfg.eval.episodes_per_bin is None:
-        cfg.eval.episodes_per_bin = 32 if on_gpu else 1
-    if cfg.eval.whole_clip.rollouts is None:
-        cfg.eval.whole_clip.rollouts = GPU_WHOLE_CLIP_ROLLOUTS if on_gpu else CPU_WHOLE_CLIP_ROLLOUTS
 
 
 def with_schema_defaults(config: dict) -> dict:

@@ -176,7 +176,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
 
     A run folder may come from someone else: a config whose terms import modules outside bmimic
     (`func: package.module:function`) is refused unless `trust` (--trust-checkpoint)."""
-    from bmimic.config import resolve_runtime
+    from bmimic.config import placed, resolve_runtime
     from bmimic.config.checks import validate
     from bmimic.envs.config import foreign_term_modules
     from bmimic.runtime import resolve_device
@@ -192,7 +192,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     device = resolve_device(cfg.device)
     resolve_runtime(cfg, device)
     validate(cfg)
-    return LoadedRun(run_dir, checkpoint, build_task(cfg, device), tuple(overrides))
+    return LoadedRun(run_dir, checkpoint, build_task(placed(cfg), device), tuple(overrides))
 
 
 def load_run_checkpoint(run: LoadedRun) -> dict:
