@@ -14,13 +14,21 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, cast
 
 from bmimic.config import ConfigError
 from bmimic.config.checks import check_motion_fit
 
 if TYPE_CHECKING:
+    import mujoco
+
     from bmimic.config.placement import PlacedConfig
+    from bmimic.envs.tracking_env import TrackingEnv
+    from bmimic.motion.motion import Motion
+    from bmimic.robot.config import RobotInfo
+    from bmimic.sampling.base import BinSampler
+    from bmimic.sampling.bins import Layout
+    from bmimic.sampling.feedback import SamplerFeedback
 
 
 @dataclass
@@ -31,13 +39,13 @@ class Task:
     """The composed, runtime-resolved, validated config, read-only (bmimic.config.placed)."""
     device: str
     """Torch device of every tensor."""
-    mjm: Any
-    """The robot's host mujoco.MjModel (the training environment's)."""
-    robot: Any
-    """bmimic.robot.RobotInfo: gains, limits, default pose and body indices in model order."""
-    motion: Any
-    """bmimic.motion.Motion at the control rate."""
-    layout: Any
+    mjm: mujoco.MjModel
+    """The robot's host model (the training environment's)."""
+    robot: RobotInfo
+    """Gains, limits, default pose and body indices in model order."""
+    motion: Motion
+    """The motion at the control rate."""
+    layout: Layout
     """The bin layout of `cfg.sampler.bins` over the motion."""
 
     def reference(self):
@@ -52,12 +60,12 @@ class Training:
     """A task with its motion sampler, the sampler's feedback and the training environment."""
 
     task: Task
-    sampler: Any
+    sampler: BinSampler
     """The sampler of `cfg.sampler` over the task's bins."""
-    feedback: Any
-    """bmimic.sampling.feedback.SamplerFeedback: what the sampler hears of the env and of evaluations."""
-    env: Any
-    """bmimic.envs.TrackingEnv in `mode="train"` with `cfg.num_envs` worlds."""
+    feedback: SamplerFeedback
+    """What the sampler hears of the env and of evaluations."""
+    env: TrackingEnv
+    """The training environment (`mode="train"`, `cfg.num_envs` worlds)."""
 
 
 def build_task(cfg: PlacedConfig, device: str) -> Task:
