@@ -8,10 +8,12 @@ saved), so importing this module never changes the caller's backend. Inputs are 
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 import pandas as pd
 from matplotlib import rcParams
+from matplotlib.axis import Axis
 from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.ticker import MaxNLocator
@@ -42,7 +44,7 @@ class IntegerTicks(MaxNLocator):
         super().__init__(nbins="auto", integer=True, min_n_ticks=1)
 
     def __call__(self):
-        axis, ax = self.axis, self.axis.axes
+        axis, ax = cast(Axis, self.axis), cast(Axis, self.axis).axes  # set once the locator is on an axis
         vmin, vmax = axis.get_view_interval()
         horizontal = axis is ax.xaxis
         size = FontProperties(size=rcParams["xtick.labelsize" if horizontal else "ytick.labelsize"]).get_size_in_points()

@@ -105,7 +105,7 @@ class GraphPPO(PPO):
             if self._act_calls <= 2:  # warm-up on the capture stream: cuBLAS handles, allocator
                 with self._on_capture_stream():
                     return super().act(obs)
-            self._capture_act(obs)
+            self._act_graph = self._capture_act(obs)
         g, static_obs, actions, values, log_prob, mean, std = self._act_graph
         static_obs.update_(obs)
         g.replay()
@@ -117,7 +117,7 @@ class GraphPPO(PPO):
         t.observations = static_obs
         return actions
 
-    def _capture_act(self, obs) -> None:
+    def _capture_act(self, obs) -> tuple:
         static_obs = obs.clone()
         torch.cuda.synchronize(self.device)
         g = torch.cuda.CUDAGraph()
@@ -129,7 +129,7 @@ class GraphPPO(PPO):
             actions = mean + std * torch.randn_like(mean)
             values = self.critic(static_obs)
             log_prob = self.actor.get_output_log_prob(actions)
-        self._act_graph = (g, static_obs, actions, values, log_prob, mean, std)
+        return g, static_obs, actions, values, log_prob, mean, std
 
     def _policy_distribution(self, obs) -> torch.Tensor:
         """The actor's forward pass and Gaussian, without sampling; returns the mean."""
