@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
 from bmimic import BmimicError
+
+if TYPE_CHECKING:
+    from bmimic.sim.config import SimConfig
 
 EVENT_MODES = ("startup", "interval", "reset")
 
@@ -112,7 +115,7 @@ class EnvConfig:
     in this order within each mode."""
 
 
-def episode_length_steps(env_cfg: EnvConfig, sim_cfg: Any) -> int:
+def episode_length_steps(env_cfg: EnvConfig, sim_cfg: SimConfig) -> int:
     """Control steps of a full episode (`env.episode_length_s` rounded up; sim_cfg: a SimConfig)."""
     return int(math.ceil(env_cfg.episode_length_s / (sim_cfg.timestep_s * sim_cfg.decimation)))
 
@@ -142,7 +145,7 @@ TERM_GROUPS = {
 """Each term table of the env group and the kind of function its entries name."""
 
 
-def check_env(cfg: Any) -> None:
+def check_env(cfg: EnvConfig) -> None:
     """Check the meaning of an env group (EnvConfig or the composed node): reset noise ranges, that
     every term names a function, the event modes, intervals and parameters. Raises EnvConfigError."""
     from bmimic.envs.mdp import resolve_term
@@ -197,7 +200,7 @@ def _check_event(key: str, term: Any, fn: Any) -> None:
             _fail(f"{key}.params.{param}", problem)
 
 
-def foreign_term_modules(cfg: Any) -> list[str]:
+def foreign_term_modules(cfg: EnvConfig) -> list[str]:
     """Modules outside bmimic that the env terms name (`func: package.module:function`): importing
     them runs their code, so a run folder from elsewhere must be trusted before they are loaded."""
     found = set()

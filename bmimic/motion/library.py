@@ -30,6 +30,7 @@ from typing import Any, cast
 
 import mujoco
 
+from bmimic.motion.config import MotionConfig
 from bmimic.motion.motion import Motion
 from bmimic.motion.segments import MotionDataError, Segment
 
@@ -115,7 +116,7 @@ def _entry(k: int, raw: Any) -> ClipEntry:
     return ClipEntry(str(name), source, value, seed, duration, start, end, weight, origin=where)
 
 
-def _patterns(cfg: Any, key: str) -> list[str]:
+def _patterns(cfg: MotionConfig, key: str) -> list[str]:
     raw = _plain(getattr(cfg, key, None))
     if raw is None:
         return []
@@ -149,7 +150,7 @@ def _folder_files(folder: Any) -> list[Path]:
     return files
 
 
-def _selected(files: list[tuple[str, Path]], cfg: Any) -> list[tuple[str, Path]]:
+def _selected(files: list[tuple[str, Path]], cfg: MotionConfig) -> list[tuple[str, Path]]:
     """`files` ((origin, path) of motion.glob and motion.folder) kept by motion.include / motion.exclude;
     a pattern that matches none of them is refused, as is a selection that keeps none."""
     include, exclude = _patterns(cfg, "include"), _patterns(cfg, "exclude")
@@ -170,7 +171,7 @@ def _selected(files: list[tuple[str, Path]], cfg: Any) -> list[tuple[str, Path]]
     return kept
 
 
-def library_entries(cfg: Any) -> list[ClipEntry]:
+def library_entries(cfg: MotionConfig) -> list[ClipEntry]:
     """The checked entries of a library config: `motion.clips`, then the files of `motion.glob`, then
     those of `motion.folder` (both kept or dropped by `motion.include` / `motion.exclude`)."""
     from bmimic.motion.config import LAFAN_ENV, LAFAN_SOURCE
@@ -205,7 +206,7 @@ def library_entries(cfg: Any) -> list[ClipEntry]:
     return entries
 
 
-def load_library(cfg: Any, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike, lafan_dir: Any,
+def load_library(cfg: MotionConfig, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike, lafan_dir: Any,
                  control_fps: float, min_file_s: float = 0.0) -> Motion:
     """Every clip of the library at the control rate, concatenated; each clip's segments are kept (a
     clip without segments gets one named after the clip). A file of `motion.glob` or `motion.folder`
@@ -243,7 +244,7 @@ def load_library(cfg: Any, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike
     return clips[0] if len(clips) == 1 else Motion.concatenate(clips)
 
 
-def load_any(cfg: Any, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike = "outputs/cache",
+def load_any(cfg: MotionConfig, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike = "outputs/cache",
              bin_size_s: float = 1.0, lafan_dir: Any = None, control_fps: float = 50.0) -> Motion:
     """The configured motion, a library (`motion.source: library`) or a single motion (`load_motion`,
     same arguments), at the control rate."""
@@ -257,14 +258,14 @@ def load_any(cfg: Any, mjmodel: mujoco.MjModel, cache_dir: str | os.PathLike = "
     return motion
 
 
-def clip_names(motion_cfg: Any, motion: Motion) -> tuple[str, ...]:
+def clip_names(motion_cfg: MotionConfig, motion: Motion) -> tuple[str, ...]:
     """The names of the clips of `motion` as configured (a single motion: its `motion.name`)."""
     if getattr(motion_cfg, "source", None) == "library":
         return tuple(e.name for e in library_entries(motion_cfg))
     return (str(getattr(motion_cfg, "name", "motion")),) * int(len(motion.clip_starts))
 
 
-def clip_weights(motion_cfg: Any) -> list[float] | None:
+def clip_weights(motion_cfg: MotionConfig) -> list[float] | None:
     """The clips' weights of a library (None for a single motion)."""
     if getattr(motion_cfg, "source", None) != "library":
         return None
