@@ -311,3 +311,17 @@ def test_relative_input_paths_resolve_against_the_training_launch_dir(tmp_path, 
     assert cfg.motion.path == str(launch / "clips" / "a.npz")
     assert cfg.data.lafan_dir == str(launch / "clips")
     assert cfg.robot.mjcf_path == "missing.xml"  # not found there either: left for load to report
+
+
+def test_a_reloaded_run_builds_from_a_read_only_config(tiny_run):
+    # eval, play, export and sim2sim reopen a run through load_run: its config is resolved and validated
+    # once (bmimic.config.placed), then nothing downstream may change it.
+    from omegaconf import OmegaConf
+    from omegaconf.errors import ReadonlyConfigError
+
+    from bmimic.evaluation.saved_run import load_run
+
+    cfg = load_run(tiny_run).task.cfg
+    assert OmegaConf.is_readonly(cfg) and cfg.num_envs == 2 and cfg.eval.episodes_per_bin == 1
+    with pytest.raises(ReadonlyConfigError):
+        cfg.eval.horizon_s = 1.0
