@@ -174,7 +174,7 @@ class TrackingEnv(VecEnv):
         # Plain dataclasses, not OmegaConf nodes: the step reads config fields every call, and plain
         # attribute access is cheaper and can be traced by torch.compile.
         self.cfg = cfg = cast(EnvConfig, OmegaConf.to_object(env_cfg)) if isinstance(env_cfg, DictConfig) else env_cfg
-        self.mode, self.num_envs, self.device = mode, num_envs, torch.device(device)
+        self.num_envs, self.device = num_envs, torch.device(device)  # the mode lives in self.episodes
         perturbed = self.episodes.perturbed
         self.feedback, self.reference, self.robot = feedback, reference, robot
         self.layout = self.episodes.layout
