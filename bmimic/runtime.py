@@ -16,12 +16,15 @@ import re
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bmimic import BmimicError
 from bmimic.runs.folder import now
+
+if TYPE_CHECKING:
+    import torch
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +198,7 @@ def _rendezvous(rank: int, world: int, timeout_s: float):
         "WORLD_SIZE and RANK to run one process ($BMIMIC_RENDEZVOUS_TIMEOUT_S sets the wait)")
 
 
-def any_rank(flag: bool, device: Any) -> bool:
+def any_rank(flag: bool, device: torch.device | str) -> bool:
     """`flag` on any rank: one scalar all-reduce under torchrun, so that every rank stops after the same
     iteration (ranks' clocks and signals differ; a rank that went on alone would wait forever)."""
     import torch

@@ -3,8 +3,6 @@ the robot config, with the checks that the two agree."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import mujoco
 import numpy as np
 import torch
@@ -17,7 +15,7 @@ class TrackedBodies:
     """Tracked bodies (`ids`, MuJoCo body ids in config order), the anchor and end effectors as
     positions in that order, the root of the robot's tree, and the contact lookup tables."""
 
-    def __init__(self, mjm: mujoco.MjModel, robot: RobotInfo, device: Any) -> None:
+    def __init__(self, mjm: mujoco.MjModel, robot: RobotInfo, device: torch.device | str) -> None:
         nj = len(robot.joint_names)
         if mjm.jnt_type[0] != mujoco.mjtJoint.mjJNT_FREE or not np.array_equal(robot.qpos_adr, np.arange(7, 7 + nj)):
             raise BmimicError("robot model: expected a free joint followed by the actuated hinges in qpos")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence, cast
+from typing import Sequence, cast
 
 import torch
 
@@ -14,7 +14,7 @@ class UniformNoise:
     Draws use torch's default generator (seeded by bmimic.runtime.seed_everything), which CUDA-graph
     replay advances (a private generator would have to be registered with every graph)."""
 
-    def __init__(self, device: Any) -> None:
+    def __init__(self, device: torch.device | str) -> None:
         self.device = torch.device(device)
         self._half_widths: dict[tuple, torch.Tensor] = {}
 

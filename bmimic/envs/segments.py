@@ -4,8 +4,6 @@ or a clip-end resample); a clip end is where training resamples and evaluation s
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 
 from bmimic import BmimicError
@@ -17,7 +15,7 @@ class ReferenceSegments:
     """Per-env frame buffers (LongTensor[N]), written in place (the captured step holds them). The
     motion must be at the control rate: each step advances one frame."""
 
-    def __init__(self, reference: ReferenceMotion, sim_cfg: SimConfig, num_envs: int, device: Any) -> None:
+    def __init__(self, reference: ReferenceMotion, sim_cfg: SimConfig, num_envs: int, device: torch.device | str) -> None:
         control_fps = 1.0 / (sim_cfg.timestep_s * sim_cfg.decimation)
         if abs(reference.fps - control_fps) > 1e-6 * control_fps:
             # One reference frame per control step: any other rate plays the motion at the wrong speed.

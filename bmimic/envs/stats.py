@@ -5,7 +5,6 @@ counts the episode accounting's)."""
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import torch
 
@@ -15,7 +14,7 @@ from bmimic.envs.state import TrackingState
 class IterationStats:
     """Finished episodes, failures and lengths; broken and overflowed world-steps; tracking errors."""
 
-    def __init__(self, device: Any) -> None:
+    def __init__(self, device: torch.device | str) -> None:
         z = lambda: torch.zeros((), device=device)  # noqa: E731
         self.episodes, self.failures, self.length_sum, self.steps = z(), z(), z(), z()
         self.nonfinite, self.out_of_bounds, self.overflow = z(), z(), z()

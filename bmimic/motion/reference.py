@@ -31,7 +31,7 @@ class ReferenceMotion:
     frame_clip_end                     [T]        one past the last frame of each frame's clip
     """
 
-    def __init__(self, motion: Motion, tracked_bodies: Sequence[str], root_body: str, device: Any = "cpu") -> None:
+    def __init__(self, motion: Motion, tracked_bodies: Sequence[str], root_body: str, device: torch.device | str = "cpu") -> None:
         index = {n: i for i, n in enumerate(motion.body_names)}
         missing = [n for n in [*tracked_bodies, root_body] if n not in index]
         if missing:
@@ -61,7 +61,7 @@ class ReferenceMotion:
         self.frame_clip_end = torch.as_tensor(np.repeat(ends, ends - starts), device=self.device)
 
     @classmethod
-    def for_robot(cls, motion: Motion, robot: Any, device: Any = "cpu") -> ReferenceMotion:
+    def for_robot(cls, motion: Motion, robot: Any, device: torch.device | str = "cpu") -> ReferenceMotion:
         """The reference of `motion` for a `bmimic.robot.RobotInfo`: its tracked bodies, in its order,
         and its root body (MuJoCo body ids start at 1; 0 is the world)."""
         names = list(robot.body_names)

@@ -56,7 +56,7 @@ class BinSampler(Generic[ConfigT]):
     cfg: ConfigT
     """The validated config the sampler was built with."""
 
-    def __init__(self, num_bins: int, cfg: ConfigT | None = None, device: Any = "cpu",
+    def __init__(self, num_bins: int, cfg: ConfigT | None = None, device: torch.device | str = "cpu",
                  method: str = "inverse_cdf"):
         """`cfg`: the sampler's validated config (an instance of its `schema`, checked by
         `bmimic.sampling.config.validate_sampler_config`); None: the schema's defaults."""

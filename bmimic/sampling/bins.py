@@ -150,7 +150,7 @@ class _FrameBins:
         self.fps = float(fps)
         self.duration_s = num_frames / self.fps
 
-    def _set_frame_to_bin(self, frame_to_bin: torch.Tensor, device: Any) -> None:
+    def _set_frame_to_bin(self, frame_to_bin: torch.Tensor, device: torch.device | str) -> None:
         """Derive every table from the (CPU, non-decreasing, gap-free) frame -> bin map."""
         counts = torch.bincount(frame_to_bin)
         if not bool((counts >= 1).all()):
@@ -192,7 +192,7 @@ class BinLayout(_FrameBins):
 
     kind = "time"
 
-    def __init__(self, num_frames: int, fps: float, bin_size_seconds: float, device: Any = "cpu"):
+    def __init__(self, num_frames: int, fps: float, bin_size_seconds: float, device: torch.device | str = "cpu"):
         super().__init__(num_frames, fps)
         self.bin_size_seconds = float(bin_size_seconds)
         s = num_bins(self.duration_s, bin_size_seconds)
@@ -235,7 +235,7 @@ class ReleasedBinLayout(_FrameBins):
 
     kind = "released"
 
-    def __init__(self, num_frames: int, fps: float, device: Any = "cpu"):
+    def __init__(self, num_frames: int, fps: float, device: torch.device | str = "cpu"):
         super().__init__(num_frames, fps)
         t = num_frames
         # int(T // (1 / control_dt)) + 1 in the released code; one frame per control step.

@@ -15,7 +15,7 @@ stop at the clip's end instead of reading the next clip's first bins.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Sequence
 
 import torch
 
@@ -29,7 +29,7 @@ class ClipLayout(_FrameBins):
     ``clip_first_bin`` / ``clip_num_bins`` / ``clip_starts`` (LongTensor[C]) and ``bin_local``."""
 
     def __init__(self, kind: str, clip_starts: Sequence[int], num_frames: int, fps: float,
-                 bin_size_seconds: float | None, clip_names: Sequence[str] | None = None, device: Any = "cpu"):
+                 bin_size_seconds: float | None, clip_names: Sequence[str] | None = None, device: torch.device | str = "cpu"):
         super().__init__(num_frames, fps)
         starts = [int(s) for s in clip_starts]
         if not starts or starts[0] != 0 or any(b <= a for a, b in zip(starts, starts[1:])) or starts[-1] >= num_frames:

@@ -30,6 +30,8 @@ from bmimic.sampling.registry import SCHEMAS, sampler_entry, schema_of
 from bmimic.sampling.schemas import SamplerConfig
 
 if TYPE_CHECKING:
+    import torch
+
     from bmimic.sampling.bins import Layout
 
 # The sampler classes (torch) are imported where a class is needed, not with this module: composing a
@@ -89,7 +91,7 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
         fail("log_every", "an integer >= 1 or null", cfg.log_every)
 
 
-def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu", layout: Any = None, clip_weights: Any = None):
+def make_sampler(cfg: Any, num_bins: int, device: torch.device | str = "cpu", layout: Any = None, clip_weights: Any = None):
     """Build the sampler ``cfg`` configures over ``num_bins`` bins on ``device`` (uniform when
     ``cfg.enabled`` is false); given the ``layout`` of a library (several clips), the sampler knows its
     clips (look-ahead stops at clip ends; ``cfg.clip_balance`` with ``clip_weights``)."""
@@ -103,7 +105,7 @@ def make_sampler(cfg: Any, num_bins: int, device: Any = "cpu", layout: Any = Non
     return sampler
 
 
-def layout_for(cfg: Any, num_frames: int, fps: float, device: Any = "cpu", clip_starts: Any = None,
+def layout_for(cfg: Any, num_frames: int, fps: float, device: torch.device | str = "cpu", clip_starts: Any = None,
                clip_names: Any = None) -> Layout:
     """The bin layout ``cfg.bins`` of a motion of ``num_frames`` frames at ``fps`` (of a library when
     ``clip_starts`` has several clips; ``clip_names`` label them)."""

@@ -67,12 +67,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Protocol, cast
 
 import numpy as np
 import torch
 
-from bmimic.sampling.base import ERROR_COMPONENTS, bin_counts
+from bmimic.sampling.base import ERROR_COMPONENTS, BinSampler, bin_counts
 from bmimic.sampling.bins import Layout, attribute, check_attribution, check_failure, failed_mask
 from bmimic.sampling.checks import SamplerConfigError, check_choice
 from bmimic.sampling.schemas import AccountingConfig
@@ -109,6 +109,13 @@ EPISODE_RETURNS = Signal("episode returns", ITERATION, "update_returns")
 SIGNALS = (EPISODE_OUTCOMES, TRACKING_ERRORS, CLIP_OUTCOMES, EPISODE_RETURNS)
 
 
+class ClipOutcomeSampler(Protocol):
+    """What CLIP_OUTCOMES reads of its sampler besides the receiver."""
+
+    rollout_max_s: float | None
+    """How long the evaluation's rollout from each clip's first frame may run, s (None: to its end)."""
+
+
 def check_accounting(cfg: Any) -> None:
     """Range checks of `sampler.accounting` (an AccountingConfig or its node)."""
     check_attribution(cfg.attribution)
@@ -116,7 +123,7 @@ def check_accounting(cfg: Any) -> None:
     check_choice("accounting.update_every", cfg.update_every, UPDATE_EVERY)
 
 
-def declared_signals(sampler: Any) -> tuple[Signal, ...]:
+def declared_signals(sampler: BinSampler | type[BinSampler]) -> tuple[Signal, ...]:
     """The signals a sampler (class or instance) declares, checked: known, with their receiver."""
     signals = tuple(getattr(sampler, "signals", ()))
     for s in signals:
@@ -126,7 +133,7 @@ def declared_signals(sampler: Any) -> tuple[Signal, ...]:
     return signals
 
 
-def learns_from_evaluations(sampler: Any) -> bool:
+def learns_from_evaluations(sampler: BinSampler | type[BinSampler]) -> bool:
     """Whether a sampler (class or instance) declares a signal delivered after each evaluation."""
     return any(s.cadence == EVALUATION for s in declared_signals(sampler))
 
@@ -136,7 +143,7 @@ class SamplerFeedback:
 
     def __init__(
         self,
-        sampler: Any,
+        sampler: BinSampler,
         layout: Layout,
         num_envs: int,
         max_episode_length: int,
@@ -144,7 +151,7 @@ class SamplerFeedback:
         failure: str = "short",
         failure_threshold: float = 0.8,
         update_every: str = "iteration",
-        device: Any = "cpu",
+        device: torch.device | str = "cpu",
         world_size: int | None = None,
     ) -> None:
         check_accounting(AccountingConfig(attribution, failure, failure_threshold, update_every))
@@ -176,8 +183,8 @@ class SamplerFeedback:
         self._returns = torch.zeros(2, s, dtype=torch.float64, device=dev)  # return sums, episodes
 
     @classmethod
-    def from_config(cls, cfg: AccountingConfig, sampler: Any, layout: Layout, num_envs: int, max_episode_length: int,
-                    device: Any = "cpu", world_size: int | None = None) -> "SamplerFeedback":
+    def from_config(cls, cfg: AccountingConfig, sampler: BinSampler, layout: Layout, num_envs: int, max_episode_length: int,
+                    device: torch.device | str = "cpu", world_size: int | None = None) -> "SamplerFeedback":
         """The feedback `cfg` (`sampler.accounting`) describes, for `num_envs` envs."""
         return cls(sampler, layout, num_envs, max_episode_length, attribution=cfg.attribution, failure=cfg.failure,
                    failure_threshold=cfg.failure_threshold, update_every=cfg.update_every, device=device,
@@ -263,7 +270,7 @@ class SamplerFeedback:
         if self.wants(TRACKING_ERRORS):
             self._deliver(self._errors, self.sampler.update_errors)
         if self.wants(EPISODE_RETURNS):
-            self._deliver(self._returns, self.sampler.update_returns)
+            self._deliver(self._returns, getattr(self.sampler, EPISODE_RETURNS.receiver))  # its sampler's own method
         if self.update_every != "iteration":
             return
         if self.world_size > 1:
@@ -290,7 +297,7 @@ class SamplerFeedback:
             return
         failed = torch.zeros(self.layout.num_clips, dtype=torch.float32, device=self.device)
         if self.world_size == 1 or torch.distributed.get_rank() == 0:
-            failed.copy_(measure(self.sampler.rollout_max_s))
+            failed.copy_(measure(cast(ClipOutcomeSampler, self.sampler).rollout_max_s))
         if self.world_size > 1:
             torch.distributed.broadcast(failed, src=0)
         self.sampler.observe_eval(failed > 0, iterations)

@@ -3,15 +3,18 @@ clips (bmimic.sampling.clips)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bmimic.sampling.bins import LAYOUTS, BinLayout, Layout, ReleasedBinLayout, bin_size_s
 from bmimic.sampling.checks import check_choice
 from bmimic.sampling.clips import ClipLayout
 
+if TYPE_CHECKING:
+    import torch
+
 
 def make_layout(bins: str, num_frames: int, fps: float, bin_size_seconds: float | None,
-                device: Any = "cpu", clip_starts: Any = None, clip_names: Any = None) -> Layout:
+                device: torch.device | str = "cpu", clip_starts: Any = None, clip_names: Any = None) -> Layout:
     """The bin layout ``bins`` ("time" or "released") of a motion of ``num_frames`` at ``fps``; with
     several ``clip_starts`` (a library) the bins of each clip, indexed globally (ClipLayout)."""
     check_choice("bins", bins, LAYOUTS)

@@ -49,7 +49,7 @@ class GroupSampler(BinSampler[GroupConfigT]):
     """A sampler whose weights live on groups of consecutive bins (clips or sub-clips); each group's
     share is spread evenly over its bins."""
 
-    def __init__(self, num_bins: int, cfg: GroupConfigT | None = None, device: Any = "cpu"):
+    def __init__(self, num_bins: int, cfg: GroupConfigT | None = None, device: torch.device | str = "cpu"):
         super().__init__(num_bins, cfg, device=device)
         self._set_groups(torch.zeros(num_bins, dtype=torch.long))
 
@@ -96,7 +96,7 @@ class PHCSampler(GroupSampler[PHCConfig]):
 
     signals = (CLIP_OUTCOMES,)
 
-    def __init__(self, num_bins: int, cfg: PHCConfig | None = None, device: Any = "cpu"):
+    def __init__(self, num_bins: int, cfg: PHCConfig | None = None, device: torch.device | str = "cpu"):
         super().__init__(num_bins, cfg, device=device)
         self.mode = self.cfg.mode
         self.rollout_max_s = _optional_float(self.cfg.rollout_max_s)
@@ -134,7 +134,7 @@ class ProtoMotionsSampler(GroupSampler[ProtoMotionsConfig]):
 
     signals = (CLIP_OUTCOMES,)
 
-    def __init__(self, num_bins: int, cfg: ProtoMotionsConfig | None = None, device: Any = "cpu"):
+    def __init__(self, num_bins: int, cfg: ProtoMotionsConfig | None = None, device: torch.device | str = "cpu"):
         super().__init__(num_bins, cfg, device=device)
         self.success_decay, self.failure_decay = float(self.cfg.success_decay), float(self.cfg.failure_decay)
         self.min_weight = _optional_float(self.cfg.min_weight)

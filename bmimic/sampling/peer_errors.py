@@ -52,7 +52,7 @@ class EGMSampler(BinSampler[EGMConfig]):
 
     signals = (TRACKING_ERRORS,)
 
-    def __init__(self, num_bins: int, cfg: EGMConfig | None = None, device: Any = "cpu"):
+    def __init__(self, num_bins: int, cfg: EGMConfig | None = None, device: torch.device | str = "cpu"):
         super().__init__(num_bins, cfg, device=device)
         cfg = self.cfg
         self.ema = float(cfg.ema)
@@ -112,7 +112,7 @@ class GMTSampler(GroupSampler[GMTConfig]):
 
     signals = (EPISODE_OUTCOMES, TRACKING_ERRORS)
 
-    def __init__(self, num_bins: int, cfg: GMTConfig | None = None, device: Any = "cpu"):
+    def __init__(self, num_bins: int, cfg: GMTConfig | None = None, device: torch.device | str = "cpu"):
         super().__init__(num_bins, cfg, device=device)
         cfg = self.cfg
         self.subclip_bins = int(cfg.subclip_bins)

@@ -98,13 +98,13 @@ from bmimic.sampling.schemas import (
 )
 
 
-def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype | None = None, device: Any = "cpu") -> torch.Tensor:
+def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype | None = None, device: torch.device | str = "cpu") -> torch.Tensor:
     """Normalised kernel k_u = gamma^u / sum_v gamma^v, u = 0..K-1 (float64 unless `dtype`)."""
     k = torch.tensor([gamma**u for u in range(K)], dtype=dtype or torch.float64, device=device)
     return k / k.sum()
 
 
-def lookahead_index(num_bins: int, K: int, device: Any = "cpu", last: torch.Tensor | None = None) -> torch.Tensor:
+def lookahead_index(num_bins: int, K: int, device: torch.device | str = "cpu", last: torch.Tensor | None = None) -> torch.Tensor:
     """Index table [S, K] with entry (s, u) = min(s + u, S - 1) (right end padded by replication); with
     ``last`` (LongTensor[S], the last bin of each bin's clip in a library) min(s + u, last[s]), so the
     kernel never reads across a clip boundary."""
@@ -134,7 +134,7 @@ class _LookaheadSampler(BinSampler[LookaheadConfigT]):
 
     signals = (EPISODE_OUTCOMES,)
 
-    def __init__(self, num_bins: int, cfg: LookaheadConfigT | None, device: Any, method: str):
+    def __init__(self, num_bins: int, cfg: LookaheadConfigT | None, device: torch.device | str, method: str):
         super().__init__(num_bins, cfg, device=device, method=method)
         self.gamma = float(self.cfg.gamma)
         self.K = int(self.cfg.K)
@@ -166,7 +166,7 @@ class AdaptiveSampler(_LookaheadSampler[AdaptiveConfig]):
     """The design: EMA of per-bin failure rates, look-ahead kernel, uniform mixture (see module doc);
     its parameters and their defaults (the design's): :class:`AdaptiveConfig`."""
 
-    def __init__(self, num_bins: int, cfg: AdaptiveConfig | None = None, device: Any = "cpu",
+    def __init__(self, num_bins: int, cfg: AdaptiveConfig | None = None, device: torch.device | str = "cpu",
                  method: str = "inverse_cdf"):
         super().__init__(num_bins, cfg, device, method)
         self.lambda_uniform = float(self.cfg.lambda_uniform)
@@ -209,7 +209,7 @@ class BeyondMimicSampler(_LookaheadSampler[BeyondMimicConfig]):
     its parameters and their defaults (the released code's, HybridRobotics/whole_body_tracking
     ``MotionCommandCfg``): :class:`BeyondMimicConfig`."""
 
-    def __init__(self, num_bins: int, cfg: BeyondMimicConfig | None = None, device: Any = "cpu",
+    def __init__(self, num_bins: int, cfg: BeyondMimicConfig | None = None, device: torch.device | str = "cpu",
                  method: str = "inverse_cdf"):
         super().__init__(num_bins, cfg, device, method)
         self.alpha = float(self.cfg.alpha)
@@ -246,7 +246,7 @@ class LowReturnSampler(BinSampler[LowReturnConfig]):
 
     signals = (EPISODE_RETURNS,)
 
-    def __init__(self, num_bins: int, cfg: LowReturnConfig | None = None, device: Any = "cpu",
+    def __init__(self, num_bins: int, cfg: LowReturnConfig | None = None, device: torch.device | str = "cpu",
                  method: str = "inverse_cdf"):
         super().__init__(num_bins, cfg, device, method)
         self.ema, self.temperature = float(self.cfg.ema), float(self.cfg.temperature)

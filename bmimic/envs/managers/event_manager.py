@@ -18,7 +18,7 @@ class EventManager:
     Every call applies to all worlds through a mask, so interval and reset terms run inside the
     captured step with fixed shapes; the timers are written in place."""
 
-    def __init__(self, cfgs: Mapping[str, Any], num_envs: int, device: Any) -> None:
+    def __init__(self, cfgs: Mapping[str, Any], num_envs: int, device: torch.device | str) -> None:
         self.num_envs = num_envs
         self.device = torch.device(device)
         self.modes = {mode: Terms("events", {k: c for k, c in cfgs.items() if c.mode == mode})

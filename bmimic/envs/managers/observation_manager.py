@@ -16,7 +16,7 @@ class ObservationManager:
     `noise`) when built. An empty group other than the first is left out of the TensorDict."""
 
     def __init__(self, groups: Mapping[str, tuple[Mapping[str, Any], bool]], uniform: UniformNoise,
-                 num_envs: int, device: Any) -> None:
+                 num_envs: int, device: torch.device | str) -> None:
         self.groups = {name: Terms("observations", cfgs) for name, (cfgs, _) in groups.items()}
         self.noisy = {name: noisy for name, (_, noisy) in groups.items()}
         self.uniform = uniform

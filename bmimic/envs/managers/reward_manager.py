@@ -14,7 +14,7 @@ class RewardManager:
     """Step reward per term = weight * term * step_dt (BeyondMimic). Terms of weight 0 are not
     computed: their column is zero, so they still appear, as 0, in the logs."""
 
-    def __init__(self, cfgs: Mapping[str, Any], step_dt: float, num_envs: int, device: Any) -> None:
+    def __init__(self, cfgs: Mapping[str, Any], step_dt: float, num_envs: int, device: torch.device | str) -> None:
         self.terms = Terms("rewards", cfgs)
         self.active = [float(c.weight) != 0.0 for c in self.terms.cfgs]
         weights = torch.tensor([c.weight for c in self.terms.cfgs], dtype=torch.float32, device=device)

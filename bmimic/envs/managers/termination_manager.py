@@ -13,7 +13,7 @@ class TerminationManager:
     """Termination terms (disabled ones are not computed); a time-out term truncates (the value is
     bootstrapped, never a failure), the others terminate."""
 
-    def __init__(self, cfgs: Mapping[str, Any], device: Any) -> None:
+    def __init__(self, cfgs: Mapping[str, Any], device: torch.device | str) -> None:
         self.terms = Terms("terminations", cfgs)
         self.time_out = torch.tensor([bool(c.time_out) for c in self.terms.cfgs], dtype=torch.bool, device=device)
         self._counts = torch.zeros(len(self.terms), device=device)
