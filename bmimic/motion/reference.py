@@ -10,13 +10,16 @@ clip, where the environment resamples instead of running on into the next clip.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
 
 from bmimic.motion.motion import Motion
 from bmimic.motion.segments import MotionDataError
+
+if TYPE_CHECKING:
+    from bmimic.robot.config import RobotInfo
 
 
 class ReferenceMotion:
@@ -61,7 +64,7 @@ class ReferenceMotion:
         self.frame_clip_end = torch.as_tensor(np.repeat(ends, ends - starts), device=self.device)
 
     @classmethod
-    def for_robot(cls, motion: Motion, robot: Any, device: torch.device | str = "cpu") -> ReferenceMotion:
+    def for_robot(cls, motion: Motion, robot: RobotInfo, device: torch.device | str = "cpu") -> ReferenceMotion:
         """The reference of `motion` for a `bmimic.robot.RobotInfo`: its tracked bodies, in its order,
         and its root body (MuJoCo body ids start at 1; 0 is the world)."""
         names = list(robot.body_names)

@@ -23,7 +23,7 @@ uniform sampling); the run then equals ``sampler=uniform`` except for the record
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any, Mapping, Sequence, Union, cast
 
 from bmimic.sampling.checks import SamplerConfigError, check_choice, fail
 from bmimic.sampling.registry import SCHEMAS, sampler_entry, schema_of
@@ -31,8 +31,15 @@ from bmimic.sampling.schemas import SamplerConfig
 
 if TYPE_CHECKING:
     import torch
+    from omegaconf import DictConfig
 
+    from bmimic.sampling.base import BinSampler
     from bmimic.sampling.bins import Layout
+
+SamplerNode = Union[SamplerConfig, "DictConfig"]
+"""A sampler config: the schema's instance or the composed node (`sampler`)."""
+SamplerLike = Union[SamplerConfig, "DictConfig", Mapping[str, Any]]
+"""A sampler config, or a plain dict such as a run folder's."""
 
 # The sampler classes (torch) are imported where a class is needed, not with this module: composing a
 # config and checking its keys need only the schemas (bmimic.sampling.schemas).
@@ -43,7 +50,7 @@ def sampler_class(kind: Any) -> type:
     return sampler_entry(kind).cls
 
 
-def sampler_config(cfg: Any) -> SamplerConfig:
+def sampler_config(cfg: SamplerLike) -> SamplerConfig:
     """`cfg` (a SamplerConfig, the composed node, or a plain dict such as a run folder's) as an
     instance of its kind's schema. SamplerConfigError names a key the schema does not have."""
     if isinstance(cfg, SamplerConfig):
@@ -67,7 +74,7 @@ def sampler_config(cfg: Any) -> SamplerConfig:
 CLIP_BALANCES = ("bins", "clips")
 
 
-def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) -> None:
+def validate_sampler_config(cfg: SamplerLike, motion_duration_s: float | None = None) -> None:
     """Check every key of a sampler config (a :class:`SamplerConfig`, the composed node or a dict).
 
     Raises :class:`SamplerConfigError` with a one-line message naming the first bad key.
@@ -91,7 +98,8 @@ def validate_sampler_config(cfg: Any, motion_duration_s: float | None = None) ->
         fail("log_every", "an integer >= 1 or null", cfg.log_every)
 
 
-def make_sampler(cfg: Any, num_bins: int, device: torch.device | str = "cpu", layout: Any = None, clip_weights: Any = None):
+def make_sampler(cfg: SamplerLike, num_bins: int, device: torch.device | str = "cpu", layout: Layout | None = None,
+                 clip_weights: Sequence[float] | None = None) -> BinSampler:
     """Build the sampler ``cfg`` configures over ``num_bins`` bins on ``device`` (uniform when
     ``cfg.enabled`` is false); given the ``layout`` of a library (several clips), the sampler knows its
     clips (look-ahead stops at clip ends; ``cfg.clip_balance`` with ``clip_weights``)."""
@@ -105,7 +113,7 @@ def make_sampler(cfg: Any, num_bins: int, device: torch.device | str = "cpu", la
     return sampler
 
 
-def layout_for(cfg: Any, num_frames: int, fps: float, device: torch.device | str = "cpu", clip_starts: Any = None,
+def layout_for(cfg: SamplerNode, num_frames: int, fps: float, device: torch.device | str = "cpu", clip_starts: Any = None,
                clip_names: Any = None) -> Layout:
     """The bin layout ``cfg.bins`` of a motion of ``num_frames`` frames at ``fps`` (of a library when
     ``clip_starts`` has several clips; ``clip_names`` label them)."""
@@ -115,13 +123,14 @@ def layout_for(cfg: Any, num_frames: int, fps: float, device: torch.device | str
                        clip_names=clip_names)
 
 
-def min_motion_bin_s(cfg: Any) -> float:
+def min_motion_bin_s(cfg: SamplerNode) -> float:
     """The bin size a motion must be at least two of (0 with the released layout, whose bin count
     follows the motion)."""
-    return float(cfg.bin_size_seconds) if cfg.bins == "time" else 0.0
+    # validated: time bins have a size
+    return float(cast(float, cfg.bin_size_seconds)) if cfg.bins == "time" else 0.0
 
 
-def describe(cfg: Any, layout: Layout, sampler: Any) -> list[str]:
+def describe(cfg: SamplerLike, layout: Layout, sampler: BinSampler) -> list[str]:
     """The lines the run's log gets: the variant and every sampler value in force."""
     cfg = sampler_config(cfg)
     acc = cfg.accounting
@@ -165,7 +174,7 @@ def load_variant(name: str) -> SamplerConfig:
     return sampler_config({**node, "kind": kinds[0]})
 
 
-def as_dict(cfg: Any) -> dict[str, Any]:
+def as_dict(cfg: SamplerLike) -> dict[str, Any]:
     """The keys and values of `cfg` in today's layout (accounting nested), every schema default
     filled in: e.g. to compare a run folder's sampler with a new one on resume."""
     return asdict(sampler_config(cfg))

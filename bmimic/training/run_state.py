@@ -11,7 +11,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from bmimic import BmimicError
 from bmimic.runs.folder import checkpoint_path, checkpoints_dir, latest_checkpoint
@@ -27,9 +27,12 @@ from bmimic.training.checkpoints import (
 from bmimic.training.resume import key_allowed
 
 if TYPE_CHECKING:
+    from rsl_rl.runners import OnPolicyRunner
+
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.runs.record import RunRecord
     from bmimic.sampling.base import BinSampler
+    from bmimic.training.ppo import GraphPPO
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +54,9 @@ _SOFT_META = {"num_envs": "num_envs", "motion_frames": "motion", "motion_fps": "
 class Checkpointed(Protocol):
     """The parts of a trainer that its checkpoint reads and restores (bmimic.training.runner.Trainer)."""
 
-    alg: Any
+    alg: GraphPPO
     """rsl-rl's PPO (bmimic.training.ppo.GraphPPO): networks and optimiser, save() / load()."""
-    runner: Any
+    runner: OnPolicyRunner
     """rsl-rl's OnPolicyRunner, whose iteration counter a restore sets."""
     env: TrackingEnv
     sampler: BinSampler
