@@ -228,7 +228,7 @@ class Trainer:
             out_of_time = time_limit_s is not None and any_rank(self.progress.wall_time_s >= time_limit_s, self.device)
             done = self.progress.iteration == end_it or out_of_time
             self._record_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
-            stop = self._hand_off(last=done)
+            stop = self._evaluate_and_checkpoint(last=done)
             if out_of_time:
                 log.info("time limit of %.0f s reached after %d iterations", time_limit_s, self.progress.iteration)
             if out_of_time or stop:
@@ -238,7 +238,7 @@ class Trainer:
                 break
         self.logger.end()
 
-    def _hand_off(self, last: bool) -> bool:
+    def _evaluate_and_checkpoint(self, last: bool) -> bool:
         """After an iteration, as scheduled: the evaluation (rank 0) and the sampler's evaluation feedback
         (every rank), then a checkpoint. True: the stopping rule (`after_evaluation`) says stop."""
         it, stop = self.progress.iteration, False
