@@ -139,8 +139,8 @@ def flag_overrides(args: argparse.Namespace) -> list[str]:
         out.append(f"eval.episodes_per_bin={args.episodes_per_bin}")
     if args.horizon_s is not None:
         out.append(f"eval.horizon_s={args.horizon_s}")
-    if args.num_envs is not None:
-        out.append(f"eval.max_envs={args.num_envs}")
+    if args.max_envs is not None:
+        out.append(f"eval.max_envs={args.max_envs}")
     if args.device is not None:
         out.append(f"device={args.device}")
     if isinstance(args.whole_clip, int):
@@ -179,7 +179,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="dotted config overrides key=value, e.g. eval.horizon_s=3")
     p.add_argument("--episodes-per-bin", type=int, help="episodes started per time bin (eval.episodes_per_bin)")
     p.add_argument("--horizon-s", type=float, help="seconds an episode must survive (eval.horizon_s)")
-    p.add_argument("--num-envs", type=int, help="most simultaneous evaluation worlds (eval.max_envs)")
+    p.add_argument("--max-envs", type=int, help="most simultaneous evaluation worlds (eval.max_envs)")
     p.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: the run's device setting)")
     p.add_argument("--out", type=path_arg, help="folder for the tables (default RUN_DIR/eval/<checkpoint>)")
     p.add_argument("--whole-clip", nargs="?", type=int, const=..., metavar="R",  # ...: R from the config

@@ -203,7 +203,7 @@ def paths(w: dict) -> list[str]:
 
 
 FLAGS = {
-    "eval": {"--episodes-per-bin": NUMBERS, "--horizon-s": NUMBERS, "--num-envs": NUMBERS, "--device": "device",
+    "eval": {"--episodes-per-bin": NUMBERS, "--horizon-s": NUMBERS, "--max-envs": NUMBERS, "--device": "device",
              "--out": "path", "--force": None, "--trust-checkpoint": None, "--whole-clip": [*NUMBERS, None],
              "--conditions": CONDITIONS},
     "play": {"--seconds": NUMBERS, "--start-s": NUMBERS, "--out": "path", "--width": NUMBERS, "--height": NUMBERS,

@@ -351,9 +351,9 @@ def trained_run(tmp_path_factory) -> Path:
 
 EVAL_FLAGS = {"--episodes-per-bin": ["0", "-3", "1", "100000000", "x"],
               "--horizon-s": ["nan", "inf", "-1", "0.2", "1e300"],
-              "--num-envs": ["0", "-1", "2", "99999999999"], "--device": ["cpu", "gpu", "cuda:x", ""]}
+              "--max-envs": ["0", "-1", "2", "99999999999"], "--device": ["cpu", "gpu", "cuda:x", ""]}
 BAD_EVAL = {"--episodes-per-bin": {"0", "-3", "100000000", "x"}, "--horizon-s": {"nan", "inf", "-1"},
-            "--num-envs": {"0", "-1"}, "--device": {"gpu", "cuda:x", ""}}
+            "--max-envs": {"0", "-1"}, "--device": {"gpu", "cuda:x", ""}}
 """The values of each flag that must be refused, naming the flag (or its config key)."""
 EVAL_OVERRIDES = [f"{k}={v}" for k, kind in KEYS if k.startswith(("eval.", "seed", "env.episode_length"))
                   for v in ({"number": ["nan", "-1", "1e300"], "bool": ["maybe"], "list": ["[]"], "text": ["''"]}[kind])]
@@ -368,7 +368,7 @@ def eval_args(draw):
 
 
 def _names(flag: str) -> tuple[str, ...]:
-    return flag, flag.lstrip("-").replace("-", "_"), {"--num-envs": "max_envs"}.get(flag, flag)
+    return flag, flag.lstrip("-").replace("-", "_")
 
 
 @FAST

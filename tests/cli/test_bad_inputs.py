@@ -627,7 +627,7 @@ def cases() -> list[Case]:
           ("--episodes-per-bin 0", lambda ws: [str(ws.run), "--episodes-per-bin", "0"], "episodes_per_bin"),
           ("--horizon-s nan", lambda ws: [str(ws.run), "--horizon-s", "nan"], "horizon_s"),
           ("--horizon-s -1", lambda ws: [str(ws.run), "--horizon-s", "-1"], "horizon_s"),
-          ("--num-envs 0", lambda ws: [str(ws.run), "--num-envs", "0"], "max_envs"),
+          ("--max-envs 0", lambda ws: [str(ws.run), "--max-envs", "0"], "max_envs"),
           ("--device gpu", lambda ws: [str(ws.run), "--device", "gpu"], "device"),
           ("unknown override", lambda ws: [str(ws.run), "eval.horizn_s=3"], "horizn_s"),
           ("+ override", lambda ws: [str(ws.run), "+eval.x=3"], "dotted key=value"),

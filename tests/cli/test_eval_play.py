@@ -31,7 +31,7 @@ from bmimic.training.evaluator import ERROR_COLUMNS
 from tests.conftest import REPO, train_in_process
 
 NUM_BINS = 7  # motion.duration_s=7 with 1 s bins
-EVAL_FLAGS = ["--episodes-per-bin", "2", "--horizon-s", "0.2", "--num-envs", "4"]  # 14 episodes in 4 waves
+EVAL_FLAGS = ["--episodes-per-bin", "2", "--horizon-s", "0.2", "--max-envs", "4"]  # 14 episodes in 4 waves
 
 
 def _cli(module: str, *args: str, env: dict | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
