@@ -102,9 +102,9 @@ class EnvConfig:
     critic_observations: Dict[str, ObsTermConfig] = field(default_factory=dict)
     """Terms of the privileged `critic` group, never corrupted (BeyondMimic: 286 dims)."""
     rewards: Dict[str, RewardTermConfig] = field(default_factory=dict)
-    """Reward terms; each is logged separately under Episode_Reward/<name>."""
+    """Reward terms; each is logged separately under reward/<name>."""
     terminations: Dict[str, TerminationTermConfig] = field(default_factory=dict)
-    """Termination terms; each is logged separately under Episode_Termination/<name>."""
+    """Termination terms; each is logged separately under termination/<name>."""
     reset: ResetConfig = field(default_factory=ResetConfig)
     """Reference-state initialisation noise."""
     events_enabled: bool = True

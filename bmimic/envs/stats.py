@@ -40,7 +40,7 @@ class IterationStats:
         self.length_sum += (length.float() * d).sum()
 
     def pop(self) -> tuple[dict[str, float], dict[str, float], float]:
-        """(counts, `Metrics/*` mean errors, steps >= 1) of the iteration (one host transfer each);
+        """(counts, `metrics/*` mean errors, steps >= 1) of the iteration (one host transfer each);
         then cleared."""
         episodes = float(self.episodes)
         steps = max(float(self.steps), 1.0)
@@ -54,9 +54,9 @@ class IterationStats:
             "mean_episode_length": float(self.length_sum) / episodes if episodes else math.nan,
         }
         metrics = {
-            "Metrics/error_anchor_pos_m": float(errs[0]),
-            "Metrics/error_body_pos_m": float(errs[1]),
-            "Metrics/error_joint_pos_rad": float(errs[2]),
+            "metrics/error_anchor_pos_m": float(errs[0]),
+            "metrics/error_body_pos_m": float(errs[1]),
+            "metrics/error_joint_pos_rad": float(errs[2]),
         }
         for buf in (self.episodes, self.failures, self.length_sum, self.steps, self.nonfinite, self.out_of_bounds,
                     self.overflow, self.errors):

@@ -284,13 +284,7 @@ class Trainer:
         }
         for k, v in losses.items():
             row[f"loss/{k}"] = float(v)
-        for k, v in stats.items():
-            if k.startswith("Episode_Reward/"):
-                row["reward/" + k.split("/", 1)[1]] = v
-            elif k.startswith("Episode_Termination/"):
-                row["termination/" + k.split("/", 1)[1]] = v
-            elif k.startswith("Metrics/"):
-                row["metrics/" + k.split("/", 1)[1]] = v
+        row.update((k, v) for k, v in stats.items() if k.partition("/")[0] in ("reward", "termination", "metrics"))
         for key in self.total_resets:
             self.total_resets[key] += int(stats[key])
         self.overflow_world_steps += int(stats["overflow_worlds"])

@@ -42,6 +42,12 @@ def test_run_folder_contents(trained):
     assert 0.0 <= metrics["final_eval_failure_rate"] <= 1.0
     train = pd.read_parquet(trained / "train_metrics.parquet")
     assert list(train["iteration"]) == [0, 1]
+    # every reward and termination term of the run's config, and the tracking errors, one column each
+    cfg = json.loads((trained / "resolved_config.json").read_text())
+    terms = {f"reward/{t}" for t in cfg["env"]["rewards"]} | {f"termination/{t}" for t in cfg["env"]["terminations"]}
+    assert terms and terms <= set(train.columns), terms - set(train.columns)
+    assert {c for c in train.columns if c.startswith("metrics/")} == {
+        "metrics/error_anchor_pos_m", "metrics/error_body_pos_m", "metrics/error_joint_pos_rad"}
     sampler = pd.read_parquet(trained / "sampler.parquet")
     assert {"iteration", "bin", "bin_start_s", "bin_end_s", "episodes", "failures", "raw_failure_rate",
             "smoothed_failure_rate", "probability"} <= set(sampler.columns)

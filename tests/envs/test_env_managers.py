@@ -68,7 +68,7 @@ def test_weight_zero_reward_term_is_not_computed_but_logged_as_zero():
     assert torch.allclose(rewards, torch.tensor([[2.0 * 1.5 * 0.02, 0.0, -1.0 * 0.5 * 0.02]] * 3))
     rm.accumulate(rewards)
     log = rm.pop_log(episodes=0.0)
-    assert list(log) == ["Episode_Reward/a", "Episode_Reward/off", "Episode_Reward/b", "mean_episode_reward"]
+    assert list(log) == ["reward/a", "reward/off", "reward/b", "mean_episode_reward"]
     assert all(math.isnan(v) for v in log.values())  # no finished episode yet
 
 
@@ -85,10 +85,10 @@ def test_reward_episode_sums_per_term_and_episode_means():
     rm.accumulate(rm.compute(env))
     rm.end_episodes(torch.tensor([False, True, False]))  # env 1 finishes after 5 steps
     log = rm.pop_log(episodes=3.0)
-    assert log["Episode_Reward/a"] == pytest.approx((2.0 + 2.0 + 2.5) / 3)
-    assert log["Episode_Reward/b"] == pytest.approx((2.0 + 2.0 + 2.5) / 3)
+    assert log["reward/a"] == pytest.approx((2.0 + 2.0 + 2.5) / 3)
+    assert log["reward/b"] == pytest.approx((2.0 + 2.0 + 2.5) / 3)
     assert log["mean_episode_reward"] == pytest.approx(2 * 6.5 / 3)
-    assert rm.pop_log(episodes=1.0)["Episode_Reward/a"] == 0.0  # popped sums are cleared
+    assert rm.pop_log(episodes=1.0)["reward/a"] == 0.0  # popped sums are cleared
 
 
 def test_terminations_split_time_outs_and_count_each_term():
@@ -103,7 +103,7 @@ def test_terminations_split_time_outs_and_count_each_term():
     assert tm.terminations(flags).tolist() == [False, True, True]
     tm.compute(env)
     log = tm.pop_log(steps=2.0, num_envs=3)
-    assert log == {"Episode_Termination/time_out": pytest.approx(2 / 6), "Episode_Termination/fell": pytest.approx(4 / 6)}
+    assert log == {"termination/time_out": pytest.approx(2 / 6), "termination/fell": pytest.approx(4 / 6)}
 
 
 def test_observation_noise_only_in_the_noisy_group():

@@ -39,11 +39,11 @@ class RewardManager:
         self.episode_sums.masked_fill_(dones[:, None], 0.0)
 
     def pop_log(self, episodes: float) -> dict[str, float]:
-        """`Episode_Reward/<term>` (mean per finished episode) and `mean_episode_reward`; NaN without
+        """`reward/<term>` (mean per finished episode) and `mean_episode_reward`; NaN without
         finished episodes. One host transfer, then cleared."""
         sums = (self._finished_sums / max(episodes, 1.0)).cpu().numpy()
         self._finished_sums.zero_()
-        out = {f"Episode_Reward/{name}": float(v) if episodes else math.nan for name, v in zip(self.terms.names, sums)}
+        out = {f"reward/{name}": float(v) if episodes else math.nan for name, v in zip(self.terms.names, sums)}
         out["mean_episode_reward"] = float(sums.sum()) if episodes else math.nan
         return out
 

@@ -31,10 +31,10 @@ class TerminationManager:
         return (flags & ~self.time_out).any(-1)
 
     def pop_log(self, steps: float, num_envs: int) -> dict[str, float]:
-        """`Episode_Termination/<term>`: the fraction of env steps at which it fired; then cleared."""
+        """`termination/<term>`: the fraction of env steps at which it fired; then cleared."""
         rates = (self._counts / (steps * num_envs)).cpu().numpy()
         self._counts.zero_()
-        return {f"Episode_Termination/{name}": float(v) for name, v in zip(self.terms.names, rates)}
+        return {f"termination/{name}": float(v) for name, v in zip(self.terms.names, rates)}
 
 
 __all__ = ["TerminationManager"]
