@@ -293,22 +293,16 @@ class Evaluator:
             ended = terminated | broken
             failed = ended | error_failed
             failure_frame = torch.where(ended, end_frame, torch.where(error_failed, worst_frame, -1))
-            ints = torch.stack((start, end_frame, failure_frame, steps.long(), terminated.long(),
-                                error_failed.long(), truncated.long(), broken.long()), dim=-1)[:m].cpu().numpy()
+            columns = {"start_frame": start, "end_frame": end_frame, "failed": failed, "failure_frame": failure_frame,
+                       "terminated": terminated, "error_failed": error_failed, "steps": steps,
+                       HORIZON_TRUNCATED: truncated, "broken": broken}
+            # One host transfer for the wave's per-episode columns, then each back under its name and type.
+            host = torch.stack([c.long() for c in columns.values()], dim=-1)[:m].cpu().numpy()
             self.seconds_per_step = (time.perf_counter() - t0) / max(taken, 1)
             wave = pd.DataFrame(means[:m].cpu().numpy(), columns=list(measured))
-            head = pd.DataFrame({
-                BIN: self.bins[first : first + m],
-                "start_frame": ints[:, 0],
-                "end_frame": ints[:, 1],
-                "failed": failed[:m].cpu().numpy(),
-                "failure_frame": ints[:, 2],
-                "terminated": ints[:, 4].astype(bool),
-                "error_failed": ints[:, 5].astype(bool),
-                "steps": ints[:, 3],
-                HORIZON_TRUNCATED: ints[:, 6].astype(bool),
-                "broken": ints[:, 7].astype(bool),
-            })
+            head = pd.DataFrame({BIN: self.bins[first : first + m], **{
+                name: host[:, j].astype(bool) if c.dtype == torch.bool else host[:, j]
+                for j, (name, c) in enumerate(columns.items())}})
             rows.append(pd.concat([head, wave], axis=1))
         frame_errors = pd.DataFrame(frame_sums.double().cpu().numpy(), columns=["steps", *measured])
         return Rollouts(pd.concat(rows, ignore_index=True), frame_errors)
