@@ -68,14 +68,12 @@ hold); a bin never visited counts as the lowest visited one (so it is tried), an
 Sampling is exact inverse-CDF sampling: uniforms in [0, 1) are located with ``searchsorted`` in
 the cumulative sum of P, which is cached at each update, so a draw is two kernels and never
 synchronises with the host. ``torch.multinomial`` with replacement rebuilds its table on every
-call; on an H200 it took 35-47 us against 21-31 us for the inverse CDF (4096-16384 draws,
-240-10^4 bins). On a 2-core CPU the two are within noise of each other (about 1.4-1.7 ms for
-16384 draws over 10^4 bins). ``method="multinomial"`` is kept for comparison
-(:mod:`bmimic.sampling.benchmark` times both).
+call and is the slower of the two on a GPU; ``method="multinomial"`` is kept for comparison
+(:mod:`bmimic.sampling.benchmark` times both; the figures are in docs/benchmarks.md, "sampler alone").
 
 ``update_counts`` and ``sample`` write their cached tensors in place, use no data-dependent
-shapes and never read values on the host, so the pair can be captured in a CUDA graph (on an
-H200: about 200 us eager, launch-bound at ~9 us a kernel, versus 25-45 us replayed).
+shapes and never read values on the host, so the pair can be captured in a CUDA graph (eager, the
+update is launch-bound: a few short kernels per control step).
 
 State and probabilities are kept in float64 so that long runs (10^6 updates at alpha=0.001)
 accumulate no visible rounding error; the cost is negligible at S <= 10^4.
