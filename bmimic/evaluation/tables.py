@@ -74,7 +74,7 @@ def bin_table(rollouts, episodes: pd.DataFrame, layout, segments) -> pd.DataFram
     from bmimic.training.evaluator import bin_table as labelled_bins
 
     per_bin = labelled_bins(rollouts, layout, segments)
-    per_bin.insert(0, "iteration", int(episodes[ITERATION].iloc[0]))
+    per_bin.insert(0, ITERATION, int(episodes[ITERATION].iloc[0]))
     survival = episodes.groupby(BIN)["survival_s"].mean().reindex(per_bin[BIN]).to_numpy(dtype=float)
     return _with_rates(per_bin, survival)
 

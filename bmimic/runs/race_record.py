@@ -181,7 +181,7 @@ class Race:
             **self.summary(),
             "thresholds": [{"metric": t.metric, "threshold": t.value,
                             "status": "reached" if t.reached_at else "censored",
-                            **({k: t.reached_at[k] for k in ("iteration", ENV_STEPS, "wall_from_launch_s",
+                            **({k: t.reached_at[k] for k in (ITERATION, ENV_STEPS, "wall_from_launch_s",
                                                               "wall_from_first_iteration_s")}
                                if t.reached_at else {})} for t in self.thresholds],
             "evaluations": self.evaluations,

@@ -37,8 +37,8 @@ MAX_SAMPLER_ROWS = 1_000_000
 """sampler.log_every=null thins sampler.parquet of runs with more than 1,000 bins to about this many rows."""
 
 BIN_TABLE_COLUMNS = (
-    "iteration",
-    "bin",
+    ITERATION,
+    BIN,
     "clip",
     "bin_start_s",
     "bin_end_s",

@@ -49,6 +49,7 @@ from bmimic.runs.schema import (  # noqa: F401  (the tables' columns, re-exporte
     ERROR_COLUMNS,
     FAILURE_RATE,
     HORIZON_TRUNCATED,
+    ITERATION,
     MASTERED_BELOW,
     MPKPE_REL_MM,
     SMOOTHNESS_COLUMNS,
@@ -316,7 +317,7 @@ class Evaluator:
         per_bin = self.bin_table(self.run_episodes(policy))
         per_bin.insert(0, WALL_TIME_S, float(wall_time_s))
         per_bin.insert(0, ENV_STEPS, int(env_steps))
-        per_bin.insert(0, "iteration", int(iteration))
+        per_bin.insert(0, ITERATION, int(iteration))
         return per_bin
 
 
