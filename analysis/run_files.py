@@ -21,27 +21,29 @@ from bmimic.runs.folder import (
     table_path,
 )
 from bmimic.runs.schema import (
+    BIN,
     BIN_COLUMNS,
     CLIP_TIME_S,
     CONDITION,
     ENV_STEPS,
     ERROR_COLUMNS,
     FAILURE_RATE,
+    ITERATION,
     LOGISTICS_KEYS,
     SMOOTHNESS_COLUMNS,
     WALL_TIME_S,
 )
 
 REQUIRED_COLUMNS = {
-    "train_metrics": ["iteration", ENV_STEPS, WALL_TIME_S, "mean_episode_length", "mean_reward"],
-    "eval": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE, "failures"],
-    "sampler": ["iteration", "bin", "probability"],
-    "eval_robust": ["iteration", ENV_STEPS, WALL_TIME_S, "bin", "bin_start_s", "bin_end_s", FAILURE_RATE, "failures"],
-    "clip_eval": ["iteration", "clip", "failed"],
-    "whole_clip": ["iteration", CONDITION, "clip", "clip_duration_s", "rollouts", "completed", "transient_failures",
+    "train_metrics": [ITERATION, ENV_STEPS, WALL_TIME_S, "mean_episode_length", "mean_reward"],
+    "eval": [ITERATION, ENV_STEPS, WALL_TIME_S, BIN, "bin_start_s", "bin_end_s", FAILURE_RATE, "failures"],
+    "sampler": [ITERATION, BIN, "probability"],
+    "eval_robust": [ITERATION, ENV_STEPS, WALL_TIME_S, BIN, "bin_start_s", "bin_end_s", FAILURE_RATE, "failures"],
+    "clip_eval": [ITERATION, "clip", "failed"],
+    "whole_clip": [ITERATION, CONDITION, "clip", "clip_duration_s", "rollouts", "completed", "transient_failures",
                    "later_failures"],
-    "whole_clip_survival": ["iteration", CONDITION, "clip", CLIP_TIME_S, "rollouts", "tracking"],
-    "whole_clip_failures": ["iteration", CONDITION, "clip", "failure_time_s", "transient"],
+    "whole_clip_survival": [ITERATION, CONDITION, "clip", CLIP_TIME_S, "rollouts", "tracking"],
+    "whole_clip_failures": [ITERATION, CONDITION, "clip", "failure_time_s", "transient"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""
 ONE_OF_COLUMNS = {"eval": ("start_episodes", "episodes"), "eval_robust": ("start_episodes", "episodes")}

@@ -57,7 +57,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
 
     if run_dir is None:
         return None
-    columns = ["bin", "visits", "failures", "success_rate", MPKPE_REL_MM]
+    columns = [BIN, "visits", "failures", "success_rate", MPKPE_REL_MM]
     extra = ["start_episodes", "eval_steps"]  # for restrict(); tables written before them lack them
     folder = run_dir / EVAL_DIR / label
     summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
@@ -191,7 +191,7 @@ def format_gap(result, warp: WarpEval | None, gap) -> str:
     if len(gap) > 30:
         shown = gap.reindex(gap["success_gap"].abs().sort_values(ascending=False).index).head(10)
         title = f"the 10 bins of {len(gap)} with the largest success gap:"
-    cols = ["bin", "segment", "warp_visits", "sim2sim_visits", "warp_success_rate", "sim2sim_success_rate",
+    cols = [BIN, "segment", "warp_visits", "sim2sim_visits", "warp_success_rate", "sim2sim_success_rate",
             "success_gap", "warp_mpkpe_rel_mm", "sim2sim_mpkpe_rel_mm", "mpkpe_rel_gap_mm"]
     lines += [title, shown[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}")]
     return "\n".join(lines)

@@ -71,7 +71,7 @@ def collect(episodes: Sequence[Episode], start_bins: np.ndarray, num_frames: int
     from bmimic.training.evaluator import Rollouts
 
     rows = pd.DataFrame([e.row for e in episodes])
-    rows.insert(0, "bin", np.asarray(start_bins, dtype=np.int64))
+    rows.insert(0, BIN, np.asarray(start_bins, dtype=np.int64))
     measured = [*ERROR_COLUMNS, *SMOOTHNESS_COLUMNS]
     sums = np.zeros((num_frames, 1 + len(measured)))
     for e in episodes:

@@ -173,7 +173,7 @@ class Trainer:
         with self._at_once(), eval_mode(self.alg.get_policy()) as policy:
             rows = clip_rollouts(self.evaluator, policy, max_s)
         p = self.progress
-        self.record.append("clip_eval", rows.assign(iteration=p.iteration, env_steps=p.env_steps)[
+        self.record.append("clip_eval", rows.assign(**{ITERATION: p.iteration, ENV_STEPS: p.env_steps})[
             [ITERATION, ENV_STEPS, *CLIP_ROLLOUT_COLUMNS]])
         self.flush_tables()
         log.info("clip rollouts at iteration %d: %d of %d clips failed", p.iteration, rows.failed.sum(), len(rows))
