@@ -25,7 +25,7 @@ from bmimic.runs.schema import BIN, ITERATION
 FLAT_TOLERANCE = 1e-9
 """Relative spread below which a signal counts as equal in every bin."""
 
-SUPPORT_COLUMNS = ["run_dir", "arm", "seed", "iteration", "num_bins", "effective_support", "max_p_rel",
+SUPPORT_COLUMNS = ["run_dir", "arm", "seed", ITERATION, "num_bins", "effective_support", "max_p_rel",
                    "num_clips", "clip_effective_support", "clip_max_p_rel", "signal_flat"]
 """Columns of the per-run support table (clip columns NaN for a single motion; ``signal_flat`` NaN for a
 sampler without a signal)."""
@@ -72,7 +72,7 @@ def at_evaluations(support: pd.DataFrame, eval_iterations) -> pd.DataFrame:
         for e in eval_iterations:
             i = np.searchsorted(its, e, side="right") - 1
             if i >= 0:
-                frames.append(g.iloc[[i]].assign(iteration=e))
+                frames.append(g.iloc[[i]].assign(**{ITERATION: e}))
     return pd.concat(frames, ignore_index=True) if frames else support.iloc[:0]
 
 

@@ -92,7 +92,7 @@ def speedups(times: pd.DataFrame, mastery_seed_df: pd.DataFrame, baseline: str, 
         s = speedup(*event_times(bm.sort_values("seed"), "iteration"), *event_times(g.sort_values("seed"), "iteration"),
                     **kw)
         bin_rows.append((arm, baseline, b, s.ratio, s.ci_low, s.ci_high, s.status, s.p_value))
-    cols = ["arm", "baseline", "bin", *SPEEDUP_COLUMNS[3:]]
+    cols = ["arm", "baseline", BIN, *SPEEDUP_COLUMNS[3:]]
     return pd.DataFrame(rows, columns=SPEEDUP_COLUMNS), pd.DataFrame(bin_rows, columns=cols)
 
 

@@ -38,7 +38,7 @@ from bmimic.runs.folder import (
     read_provenance,
     read_resolved_config,
 )
-from bmimic.runs.schema import ENV_STEPS, WALL_TIME_S
+from bmimic.runs.schema import ENV_STEPS, ITERATION, WALL_TIME_S
 
 log = logging.getLogger("analysis.index")
 
@@ -56,7 +56,7 @@ BUDGET_COLUMNS = ("max_iterations", "num_envs", "time_limit_s")
 job folder names, so this is where a smoke run's 4 iterations show beside a study's 10,000."""
 
 INDEX_COLUMNS = [
-    "job", "arm", "seed", "status", "error", "iteration", "sampler", "overrides", "included", "problem",
+    "job", "arm", "seed", "status", "error", ITERATION, "sampler", "overrides", "included", "problem",
     *METRIC_KEYS, *BUDGET_COLUMNS, "git_commit", "git_dirty",
 ]
 """Columns of index.csv; ``job`` is the run folder relative to the sweep (e.g. ``sampler=uniform/seed=0``)."""

@@ -52,7 +52,7 @@ from bmimic.runs.schema import CONDITION, ENV_STEPS, ITERATION
 log = logging.getLogger("analysis")
 
 RUN_COLUMNS = [
-    "run_dir", "sweep_dir", "arm", "seed", "status", "error", "iteration", "sampler",
+    "run_dir", "sweep_dir", "arm", "seed", "status", "error", ITERATION, "sampler",
     "overrides", "included", "problem",
 ]
 """The fixed columns of the runs frame; ``param.<key>`` columns follow (see load_runs)."""

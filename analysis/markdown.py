@@ -379,7 +379,7 @@ def mastery_view(mastery_df: pd.DataFrame) -> pd.DataFrame:
         mastery_df["mastery_iteration"], mastery_df["n_mastered"], mastery_df["n_seeds"], strict=True)])
     view = cells.pivot(index=BIN, columns="arm", values="cell").reset_index()
     meta = mastery_df.drop_duplicates(BIN)[[BIN, "segment", HORIZON_TRUNCATED]]
-    meta = meta.assign(bin=[f"{b}†" if t else str(b) for b, t in zip(meta[BIN], meta[HORIZON_TRUNCATED],
-                                                                      strict=True)], _key=meta[BIN])
+    meta = meta.assign(**{BIN: [f"{b}†" if t else str(b) for b, t in zip(meta[BIN], meta[HORIZON_TRUNCATED], strict=True)]},
+                       _key=meta[BIN])
     view = meta.merge(view.rename(columns={BIN: "_key"}), on="_key").drop(columns=["_key", HORIZON_TRUNCATED])
     return view

@@ -262,11 +262,17 @@ def _constants(node: ast.AST) -> list[ast.Constant]:
     return []
 
 
+COLUMN_LISTS = re.compile(r"(?i)(^|_)(cols|columns)$")
+"""Names of variables that hold a list of columns (`columns = [...]`, `REQUIRED_COLUMNS = {t: [...]}`)."""
+
+
 def column_positions(tree: ast.AST) -> list[ast.Constant]:
     """String constants in the places where a table's column or a record's key is named: a subscript
     (`df["bin"]`, `df[["iteration", "bin"]]`), a key of a dict display, an argument of a table or dict
-    method that takes column names (`sort_values`, `groupby`, `get`, ...), a column keyword (`on=`,
-    `columns=`, ...), and the left side of `in df.columns`."""
+    method that takes column names (`sort_values`, `groupby`, `get`, ...), the name given to
+    `df.insert(loc, name, ...)`, a keyword of `df.assign(name=...)` (as a constant at its line), a column
+    keyword (`on=`, `columns=`, ...), the left side of `in df.columns`, and the list (or the dict
+    values' lists) assigned to a variable named for columns (`cols`, `columns`, `*_COLUMNS`)."""
     found: list[ast.Constant] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Subscript):
@@ -276,7 +282,16 @@ def column_positions(tree: ast.AST) -> list[ast.Constant]:
         elif isinstance(node, ast.Call):
             if isinstance(node.func, ast.Attribute) and node.func.attr in COLUMN_METHODS:
                 found += [c for a in node.args for c in _constants(a)]
+            if isinstance(node.func, ast.Attribute) and node.func.attr == "insert" and len(node.args) >= 3:
+                found += _constants(node.args[1])
+            if isinstance(node.func, ast.Attribute) and node.func.attr == "assign":
+                found += [ast.Constant(k.arg, lineno=node.lineno) for k in node.keywords if k.arg is not None]
             found += [c for k in node.keywords if k.arg in COLUMN_KEYWORDS for c in _constants(k.value)]
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None:
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(isinstance(t, ast.Name) and COLUMN_LISTS.search(t.id) for t in targets):
+                values = node.value.values if isinstance(node.value, ast.Dict) else [node.value]
+                found += [c for v in values for c in _constants(v)]
         elif (isinstance(node, ast.Compare) and isinstance(node.ops[0], (ast.In, ast.NotIn))
               and isinstance(node.comparators[0], ast.Attribute) and node.comparators[0].attr == "columns"):
             found += _constants(node.left)
@@ -299,9 +314,11 @@ def test_key_columns_are_named_through_the_run_schema():
 def test_column_positions_finds_the_places_a_column_is_named():
     tree = ast.parse('df["bin"]; df[["iteration", "x"]]; {"bin": 1}; df.sort_values("iteration"); '
                      'df.merge(o, on=["bin"]); s.get("iteration"); "bin" in df.columns; '
-                     'ax.set_xlabel("bin"); cfg.update_every == "iteration"; f"{n} bin"')
-    assert [c.value for c in column_positions(tree) if c.value in KEY_NAMES] == [
-        "bin", "iteration", "bin", "iteration", "bin", "iteration", "bin"]
+                     'df.insert(0, "iteration", v); df.assign(bin=b, x=1); cols = ["x", "bin"]; '
+                     'REQUIRED_COLUMNS = {"t": ["iteration", "x"]}; choices = ["bin", "iteration"]; '
+                     'ax.set_xlabel("bin"); cfg.update_every == "iteration"; f"{n} bin"; xs.insert(0, "bin")')
+    assert sorted(c.value for c in column_positions(tree) if c.value in KEY_NAMES) == sorted([
+        "bin", "iteration", "bin", "iteration", "bin", "iteration", "bin", "iteration", "bin", "bin", "iteration"])
 
 
 FLOOR_TABLE_HEADER = "| floor | modules | their job |"
