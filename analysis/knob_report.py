@@ -110,7 +110,8 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
           f"{THRESHOLDS[0]:g} overall success / the level's (> 1: sooner); brackets: the range of the reference's "
           "median over each seed's time (a seed that never got there counts at its last evaluation: a bound), "
           "never an interval. \"differs\": some level's final failure or time differs from the reference's at "
-          f"p < {alpha:g} (exact permutation / Gehan test, uncorrected over the row's tests).", ""]
+          f"p < {alpha:g} (exact permutation / Gehan test) after Holm's step-down adjustment over the row's tests; "
+          "\"uncorrected\" lists the levels below it before adjustment.", ""]
     view = pd.DataFrame({
         "knob": summary["knob"],
         "reference": summary["reference_value"].map(fmt),
@@ -123,8 +124,9 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
             zip(summary["lowest_failure_value"], summary["lowest_failure_difference"],
                 summary["highest_failure_value"], summary["highest_failure_difference"], strict=True)],
         "tests": summary["tests"],
-        "verdict": [f"{v} ({d})" if d else v for v, d in zip(summary["verdict"], summary["differing_levels"],
-                                                            strict=True)],
+        "verdict": [(f"{v} ({d})" if d else v) + (f"; uncorrected: {u}" if u and u != d else "")
+                    for v, d, u in zip(summary["verdict"], summary["differing_levels"],
+                                       summary["differing_levels_uncorrected"], strict=True)],
     })
     md += ["Which knobs matter:", "", md_table(view), ""]
     rows = []

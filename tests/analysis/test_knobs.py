@@ -72,12 +72,39 @@ def test_which_knobs_matter(knob_report):
     s = summary.set_index("knob")
     assert s.loc["sampler.gamma", "fastest_value"] == 0.5 and s.loc["sampler.gamma", "slowest_value"] == 1.0
     assert s.loc["sampler.gamma", "fastest_speedup"] == pytest.approx(2.0)
-    assert s.loc["sampler.gamma", "verdict"] == "differs" and str(s.loc["sampler.gamma", "differing_levels"]) == "0.5"
+    # gamma 0.5's time p is the smallest 3 v 5 seeds allow (2/56): below 0.05 alone, not after Holm over 4 tests
+    assert str(s.loc["sampler.gamma", "differing_levels_uncorrected"]) == "0.5"
     assert s.loc["sampler.gamma", "tests"] == 4
+    assert s.loc["sampler.gamma", "verdict"] == "within noise" and pd.isna(s.loc["sampler.gamma", "differing_levels"])
     assert s.loc["sampler.lambda_uniform", "slowest_speedup"] == pytest.approx(40 / 60)
     # a knob whose only level matches the reference is within noise
     same = levels[(levels["knob"] == "sampler.gamma") & (levels["value"] != 0.5)]
     assert knob_summary(same)["verdict"].tolist() == ["within noise"]
+
+
+def _levels(knob: str, ps: dict[float, tuple[float, float]]) -> pd.DataFrame:
+    """knob_levels rows of a reference 0.9 and levels value -> (failure p, time p), everything else planted flat."""
+    rows = [{"knob": knob, "value": 0.9, "arm": "ref", "is_reference": True, "failure_p": math.nan,
+             "speedup_p_90": math.nan}]
+    rows += [{"knob": knob, "value": v, "arm": f"a{v}", "is_reference": False, "failure_p": fp, "speedup_p_90": tp}
+             for v, (fp, tp) in ps.items()]
+    out = pd.DataFrame(rows)
+    for c in ("speedup_90", "speedup_seed_min_90", "speedup_seed_max_90"):
+        out[c] = 1.0
+    out["failure_difference"] = 0.0
+    return out
+
+
+def test_the_verdict_follows_holm_over_the_rows_tests():
+    # three levels, six tests: Holm multiplies the smallest p by 6, the next by 5, ...
+    s = knob_summary(_levels("k", {0.5: (0.005, 0.5), 0.7: (0.04, 0.9), 1.0: (0.2, 0.3)})).iloc[0]
+    assert s["tests"] == 6 and s["differing_levels_uncorrected"] == "0.5, 0.7"
+    assert s["differing_levels"] == "0.5" and s["verdict"] == "differs"  # 6 x 0.005 = 0.03; 5 x 0.04 = 0.2
+    s = knob_summary(_levels("k", {0.5: (0.009, 0.5), 0.7: (0.04, 0.9), 1.0: (0.2, 0.3)})).iloc[0]
+    assert s["differing_levels"] == "" and s["verdict"] == "within noise"  # 6 x 0.009 = 0.054
+    # a NaN p (a time that cannot be compared) is no test: the family shrinks
+    s = knob_summary(_levels("k", {0.5: (0.02, math.nan)})).iloc[0]
+    assert s["tests"] == 1 and s["differing_levels"] == "0.5" and s["verdict"] == "differs"
 
 
 def test_report_has_the_knob_section_and_figures(knob_report, tmp_path):
