@@ -253,6 +253,10 @@ class TrackingEnv(VecEnv):
     def get_observations(self) -> TensorDict:
         return self._obs.clone()
 
+    def observation_dims(self) -> dict[str, int]:
+        """Width of each observation group (what a checkpoint must match), without copying them."""
+        return {str(k): int(v.shape[-1]) for k, v in self._obs.items()}
+
     def step(self, actions: torch.Tensor):
         self._actions_in.copy_(actions)
         if self._graphs is not None:

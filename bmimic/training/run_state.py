@@ -80,12 +80,11 @@ class Checkpoint:
         """What a checkpoint must match to be loaded into this trainer (plain values)."""
         t = self.trainer
         assert t.env.layout is not None  # a training env's layout is its feedback's
-        obs = t.env.get_observations()
         return {
             "num_envs": int(t.env.num_envs),
             "num_actions": int(t.env.num_actions),
-            "obs_dims": {k: int(v.shape[-1]) for k, v in obs.items()},
-            "sampler_kind": str(t.sampler.state_dict().get("kind")),
+            "obs_dims": t.env.observation_dims(),
+            "sampler_kind": str(t.sampler.kind),
             "num_bins": int(t.env.layout.num_bins),
             **motion_meta(t.env.reference.motion),
         }
