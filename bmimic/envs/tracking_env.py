@@ -64,13 +64,13 @@ class SampledEpisodes:
 
     def begin(self, env: TrackingEnv) -> None:
         """Every world starts at a sampled frame; the runner never calls reset."""
-        self.start(env, env._ones, env._ones)
+        self.start(env, mask=env._ones, new_episode=env._ones)
         env.events.reset(env, env._ones)
 
     def start(self, env: TrackingEnv, mask: torch.Tensor, new_episode: torch.Tensor) -> None:
         """Masked worlds start a reference segment at a frame the sampler draws, with RSI noise; those
         also in `new_episode` start an episode there (a clip-end resample keeps the episode's start bin)."""
-        bins = self.feedback.sampler.sample(env.num_envs)
+        bins = self.feedback.draw_bins(env.num_envs)
         frames = env.segments.start(mask, self.layout.sample_frames(bins))
         self.feedback.start_episodes(mask & new_episode, bins)
         write_reference_state(env.sim, env.reference, mask, frames, env.cfg.reset, env.uniform,
@@ -87,16 +87,17 @@ class SampledEpisodes:
         # What ends now, counted in one pass: finished episodes (at this frame) and, for
         # attribution=failure, continuing episodes whose clip ends on the next frame.
         clip_end, end_frames = env.segments.ending(dones)
-        counts = feedback.count(dones, clip_end, end_frames, env.segment_start, terminated, broken,
-                                env.episode_length_buf)
-        self.start(env, dones, dones)
+        counts = feedback.count(dones=dones, clip_end=clip_end, end_frames=end_frames,
+                                segment_start=env.segment_start, terminated=terminated, broken=broken,
+                                episode_length=env.episode_length_buf)
+        self.start(env, mask=dones, new_episode=dones)
         env.episode_length_buf.masked_fill_(dones, 0)
         env.actions.masked_fill_(dones[:, None], 0.0)
         env.last_actions.masked_fill_(dones[:, None], 0.0)
         # End of the clip mid-episode: resample and teleport; the episode continues. This also
         # catches a reset that started on the clip's last frame: that episode has not tracked a
         # frame yet, so it starts (and counts for) the bin drawn now.
-        self.start(env, env.segments.advance(), dones)
+        self.start(env, mask=env.segments.advance(), new_episode=dones)
         # After this step's resets were drawn, as in the released code: the sampler update
         # (update_every=step), or the counts wait for end_rollout (update_every=iteration).
         feedback.record(counts)

@@ -195,6 +195,10 @@ class SamplerFeedback:
         return signal in self.signals
 
     # ------------------------------------------------------------------ in the step
+    def draw_bins(self, n: int) -> torch.Tensor:
+        """Start bins for `n` worlds, drawn from the sampler's P (LongTensor [n], on its device)."""
+        return self.sampler.sample(n)
+
     def start_episodes(self, mask: torch.Tensor, bins: torch.Tensor) -> None:
         """The masked envs start a new episode in ``bins`` (the bins their start frames were drawn for)."""
         self.start_bin.copy_(torch.where(mask, bins, self.start_bin))
