@@ -13,14 +13,10 @@ from __future__ import annotations
 
 import pandas as pd
 
-from analysis.markdown import estimate_cell
 from analysis.metrics import at_budget, start_failure
 from analysis.stats import seed_interval
 from analysis.tables import ReportOptions, use_bootstrap
 from bmimic.runs.schema import BIN, FAILURE_RATE, ITERATION
-
-FAILURE_HEADER = "final failure (failed / started episodes, by start clip)"
-MASS_HEADER = "sampling probability mass (mean over training)"
 
 
 def bin_clips(eval_df: pd.DataFrame) -> pd.Series:
@@ -68,24 +64,4 @@ def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd
     return out.sort_values(["clip", "arm"], key=lambda s: s.map(order) if s.name == "clip" else s).reset_index(drop=True)
 
 
-def clip_view(table: pd.DataFrame) -> pd.DataFrame:
-    """The Clips table, one row per clip and arm, every column named with its unit."""
-    return pd.DataFrame({
-        "clip": table["clip"],
-        "arm": table["arm"],
-        FAILURE_HEADER: [estimate_cell(p, lo, hi, m, n) for p, lo, hi, m, n in zip(
-            table["final_failure"], table["final_failure_low"], table["final_failure_high"], table["ci_method"],
-            table["n_seeds"], strict=True)],
-        "bins not mastered / bins": [f"{nm}/{b}" for nm, b in zip(table["bins_not_mastered"], table["num_bins"],
-                                                                  strict=True)],
-        MASS_HEADER: [f"{s:.1%}" if s == s else "–" for s in table["sampling_mass"]],
-    })
-
-
-def never_started(table: pd.DataFrame) -> list[str]:
-    """`arm: clip` for every clip an arm's sampler gave no probability at any logged iteration."""
-    hit = table[table["sampling_mass"] == 0]
-    return [f"`{a}`: {c}" for a, c in zip(hit["arm"], hit["clip"], strict=True)]
-
-
-__all__ = ["bin_clips", "clip_failure", "clip_mass", "clip_view", "never_started"]
+__all__ = ["bin_clips", "clip_failure", "clip_mass"]

@@ -25,7 +25,6 @@ from analysis.metrics import (
     broken_episodes,
     tracking_errors,
 )
-from analysis.plots import arm_colors
 from analysis.speedup_curve import iso_failure, speedup_curve
 from analysis.stats import bootstrap_coverage
 from analysis.tables import ReportOptions
@@ -74,14 +73,13 @@ def read_runs(paths: list[Path], opts: ReportOptions, allow_mixed: bool = False)
 
 @dataclass
 class Inputs:
-    """What the report is of and how it reads: the runs, the options, the baseline, the arms' colours, the
+    """What the report is of and how it reads: the runs, the options, the baseline, the
     machine kinds and the measures of time it may compare."""
 
     runs: pd.DataFrame
     opts: ReportOptions
     baseline: Any
     baseline_note: str
-    colors: dict
     kinds: dict
     wall_ok: bool
     """Wall time may be compared: every run trained on one recorded machine kind."""
@@ -202,7 +200,6 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
                                              for n in ("train_metrics", "eval", "sampler", "eval_robust"))
     segments = load_segments(runs)
     bins = bin_table(eval_df, segments)
-    colors = arm_colors(runs["arm"].dropna())
     kinds = machine_kinds(runs)
     wall_ok = wall_time_comparable(kinds)
     measures = MEASURES if wall_ok else tuple(m for m in MEASURES if m != WALL_TIME_S)
@@ -260,7 +257,7 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
         sensitivity.knob_levels = knob_levels(knobs, per_run["final_failure"], overall, opts, sensitivity.uniform_arm)
         sensitivity.knob_summary = knob_summary(sensitivity.knob_levels, opts.alpha)
     return ReportData(
-        inputs=Inputs(runs, opts, baseline, baseline_note, colors, kinds, wall_ok, measures, seeds, common[ITERATION],
+        inputs=Inputs(runs, opts, baseline, baseline_note, kinds, wall_ok, measures, seeds, common[ITERATION],
                       tables.use_bootstrap(runs)),
         curves=Curves(overall, per_seed_curves, curves, budget),
         bins=Bins(eval_df, bins, bin_fail, final_bins, samp, mastery_seed_df, mastery_df),

@@ -31,7 +31,8 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
     """Write the tables and figures of `d` into `out`; the figures as (file name, title)."""
     inp, cur, tab, arms = d.inputs, d.curves, d.bins, d.arms
     places, adapt, sens = d.places, d.adaptation, d.sensitivity
-    opts, colors, bins, at, band = inp.opts, inp.colors, tab.bins, at_text(inp), band_text(inp)
+    opts, bins, at, band = inp.opts, tab.bins, at_text(inp), band_text(inp)
+    colors = plots.arm_colors(inp.runs["arm"].dropna())  # one colour per arm, in every figure
     write_csv(out / "curves.csv", cur.curves)
     figures = []
     for metric, (_, label) in tables.CURVE_METRICS.items():

@@ -3,7 +3,9 @@ figures analysis.report_files wrote. Nothing here computes a statistic or writes
 
 from __future__ import annotations
 
-from analysis import clip_tables, tables, whole_clip
+import pandas as pd
+
+from analysis import tables, whole_clip
 from analysis.curve_text import adaptation_section, curve_view, iso_text, speedup_curve_text
 from analysis.definitions import definitions
 from analysis.knob_report import knob_section
@@ -14,6 +16,7 @@ from analysis.markdown import (
     arms_view,
     baseline_text,
     budget_section,
+    estimate_cell,
     evaluation_notes,
     fmt,
     mastery_view,
@@ -101,6 +104,30 @@ def _tracking(d: ReportData) -> list[str]:
     return md + [""]
 
 
+CLIP_FAILURE_HEADER = "final failure (failed / started episodes, by start clip)"
+CLIP_MASS_HEADER = "sampling probability mass (mean over training)"
+
+
+def _clip_view(table: pd.DataFrame) -> pd.DataFrame:
+    """The Clips table, one row per clip and arm, every column named with its unit."""
+    return pd.DataFrame({
+        "clip": table["clip"],
+        "arm": table["arm"],
+        CLIP_FAILURE_HEADER: [estimate_cell(p, lo, hi, m, n) for p, lo, hi, m, n in zip(
+            table["final_failure"], table["final_failure_low"], table["final_failure_high"], table["ci_method"],
+            table["n_seeds"], strict=True)],
+        "bins not mastered / bins": [f"{nm}/{b}" for nm, b in zip(table["bins_not_mastered"], table["num_bins"],
+                                                                  strict=True)],
+        CLIP_MASS_HEADER: [f"{s:.1%}" if s == s else "–" for s in table["sampling_mass"]],
+    })
+
+
+def _never_started(table: pd.DataFrame) -> list[str]:
+    """`arm: clip` for every clip an arm's sampler gave no probability at any logged iteration."""
+    hit = table[table["sampling_mass"] == 0]
+    return [f"`{a}`: {c}" for a, c in zip(hit["arm"], hit["clip"], strict=True)]
+
+
 def _segments_and_clips(d: ReportData) -> list[str]:
     inp, places = d.inputs, d.places
     md = []
@@ -114,8 +141,8 @@ def _segments_and_clips(d: ReportData) -> list[str]:
                "mean weighted by started episodes); bins not mastered: median mastery over seeds not reached; "
                "sampling probability mass: the training sampler's probability on the clip's bins, the mean over "
                "its logged iterations and seeds, the same quantity for every sampler.", "",
-               md_table(clip_tables.clip_view(places.clip_tab)), ""]
-        unused = clip_tables.never_started(places.clip_tab)
+               md_table(_clip_view(places.clip_tab)), ""]
+        unused = _never_started(places.clip_tab)
         md += [f"- No sampling probability at any logged iteration: {', '.join(unused)}." if unused else
                "- Every arm gave every clip sampling probability.", ""]
     return md
