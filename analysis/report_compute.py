@@ -194,7 +194,7 @@ class ReportData:
 
 
 def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
-    """Every table of the report of `runs` (some included), in the order the report has always made them."""
+    """Every table of the report of `runs` (those included): inputs first, then each section's tables from them."""
     baseline, baseline_note = tables.choose_baseline(runs, opts.baseline)
     train, eval_df, sampler_df, robust_df = (load_table(runs, n, opts.max_iteration)
                                              for n in ("train_metrics", "eval", "sampler", "eval_robust"))
