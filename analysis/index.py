@@ -23,7 +23,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from analysis import AnalysisError
+from analysis import REFUSED, AnalysisError, error_line
 from analysis.files import write_csv
 from analysis.load import load_runs
 from analysis.run_files import find_run_dirs
@@ -169,8 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         path = write_index(args.sweep)
-    except AnalysisError as e:
-        print(f"error: {e}", file=sys.stderr)
+    except REFUSED as e:
+        print(error_line(e), file=sys.stderr)
         return 2
     print(f"index written to {path}")
     return 0

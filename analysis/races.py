@@ -35,11 +35,10 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from analysis import AnalysisError
+from analysis import REFUSED, AnalysisError, error_line
 from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
 from analysis.plots import arm_colors
-from bmimic import BmimicError
 from bmimic.cli.common import path_arg
 from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
 
@@ -273,8 +272,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         written = write_race_curves(args.paths, args.out)
-    except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.runs.atomic_io)
-        print(f"error: {str(e).strip().splitlines()[0]}", file=sys.stderr)
+    except REFUSED as e:
+        print(error_line(e), file=sys.stderr)
         return 2
     for path in written:
         print(f"wrote {path}")

@@ -21,14 +21,13 @@ import os
 import sys
 from pathlib import Path
 
-from analysis import AnalysisError, tables
+from analysis import REFUSED, AnalysisError, error_line, tables
 from analysis.files import write_csv, write_text
 from analysis.inputs import MIXED_FLAG, check_options
 from analysis.report_compute import compute, read_runs
 from analysis.report_files import write_files
 from analysis.report_views import body, header
 from analysis.tables import ReportOptions
-from bmimic import BmimicError
 from bmimic.cli.common import path_arg
 
 
@@ -88,8 +87,8 @@ def main(argv: list[str] | None = None) -> int:
                              success_threshold=args.success_threshold, baseline=args.baseline,
                              n_resamples=args.resamples, max_iteration=args.max_iteration)
         out = build_report(args.paths, args.out, opts, allow_mixed=args.allow_mixed)
-    except (AnalysisError, BmimicError) as e:  # BmimicError: a write the disk refuses (bmimic.runs.atomic_io)
-        print(f"error: {str(e).strip().splitlines()[0]}", file=sys.stderr)
+    except REFUSED as e:
+        print(error_line(e), file=sys.stderr)
         return 2
     print(f"report written to {out / 'report.md'}")
     return 0

@@ -644,6 +644,18 @@ def test_index_of_empty_sweep(tmp_path):
     assert pd.read_csv(write_index(tmp_path)).columns[0] == "job"
 
 
+def test_an_index_the_disk_refuses_is_one_error_line(tmp_path, capsys):
+    """A write that fails (here index.csv is a folder) ends bmimic-index in one line, exit 2, not a traceback."""
+    from analysis.index import main as index_main
+
+    sweep = make_sweep(tmp_path)
+    (sweep / "index.csv").mkdir()
+    assert index_main([str(sweep)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "index.csv" in err and "cannot write" in err and len(err.splitlines()) == 1
+    assert (sweep / "index.csv").is_dir() and not [p for p in sweep.iterdir() if p.name.endswith(".tmp")]
+
+
 def test_short_arm_labels_keep_only_what_differs():
     from analysis.load import short_arm_labels
 
