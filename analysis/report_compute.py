@@ -79,7 +79,8 @@ class Inputs:
     runs: pd.DataFrame
     opts: ReportOptions
     baseline: Any
-    baseline_note: str
+    uniform_arms: list
+    """The arms whose sampler is uniform, the baseline chosen among them (empty when --baseline named it)."""
     kinds: dict
     wall_ok: bool
     """Wall time may be compared: every run trained on one recorded machine kind."""
@@ -195,7 +196,7 @@ class ReportData:
 
 def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     """Every table of the report of `runs` (those included): inputs first, then each section's tables from them."""
-    baseline, baseline_note = tables.choose_baseline(runs, opts.baseline)
+    baseline, uniform_arms = tables.choose_baseline(runs, opts.baseline)
     train, eval_df, sampler_df, robust_df = (load_table(runs, n, opts.max_iteration)
                                              for n in ("train_metrics", "eval", "sampler", "eval_robust"))
     segments = load_segments(runs)
@@ -257,7 +258,7 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
         sensitivity.knob_levels = knob_levels(knobs, per_run["final_failure"], overall, opts, sensitivity.uniform_arm)
         sensitivity.knob_summary = knob_summary(sensitivity.knob_levels, opts.alpha)
     return ReportData(
-        inputs=Inputs(runs, opts, baseline, baseline_note, kinds, wall_ok, measures, seeds, common[ITERATION],
+        inputs=Inputs(runs, opts, baseline, uniform_arms, kinds, wall_ok, measures, seeds, common[ITERATION],
                       tables.use_bootstrap(runs)),
         curves=Curves(overall, per_seed_curves, curves, budget),
         bins=Bins(eval_df, bins, bin_fail, final_bins, samp, mastery_seed_df, mastery_df),

@@ -55,6 +55,17 @@ def machines_text(inp: Inputs) -> str:
         f"the runs trained on different or unrecorded machine kinds ({kinds_text(inp.runs, inp.kinds)}).")
 
 
+def _baseline_note(inp: Inputs) -> str:
+    """How the speedups' baseline was chosen, or why there is none."""
+    if inp.baseline is None:
+        return "no arm has sampler.name == uniform and no --baseline was given: speedups are skipped"
+    if not inp.uniform_arms:
+        return f"baseline `{inp.baseline}` (given)"
+    others = inp.uniform_arms[1:]
+    return f"baseline `{inp.baseline}` (its sampler is uniform)" + (
+        f"; other uniform arms: {', '.join(f'`{a}`' for a in others)} (pick one with --baseline)" if others else "")
+
+
 def header(paths: list, r: Runs) -> list[str]:
     """The inputs, the definitions in force and the Runs section."""
     runs, opts, coverage = r.runs, r.opts, r.coverage
@@ -160,7 +171,7 @@ def body(d: ReportData, figures: list[tuple[str, str]], coverage: tuple | None) 
         md += winner_text(arms.comp_robust, arms.summary, "final_failure_robust",
                           "Final overall failure, robust evaluation (DR, noise, pushes)", "last evaluation", opts)
     md += baseline_text(arms.comp_base, arms.summary, "final_failure", "Final overall failure", at, opts)
-    md.append(f"- Speedups: {inp.baseline_note}.")
+    md.append(f"- Speedups: {_baseline_note(inp)}.")
     sp = d.speedups
     if sp is not None:
         md += speedup_curve_text(sp.curve, sp.speed, sp.per_bin, arms.time_df, opts, machines)

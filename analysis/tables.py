@@ -91,20 +91,16 @@ SPEEDUP_COLUMNS = ["arm", "baseline", "measure", "ratio", "ci_low", "ci_high", "
 """Columns of speedup.csv: one row per arm and measure."""
 
 
-def choose_baseline(runs: pd.DataFrame, baseline: str | None) -> tuple[str | None, str]:
-    """The baseline arm and a sentence saying how it was chosen (or why there is none)."""
+def choose_baseline(runs: pd.DataFrame, baseline: str | None) -> tuple[str | None, list[str]]:
+    """The baseline arm (`baseline` when given, else the first arm whose sampler is uniform; None without
+    either) and the uniform arms it was chosen among (empty when given)."""
     arms = runs.loc[runs["included"], ["arm", "sampler"]].drop_duplicates()
     if baseline is not None:
         if baseline not in set(arms["arm"]):
             raise AnalysisError(f"--baseline {baseline!r}: not an arm with usable runs; arms: {sorted(arms['arm'])}")
-        return baseline, f"baseline `{baseline}` (given)"
+        return baseline, []
     uniform = sorted(arms.loc[arms["sampler"] == "uniform", "arm"])
-    if not uniform:
-        return None, "no arm has sampler.name == uniform and no --baseline was given: speedups are skipped"
-    note = f"baseline `{uniform[0]}` (its sampler is uniform)"
-    if len(uniform) > 1:
-        note += f"; other uniform arms: {', '.join(f'`{a}`' for a in uniform[1:])} (pick one with --baseline)"
-    return uniform[0], note
+    return (uniform[0] if uniform else None), uniform
 
 
 def seeds_per_arm(runs: pd.DataFrame) -> pd.Series:

@@ -760,3 +760,24 @@ def test_a_motion_key_that_only_checks_the_file_is_not_a_different_motion(tmp_pa
     _set_motion_key(runs[1], "clip", "walk1_subject1")
     with pytest.raises(AnalysisError, match=r"different motions \(motion.clip: "):
         load_runs(sweep)
+
+
+def test_the_baseline_is_chosen_in_numbers_and_said_in_words():
+    from types import SimpleNamespace
+
+    from analysis.report_views import _baseline_note
+    from analysis.tables import choose_baseline
+
+    runs = pd.DataFrame({"arm": ["u2", "u1", "a", "a"], "sampler": ["uniform", "uniform", "adaptive", "adaptive"],
+                         "included": [True, True, True, True]})
+    assert choose_baseline(runs, None) == ("u1", ["u1", "u2"])
+    assert choose_baseline(runs, "a") == ("a", [])
+    assert choose_baseline(runs[runs["sampler"] != "uniform"], None) == (None, [])
+    with pytest.raises(AnalysisError, match="--baseline 'x'"):
+        choose_baseline(runs, "x")
+    say = lambda baseline, uniform: _baseline_note(SimpleNamespace(baseline=baseline, uniform_arms=uniform))  # noqa: E731
+    assert say("u1", ["u1", "u2"]) == ("baseline `u1` (its sampler is uniform); other uniform arms: `u2` "
+                                       "(pick one with --baseline)")
+    assert say("u1", ["u1"]) == "baseline `u1` (its sampler is uniform)"
+    assert say("a", []) == "baseline `a` (given)"
+    assert say(None, []).endswith("speedups are skipped")
