@@ -272,9 +272,9 @@ class SamplerFeedback:
         """The iteration's signals: the declared per-iteration ones, and the rollout's episode
         outcomes with update_every="iteration"."""
         if self.wants(TRACKING_ERRORS):
-            self._deliver(self._errors, self.sampler.update_errors)
+            self._deliver(self._errors, TRACKING_ERRORS)
         if self.wants(EPISODE_RETURNS):
-            self._deliver(self._returns, getattr(self.sampler, EPISODE_RETURNS.receiver))  # its sampler's own method
+            self._deliver(self._returns, EPISODE_RETURNS)
         if self.update_every != "iteration":
             return
         if self.world_size > 1:
@@ -284,12 +284,12 @@ class SamplerFeedback:
         self._iteration += self._pending
         self._pending.zero_()
 
-    def _deliver(self, sums: torch.Tensor, receiver: Callable) -> None:
+    def _deliver(self, sums: torch.Tensor, signal: Signal) -> None:
         """One per-iteration signal: its per-bin sums (last row: the count they are over), summed
-        over the ranks, to `receiver`; then cleared."""
+        over the ranks, to the sampler's method the signal names; then cleared."""
         if self.world_size > 1:
             torch.distributed.all_reduce(sums)
-        receiver(sums[:-1], sums[-1])
+        getattr(self.sampler, signal.receiver)(sums[:-1], sums[-1])
         sums.zero_()
 
     # ------------------------------------------------------------------ after an evaluation

@@ -35,8 +35,9 @@ _TAGS = {
     "overflow_worlds": "Sim/overflow_worlds",
 }
 """Scalar tag of each train_metrics column (rsl-rl's names where it has one)."""
-_PREFIXES = {"loss": "Loss", "reward": "Episode_Reward", "termination": "Episode_Termination", "metrics": "Metrics"}
-"""Tag group of the `<prefix>/<name>` columns."""
+TAG_GROUPS = {"loss": "Loss", "reward": "Episode_Reward", "termination": "Episode_Termination", "metrics": "Metrics"}
+"""TensorBoard tag group of each `<group>/<name>` column group of train_metrics (the env logs reward/,
+termination/ and metrics/ per term; the runner copies those groups into the row)."""
 
 
 LINES_PER_RUN = 50
@@ -157,7 +158,7 @@ class RunLogger:
             tag = _TAGS.get(k)
             if tag is None and "/" in k:
                 prefix, name = k.split("/", 1)
-                tag = _PREFIXES[prefix] + "/" + name
+                tag = TAG_GROUPS[prefix] + "/" + name
             if tag is not None:
                 self.writer.add_scalar(tag, v, it)
 

@@ -34,7 +34,7 @@ from bmimic.sampling import diagnostics
 from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
 from bmimic.training.evaluator import summarize
 from bmimic.training.health import Health
-from bmimic.training.logger import RunLogger
+from bmimic.training.logger import TAG_GROUPS, RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
 from bmimic.training.run_state import Checkpoint, Progress
 from bmimic.training.schedule import Schedule, WholeClipSchedule
@@ -284,7 +284,7 @@ class Trainer:
         }
         for k, v in losses.items():
             row[f"loss/{k}"] = float(v)
-        row.update((k, v) for k, v in stats.items() if k.partition("/")[0] in ("reward", "termination", "metrics"))
+        row.update((k, v) for k, v in stats.items() if k.partition("/")[0] in TAG_GROUPS)  # reward/, termination/, ...
         for key in self.total_resets:
             self.total_resets[key] += int(stats[key])
         self.overflow_world_steps += int(stats["overflow_worlds"])
