@@ -1,5 +1,6 @@
 """`defer("torch")`: a module imported only when something first uses it, for a command that may not;
-and `names_on_first_use`, the lazy names of a package (PEP 562).
+`names_on_first_use`, the lazy names of a package (PEP 562); and `import_on_first_use`, a module's own
+`torch` global that imports torch when the module first uses it.
 
 The sweep dry run (`bmimic-launch list`) checks every arm's config as the sweep will, which reads the
 env terms' signatures and the sampler classes' signals (bmimic.config.checks.validate): those
@@ -70,6 +71,31 @@ def names_on_first_use(package: str, sources: dict[str, str], namespace: dict) -
         return value
 
     return __getattr__
+
+
+class _ImportOnFirstUse:
+    """Stands for a module in another module's globals until that module first reads one of its attributes."""
+
+    def __init__(self, name: str, namespace: dict, binding: str) -> None:
+        self._name, self._namespace, self._binding = name, namespace, binding
+
+    def __getattr__(self, attr: str) -> Any:
+        module = importlib.import_module(self._name)
+        self._namespace[self._binding] = module  # every later read of the global is the module itself
+        return getattr(module, attr)
+
+
+def import_on_first_use(name: str, namespace: dict, binding: str | None = None) -> Any:
+    """A stand-in for `import name` at a module's top, bound as `namespace[binding]` (the module's
+    globals(); binding defaults to `name`): the module's first read of an attribute imports `name` and
+    rebinds the global to the real module. So a module whose classes use torch only inside their
+    methods (a sampler: its schema and class in one file) imports, and registers its schema for
+    composing a config, without torch; unlike `defer` nothing outside that module changes, and after
+    the first use (a sampler's constructor) the global is torch itself, as torch.compile expects.
+    Type checkers should see the real import (``if TYPE_CHECKING: import torch``)."""
+    if name in sys.modules and type(sys.modules[name]) is not DeferredModule:
+        return sys.modules[name]
+    return _ImportOnFirstUse(name, namespace, binding or name)
 
 
 def is_deferred(name: str) -> bool:

@@ -309,10 +309,10 @@ def _learns_from_evaluations(kind: Any) -> bool:
     """Whether the registered sampler `kind` declares a signal delivered after each periodic evaluation
     (phc, protomotions: clip outcomes)."""
     from bmimic.sampling.config import sampler_class
-    from bmimic.sampling.feedback import learns_from_evaluations
-    from bmimic.sampling.registry import SCHEMAS
+    from bmimic.sampling.registry import SAMPLERS
+    from bmimic.sampling.signals import learns_from_evaluations
 
-    return kind in SCHEMAS and learns_from_evaluations(sampler_class(kind))
+    return kind in SAMPLERS and learns_from_evaluations(sampler_class(kind))
 
 
 _ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish",

@@ -4,21 +4,26 @@ per-bin counts.
 
 See :mod:`bmimic.sampling.samplers` for the formulas, :mod:`bmimic.sampling.registry` for how a
 sampler is registered, :mod:`bmimic.sampling.bins` for the bin layouts,
-:mod:`bmimic.sampling.feedback` for the signals samplers learn from, episode attribution and update timing,
+:mod:`bmimic.sampling.signals` for the signals samplers learn from, :mod:`bmimic.sampling.feedback` for
+episode attribution and update timing,
 :mod:`bmimic.sampling.config` for the options and the named variants.
 
-Importing the package registers the built-in schemas (:mod:`bmimic.sampling.schemas`, torch-free, so
-that composing a config needs no torch); the first use of any other name loads its module (torch). The
-sampler classes (``AdaptiveSampler``, ...) and ``SAMPLERS`` come from the registry, which imports the
-module of each registered kind's class on first use.
+Importing the package registers the built-in samplers (the modules of ``registry.BUILT_IN``: each
+sampler's schema and class, torch bound on first use, so that composing a config needs no torch); the
+first use of any other name loads its module (torch). The sampler classes (``AdaptiveSampler``, ...) and
+``SAMPLERS`` come from the registry.
 """
 
+import importlib
 from typing import Any
 
-from bmimic.sampling import schemas as _schemas  # noqa: F401  (registers the built-in schemas)
 from bmimic.sampling.checks import SamplerConfigError
-from bmimic.sampling.registry import load_classes, register_sampler
-from bmimic.sampling.schemas import AdaptiveConfig, BeyondMimicConfig, SamplerConfig, UniformConfig
+from bmimic.sampling.registry import BUILT_IN, SAMPLERS, register_sampler
+from bmimic.sampling.schemas import SamplerConfig
+
+for _module in BUILT_IN:
+    importlib.import_module(_module)  # registers its samplers
+from bmimic.sampling.samplers import AdaptiveConfig, BeyondMimicConfig, UniformConfig  # noqa: E402
 
 _LAZY = {
     "AccountingConfig": "schemas",
@@ -50,7 +55,7 @@ _LAZY = {
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        # The first use loads the package's modules (torch); the sampler classes' modules are the registry's.
+        # The first use loads the package's modules (torch).
         from bmimic.sampling import (
             base,
             bins,
@@ -66,11 +71,9 @@ def __getattr__(name: str) -> Any:
         modules = {m.__name__.rpartition(".")[2]: m for m in (base, bins, clips, config, diagnostics, feedback,
                                                               layouts, registry, schemas)}
         return getattr(modules[_LAZY[name]], name)
-    if name == "SAMPLERS" or name.endswith("Sampler"):  # a registered class: its module loads on first use
-        samplers = load_classes()
-        classes = {entry.cls.__name__: entry.cls for entry in samplers.values()}
-        if name == "SAMPLERS" or name in classes:
-            return samplers if name == "SAMPLERS" else classes[name]
+    classes = {entry.cls.__name__: entry.cls for entry in SAMPLERS.values()}
+    if name in classes:  # a registered sampler class
+        return classes[name]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

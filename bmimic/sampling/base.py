@@ -7,12 +7,15 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Generic, TypeVar, cast
 
-import torch
-
+from bmimic.cli.deferred import import_on_first_use
 from bmimic.sampling.checks import SamplerConfigError
 
 if TYPE_CHECKING:
+    import torch
+
     from bmimic.sampling.schemas import SamplerConfig
+else:
+    torch = import_on_first_use("torch", globals())  # a sampler's module imports this one before any config exists
 
 ERROR_COMPONENTS = ("body_pos_m", "body_ori_rad", "body_lin_vel_m_per_s", "max_body_pos_m")
 """The per-env tracking errors the sampler's feedback sums per bin for samplers that declare
@@ -49,7 +52,7 @@ class BinSampler(Generic[ConfigT]):
     kind = ""
     schema: type[SamplerConfig] | None = None
     signals: tuple = ()
-    """What the sampler learns from (:class:`bmimic.sampling.feedback.Signal` s): the sampler's
+    """What the sampler learns from (:class:`bmimic.sampling.signals.Signal` s): the sampler's
     feedback measures each and delivers it, at its cadence, to the method the signal names
     (:meth:`update_counts`, :meth:`update_errors`, :meth:`observe_eval`). None: it never changes."""
 

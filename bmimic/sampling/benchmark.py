@@ -40,7 +40,8 @@ import torch
 
 from bmimic.sampling.base import ERROR_COMPONENTS
 from bmimic.sampling.config import layout_for, load_variant, make_sampler, variant_names
-from bmimic.sampling.feedback import CLIP_OUTCOMES, TRACKING_ERRORS, SamplerFeedback
+from bmimic.sampling.feedback import SamplerFeedback
+from bmimic.sampling.signals import CLIP_OUTCOMES, TRACKING_ERRORS
 
 FPS = 50.0
 MAX_EPISODE_LENGTH = 500  # 10 s at 50 Hz, BeyondMimic's

@@ -9,8 +9,9 @@ sampler class: it lists that class's schema first in its defaults (``<kind>_sche
   default), ``enabled``, the bin layout ``bins`` and ``bin_size_seconds``, ``accounting`` (the
   episode accounting, :class:`bmimic.sampling.schemas.AccountingConfig`: ``attribution``,
   ``failure``, ``failure_threshold``, ``update_every``) and ``log_every`` (the trainer's);
-- the sampler's own parameters: its schema in :mod:`bmimic.sampling.schemas`, the one place of their
-  defaults and range rules; a YAML sets only the values where the variant differs from them.
+- the sampler's own parameters: its schema, beside its class in the sampler's module (e.g.
+  :mod:`bmimic.sampling.samplers`), the one place of their defaults and range rules; a YAML sets only
+  the values where the variant differs from them.
 
 The variants are the YAML files (:func:`variant_names`; ``python -m bmimic.train --help`` lists
 them), each with a header saying what it is; the kinds are those of the registry
@@ -26,7 +27,7 @@ from dataclasses import asdict
 from typing import TYPE_CHECKING, Any, Mapping, Sequence, Union, cast
 
 from bmimic.sampling.checks import SamplerConfigError, check_choice, fail
-from bmimic.sampling.registry import SCHEMAS, sampler_entry, schema_of
+from bmimic.sampling.registry import SAMPLERS, sampler_entry, schema_of
 from bmimic.sampling.schemas import SamplerConfig
 
 if TYPE_CHECKING:
@@ -41,12 +42,8 @@ SamplerNode = Union[SamplerConfig, "DictConfig"]
 SamplerLike = Union[SamplerConfig, "DictConfig", Mapping[str, Any]]
 """A sampler config, or a plain dict such as a run folder's."""
 
-# The sampler classes (torch) are imported where a class is needed, not with this module: composing a
-# config and checking its keys need only the schemas (bmimic.sampling.schemas).
-
-
 def sampler_class(kind: Any) -> type:
-    """The sampler class registered for `kind` (its module imported on first use)."""
+    """The sampler class registered for `kind`."""
     return sampler_entry(kind).cls
 
 
@@ -167,10 +164,10 @@ def load_variant(name: str) -> SamplerConfig:
     check_choice("name", name, variant_names())
     node = cast(dict, OmegaConf.to_container(OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml")))
     schemas = [d for d in node.pop("defaults", []) if isinstance(d, str) and d.endswith("_schema")]
-    kinds = [k for k in SCHEMAS if f"{k}_schema" in schemas]
+    kinds = [k for k in SAMPLERS if f"{k}_schema" in schemas]
     if len(kinds) != 1:
         raise SamplerConfigError(f"conf/sampler/{name}.yaml: its defaults must name one sampler schema "
-                                 f"(<kind>_schema, kinds: {', '.join(sorted(SCHEMAS))})")
+                                 f"(<kind>_schema, kinds: {', '.join(sorted(SAMPLERS))})")
     return sampler_config({**node, "kind": kinds[0]})
 
 

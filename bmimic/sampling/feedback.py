@@ -1,27 +1,8 @@
-r"""How a sampler hears from the environment: the signals a sampler may declare, and
-:class:`SamplerFeedback`, the one component that measures each declared signal and delivers it at
-its cadence.
+r"""How a sampler hears from the environment: :class:`SamplerFeedback`, the one component that
+measures each signal its sampler declared and delivers it at its cadence.
 
-A sampler class lists what it learns from in ``signals`` (a tuple of :class:`Signal`); the feedback
-delivers each to the sampler method the signal names, and nothing else: no per-signal flags, no
-caller reaching through the environment for the sampler. The signals:
-
-============================  ===========================  ======================================================
-signal                        cadence                      delivered as
-============================  ===========================  ======================================================
-``EPISODE_OUTCOMES``          ``sampler.accounting.        ``update_counts(episodes [S], failures [S])``: finished
-                              update_every`` (step or      episodes and failures per bin, attributed and judged
-                              iteration)                   by ``sampler.accounting``
-``TRACKING_ERRORS``           iteration                    ``update_errors(sums [4, S], steps [S])``: sums of the
-                                                           per-step ERROR_COMPONENTS over the env-steps at a frame
-                                                           of each bin, and their number
-``CLIP_OUTCOMES``             evaluation                   ``observe_eval(failed [C], iterations)``: whether one
-                                                           rollout per clip from its first frame failed
-``EPISODE_RETURNS``           iteration                    ``update_returns(sums [1, S], episodes [S])``: the
-                                                           returns of the finished episodes per start bin
-============================  ===========================  ======================================================
-
-The environment calls the feedback at four points of its step (1-3) and the runner at two (4-5):
+The signals and what a sampler declares: :mod:`bmimic.sampling.signals` (torch-free, so that a sampler
+module imports without torch). The environment calls the feedback at four points of its step (1-3) and the runner at two (4-5):
 
 1. ``start_episodes(mask, bins)`` when envs start a new episode (a real reset) at a frame drawn
    for ``bins``: each env remembers the bin its episode started in. A clip-end resample (the
@@ -66,16 +47,24 @@ the iteration, summed.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Callable, Protocol, cast
+from typing import Any, Callable, cast
 
 import numpy as np
 import torch
 
 from bmimic.sampling.base import ERROR_COMPONENTS, BinSampler, bin_counts
 from bmimic.sampling.bins import Layout, attribute, check_attribution, check_failure, failed_mask
-from bmimic.sampling.checks import SamplerConfigError, check_choice
+from bmimic.sampling.checks import check_choice
 from bmimic.sampling.schemas import AccountingConfig
+from bmimic.sampling.signals import (
+    CLIP_OUTCOMES,
+    EPISODE_OUTCOMES,
+    EPISODE_RETURNS,
+    TRACKING_ERRORS,
+    ClipOutcomeSampler,
+    Signal,
+    declared_signals,
+)
 
 UPDATE_EVERY = ("iteration", "step")
 BROKEN_ERRORS = (1.0, math.pi, 10.0, 1.0)
@@ -83,59 +72,12 @@ BROKEN_ERRORS = (1.0, math.pi, 10.0, 1.0)
 entirely (a termination fires at 0.25 m), beyond any tracked world's, so an error-driven sampler
 (EGM, GMT) reads a broken world as the hardest failure, as the count-driven ones read a failure."""
 
-CONFIGURED, ITERATION, EVALUATION = "sampler.accounting.update_every", "iteration", "evaluation"
-"""Cadences: the accounting's (every control step or every iteration), once per PPO iteration after
-the rollout, after each periodic evaluation."""
-
-
-@dataclass(frozen=True)
-class Signal:
-    """Something a sampler may learn from, and how it is delivered."""
-
-    name: str
-    """What it is called in messages."""
-    cadence: str
-    """When it is delivered: CONFIGURED, ITERATION or EVALUATION."""
-    receiver: str
-    """The BinSampler method that receives it."""
-
-
-EPISODE_OUTCOMES = Signal("episode outcomes", CONFIGURED, "update_counts")
-TRACKING_ERRORS = Signal("tracking errors", ITERATION, "update_errors")
-CLIP_OUTCOMES = Signal("clip outcomes", EVALUATION, "observe_eval")
-EPISODE_RETURNS = Signal("episode returns", ITERATION, "update_returns")
-"""Per start bin, the summed return of the episodes that finished in the iteration and their number:
-``update_returns(sums [1, S], episodes [S])``."""
-SIGNALS = (EPISODE_OUTCOMES, TRACKING_ERRORS, CLIP_OUTCOMES, EPISODE_RETURNS)
-
-
-class ClipOutcomeSampler(Protocol):
-    """What CLIP_OUTCOMES reads of its sampler besides the receiver."""
-
-    rollout_max_s: float | None
-    """How long the evaluation's rollout from each clip's first frame may run, s (None: to its end)."""
-
 
 def check_accounting(cfg: Any) -> None:
     """Range checks of `sampler.accounting` (an AccountingConfig or its node)."""
     check_attribution(cfg.attribution)
     check_failure(cfg.failure, cfg.failure_threshold)
     check_choice("accounting.update_every", cfg.update_every, UPDATE_EVERY)
-
-
-def declared_signals(sampler: BinSampler | type[BinSampler]) -> tuple[Signal, ...]:
-    """The signals a sampler (class or instance) declares, checked: known, with their receiver."""
-    signals = tuple(getattr(sampler, "signals", ()))
-    for s in signals:
-        if s not in SIGNALS or not callable(getattr(sampler, s.receiver, None)):
-            raise SamplerConfigError(f"sampler {getattr(sampler, 'kind', sampler)!r} declares {s!r}, which is not "
-                                     "a signal of bmimic.sampling.feedback with its receiver method")
-    return signals
-
-
-def learns_from_evaluations(sampler: BinSampler | type[BinSampler]) -> bool:
-    """Whether a sampler (class or instance) declares a signal delivered after each evaluation."""
-    return any(s.cadence == EVALUATION for s in declared_signals(sampler))
 
 
 class SamplerFeedback:
@@ -322,6 +264,4 @@ class SamplerFeedback:
         self._episode_return.zero_()
 
 
-__all__ = ["CLIP_OUTCOMES", "CONFIGURED", "EPISODE_OUTCOMES", "EPISODE_RETURNS", "EVALUATION", "ITERATION", "SIGNALS", "TRACKING_ERRORS",
-           "UPDATE_EVERY", "AccountingConfig", "SamplerFeedback", "Signal", "check_accounting", "declared_signals",
-           "learns_from_evaluations"]
+__all__ = ["BROKEN_ERRORS", "UPDATE_EVERY", "SamplerFeedback", "check_accounting"]

@@ -27,15 +27,32 @@ used, so every state tensor has a fixed shape whatever the motion library.
 
 from __future__ import annotations
 
-from typing import Any, Optional, TypeVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Optional, TypeVar
 
-import torch
-
+from bmimic.cli.deferred import import_on_first_use
 from bmimic.sampling.base import BinSampler
-from bmimic.sampling.checks import SamplerConfigError
-from bmimic.sampling.feedback import CLIP_OUTCOMES
+from bmimic.sampling.checks import SamplerConfigError, check_choice, check_fraction, check_positive, fail
 from bmimic.sampling.registry import register_sampler
-from bmimic.sampling.schemas import ClipWeightingConfig, PHCConfig, ProtoMotionsConfig
+from bmimic.sampling.schemas import SamplerConfig
+from bmimic.sampling.signals import CLIP_OUTCOMES
+
+if TYPE_CHECKING:
+    import torch
+else:
+    torch = import_on_first_use("torch", globals())  # composing a config imports this module, not torch
+
+PHC_MODES = ("soft", "hard")
+"""`mode` of the PHC sampler."""
+
+
+@dataclass
+class ClipWeightingConfig(SamplerConfig):
+    """Base of the schemas of samplers that weight clips (or sub-clips) themselves: gmt, phc, protomotions."""
+
+    def check(self) -> None:
+        if self.clip_balance != "bins":
+            fail("clip_balance", f"bins (the {self.kind} sampler weights clips itself)", self.clip_balance)
 
 
 def _optional_float(x: Optional[float]) -> Optional[float]:
@@ -90,6 +107,27 @@ class GroupSampler(BinSampler[GroupConfigT]):
 
 # ------------------------------------------------------------------------------------------------ PHC
 
+@dataclass
+class PHCConfig(ClipWeightingConfig):
+    """`sampler=phc`: PHC's evaluation-driven hard-negative mining over clips."""
+
+    name: str = "phc"
+    kind: str = "phc"
+    mode: str = "soft"
+    """"soft" (auto_pmcp_soft, PHC's default): p_m = h_m / sum(h), h the failed evaluations of clip m,
+    uniform when the latest evaluation failed no clip; "hard" (auto_pmcp): uniform over the clips that
+    failed the latest evaluation."""
+    rollout_max_s: Optional[float] = None
+    """Seconds of each clip's evaluation rollout from its first frame, > 0; null: to the clip's end
+    (PHC evaluates the whole motion)."""
+
+    def check(self) -> None:
+        super().check()
+        check_choice("mode", self.mode, PHC_MODES)
+        if self.rollout_max_s is not None:
+            check_positive("rollout_max_s", self.rollout_max_s)
+
+
 @register_sampler("phc", PHCConfig)
 class PHCSampler(GroupSampler[PHCConfig]):
     """Clip weights from evaluation failures (module doc)."""
@@ -128,6 +166,32 @@ class PHCSampler(GroupSampler[PHCConfig]):
 
 
 # ---------------------------------------------------------------------------------------- ProtoMotions
+@dataclass
+class ProtoMotionsConfig(ClipWeightingConfig):
+    """`sampler=protomotions`: ProtoMotions v3's evaluation-driven multiplicative clip weights."""
+
+    name: str = "protomotions"
+    kind: str = "protomotions"
+    success_decay: float = 0.999
+    """d_s: a clip that succeeded an evaluation is multiplied by d_s^K (K iterations since the last), in (0, 1]."""
+    failure_decay: float = 0.0
+    """d_f: a failed clip is divided by d_f^K; 0 resets it to 1 (every shipped experiment), in [0, 1]."""
+    min_weight: Optional[float] = None
+    """Floor of every weight, > 0; null: 1 / number of clips (ProtoMotions' default)."""
+    rollout_max_s: Optional[float] = 12.0
+    """Seconds of each clip's evaluation rollout from its first frame, > 0 (ProtoMotions' max_eval_steps,
+    600 steps at its 50 Hz G1 control rate); null: to the clip's end."""
+
+    def check(self) -> None:
+        super().check()
+        check_fraction("success_decay", self.success_decay)
+        check_fraction("failure_decay", self.failure_decay, closed_below=True)
+        if self.min_weight is not None:
+            check_positive("min_weight", self.min_weight)
+        if self.rollout_max_s is not None:
+            check_positive("rollout_max_s", self.rollout_max_s)
+
+
 @register_sampler("protomotions", ProtoMotionsConfig)
 class ProtoMotionsSampler(GroupSampler[ProtoMotionsConfig]):
     """Multiplicative clip weights from evaluations with a floor (module doc)."""
@@ -169,4 +233,4 @@ class ProtoMotionsSampler(GroupSampler[ProtoMotionsConfig]):
         return {"weight": self._weight}
 
 
-__all__ = ["GroupSampler", "PHCConfig", "PHCSampler", "ProtoMotionsConfig", "ProtoMotionsSampler"]
+__all__ = ["PHC_MODES", "ClipWeightingConfig", "GroupSampler", "PHCConfig", "PHCSampler", "ProtoMotionsConfig", "ProtoMotionsSampler"]

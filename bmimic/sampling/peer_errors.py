@@ -29,22 +29,70 @@ spread evenly over the sub-clip's |i| bins (uniform while every s is 0).
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Optional
 
-import torch
-
+from bmimic.cli.deferred import import_on_first_use
 from bmimic.runs.schema import ITERATION
 from bmimic.sampling.base import BinSampler
-from bmimic.sampling.feedback import EPISODE_OUTCOMES, TRACKING_ERRORS
-from bmimic.sampling.peer_clips import GroupSampler
+from bmimic.sampling.checks import check_fraction, check_int_at_least, check_nonnegative, check_positive, fail
+from bmimic.sampling.peer_clips import ClipWeightingConfig, GroupSampler
 from bmimic.sampling.registry import register_sampler
-from bmimic.sampling.schemas import EGMConfig, GMTConfig
+from bmimic.sampling.schemas import SamplerConfig
+from bmimic.sampling.signals import EPISODE_OUTCOMES, TRACKING_ERRORS
+
+if TYPE_CHECKING:
+    import torch
+else:
+    torch = import_on_first_use("torch", globals())  # composing a config imports this module, not torch
 
 UNSET_SCHEDULE_ITERATIONS = 1000
 """EGM's schedule length where no run's max_iterations fills a null ``schedule_iterations``."""
 
 
 # ------------------------------------------------------------------------------------------------ EGM
+@dataclass
+class EGMConfig(SamplerConfig):
+    """`sampler=egm`: EGM's bin-based adaptive sampling from an EMA of a composite tracking error."""
+
+    name: str = "egm"
+    kind: str = "egm"
+    ema: float = 0.1
+    """EMA weight beta of an iteration's mean error in a bin, in (0, 1]."""
+    weight_body_pos: float = 1.0
+    """Weight of the mean body position error (m) in the composite error, >= 0."""
+    weight_body_ori: float = 0.1
+    """Weight of the mean body orientation error (rad), >= 0."""
+    weight_body_lin_vel: float = 0.1
+    """Weight of the mean body linear-velocity error (m/s), >= 0."""
+    power_start: float = 0.5
+    """Exponent tau of the normalised error at iteration 0 (the paper's "smoothing temperature";
+    low = flat), > 0."""
+    power_end: float = 2.0
+    """Exponent tau after schedule_iterations (high = sharp), > 0."""
+    uniform_start: float = 0.5
+    """Uniform ratio u at iteration 0, in [0, 1]."""
+    uniform_end: float = 0.1
+    """Uniform ratio u after schedule_iterations, in [0, 1]."""
+    schedule_iterations: Optional[int] = None
+    """Iterations over which tau and u move linearly from start to end (>= 1); null: the run's
+    max_iterations (the paper's schedule spans training; filled by bmimic.config.resolve_runtime),
+    or peer_errors.UNSET_SCHEDULE_ITERATIONS where no run exists (benchmarks, unit tests)."""
+
+    def check(self) -> None:
+        check_fraction("ema", self.ema)
+        for key in ("weight_body_pos", "weight_body_ori", "weight_body_lin_vel"):
+            check_nonnegative(key, getattr(self, key))
+        if self.weight_body_pos + self.weight_body_ori + self.weight_body_lin_vel <= 0:
+            fail("weight_body_pos", "weights whose sum is > 0", self.weight_body_pos)
+        for key in ("power_start", "power_end"):
+            check_positive(key, getattr(self, key))
+        for key in ("uniform_start", "uniform_end"):
+            check_fraction(key, getattr(self, key), closed_below=True)
+        if self.schedule_iterations is not None:
+            check_int_at_least("schedule_iterations", self.schedule_iterations, 1)
+
+
 @register_sampler("egm", EGMConfig)
 class EGMSampler(BinSampler[EGMConfig]):
     """EMA of a composite tracking error per bin, normalised, raised to a scheduled power, mixed with
@@ -106,6 +154,36 @@ class EGMSampler(BinSampler[EGMConfig]):
 
 
 # ------------------------------------------------------------------------------------------------ GMT
+@dataclass
+class GMTConfig(ClipWeightingConfig):
+    """`sampler=gmt`: GMT's completion-level sampling of sub-clips."""
+
+    name: str = "gmt"
+    kind: str = "gmt"
+    subclip_bins: int = 10
+    """Longest sub-clip, in bins (10 = GMT's 10 s at 1 s bins); clips are cut from their start."""
+    initial_level: float = 10.0
+    """Completion level c of a sub-clip never completed, >= min_level."""
+    completion_decay: float = 0.99
+    """c is multiplied by this at each completion, in (0, 1]."""
+    min_level: float = 1.0
+    """Floor of c (a sub-clip at the floor is sampled by its error), > 0."""
+    error_scale_m: float = 0.15
+    """At the floor, s = min(E / error_scale_m, 1) ^ error_power, E in m; > 0."""
+    error_power: float = 5.0
+    """See error_scale_m; > 0."""
+
+    def check(self) -> None:
+        super().check()
+        check_int_at_least("subclip_bins", self.subclip_bins, 1)
+        check_fraction("completion_decay", self.completion_decay)
+        for key in ("min_level", "error_scale_m", "error_power"):
+            check_positive(key, getattr(self, key))
+        check_positive("initial_level", self.initial_level)
+        if self.initial_level < self.min_level:
+            fail("initial_level", f"a number >= min_level ({self.min_level})", self.initial_level)
+
+
 @register_sampler("gmt", GMTConfig)
 class GMTSampler(GroupSampler[GMTConfig]):
     """Completion levels per sub-clip, then the largest body error once mastered (module doc)."""

@@ -21,11 +21,10 @@ Look-ahead kernel (shared by both adaptive samplers). With kernel length K and d
 A bin is boosted by failures in the K-1 bins after it, so episodes start shortly *before* the
 hard part; the right end is padded by repeating the last bin.
 
-Each class registers itself with its config schema (`register_sampler`; the schemas are in
-:mod:`bmimic.sampling.schemas`, torch-free, so that composing a config needs no torch: they hold the
-defaults and the range rules) and its constructor takes the validated schema instance. Adding a
-sampler is a schema, a class here (or in the module its schema names) and a YAML in
-``conf/sampler/`` (:mod:`bmimic.sampling.registry` lists the steps).
+Each sampler's config schema (its defaults and range rules) sits above its class, which registers
+with it (`register_sampler`) and whose constructor takes the validated schema instance; torch is bound
+on first use, so composing a config imports this module without it. Adding a sampler is a schema and
+a class here and a YAML in ``conf/sampler/`` (:mod:`bmimic.sampling.registry` shows the pattern).
 
 **UniformSampler**: :math:`P_s = 1/S`; updates are ignored.
 
@@ -81,19 +80,23 @@ accumulate no visible rounding error; the cost is negligible at S <= 10^4.
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Optional, TypeVar
 
-import torch
-
+from bmimic.cli.deferred import import_on_first_use
 from bmimic.sampling.base import BinSampler
-from bmimic.sampling.feedback import EPISODE_OUTCOMES, EPISODE_RETURNS
+from bmimic.sampling.checks import check_choice, check_fraction, check_int_at_least, check_positive
 from bmimic.sampling.registry import register_sampler
-from bmimic.sampling.schemas import (
-    AdaptiveConfig,
-    BeyondMimicConfig,
-    LowReturnConfig,
-    UniformConfig,
-)
+from bmimic.sampling.schemas import SamplerConfig
+from bmimic.sampling.signals import EPISODE_OUTCOMES, EPISODE_RETURNS
+
+if TYPE_CHECKING:
+    import torch
+else:
+    torch = import_on_first_use("torch", globals())  # composing a config imports this module, not torch
+
+EMPTY_BINS = ("decay", "hold")
+"""`empty_bins` of the look-ahead samplers (adaptive, beyondmimic)."""
 
 
 def lookahead_kernel(gamma: float, K: int, dtype: torch.dtype | None = None, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -113,6 +116,14 @@ def lookahead_index(num_bins: int, K: int, device: torch.device | str = "cpu", l
     return torch.minimum(s + u, torch.as_tensor(last, device=device).long()[:, None])
 
 
+@dataclass
+class UniformConfig(SamplerConfig):
+    """`sampler=uniform`: no parameters of its own."""
+
+    name: str = "uniform"
+    kind: str = "uniform"
+
+
 @register_sampler("uniform", UniformConfig)
 class UniformSampler(BinSampler[UniformConfig]):
     """P_s = 1/S; updates are accepted and ignored."""
@@ -122,6 +133,63 @@ class UniformSampler(BinSampler[UniformConfig]):
 
     def smoothed_failure(self) -> torch.Tensor:
         return torch.full((self.num_bins,), float("nan"), dtype=torch.float64, device=self.device)
+
+
+@dataclass
+class AdaptiveConfig(SamplerConfig):
+    """Schema of the adaptive sampler's variants; the defaults are the design's (`sampler=adaptive`)."""
+
+    name: str = "adaptive"
+    kind: str = "adaptive"
+    gamma: float = 0.9
+    """Decay of the look-ahead kernel gamma^u, u = 0..K-1, in (0, 1]."""
+    lambda_uniform: float = 0.1
+    """Share of probability mass spread uniformly, in [0, 1]; P_s >= lambda_uniform/S."""
+    K: int = 5
+    """Length of the look-ahead kernel in bins (1 = no smoothing across bins)."""
+    alpha_smooth: float = 0.1
+    """EMA weight of a new failure-rate observation, in (0, 1]."""
+    empty_bins: str = "decay"
+    """"decay": every update moves every bin (a bin without finished episodes decays towards 0, the
+    design's formula); "hold": bins without finished episodes keep their value."""
+
+    def check(self) -> None:
+        _check_lookahead(self)
+        check_fraction("lambda_uniform", self.lambda_uniform, closed_below=True)
+        check_fraction("alpha_smooth", self.alpha_smooth)
+
+
+@dataclass
+class BeyondMimicConfig(SamplerConfig):
+    """Schema of the released code's sampler; the defaults are the released code's."""
+
+    name: str = "beyondmimic"
+    kind: str = "beyondmimic"
+    bins: str = "released"
+    bin_size_seconds: Optional[float] = None
+    gamma: float = 0.8
+    """Decay of the look-ahead kernel gamma^u, u = 0..K-1, in (0, 1]."""
+    K: int = 1
+    """Length of the look-ahead kernel in bins (1 = no smoothing across bins)."""
+    alpha: float = 0.001
+    """EMA weight of each update's failure histogram, in (0, 1]."""
+    uniform_ratio: float = 0.1
+    """uniform_ratio/S is added to the EMA counts before smoothing (> 0)."""
+    empty_bins: str = "decay"
+    """"decay": every update decays every bin (the released code); "hold": bins without finished
+    episodes keep their value."""
+
+    def check(self) -> None:
+        _check_lookahead(self)
+        check_fraction("alpha", self.alpha)
+        check_positive("uniform_ratio", self.uniform_ratio)
+
+
+def _check_lookahead(cfg: AdaptiveConfig | BeyondMimicConfig) -> None:
+    """The look-ahead kernel's keys, which the adaptive and beyondmimic schemas share (with their own defaults)."""
+    check_fraction("gamma", cfg.gamma)
+    check_int_at_least("K", cfg.K, 1)
+    check_choice("empty_bins", cfg.empty_bins, EMPTY_BINS)
 
 
 LookaheadConfigT = TypeVar("LookaheadConfigT", bound="AdaptiveConfig | BeyondMimicConfig")
@@ -238,6 +306,25 @@ class BeyondMimicSampler(_LookaheadSampler[BeyondMimicConfig]):
         return {"count": self._count}
 
 
+@dataclass
+class LowReturnConfig(SamplerConfig):
+    """`sampler=low_return`: start where episodes earn least (the per-bin mean episode return)."""
+
+    name: str = "low_return"
+    kind: str = "low_return"
+    ema: float = 0.1
+    """EMA weight of an iteration's mean return of the episodes started in a bin, in (0, 1]."""
+    temperature: float = 1.0
+    """Softmax temperature over the negated mean returns (return units), > 0: low = sharp."""
+    lambda_uniform: float = 0.1
+    """Share of probability mass spread uniformly, in [0, 1]."""
+
+    def check(self) -> None:
+        check_fraction("ema", self.ema)
+        check_positive("temperature", self.temperature)
+        check_fraction("lambda_uniform", self.lambda_uniform, closed_below=True)
+
+
 @register_sampler("low_return", LowReturnConfig)
 class LowReturnSampler(BinSampler[LowReturnConfig]):
     """Softmax over the negated EMA of each bin's mean episode return, with a uniform share (module doc)."""
@@ -283,6 +370,5 @@ class LowReturnSampler(BinSampler[LowReturnConfig]):
         return {"return": self._return, "seen": self._seen}
 
 
-__all__ = ["AdaptiveConfig", "AdaptiveSampler", "BeyondMimicConfig", "BeyondMimicSampler", "LowReturnConfig",
-           "LowReturnSampler", "UniformConfig",
-           "UniformSampler", "lookahead_index", "lookahead_kernel"]
+__all__ = ["EMPTY_BINS", "AdaptiveConfig", "AdaptiveSampler", "BeyondMimicConfig", "BeyondMimicSampler", "LowReturnConfig",
+           "LowReturnSampler", "UniformConfig", "UniformSampler", "lookahead_index", "lookahead_kernel"]

@@ -96,3 +96,37 @@ print("OK")
 """
     out = _run(code, tmp_path)
     assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]
+
+
+def test_a_global_bound_on_first_use_becomes_the_module_itself(tmp_path):
+    code = """
+import sys, json
+from bmimic.cli.deferred import import_on_first_use
+ns = {}
+ns["colorsys"] = import_on_first_use("colorsys", ns)
+assert "colorsys" not in sys.modules                    # bound, not imported
+assert ns["colorsys"].rgb_to_hsv(1.0, 0.0, 0.0) == (0.0, 1.0, 1.0)   # the first read imports it
+assert ns["colorsys"] is sys.modules["colorsys"]        # and the global is the module from then on
+assert import_on_first_use("json", {}) is json          # imported already: the module itself
+print("OK")
+"""
+    out = _run(code, tmp_path)
+    assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]
+
+
+def test_a_sampler_module_imports_without_torch_and_holds_torch_once_a_sampler_is_built(tmp_path):
+    # The schema and the class of a sampler share one module; composing a config imports it, so its torch
+    # is bound on first use, and by the time a step could be compiled the globals are torch itself.
+    code = """
+import sys, types
+import bmimic.sampling.base as base, bmimic.sampling.samplers as samplers, bmimic.sampling.peer_errors as peer
+assert "torch" not in sys.modules and not isinstance(samplers.torch, types.ModuleType)
+from bmimic.sampling.config import make_sampler, load_variant
+for kind in ("adaptive", "egm"):
+    make_sampler(load_variant(kind), 4).sample(3)
+import torch
+assert base.torch is torch and samplers.torch is torch and peer.torch is torch
+print("OK")
+"""
+    out = _run(code, tmp_path)
+    assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]

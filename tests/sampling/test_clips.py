@@ -12,8 +12,7 @@ from hypothesis import strategies as st
 from bmimic.sampling.clips import ClipLayout
 from bmimic.sampling.config import make_sampler, sampler_config
 from bmimic.sampling.layouts import make_layout
-from bmimic.sampling.samplers import AdaptiveSampler, UniformSampler
-from bmimic.sampling.schemas import AdaptiveConfig
+from bmimic.sampling.samplers import AdaptiveConfig, AdaptiveSampler, UniformSampler
 
 FPS = 50.0
 

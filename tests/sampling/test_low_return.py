@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from bmimic.sampling.config import load_variant, make_sampler, validate_sampler_config
-from bmimic.sampling.feedback import EPISODE_RETURNS, SamplerFeedback
-from bmimic.sampling.samplers import LowReturnSampler
-from bmimic.sampling.schemas import LowReturnConfig
+from bmimic.sampling.feedback import SamplerFeedback
+from bmimic.sampling.samplers import LowReturnConfig, LowReturnSampler
+from bmimic.sampling.signals import EPISODE_RETURNS
 
 
 def _expected(returns, temperature=1.0, lam=0.1):

@@ -16,9 +16,9 @@ from bmimic.sampling import EGMSampler, GMTSampler, PHCSampler, ProtoMotionsSamp
 from bmimic.sampling.base import ERROR_COMPONENTS
 from bmimic.sampling.checks import SamplerConfigError
 from bmimic.sampling.config import load_variant, make_sampler, validate_sampler_config
-from bmimic.sampling.feedback import TRACKING_ERRORS
-from bmimic.sampling.peer_errors import UNSET_SCHEDULE_ITERATIONS
-from bmimic.sampling.schemas import EGMConfig, GMTConfig, PHCConfig, ProtoMotionsConfig
+from bmimic.sampling.peer_clips import PHCConfig, ProtoMotionsConfig
+from bmimic.sampling.peer_errors import UNSET_SCHEDULE_ITERATIONS, EGMConfig, GMTConfig
+from bmimic.sampling.signals import TRACKING_ERRORS
 from bmimic.training.clip_rollouts import clips_failed
 from tests.conftest import TINY, train_in_process
 

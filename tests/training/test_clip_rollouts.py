@@ -14,7 +14,7 @@ import torch
 
 from bmimic.sampling import PHCSampler, ProtoMotionsSampler
 from bmimic.sampling.clips import ClipLayout
-from bmimic.sampling.schemas import PHCConfig
+from bmimic.sampling.peer_clips import PHCConfig
 from bmimic.training.clip_rollouts import clip_bounds, clip_rollouts, clips_failed
 from bmimic.training.evaluator import Evaluator
 
