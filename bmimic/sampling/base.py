@@ -1,7 +1,8 @@
 """`BinSampler`: what every sampler shares (cached probabilities and their CDF, inverse-CDF draws,
 `update`/`update_counts`, the state dict), and `bin_counts`, the fixed-shape histogram the samplers
-and the sampler's feedback count with. A sampler subclasses BinSampler and implements `_update`
-(see :mod:`bmimic.sampling.samplers` for the built-in ones and how to add one)."""
+and the sampler's feedback count with. A sampler subclasses BinSampler and implements what it learns
+from (its `signals`: `_update` for episode outcomes, `update_errors`, ...; see
+:mod:`bmimic.sampling.samplers` for the built-in ones and how to add one)."""
 
 from __future__ import annotations
 
@@ -185,7 +186,9 @@ class BinSampler(Generic[ConfigT]):
         return x.to(torch.float64)
 
     def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        raise NotImplementedError
+        """Learn from one batch's per-bin counts (the signal ``EPISODE_OUTCOMES``, which a sampler that
+        implements this declares). By default nothing: the uniform sampler, and samplers that learn from
+        other signals, accept the counts and ignore them."""
 
     def update_errors(self, error_sums: torch.Tensor, steps: torch.Tensor) -> None:
         """One iteration's tracking errors per bin (signal ``TRACKING_ERRORS``): ``error_sums``

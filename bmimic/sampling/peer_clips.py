@@ -101,9 +101,6 @@ class GroupSampler(BinSampler[GroupConfigT]):
         self._probs.copy_(torch.where(total > 0, share / total, 1.0 / self.num_bins))
         self._refresh_cdf()
 
-    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        pass
-
 
 # ------------------------------------------------------------------------------------------------ PHC
 

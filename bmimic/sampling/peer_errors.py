@@ -114,9 +114,6 @@ class EGMSampler(BinSampler[EGMConfig]):
         self._seen = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._iteration = torch.zeros((), dtype=torch.float64, device=self.device)
 
-    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        pass  # EGM learns from tracking errors only
-
     def update_errors(self, error_sums: torch.Tensor, steps: torch.Tensor) -> None:
         mean = (self._w @ error_sums[:3].to(torch.float64)) / steps.clamp(min=1.0)
         visited = steps > 0

@@ -128,9 +128,6 @@ class UniformConfig(SamplerConfig):
 class UniformSampler(BinSampler[UniformConfig]):
     """P_s = 1/S; updates are accepted and ignored."""
 
-    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        pass
-
     def smoothed_failure(self) -> torch.Tensor:
         return torch.full((self.num_bins,), float("nan"), dtype=torch.float64, device=self.device)
 
@@ -338,9 +335,6 @@ class LowReturnSampler(BinSampler[LowReturnConfig]):
         self.lambda_uniform = float(self.cfg.lambda_uniform)
         self._return = torch.zeros(num_bins, dtype=torch.float64, device=self.device)
         self._seen = torch.zeros(num_bins, dtype=torch.bool, device=self.device)
-
-    def _update(self, episodes: torch.Tensor, failures: torch.Tensor) -> None:
-        pass  # learns from returns only
 
     def update_returns(self, sums: torch.Tensor, episodes: torch.Tensor) -> None:
         """One iteration's summed returns [1, S] of the episodes finished per start bin, and their number [S]."""

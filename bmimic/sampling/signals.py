@@ -47,12 +47,15 @@ class Signal:
     """When it is delivered: CONFIGURED, ITERATION or EVALUATION."""
     receiver: str
     """The BinSampler method that receives it."""
+    learner: str
+    """The method a sampler that declares it implements: the receiver, or for episode outcomes `_update`,
+    which BinSampler.update_counts calls after checking the counts. BinSampler's own does nothing."""
 
 
-EPISODE_OUTCOMES = Signal("episode outcomes", CONFIGURED, "update_counts")
-TRACKING_ERRORS = Signal("tracking errors", ITERATION, "update_errors")
-CLIP_OUTCOMES = Signal("clip outcomes", EVALUATION, "observe_eval")
-EPISODE_RETURNS = Signal("episode returns", ITERATION, "update_returns")
+EPISODE_OUTCOMES = Signal("episode outcomes", CONFIGURED, "update_counts", "_update")
+TRACKING_ERRORS = Signal("tracking errors", ITERATION, "update_errors", "update_errors")
+CLIP_OUTCOMES = Signal("clip outcomes", EVALUATION, "observe_eval", "observe_eval")
+EPISODE_RETURNS = Signal("episode returns", ITERATION, "update_returns", "update_returns")
 """Per start bin, the summed return of the episodes that finished in the iteration and their number:
 ``update_returns(sums [1, S], episodes [S])``."""
 SIGNALS = (EPISODE_OUTCOMES, TRACKING_ERRORS, CLIP_OUTCOMES, EPISODE_RETURNS)
@@ -66,12 +69,19 @@ class ClipOutcomeSampler(Protocol):
 
 
 def declared_signals(sampler: BinSampler | type[BinSampler]) -> tuple[Signal, ...]:
-    """The signals a sampler (class or instance) declares, checked: known, with their receiver."""
+    """The signals a sampler (class or instance) declares, checked: known, with their receiver, and
+    learned from (the sampler's class implements the signal's `learner`, not only BinSampler's default)."""
+    from bmimic.sampling.base import BinSampler  # torch-free at import, as this module
+
+    cls = sampler if isinstance(sampler, type) else type(sampler)
     signals = tuple(getattr(sampler, "signals", ()))
     for s in signals:
         if s not in SIGNALS or not callable(getattr(sampler, s.receiver, None)):
             raise SamplerConfigError(f"sampler {getattr(sampler, 'kind', sampler)!r} declares {s!r}, which is not "
                                      "a signal of bmimic.sampling.signals with its receiver method")
+        if getattr(cls, s.learner, None) is getattr(BinSampler, s.learner, None):
+            raise SamplerConfigError(f"sampler {getattr(sampler, 'kind', cls.__name__)!r} declares {s.name} but does "
+                                     f"not implement {s.learner}, so it would never learn from them")
     return signals
 
 

@@ -92,3 +92,21 @@ def test_a_registered_sampler_trains_one_iteration(tmp_path):
     assert trainer.progress.iteration == 1
     probs = trainer.record.rows("sampler")[-1]["probability"].to_numpy()
     assert probs[0] > 0.99 and abs(probs.sum() - 1.0) < 1e-9
+
+
+def test_a_sampler_that_declares_a_signal_it_does_not_learn_from_is_refused():
+    from bmimic.sampling.signals import EPISODE_OUTCOMES, TRACKING_ERRORS, declared_signals
+
+    class Deaf(BinSampler):
+        signals = (EPISODE_OUTCOMES,)  # but BinSampler's own _update: the counts would be dropped
+
+    class HalfDeaf(FirstBinSampler):
+        signals = (EPISODE_OUTCOMES, TRACKING_ERRORS)  # _update it has, update_errors not
+
+    with pytest.raises(SamplerConfigError, match="declares episode outcomes but does not implement _update"):
+        declared_signals(Deaf)
+    with pytest.raises(SamplerConfigError, match="declares tracking errors but does not implement update_errors"):
+        declared_signals(HalfDeaf)
+    assert declared_signals(SAMPLERS["egm"].cls) == SAMPLERS["egm"].cls.signals  # the built-in ones pass
+    for entry in SAMPLERS.values():
+        declared_signals(entry.cls)
