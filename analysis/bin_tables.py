@@ -48,6 +48,28 @@ def time_summary(times: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["arm", "measure", "n_seeds", "n_reached", "median", "follow_up", "per_seed"])
 
 
+def bin_layouts(eval_df: pd.DataFrame, reference: str | None = None,
+                columns: tuple[str, ...] = ("bin_start_s", "bin_end_s")) -> tuple[list[str], list[str]]:
+    """``(same, other)``: the arms whose evaluation cuts the motion into the same bins as ``reference``
+    (default: the layout most arms share) and those cut into other bins (a bin-size knob, BeyondMimic's
+    released layout). Per-bin tables match bins by number, so only ``same`` can share them; ``other`` is
+    empty in a report of one layout. A layout is what an arm's evaluations report for each bin in
+    ``columns``: its clip times, or with ``("clip",)`` only its clip (per-clip tables need no more)."""
+    if not len(eval_df):
+        return [], []
+    cells = eval_df[["arm", BIN, *columns]].drop_duplicates(subset=["arm", BIN]).sort_values(BIN)
+    layout = {arm: tuple(tuple(round(v, 6) if isinstance(v, float) else v for v in r)
+                         for r in g[[BIN, *columns]].itertuples(index=False, name=None))
+              for arm, g in cells.groupby("arm", sort=True)}
+    if reference not in layout:
+        counts: dict[tuple, int] = {}
+        for lay in layout.values():
+            counts[lay] = counts.get(lay, 0) + 1
+        reference = next(arm for arm, lay in layout.items() if counts[lay] == max(counts.values()))
+    same = [arm for arm, lay in layout.items() if lay == layout[reference]]
+    return same, [arm for arm in layout if arm not in same]
+
+
 def mastery_seeds(eval_df: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
     """metrics.mastery_per_seed with the report's threshold and persistence."""
     return mastery_per_seed(eval_df, opts.mastery_threshold, opts.mastery_persist)
@@ -141,6 +163,28 @@ def final_bin_failure(eval_df: pd.DataFrame, runs: pd.DataFrame, opts: ReportOpt
             ITERATION: common,
         }))
     return pd.concat(frames, ignore_index=True)
+
+
+def over_clip_time(eval_df: pd.DataFrame, sampler_df: pd.DataFrame) -> pd.DataFrame:
+    """Per ``arm, bin`` of each arm's own layout: ``bin_start_s, bin_end_s``, the ``failure_rate`` at the common
+    final evaluation and the training sampler's ``density`` at each run's last logged iteration (probability
+    per second over uniform's: 1 = uniform), both the mean over seeds. Drawn over clip time, arms cut into
+    different bins compare (a bin-size knob). Empty for a library of several clips (no single clip time)."""
+    if not len(eval_df) or ("clip" in eval_df.columns and eval_df["clip"].nunique() > 1):
+        return pd.DataFrame()
+    common = float(eval_df.groupby("run_dir")[ITERATION].max().min())
+    last = at_budget(eval_df, ITERATION, common)
+    keys = ["arm", BIN, "bin_start_s", "bin_end_s"]
+    out = last.groupby(keys, sort=True)[FAILURE_RATE].mean().reset_index()
+    if len(sampler_df) and {"probability", "bin_start_s", "bin_end_s"} <= set(sampler_df.columns):
+        s = at_budget(sampler_df, ITERATION, float(sampler_df[ITERATION].max()))
+        width = s["bin_end_s"] - s["bin_start_s"]
+        length = width.groupby(s["run_dir"]).transform("sum")
+        s = s.assign(density=s["probability"] * length / width)
+        out = out.merge(s.groupby(keys, sort=True)["density"].mean().reset_index(), on=keys, how="left")
+    else:
+        out["density"] = np.nan
+    return out
 
 
 def segment_failure(eval_df: pd.DataFrame, bins: pd.DataFrame, mastery_df: pd.DataFrame,

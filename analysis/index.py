@@ -71,7 +71,7 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
     sweep_dir = Path(sweep_dir).resolve()
     if not find_run_dirs(sweep_dir):
         return pd.DataFrame(columns=INDEX_COLUMNS)
-    runs = load_runs(sweep_dir)
+    runs = load_runs(sweep_dir, compare=False)  # a listing: runs of other bin layouts or budgets are listed too
     runs = runs[runs["status"] != "missing"].reset_index(drop=True)
     rows = []
     for run in runs.itertuples(index=False):

@@ -60,10 +60,33 @@ def plot_sampling_at(samp: pd.DataFrame, iterations: list[int], colors: dict, bi
     return fig
 
 
+def plot_over_clip_time(cells: pd.DataFrame, colors: dict, order: list[str]) -> Figure:
+    """Two panels over clip time, one stair line per arm on its own bins: the final failure and the
+    training sampler's density relative to uniform (``cells``: bin_tables.over_clip_time)."""
+    fig = Figure(figsize=(9.0, 3.0), layout="constrained")
+    axes = fig.subplots(1, 2, sharex=True)
+    for ax, column, label in ((axes[0], FAILURE_RATE, "final failure"),
+                              (axes[1], "density", "sampling density (1 = uniform)")):
+        for arm in order:
+            g = cells[cells["arm"] == arm].sort_values("bin_start_s")
+            if len(g) and g[column].notna().any():
+                edges = np.append(g["bin_start_s"].to_numpy(float), g["bin_end_s"].to_numpy(float)[-1])
+                ax.stairs(g[column].to_numpy(float), edges, baseline=None, color=colors.get(arm), lw=1.0, label=arm)
+        ax.set_xlabel("clip time (s)")
+        ax.set_ylabel(label)
+    axes[1].axhline(1.0, color="0.3", lw=0.7, ls="--")
+    axes[0].legend(fontsize=6)
+    return fig
+
+
 def write_knob_files(levels: pd.DataFrame, summary: pd.DataFrame, overall: pd.DataFrame, runs: pd.DataFrame,
                      bin_fail: pd.DataFrame, samp: pd.DataFrame, colors: dict, bins: pd.DataFrame | None,
-                     uniform: str | None, opts: ReportOptions, out: Path) -> list[tuple[str, str]]:
-    """knob_levels.csv, knob_summary.csv and the three figures of every knob; returns (file, title)."""
+                     uniform: str | None, opts: ReportOptions, out: Path,
+                     other_layouts: list | tuple = (), clip_time: pd.DataFrame | None = None) -> list[tuple[str, str]]:
+    """knob_levels.csv, knob_summary.csv and the three figures of every knob; returns (file, title). A knob
+    whose levels cut the clip into other bins than the reference's (``other_layouts``: bin size) gets its
+    failure and sampling over clip time instead (``clip_time``: bin_tables.over_clip_time): bins of
+    different lengths share no bin axis."""
     write_csv(out / "knob_levels.csv", levels)
     write_csv(out / "knob_summary.csv", summary)
     figures = []
@@ -77,6 +100,15 @@ def write_knob_files(levels: pd.DataFrame, summary: pd.DataFrame, overall: pd.Da
         name = f"knob_{key}_speedup.png"
         save_figure(out / name, curve_plots.plot_speedup_curve(curve, ITERATION, colors=colors))
         figures.append((name, f"`{knob}`: speedup over `{base}` in iterations across success thresholds"))
+        if set(arms) & set(other_layouts):
+            cells = clip_time[clip_time["arm"].isin(arms)] if clip_time is not None and len(clip_time) else None
+            if cells is not None and len(cells):
+                name = f"knob_{key}_clip_time.png"
+                write_csv(out / f"knob_{key}_clip_time.csv", cells)
+                save_figure(out / name, plot_over_clip_time(cells, colors, arms))
+                figures.append((name, f"`{knob}`: final failure and sampling density over clip time, each level on "
+                                      "its own bins (mean over seeds)"))
+            continue
         others = g[~g["is_reference"]].sort_values("value")
         extremes = [ref, *dict.fromkeys([others["arm"].iloc[0], others["arm"].iloc[-1]])]
         name = f"knob_{key}_bins.png"

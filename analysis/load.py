@@ -188,7 +188,7 @@ def short_arm_labels(arms) -> tuple[dict[str, str], list[str]]:
     return labels, shared
 
 
-def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
+def load_runs(paths, allow_mixed: bool = False, compare: bool = True) -> pd.DataFrame:
     """Find and describe every run under ``paths`` (sweep folders, run folders, or parents of runs).
 
     Returns one row per job with columns:
@@ -211,6 +211,8 @@ def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
     (analysis.inputs) when included runs differ in motion, bin layout or budget unless ``allow_mixed``; a
     run whose tables are byte-identical to another's is left out (``problem`` says so), and so is every
     run but one of a seed that appears more than once in an arm (analysis.inputs.collapse_duplicate_seeds).
+    ``compare=False`` skips the motion, bin-layout and budget check, for a listing that compares nothing
+    (the sweep index: a study may hold a bin-size knob's runs beside the others).
     """
     if isinstance(paths, str | Path):
         paths = [paths]
@@ -227,7 +229,7 @@ def load_runs(paths, allow_mixed: bool = False) -> pd.DataFrame:
     if not rows:
         raise AnalysisError(f"no run folders (with status.json or .hydra/config.yaml) under {list(map(str, paths))}")
     mark_copies(rows)
-    for note in check_comparable(rows, allow_mixed):
+    for note in check_comparable(rows, allow_mixed) if compare else ():
         log.warning("%s (%s)", note, MIXED_FLAG)
     _single_run_arms(rows)
     for note in collapse_duplicate_seeds(rows):

@@ -113,6 +113,11 @@ class Bins:
     samp: pd.DataFrame
     mastery_seed_df: pd.DataFrame
     mastery_df: pd.DataFrame
+    other_layouts: list = dataclasses.field(default_factory=list)
+    """Arms cut into other bins than the baseline's (a bin-size knob): left out of every per-bin table and figure."""
+    clip_time: pd.DataFrame = dataclasses.field(default_factory=pd.DataFrame)
+    """With other layouts: every arm's final failure and sampling density per bin over clip time
+    (bin_tables.over_clip_time), which arms of any layout share."""
 
 
 @dataclass
@@ -200,14 +205,22 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     train, eval_df, sampler_df, robust_df = (load_table(runs, n, opts.max_iteration)
                                              for n in ("train_metrics", "eval", "sampler", "eval_robust"))
     segments = load_segments(runs)
-    bins = bin_table(eval_df, segments)
+    # Per-bin tables match bins by number: only arms cut into the baseline's bins share them; per-clip
+    # tables only need each bin in the same clip.
+    same_bins, other_bins = bin_tables.bin_layouts(eval_df, baseline)
+    eval_bins, sampler_bins = (df[df["arm"].isin(same_bins)] if other_bins else df for df in (eval_df, sampler_df))
+    same_clips, other_clips = (bin_tables.bin_layouts(eval_df, baseline, ("clip",)) if "clip" in eval_df
+                               else (same_bins, []))
+    eval_clips, sampler_clips = (df[df["arm"].isin(same_clips)] if other_clips else df for df in (eval_df, sampler_df))
+    bins = bin_table(eval_bins, segments)
     kinds = machine_kinds(runs)
     wall_ok = wall_time_comparable(kinds)
     measures = MEASURES if wall_ok else tuple(m for m in MEASURES if m != WALL_TIME_S)
     overall = tables.overall(eval_df)
     robust_overall = tables.overall(robust_df) if len(robust_df) else None
     mastery_seed_df = bin_tables.mastery_seeds(eval_df, opts)
-    mastery_df = bin_tables.mastery(mastery_seed_df, bins)
+    mastery_bins = mastery_seed_df[mastery_seed_df["arm"].isin(same_bins)] if other_bins else mastery_seed_df
+    mastery_df = bin_tables.mastery(mastery_bins, bins)
     times = bin_tables.run_times(overall, opts)
     time_df = bin_tables.time_summary(times)
     budget = tables.budgets(runs, train)
@@ -219,29 +232,30 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     common = tables.common_budget(overall)
     per_seed_curves = tables.seed_curves(train, overall, opts, errors)
     curves = tables.learning_curves(per_seed_curves, runs, opts)
-    bin_fail = bin_tables.bin_failure(eval_df)
-    final_bins = bin_tables.final_bin_failure(eval_df, runs, opts).merge(bins[[BIN, "segment"]], on=BIN, how="left")
-    samp = bin_tables.sampling(sampler_df, runs)
+    bin_fail = bin_tables.bin_failure(eval_bins)
+    final_bins = bin_tables.final_bin_failure(eval_bins, runs, opts).merge(bins[[BIN, "segment"]], on=BIN, how="left")
+    samp = bin_tables.sampling(sampler_bins, runs)
     comp = comparisons.comparisons(per_run, "final_failure", opts)
     comp_robust = comparisons.comparisons(per_run, "final_failure_robust", opts)
     shown = {c: label for c, label in ERROR_METRICS.items() if f"final_{c}" in per_run}
     smooth = {c: label for c, label in SMOOTHNESS_METRICS.items() if f"final_{c}" in per_run}
     comp_errors = {c: comparisons.comparisons(per_run, f"final_{c}", opts) for c in (*shown, *smooth)}
     comp_base = comparisons.baseline_comparisons(per_run, "final_failure", baseline, opts)
-    clips = clip_tables.bin_clips(eval_df)
-    support = sampling_support(sampler_df, clips if len(clips) else None)
+    clips = clip_tables.bin_clips(eval_clips)
+    support = sampling_support(sampler_clips if len(clips) else sampler_df, clips if len(clips) else None)
     support_eval = at_evaluations(support, sorted(overall[ITERATION].unique())) if len(support) else support
     support_sum = support_summary(support_eval) if len(support_eval) else pd.DataFrame()
     signals = signal_summary(support) if len(support) else pd.DataFrame()
     speedups = None
     if baseline is not None and runs.loc[runs["included"], "arm"].nunique() > 1:
-        speed, per_bin = bin_tables.speedups(times, mastery_seed_df, baseline, runs, opts)
+        speed, per_bin = bin_tables.speedups(times, mastery_bins, baseline, runs, opts)
         speedups = Speedups(speed[speed["measure"].isin(measures)].reset_index(drop=True), per_bin,
                             speedup_curve(overall, baseline, runs, opts), iso_failure(overall, baseline),
                             bin_tables.speedup_per_seed(times, baseline))
     seeds = tables.seeds_per_arm(runs).to_dict()
-    seg = bin_tables.segment_failure(eval_df, bins, mastery_df, segments, runs, opts)
-    clip_tab = clip_tables.clip_failure(eval_df, sampler_df, mastery_df, runs, opts)
+    seg = bin_tables.segment_failure(eval_bins, bins, mastery_df, segments, runs, opts)
+    mastery_clips = bin_tables.mastery(mastery_seed_df[mastery_seed_df["arm"].isin(same_clips)], bins)
+    clip_tab = clip_tables.clip_failure(eval_clips, sampler_clips, mastery_clips, runs, opts)
     adaptation = Adaptation(support, support_sum, signals,
                             load_table(runs, "clip_eval", opts.max_iteration) if len(support) else None)
     whole = whole_clip.compute(runs, opts)
@@ -261,7 +275,8 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
         inputs=Inputs(runs, opts, baseline, uniform_arms, kinds, wall_ok, measures, seeds, common[ITERATION],
                       tables.use_bootstrap(runs)),
         curves=Curves(overall, per_seed_curves, curves, budget),
-        bins=Bins(eval_df, bins, bin_fail, final_bins, samp, mastery_seed_df, mastery_df),
+        bins=Bins(eval_df, bins, bin_fail, final_bins, samp, mastery_seed_df, mastery_df, other_bins,
+                  bin_tables.over_clip_time(eval_df, sampler_df) if other_bins else pd.DataFrame()),
         arms=Arms(per_run, summary, times, time_df, errors, broken, comp, comp_robust, comp_errors, comp_base, shown,
                   smooth),
         places=Places(seg, clip_tab), adaptation=adaptation, sensitivity=sensitivity, speedups=speedups,

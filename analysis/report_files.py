@@ -120,8 +120,8 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
             figures.append((name, f"Sensitivity to `{key}`"))
     if sens.knob_levels is not None:
         figures += write_knob_files(sens.knob_levels, sens.knob_summary, cur.overall, inp.runs, tab.bin_fail, tab.samp,
-                                    colors, bins,
-                                    sens.uniform_arm, opts, out)
+                                    colors, bins, sens.uniform_arm, opts, out, other_layouts=tab.other_layouts,
+                                    clip_time=tab.clip_time)
     return figures
 
 

@@ -164,6 +164,12 @@ def body(d: ReportData, figures: list[tuple[str, str]], coverage: tuple | None) 
     inp, cur, tab, arms, adapt, sens = d.inputs, d.curves, d.bins, d.arms, d.adaptation, d.sensitivity
     opts, at, machines = inp.opts, at_text(inp), machines_text(inp)
     md = budget_section(cur.budget, opts, inp.kinds, machines) + evaluation_notes(tab.eval_df, tab.bins)
+    if tab.other_layouts:
+        md += [f"- Cut into other bins than the baseline's: {', '.join(f'`{a}`' for a in tab.other_layouts)}. Their "
+               "overall failure, times to success and tracking errors are compared as any arm's (their bins mastered "
+               "count their own bins); they are left out "
+               "of the per-bin comparisons (mastery per bin, per-bin speedups, segments, failure and sampling "
+               "over bins, the bin figures of their knob), which match bins by number.", ""]
     md += ["## Summary", "", *winner_text(arms.comp, arms.summary, "final_failure",
                                           f"Final overall failure ({FAILURE_UNIT})",
                                           at, opts, noun="final overall failure")]

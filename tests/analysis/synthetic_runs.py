@@ -94,6 +94,7 @@ def write_run(
     sampler_episodes: list[int] | None = None,
     machine: str = "Test GPU",
     segments: list[dict] | None = None,
+    bin_size_s: float = BIN_SIZE_S,
 ) -> Path:
     """Write one complete run folder whose bin ``b`` is mastered at ``mastery[b]`` (None: never).
 
@@ -103,11 +104,12 @@ def write_run(
     library: eval.parquet and sampler.parquet get a `clip` column); ``sampler_episodes`` replaces the 25
     training starts per bin in sampler.parquet (and sets the sampling probabilities in proportion).
     ``machine`` is the GPU name provenance.json records. The run has ``len(mastery)`` bins (``NUM_BINS``
-    in the planted sweeps); ``segments`` replaces ``SEGMENTS`` (they must cover every bin).
+    in the planted sweeps) of ``bin_size_s`` seconds; ``segments`` replaces ``SEGMENTS`` (they must cover
+    every bin).
     """
     run_dir = Path(run_dir)
     (run_dir / ".hydra").mkdir(parents=True, exist_ok=True)
-    cfg = {"seed": seed, "sampler": {"name": sampler, "bin_size_seconds": BIN_SIZE_S, **(sampler_cfg or {})}}
+    cfg = {"seed": seed, "sampler": {"name": sampler, "bin_size_seconds": bin_size_s, **(sampler_cfg or {})}}
     (run_dir / ".hydra" / "config.yaml").write_text(yaml.safe_dump(cfg))
     (run_dir / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([*overrides, f"seed={seed}"]))
     iteration = last_iteration if write_tables else 3
@@ -146,7 +148,7 @@ def write_run(
         if sampler_episodes is not None:
             prob = np.asarray(sampler_episodes, dtype=float) / sum(sampler_episodes)
         for b in range(num_bins):
-            start, end = b * BIN_SIZE_S, (b + 1) * BIN_SIZE_S
+            start, end = b * bin_size_s, (b + 1) * bin_size_s
             starts = 25 if sampler_episodes is None else sampler_episodes[b]
             sampler_rows.append((int(it), b, start, end, starts, int(starts * fail[b]), fail[b], fail[b], prob[b]))
             if it % eval_every == 0 or it == last_iteration:

@@ -116,3 +116,67 @@ def test_report_has_the_knob_section_and_figures(knob_report, tmp_path):
             assert (out / f"knob_{key}_{kind}.png").stat().st_size > 0
     plain = build_report([make_sweep(tmp_path)], out=tmp_path / "plain")
     assert "## Knobs" not in (plain / "report.md").read_text()
+
+
+BIN_SIZE_ARM = "sampler.bin_size_seconds=1.0,sampler=adaptive"
+
+
+@pytest.fixture(scope="module")
+def bin_size_study(tmp_path_factory):
+    """The planted knob study plus a bin-size knob: 8 bins of 1 s over the same 8 s (the others: 4 of 2 s),
+    each second mastered when the reference masters it."""
+    from tests.analysis.synthetic_runs import write_run
+    root = tmp_path_factory.mktemp("bin_size")
+    sweep = make_knob_study(root)
+    for seed in range(3):
+        write_run(sweep / f"motion=m,{BIN_SIZE_ARM}" / f"seed={seed}", sampler="adaptive", seed=seed,
+                  overrides=["motion=m", *BIN_SIZE_ARM.split(",")], mastery=[10.0 * (b // 2 + 1) for b in range(8)],
+                  sampler_cfg={"gamma": 0.9, "lambda_uniform": 0.1, "bin_size_seconds": 1.0}, last_iteration=100,
+                  bin_size_s=1.0)
+    return sweep
+
+
+def test_a_bin_size_knob_is_compared_overall_and_kept_out_of_the_per_bin_tables(bin_size_study, tmp_path):
+    from analysis import AnalysisError
+    with pytest.raises(AnalysisError, match="bin layouts"):  # one bin layout unless the user says otherwise
+        build_report([bin_size_study], out=tmp_path / "refused")
+    out = build_report([bin_size_study], out=tmp_path / "report", allow_mixed=True)
+    levels = pd.read_csv(out / "knob_levels.csv").set_index(["knob", "value"])
+    assert levels.loc[("sampler.bin_size_seconds", 1.0), "iterations_90"] == 40  # overall: compared as any level
+    mastery = pd.read_csv(out / "mastery.csv")
+    assert BIN_SIZE_ARM not in set(mastery["arm"]) and mastery["bin"].max() == 3  # the reference's 4 bins, never 8
+    assert set(mastery.loc[mastery["bin"] == 1, "segment"]) == {"walk"}  # bin 1 is 2-4 s, not 1-2 s's max/min mix
+    per_bin = pd.read_csv(out / "bin_failure.csv")
+    assert BIN_SIZE_ARM not in set(per_bin["arm"]) and per_bin["bin"].max() == 3
+    text = (out / "report.md").read_text()
+    assert f"Cut into other bins than the baseline's: `{BIN_SIZE_ARM}`" in text
+    assert (out / "knob_bin_size_seconds_speedup.png").is_file()
+    assert not (out / "knob_bin_size_seconds_bins.png").exists()  # bins of 1 s and 2 s share no axis
+    clip_time = pd.read_csv(out / "knob_bin_size_seconds_clip_time.csv")  # ... but share clip time
+    assert (out / "knob_bin_size_seconds_clip_time.png").is_file()
+    widths = clip_time.assign(w=clip_time["bin_end_s"] - clip_time["bin_start_s"]).groupby("arm")["w"].agg(["min", "count"])
+    assert widths.loc[BIN_SIZE_ARM].tolist() == [1.0, 8] and widths.loc[KNOB_REFERENCE].tolist() == [2.0, 4]
+    assert (out / "knob_gamma_bins.png").is_file()
+
+
+def test_the_sweep_index_lists_runs_of_every_bin_layout(bin_size_study):
+    from analysis.index import write_index
+    index = pd.read_csv(write_index(bin_size_study))
+    assert (index["arm"].str.contains("bin_size_seconds=1.0")).sum() == 3 and len(index) == 5 + 5 + 3 + 3 + 3 + 3
+
+
+def test_over_clip_time_puts_every_layout_on_one_axis():
+    from analysis.bin_tables import over_clip_time
+    rows, samp = [], []
+    for arm, probs in (("coarse", [0.25, 0.75]), ("fine", [0.1, 0.2, 0.3, 0.4])):
+        width = 4.0 / len(probs)
+        for seed, fail in ((0, 0.1), (1, 0.3)):
+            for b, p in enumerate(probs):
+                edges = dict(bin=b, bin_start_s=b * width, bin_end_s=(b + 1) * width)
+                rows += [dict(arm=arm, run_dir=f"{arm}{seed}", iteration=it, failure_rate=fail + it, **edges)
+                         for it in (5, 10)]
+                samp.append(dict(arm=arm, run_dir=f"{arm}{seed}", iteration=9, probability=p, **edges))
+    cells = over_clip_time(pd.DataFrame(rows), pd.DataFrame(samp)).set_index(["arm", "bin"])
+    assert cells.loc["coarse", "density"].tolist() == pytest.approx([0.5, 1.5])  # probability per second / uniform's
+    assert cells.loc["fine", "density"].tolist() == pytest.approx([0.4, 0.8, 1.2, 1.6])
+    assert cells["failure_rate"].tolist() == pytest.approx([10.2] * 6)  # the last evaluation, mean of the seeds
