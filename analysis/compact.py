@@ -6,7 +6,8 @@ rewrites each run's tables in place, atomically, keeping only REPORT_COLUMNS (th
 reads, analysis.run_files) and storing floating-point columns with Parquet's byte-stream-split encoding
 under zstd level 19: lossless, so a report rebuilt from the compacted runs is byte-identical, and
 about half the size. Rows are never dropped or thinned here (thinning sampler.parquet would change the
-sampling figures). Run it before committing a study's runs; ``--check`` only prints what it would save.
+sampling figures). It also makes the run's records portable (portable_records: no path of the machine
+it ran on). Run it before committing a study's runs; ``--check`` only prints what it would do.
 
 STUDY_BUDGET_MB is the size a study's folder may take in the repository; STUDY_BUDGETS_MB records the
 studies allowed more, each with its reason. tests/test_results_size.py holds every folder of
@@ -19,16 +20,18 @@ leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.s
 
 import argparse
 import io
+import json
 import sys
 from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+import yaml
 
 from analysis import AnalysisError
 from analysis.run_files import REPORT_COLUMNS, find_run_dirs
 from bmimic.runs.atomic_io import atomic_write_bytes
-from bmimic.runs.folder import table_path
+from bmimic.runs.folder import HYDRA_DIR, table_path
 
 STUDY_BUDGET_MB = 10.0
 """Largest size of one study's folder under docs/results (runs, report.md, figures; not the report's CSVs,
@@ -81,6 +84,38 @@ def compact_run(run_dir: Path, write: bool = True) -> tuple[int, int]:
     return before, after
 
 
+def portable_records(run_dir: Path, write: bool = True) -> int:
+    """Make ``run_dir``'s records machine-independent; returns how many files it changed (or would).
+
+    Paths under the launch's working directory (Hydra's ``runtime.cwd`` in .hydra/hydra.yaml: the machine's
+    copy of the repository) become relative to it in every JSON record (a whole-clip summary's checkpoint
+    and run folder, the resolved config's data folder), and hydra.yaml itself goes: no report reads it, and
+    it holds the machine's paths and the launcher's internals. A run without hydra.yaml is left as it is.
+    """
+    hydra_yaml = run_dir / HYDRA_DIR / "hydra.yaml"
+    if not hydra_yaml.is_file():
+        return 0
+    try:
+        cwd = (yaml.safe_load(hydra_yaml.read_text()) or {}).get("hydra", {}).get("runtime", {}).get("cwd")
+    except (yaml.YAMLError, AttributeError) as e:
+        raise AnalysisError(f"{hydra_yaml}: unreadable ({type(e).__name__}: {e})") from e
+    changed = 1
+    if isinstance(cwd, str) and cwd.startswith("/"):
+        root = cwd.rstrip("/")
+        for path in sorted(run_dir.rglob("*.json")):
+            text = path.read_text()
+            # Whole JSON strings only: the root itself, or the root and a path below it.
+            new = text.replace(json.dumps(root), json.dumps(".")).replace(json.dumps(root + "/")[:-1], '"')
+            if new != text:
+                json.loads(new)  # still JSON
+                changed += 1
+                if write:
+                    atomic_write_bytes(path, new.encode())
+    if write:
+        hydra_yaml.unlink()
+    return changed
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m analysis.compact", description=__doc__.split("\n\n")[0])
     p.add_argument("paths", nargs="+", type=Path, help="run folders, or folders holding them")
@@ -90,15 +125,17 @@ def main(argv: list[str] | None = None) -> int:
         runs = [r for path in args.paths for r in find_run_dirs(path)]
         if not runs:
             raise AnalysisError(f"no run folders under {[str(x) for x in args.paths]}")
-        before = after = 0
+        before = after = records = 0
         for run in runs:
             b, a = compact_run(run, write=not args.check)
             before, after = before + b, after + a
+            records += portable_records(run, write=not args.check)
     except AnalysisError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     verb = "would shrink" if args.check else "shrank"
-    print(f"{len(runs)} runs: tables {verb} from {before / 1e6:.2f} MB to {after / 1e6:.2f} MB")
+    print(f"{len(runs)} runs: tables {verb} from {before / 1e6:.2f} MB to {after / 1e6:.2f} MB; "
+          f"{records} record files {'would be ' if args.check else ''}made free of the machine's paths")
     return 0
 
 

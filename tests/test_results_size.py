@@ -38,3 +38,25 @@ def test_committed_runs_hold_only_report_columns(study):
             if keep is not None and path.is_file():
                 extra = set(pq.read_schema(path).names) - set(keep)
                 assert not extra, f"{path}: columns no report reads {sorted(extra)} (python -m analysis.compact)"
+
+
+def _strings(value):
+    if isinstance(value, dict):
+        for v in value.values():
+            yield from _strings(v)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _strings(v)
+    elif isinstance(value, str):
+        yield value
+
+
+@pytest.mark.parametrize("study", [s for s in STUDIES if (s / "runs").is_dir()], ids=lambda p: p.name)
+def test_committed_records_hold_no_path_of_the_machine_they_ran_on(study):
+    import json
+
+    for run in find_run_dirs(study / "runs"):
+        assert not (run / ".hydra" / "hydra.yaml").exists(), f"{run}: hydra.yaml (python -m analysis.compact)"
+        for path in run.rglob("*.json"):
+            absolute = [s for s in _strings(json.loads(path.read_text())) if s.startswith("/")]
+            assert not absolute, f"{path}: absolute paths {absolute[:2]} (python -m analysis.compact)"

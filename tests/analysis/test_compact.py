@@ -45,3 +45,24 @@ def test_check_writes_nothing_and_a_bad_table_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("error: ") and "eval.parquet" in err[0]
     b, a = compact_run(next(sweep.glob("*/seed=1")), write=False)
     assert 0 < a < b
+
+
+def test_records_lose_the_machines_paths(tmp_path):
+    import json
+
+    from analysis.compact import portable_records
+    sweep = make_knob_study(tmp_path)
+    run = next(sweep.glob("*/seed=0"))
+    (run / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    cwd: /srv/box/repo\n    output_dir: /srv/box/repo/out\n")
+    summary = {"checkpoint": "/srv/box/repo/outputs/s/seed=0/checkpoints/latest.pt", "run_dir": "/srv/box/repo",
+               "elsewhere": "/srv/box/repository/x", "inside": "see /srv/box/repo/a", "n": 3}
+    (run / "eval" / "whole_clip").mkdir(parents=True)
+    (run / "eval" / "whole_clip" / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    untouched = (run / "metrics.json").read_bytes()
+    assert portable_records(run, write=False) == 2 and (run / ".hydra" / "hydra.yaml").is_file()  # --check
+    assert main([str(sweep)]) == 0
+    got = json.loads((run / "eval" / "whole_clip" / "summary.json").read_text())
+    assert got == {**summary, "checkpoint": "outputs/s/seed=0/checkpoints/latest.pt", "run_dir": "."}
+    assert not (run / ".hydra" / "hydra.yaml").exists() and (run / ".hydra" / "config.yaml").is_file()
+    assert (run / "metrics.json").read_bytes() == untouched
+    assert portable_records(run) == 0  # done once
