@@ -5,7 +5,6 @@ analysis.report_views words)."""
 from __future__ import annotations
 
 import dataclasses
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,14 +27,8 @@ from analysis.metrics import (
 from analysis.speedup_curve import iso_failure, speedup_curve
 from analysis.stats import bootstrap_coverage
 from analysis.tables import ReportOptions
+from bmimic.runs.folder import portable_path
 from bmimic.runs.schema import BIN, ITERATION, WALL_TIME_S
-
-
-def _portable_path(path):
-    """``path`` relative to the working directory when it lies below it, else unchanged."""
-    if not isinstance(path, str):
-        return path
-    return os.path.relpath(path) if Path(path).is_relative_to(Path.cwd()) else path
 
 
 @dataclass
@@ -58,7 +51,7 @@ def read_runs(paths: list[Path], opts: ReportOptions, allow_mixed: bool = False)
     if opts.max_iteration is not None:  # a common budget: longer runs are read as if they had stopped there
         runs[ITERATION] = runs[ITERATION].clip(upper=opts.max_iteration)
     for col in ("run_dir", "sweep_dir"):  # the tables travel (docs/, other machines): no absolute paths from here
-        runs[col] = runs[col].map(_portable_path)
+        runs[col] = runs[col].map(lambda p: portable_path(p) if isinstance(p, str) else p)
     labels, shared = short_arm_labels(runs["arm"])
     runs["arm_overrides"] = runs["arm"]
     runs["arm"] = runs["arm"].map(lambda a: labels.get(a, a))

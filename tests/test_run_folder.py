@@ -124,3 +124,13 @@ def test_seed_reproducible_streams():
         assert np.allclose(np.asarray(x), np.asarray(y))
     assert not np.allclose(np.asarray(a[1]), np.asarray(c[1]))
     assert not np.allclose(np.asarray(a[2]), np.asarray(a[1]))  # the sampler stream is distinct
+
+
+def test_portable_path_names_a_folder_below_the_working_directory_relatively(tmp_path, monkeypatch):
+    from bmimic.runs.folder import portable_path
+
+    monkeypatch.chdir(tmp_path)
+    assert portable_path(tmp_path / "outputs" / "runs" / "r1") == os.path.join("outputs", "runs", "r1")
+    assert portable_path(tmp_path) == "."
+    assert portable_path("/elsewhere/runs/r1") == "/elsewhere/runs/r1"  # outside: as given
+    assert portable_path("outputs/r2") == "outputs/r2"

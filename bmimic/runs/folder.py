@@ -171,6 +171,12 @@ def newest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
     return files[0] if files else None
 
 
+def portable_path(path: str | os.PathLike) -> str:
+    """``path`` relative to the working directory when it lies below it (how a record names a run folder
+    without the machine's own paths), else as given."""
+    return os.path.relpath(path) if Path(path).is_relative_to(Path.cwd()) else str(path)
+
+
 def is_run_folder(path: str | os.PathLike) -> bool:
     """A folder training wrote: it has status.json, resolved_config.json or .hydra/config.yaml."""
     path = Path(path)

@@ -10,6 +10,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
+from bmimic.runs.folder import portable_path
 from bmimic.runs.schema import (
     ENV_STEPS,
     ITERATION,
@@ -95,7 +96,7 @@ class Race:
     def on_evaluation(self, trainer, summary: dict, now: float | None = None) -> bool:
         """Record this evaluation; True once every threshold is reached or the budget is spent."""
         now = time.time() if now is None else now
-        self.run_dir = str(trainer.run_dir)
+        self.run_dir = portable_path(trainer.run_dir)  # the record travels (docs/bench/): no machine paths
         self.first_iteration_unix_s = trainer.learn_started_unix_s
         self.eval_time_s = float(trainer.eval_time_s)
         p = trainer.progress
