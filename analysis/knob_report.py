@@ -60,9 +60,11 @@ def plot_sampling_at(samp: pd.DataFrame, iterations: list[int], colors: dict, bi
     return fig
 
 
-def plot_over_clip_time(cells: pd.DataFrame, colors: dict, order: list[str]) -> Figure:
+def plot_over_clip_time(cells: pd.DataFrame, order: list[str]) -> Figure:
     """Two panels over clip time, one stair line per arm on its own bins: the final failure and the
-    training sampler's density relative to uniform (``cells``: bin_tables.over_clip_time)."""
+    training sampler's density relative to uniform (``cells``: bin_tables.over_clip_time). A knob's few
+    levels get distinct colours of their own (the report's colours for many arms can be near alike)."""
+    colors = {arm: f"C{i % 10}" for i, arm in enumerate(order)}
     fig = Figure(figsize=(9.0, 3.0), layout="constrained")
     axes = fig.subplots(1, 2, sharex=True)
     for ax, column, label in ((axes[0], FAILURE_RATE, "final failure"),
@@ -105,7 +107,7 @@ def write_knob_files(levels: pd.DataFrame, summary: pd.DataFrame, overall: pd.Da
             if cells is not None and len(cells):
                 name = f"knob_{key}_clip_time.png"
                 write_csv(out / f"knob_{key}_clip_time.csv", cells)
-                save_figure(out / name, plot_over_clip_time(cells, colors, arms))
+                save_figure(out / name, plot_over_clip_time(cells, arms))
                 figures.append((name, f"`{knob}`: final failure and sampling density over clip time, each level on "
                                       "its own bins (mean over seeds)"))
             continue
