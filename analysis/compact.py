@@ -99,21 +99,24 @@ def portable_records(run_dir: Path, write: bool = True) -> int:
         cwd = (yaml.safe_load(hydra_yaml.read_text()) or {}).get("hydra", {}).get("runtime", {}).get("cwd")
     except (yaml.YAMLError, AttributeError) as e:
         raise AnalysisError(f"{hydra_yaml}: unreadable ({type(e).__name__}: {e})") from e
-    changed = 1
+    rewritten = {}  # every record read and checked before any is written: a bad one leaves the run as it was
     if isinstance(cwd, str) and cwd.startswith("/"):
         root = cwd.rstrip("/")
         for path in sorted(run_dir.rglob("*.json")):
-            text = path.read_text()
-            # Whole JSON strings only: the root itself, or the root and a path below it.
-            new = text.replace(json.dumps(root), json.dumps(".")).replace(json.dumps(root + "/")[:-1], '"')
-            if new != text:
-                json.loads(new)  # still JSON
-                changed += 1
-                if write:
-                    atomic_write_bytes(path, new.encode())
+            try:
+                text = path.read_text()
+                # Whole JSON strings only: the root itself, or the root and a path below it.
+                new = text.replace(json.dumps(root), json.dumps(".")).replace(json.dumps(root + "/")[:-1], '"')
+                if new != text:
+                    json.loads(new)  # still JSON
+                    rewritten[path] = new
+            except (OSError, ValueError) as e:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+                raise AnalysisError(f"{path}: unreadable JSON record ({type(e).__name__}); its run's records are left as they were") from e
     if write:
+        for path, new in rewritten.items():
+            atomic_write_bytes(path, new.encode())
         hydra_yaml.unlink()
-    return changed
+    return 1 + len(rewritten)
 
 
 def main(argv: list[str] | None = None) -> int:

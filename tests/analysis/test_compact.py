@@ -66,3 +66,17 @@ def test_records_lose_the_machines_paths(tmp_path):
     assert not (run / ".hydra" / "hydra.yaml").exists() and (run / ".hydra" / "config.yaml").is_file()
     assert (run / "metrics.json").read_bytes() == untouched
     assert portable_records(run) == 0  # done once
+
+
+def test_a_broken_record_is_one_line_and_the_run_keeps_its_hydra_record(tmp_path, capsys):
+    sweep = make_knob_study(tmp_path)
+    run = next(sweep.glob("*/seed=0"))
+    (run / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    cwd: /srv/box/repo\n")
+    (run / "a.json").write_text('{"run_dir": "/srv/box/repo/outputs/x"}')  # read before the broken one
+    (run / "summary.json").write_text('{"run_dir": "/srv/box/repo/outputs/x", ')  # cut short
+    assert main([str(run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "summary.json: unreadable JSON record" in err and "\n" not in err
+    assert (run / ".hydra" / "hydra.yaml").is_file()  # nothing half done: run it again once the file is mended
+    assert (run / "a.json").read_text() == '{"run_dir": "/srv/box/repo/outputs/x"}'
+    assert (run / "summary.json").read_text() == '{"run_dir": "/srv/box/repo/outputs/x", '
