@@ -201,10 +201,14 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     # Per-bin tables match bins by number: only arms cut into the baseline's bins share them; per-clip
     # tables only need each bin in the same clip.
     same_bins, other_bins = bin_tables.bin_layouts(eval_df, baseline)
-    eval_bins, sampler_bins = (df[df["arm"].isin(same_bins)] if other_bins else df for df in (eval_df, sampler_df))
     same_clips, other_clips = (bin_tables.bin_layouts(eval_df, baseline, ("clip",)) if "clip" in eval_df
                                else (same_bins, []))
-    eval_clips, sampler_clips = (df[df["arm"].isin(same_clips)] if other_clips else df for df in (eval_df, sampler_df))
+
+    def of(df: pd.DataFrame, arms: list, others: list) -> pd.DataFrame:
+        return df[df["arm"].isin(arms)] if others else df
+
+    eval_bins, sampler_bins = of(eval_df, same_bins, other_bins), of(sampler_df, same_bins, other_bins)
+    eval_clips, sampler_clips = of(eval_df, same_clips, other_clips), of(sampler_df, same_clips, other_clips)
     bins = bin_table(eval_bins, segments)
     kinds = machine_kinds(runs)
     wall_ok = wall_time_comparable(kinds)
@@ -212,8 +216,9 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     overall = tables.overall(eval_df)
     robust_overall = tables.overall(robust_df) if len(robust_df) else None
     mastery_seed_df = bin_tables.mastery_seeds(eval_df, opts)
-    mastery_bins = mastery_seed_df[mastery_seed_df["arm"].isin(same_bins)] if other_bins else mastery_seed_df
-    mastery_df = bin_tables.mastery(mastery_bins, bins)
+    mastery_bins = of(mastery_seed_df, same_bins, other_bins)
+    mastery_all = bin_tables.mastery(mastery_seed_df, bins)  # per arm and bin; each layout's rows taken below
+    mastery_df = of(mastery_all, same_bins, other_bins).reset_index(drop=True)
     times = bin_tables.run_times(overall, opts)
     time_df = bin_tables.time_summary(times)
     budget = tables.budgets(runs, train)
@@ -247,8 +252,7 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
                             bin_tables.speedup_per_seed(times, baseline))
     seeds = tables.seeds_per_arm(runs).to_dict()
     seg = bin_tables.segment_failure(eval_bins, bins, mastery_df, segments, runs, opts)
-    mastery_clips = bin_tables.mastery(mastery_seed_df[mastery_seed_df["arm"].isin(same_clips)], bins)
-    clip_tab = clip_tables.clip_failure(eval_clips, sampler_clips, mastery_clips, runs, opts)
+    clip_tab = clip_tables.clip_failure(eval_clips, sampler_clips, of(mastery_all, same_clips, other_clips), runs, opts)
     adaptation = Adaptation(support, support_sum, signals,
                             load_table(runs, "clip_eval", opts.max_iteration) if len(support) else None)
     whole = whole_clip.compute(runs, opts)
