@@ -31,6 +31,7 @@ from analysis.run_files import (
     read_config,
     read_json,
     read_overrides,
+    read_sweep_file,
     seed_from_name,
     table_problem,
 )
@@ -88,6 +89,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
     row["sampler"] = config_value(cfg, "sampler.name")
     row["overrides"] = ",".join(f"{k}={v}" for k, v in sorted(overrides.items()))
     row["_overrides"] = overrides
+    row["_sweep_file"] = read_sweep_file(run_dir)
     row["_cfg"] = cfg
     row["_resolved"] = read_resolved_config(run_dir)  # the budget as trained (analysis.inputs)
 
@@ -132,7 +134,11 @@ def _single_run_arms(rows: list[dict]) -> None:
 
 def _missing_jobs(rows: list[dict]) -> list[dict]:
     """Rows for sweep jobs absent from disk: every (arm, seed) of a sweep's grid with no folder,
-    plus jobs listed in the sweep's index.csv whose folder is gone."""
+    plus jobs listed in the sweep's index.csv whose folder is gone.
+
+    A grid is the arms launched from one sweeps/ file (their ``+sweep=`` override) times the seeds seen
+    among them: a study whose files share one folder with different seed lists (5 seeds for its
+    baselines, 3 per knob level) expects each file's own seeds, not the union over the folder."""
     missing = []
     sweeps: dict[str, list[dict]] = {}
     for r in rows:
@@ -140,11 +146,16 @@ def _missing_jobs(rows: list[dict]) -> list[dict]:
             sweeps.setdefault(r["sweep_dir"], []).append(r)
     for sweep_dir, group in sweeps.items():
         present = {r["run_dir"] for r in group}
-        arm_dirs = {r["arm"]: Path(r["run_dir"]).parent for r in group}
-        seeds = sorted(s for s in {seed_from_name(Path(r["run_dir"])) for r in group} if s is not None)
-        expected = {
-            str(arm_dir / f"seed={seed}"): (arm, seed) for arm, arm_dir in arm_dirs.items() for seed in seeds
-        }
+        expected: dict[str, tuple[str, int]] = {}
+        grids: dict[str | None, list[dict]] = {}
+        for r in group:
+            grids.setdefault(r.get("_sweep_file"), []).append(r)
+        for members in grids.values():
+            arm_dirs = {r["arm"]: Path(r["run_dir"]).parent for r in members}
+            seeds = sorted(s for s in {seed_from_name(Path(r["run_dir"])) for r in members} if s is not None)
+            expected.update({
+                str(arm_dir / f"seed={seed}"): (arm, seed) for arm, arm_dir in arm_dirs.items() for seed in seeds
+            })
         index = Path(sweep_dir) / SWEEP_INDEX
         if index.is_file():
             try:

@@ -141,6 +141,23 @@ def _with_values(cfg: dict, resolved: dict) -> dict:
     return out
 
 
+def read_sweep_file(run_dir: Path) -> str | None:
+    """The ``sweep`` (or ``+sweep``) choice in ``.hydra/overrides.yaml``: the sweeps/ file a job was
+    launched from, or None. A logistics key, so not part of the arm; it tells which jobs share a grid."""
+    path = run_dir / HYDRA_DIR / "overrides.yaml"
+    try:
+        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
+    except (OSError, ValueError, yaml.YAMLError):
+        return None  # read_overrides names the problem
+    if not isinstance(items, list):
+        return None
+    for item in items:
+        key, sep, value = str(item).partition("=")
+        if sep and key.lstrip("+") == "sweep":
+            return value
+    return None
+
+
 def read_overrides(run_dir: Path) -> dict[str, str]:
     """``.hydra/overrides.yaml`` as {key: raw value}, without seed/bookkeeping keys and deletions.
 

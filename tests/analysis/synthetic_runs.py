@@ -285,8 +285,9 @@ x4 uniform), gamma 1.0 at 40 (x1), lambda_uniform 0.4 at 60 (x0.667)."""
 
 def make_knob_study(root: str | Path, name: str = "knobs") -> Path:
     """A one-knob-at-a-time study (sweeps/sensitivity_dance1.yaml's shape): the reference and uniform
-    with seeds 0-4, each level of KNOB_LEVELS with seeds 0-2, every run to iteration 100; every folder
-    sits under ``motion=m,`` (an override all arms share)."""
+    with seeds 0-4 (launched with ``+sweep=<name>``), each level of KNOB_LEVELS with seeds 0-2 (``+sweep=
+    <name>_<knob>``), every run to iteration 100; every folder sits under ``motion=m,`` (an override all
+    arms share)."""
     sweep = Path(root) / name
     reference = {"gamma": 0.9, "lambda_uniform": 0.1}
     arms = {KNOB_REFERENCE: ("adaptive", reference, [10.0, 20.0, 30.0, 40.0], 5),
@@ -294,7 +295,9 @@ def make_knob_study(root: str | Path, name: str = "knobs") -> Path:
     for arm, (knob, value, mastery) in KNOB_LEVELS.items():
         arms[arm] = ("adaptive", {**reference, knob.removeprefix("sampler."): value}, mastery, 3)
     for arm, (sampler, cfg, mastery, seeds) in arms.items():
-        overrides = ["motion=m", *arm.split(",")]
+        # As launched: the baselines from the study's file, each knob's levels from the knob's own file.
+        knob = KNOB_LEVELS[arm][0].removeprefix("sampler.") if arm in KNOB_LEVELS else None
+        overrides = ["motion=m", *arm.split(","), f"+sweep={name}_{knob}" if knob else f"+sweep={name}"]
         for seed in range(seeds):
             write_run(sweep / f"motion=m,{arm}" / f"seed={seed}", sampler=sampler, seed=seed, overrides=overrides,
                       mastery=mastery, sampler_cfg=cfg, last_iteration=100)

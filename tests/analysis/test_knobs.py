@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import shutil
 
 import pandas as pd
 import pytest
@@ -13,7 +14,7 @@ from analysis.load import load_runs
 from analysis.report import build_report
 from analysis.report_compute import read_runs
 from analysis.tables import ReportOptions
-from tests.analysis.synthetic_runs import KNOB_REFERENCE, make_knob_study, make_sweep
+from tests.analysis.synthetic_runs import KNOB_REFERENCE, UNIFORM, make_knob_study, make_sweep
 
 
 @pytest.fixture(scope="module")
@@ -21,6 +22,31 @@ def knob_report(tmp_path_factory):
     root = tmp_path_factory.mktemp("knobs")
     out = build_report([make_knob_study(root)], out=root / "report")
     return out, pd.read_csv(out / "knob_levels.csv"), pd.read_csv(out / "knob_summary.csv")
+
+
+def test_each_sweep_file_expects_its_own_seeds(tmp_path):
+    # The baselines have seeds 0-4 and each knob level 0-2, all in one folder: no knob level misses
+    # seeds 3 and 4. A level's seed gone from disk is missing, as is the baseline's.
+    study = make_knob_study(tmp_path)
+    runs = load_runs(study)
+    assert not (runs["status"] == "missing").any()
+    level = next(a for a in runs["arm"].unique() if "gamma=0.5" in a)
+    shutil.rmtree(study / level / "seed=1")
+    shutil.rmtree(study / f"motion=m,{KNOB_REFERENCE}" / "seed=4")
+    missing = load_runs(study).query("status == 'missing'")
+    assert sorted(zip(missing["arm"], missing["seed"], strict=True)) == sorted(
+        [(level, 1), (f"motion=m,{KNOB_REFERENCE}", 4)])
+
+
+def test_without_sweep_files_the_grid_is_the_folders_seeds(tmp_path):
+    # Runs launched without +sweep (an ad-hoc multirun): every arm is expected at every seed seen.
+    sweep = make_sweep(tmp_path)  # its slow arm's seed 2 never started
+    before = load_runs(sweep).query("status == 'missing'")
+    assert list(before["seed"]) == [2]
+    shutil.rmtree(sweep / UNIFORM / "seed=1")
+    missing = load_runs(sweep).query("status == 'missing'")
+    assert sorted(zip(missing["arm"], missing["seed"], strict=True)) == sorted(
+        [(before["arm"].iloc[0], 2), (UNIFORM, 1)])
 
 
 def test_knob_arms_finds_one_key_changes_of_the_reference(tmp_path):
