@@ -136,6 +136,14 @@ def _ratio_cell(ratio: float, status: str, lo: float, hi: float) -> str:
     return f"{mark}x{fmt(ratio)}{rng}"
 
 
+def _interval_cell(low: float, high: float) -> str:
+    if math.isnan(low) or math.isnan(high):
+        return ""
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return " [unbounded]"
+    return f" [{fmt(low)}, {fmt(high)}]"
+
+
 def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | None, alpha: float) -> list[str]:
     """The markdown of the Knobs section."""
     tag = int(round(THRESHOLDS[0] * 100))
@@ -143,9 +151,12 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
           f"One knob of the reference arm changed at a time. Speedup = the reference's median iterations to "
           f"{THRESHOLDS[0]:g} overall success / the level's (> 1: sooner); brackets: the range of the reference's "
           "median over each seed's time (a seed that never got there counts at its last evaluation: a bound), "
-          "never an interval. \"differs\": some level's final failure or time differs from the reference's at "
-          f"p < {alpha:g} (exact permutation / Gehan test) after Holm's step-down adjustment over the row's tests; "
-          "\"uncorrected\" lists the levels below it before adjustment.", ""]
+          "never an interval. Final failure difference: the level's mean minus the reference's, with its "
+          f"{100 * (1 - alpha):g}% confidence interval from the exact permutation test inverted (the shifts of the "
+          "level's seeds that test does not reject; unadjusted for the knob's levels; unbounded where the seeds "
+          "cannot bound it, e.g. one seed). \"differs\": some level's final failure or time differs from the "
+          f"reference's at p < {alpha:g} (exact permutation / Gehan test) after Holm's step-down adjustment over "
+          "the row's tests; \"uncorrected\" lists the levels below it before adjustment.", ""]
     view = pd.DataFrame({
         "knob": summary["knob"],
         "reference": summary["reference_value"].map(fmt),
@@ -153,10 +164,11 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
         **{f"{name} to {tag}%": [f"{fmt(r[f'{name}_value'])}: " + _ratio_cell(
             r[f"{name}_speedup"], "estimate", r[f"{name}_speedup_seed_min"], r[f"{name}_speedup_seed_max"])
             for _, r in summary.iterrows()] for name in ("slowest", "fastest")},
-        "final failure difference (lowest / highest)": [
-            f"{fmt(lv)}: {fmt(ld)} / {fmt(hv)}: {fmt(hd)}" for lv, ld, hv, hd in
-            zip(summary["lowest_failure_value"], summary["lowest_failure_difference"],
-                summary["highest_failure_value"], summary["highest_failure_difference"], strict=True)],
+        f"final failure difference [{100 * (1 - alpha):g}% interval] (lowest / highest)": [
+            f"{fmt(r.lowest_failure_value)}: {fmt(r.lowest_failure_difference)}"
+            f"{_interval_cell(r.lowest_failure_low, r.lowest_failure_high)} / {fmt(r.highest_failure_value)}: "
+            f"{fmt(r.highest_failure_difference)}{_interval_cell(r.highest_failure_low, r.highest_failure_high)}"
+            for r in summary.itertuples(index=False)],
         "tests": summary["tests"],
         "verdict": [(f"{v} ({d})" if d else v) + (f"; uncorrected: {u}" if u and u != d else "")
                     for v, d, u in zip(summary["verdict"], summary["differing_levels"],
@@ -169,7 +181,9 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
         row = {"knob": r.knob, "value": fmt(r.value) + (" (reference)" if r.is_reference else ""),
                "seeds": r.n_seeds,
                "final failure [seeds]": f"{fmt(r.final_failure)} [{fmt(r.final_failure_min)}, {fmt(r.final_failure_max)}]",
-               "vs reference (p)": "–" if r.is_reference else f"{fmt(r.failure_difference)} ({fmt(r.failure_p)})"}
+               f"vs reference [{100 * (1 - alpha):g}% interval] (p)": "–" if r.is_reference else (
+                   f"{fmt(r.failure_difference)}{_interval_cell(r.failure_difference_low, r.failure_difference_high)}"
+                   f" ({fmt(r.failure_p)})")}
         for t in THRESHOLDS:
             k = int(round(t * 100))
             row[f"iterations to {k}%"] = f"{fmt(d[f'iterations_{k}'])} ({d[f'reached_{k}']}/{r.n_seeds})"

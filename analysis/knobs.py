@@ -7,8 +7,10 @@ structure in any set of runs; the report adds its Knobs section only where it ex
 
 Per level (``knob_levels``), against the reference and against uniform:
 
-- final failure: per-seed mean, the seeds' range, the difference of means from the reference and its
-  two-sided exact permutation p (uncorrected; 3 v 5 seeds: smallest attainable p 2/56 = 0.036);
+- final failure: per-seed mean, the seeds' range, the difference of means from the reference, its
+  two-sided exact permutation p (uncorrected; 3 v 5 seeds: smallest attainable p 2/56 = 0.036) and the
+  1 - alpha confidence interval of that difference from the same test inverted (analysis.shift_interval;
+  unbounded where the seeds cannot bound it, e.g. a single seed);
 - iterations to ``THRESHOLDS`` overall success (sustained as the report's time to threshold;
   Kaplan-Meier median over seeds, censored at the run's last evaluation);
 - speedup = reference median / level median (> 1: the level reaches the threshold sooner), its status
@@ -18,7 +20,8 @@ Per level (``knob_levels``), against the reference and against uniform:
   gets over not adapting at all.
 
 Per knob (``knob_summary``): the levels' speedups over the reference at the first threshold, lowest and
-highest, with their seed ranges; the final-failure differences, lowest and highest; and which levels
+highest, with their seed ranges; the final-failure differences, lowest and highest, with their
+intervals; and which levels
 differ from the reference at p < alpha in either measure, uncorrected and after Holm's step-down
 adjustment over the row's tests (two per level). The verdict is the adjusted one: "differs" where some
 adjusted p < alpha, else "within noise" (the uncorrected levels are still listed, since with several
@@ -34,6 +37,7 @@ import numpy as np
 import pandas as pd
 
 from analysis.metrics import arm_time, event_times, speedup, time_to_threshold
+from analysis.shift_interval import shift_interval
 from analysis.stats import holm, permutation_pvalue, smallest_pvalue
 from analysis.tables import ReportOptions
 
@@ -47,14 +51,15 @@ its own value of the key."""
 
 LEVEL_COLUMNS = [
     "knob", "value", "arm", "is_reference", "n_seeds", "final_failure", "final_failure_min", "final_failure_max",
-    "failure_difference", "failure_p", "failure_smallest_p",
+    "failure_difference", "failure_difference_low", "failure_difference_high", "failure_p", "failure_smallest_p",
     *(f"{c}_{int(round(t * 100))}" for t in THRESHOLDS for c in (
         "iterations", "reached", "speedup", "speedup_status", "speedup_seed_min", "speedup_seed_max",
         "speedup_p", "vs_uniform", "vs_uniform_status")),
 ]
 """Columns of knob_levels.csv (one row per knob and level, the reference's value included):
 ``final_failure`` is the mean over seeds of the final overall failure, ``failure_difference`` the
-level's mean minus the reference's, ``iterations_<t>`` the Kaplan-Meier median iterations to success
+level's mean minus the reference's, ``failure_difference_low``/``_high`` its 1 - alpha interval (the
+permutation test inverted; +-inf: unbounded), ``iterations_<t>`` the Kaplan-Meier median iterations to success
 >= t/100 (NaN: not reached by half the seeds), ``reached_<t>`` the seeds that reached it,
 ``speedup_<t>`` the reference's median / the level's (``speedup_status`` as metrics.speedup),
 ``speedup_seed_min``/``_max`` the range of reference median / each seed's time, ``speedup_p`` the Gehan
@@ -63,8 +68,9 @@ permutation p, ``vs_uniform_<t>`` the speedup over uniform (NaN without a unifor
 SUMMARY_COLUMNS = ["knob", "reference_value", "levels",
                    *(f"{end}_{c}" for end in ("slowest", "fastest")
                      for c in ("value", "speedup", "speedup_seed_min", "speedup_seed_max")),
-                   "lowest_failure_value",
-                   "lowest_failure_difference", "highest_failure_value", "highest_failure_difference",
+                   "lowest_failure_value", "lowest_failure_difference", "lowest_failure_low", "lowest_failure_high",
+                   "highest_failure_value", "highest_failure_difference", "highest_failure_low",
+                   "highest_failure_high",
                    "tests", "differing_levels_uncorrected", "differing_levels", "verdict"]
 """Columns of knob_summary.csv, one row per knob (module docstring; speedups at THRESHOLDS[0]):
 ``differing_levels_uncorrected`` the levels with some p < alpha, ``differing_levels`` those with some
@@ -138,6 +144,8 @@ def knob_levels(knobs: pd.DataFrame, final_failure: pd.DataFrame, overall: pd.Da
                "final_failure_max": float(np.max(f)) if len(f) else math.nan}
         same = k.arm == k.reference
         row["failure_difference"] = 0.0 if same else row["final_failure"] - float(np.mean(f_ref))
+        low, high = (math.nan, math.nan) if same else shift_interval(f, f_ref, 1.0 - opts.alpha)
+        row["failure_difference_low"], row["failure_difference_high"] = low, high
         row["failure_p"] = math.nan if same else permutation_pvalue(f, f_ref, n_resamples=opts.n_permutations,
                                                                     seed=opts.bootstrap_seed)
         row["failure_smallest_p"] = math.nan if same else smallest_pvalue(len(f), len(f_ref), opts.n_permutations)
@@ -188,8 +196,12 @@ def knob_summary(levels: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
                for c in ("value", "speedup", "speedup_seed_min", "speedup_seed_max")},
             "lowest_failure_value": by_fail["value"].iloc[0],
             "lowest_failure_difference": by_fail["failure_difference"].iloc[0],
+            "lowest_failure_low": by_fail["failure_difference_low"].iloc[0],
+            "lowest_failure_high": by_fail["failure_difference_high"].iloc[0],
             "highest_failure_value": by_fail["value"].iloc[-1],
             "highest_failure_difference": by_fail["failure_difference"].iloc[-1],
+            "highest_failure_low": by_fail["failure_difference_low"].iloc[-1],
+            "highest_failure_high": by_fail["failure_difference_high"].iloc[-1],
             "tests": int(np.count_nonzero(~np.isnan(family))),
             "differing_levels_uncorrected": ", ".join(f"{v:g}" for v in sorted(uncorrected["value"])),
             "differing_levels": ", ".join(f"{v:g}" for v in sorted(differing["value"])),

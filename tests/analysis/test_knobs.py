@@ -90,7 +90,11 @@ def test_planted_speedups_and_tests(knob_report):
     # final failure is planted per seed alike in every arm: seeds 0-2 (mean 0.03) against 0-4 (0.04)
     assert lv.loc[("sampler.gamma", 0.5), "failure_difference"] == pytest.approx(-0.01)
     assert lv.loc[("sampler.gamma", 0.5), "failure_p"] > 0.05
+    # its 95% interval (the same test inverted) holds the difference and, as p > 0.05, zero
+    low, high = lv.loc[("sampler.gamma", 0.5), ["failure_difference_low", "failure_difference_high"]]
+    assert low < -0.01 < 0.0 < high
     assert bool(lv.loc[("sampler.gamma", 0.9), "is_reference"])
+    assert lv.loc[("sampler.gamma", 0.9), ["failure_difference_low", "failure_difference_high"]].isna().all()
 
 
 def test_which_knobs_matter(knob_report):
@@ -118,6 +122,7 @@ def _levels(knob: str, ps: dict[float, tuple[float, float]]) -> pd.DataFrame:
     for c in ("speedup_90", "speedup_seed_min_90", "speedup_seed_max_90"):
         out[c] = 1.0
     out["failure_difference"] = 0.0
+    out["failure_difference_low"], out["failure_difference_high"] = -1.0, 1.0
     return out
 
 
@@ -137,6 +142,7 @@ def test_report_has_the_knob_section_and_figures(knob_report, tmp_path):
     out, _, _ = knob_report
     text = (out / "report.md").read_text()
     assert "## Knobs" in text and "| sampler.gamma | 0.9 | 0.5, 0.9, 1 |" in text
+    assert "vs reference [95% interval] (p)" in text and "exact permutation test inverted" in text
     for key in ("gamma", "lambda_uniform"):
         for kind in ("speedup", "bins", "sampling"):
             assert (out / f"knob_{key}_{kind}.png").stat().st_size > 0
