@@ -7,7 +7,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from analysis.plots import IntegerTicks, _axes, _marker, arm_colors, plot_learning_curve
+from analysis.palette import arm_colors, place_legend
+from analysis.plots import IntegerTicks, _axes, _marker, plot_learning_curve
 from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION
 
 CURVE_MARKERS = {"estimate": "o", "lower_bound": "^", "upper_bound": "v"}
@@ -54,7 +55,7 @@ def _ratio_figure(df: pd.DataFrame, x: str, ax, colors: dict | None, band: bool,
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=7)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    place_legend(ax)
     return fig
 
 
@@ -103,7 +104,7 @@ def plot_sampling_support(summary: pd.DataFrame, colors: dict | None = None) -> 
         ax.set_xlabel("iteration")
         ax.xaxis.set_major_locator(IntegerTicks())
         ax.grid(alpha=0.3)
-    ax1.legend(fontsize=7)
+    place_legend(ax1)
     if summary["clip_effective_support"].notna().any():
         ax1.set_title("solid: over bins; dashed: over clips (their masses)", fontsize=7)
     return fig
@@ -140,5 +141,5 @@ def plot_whole_clip_survival(survival: pd.DataFrame, colors: dict | None = None)
         ax.set_ylabel("rollouts still tracking")
         ax.set_title(condition, fontsize=8)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        place_legend(ax)
     return fig

@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.ticker import MaxNLocator
 
+from analysis.palette import arm_colors, place_legend
 from bmimic.runs.schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION
 
 FIGSIZE = (6.0, 3.6)
@@ -55,14 +56,6 @@ class IntegerTicks(MaxNLocator):
         per_tick_pt = size * (0.6 * chars + 1.5) if horizontal else size * 2.5
         self.set_params(nbins=max(1, int(room_pt // per_tick_pt) - 1))
         return super().__call__()
-
-
-def arm_colors(arms) -> dict[str, tuple]:
-    """A stable colour per arm (tab10 in sorted order; cycles past 10 arms)."""
-    from matplotlib import colormaps
-
-    cmap = colormaps["tab10"]
-    return {arm: cmap(i % 10) for i, arm in enumerate(sorted(set(arms)))}
 
 
 def _axes(ax, figsize=FIGSIZE):
@@ -159,7 +152,7 @@ def plot_learning_curve(
     if title:
         ax.set_title(title, fontsize=8)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    place_legend(ax)
     return fig
 
 
@@ -273,7 +266,7 @@ def plot_final_bin_failure(
     ax.set_ylabel("failure rate")
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    place_legend(ax)
     _mark_segments(ax, bins)
     return fig
 
@@ -310,7 +303,7 @@ def plot_mastery(
         ax.set_title(f"median over seeds of the first sustained failure < {threshold:g}\n"
                      "dots: seeds; x: seed not there by its last evaluation; open ^: median not reached", fontsize=7)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    place_legend(ax)
     _mark_segments(ax, bins)
     return fig
 
@@ -360,7 +353,7 @@ def plot_speedup(speedup: pd.DataFrame, per_seed: pd.DataFrame | None = None, ax
     ax.set_xticks(np.arange(len(measures)), labels=[m.replace("_", " ") for m in measures], fontsize=8)
     ax.set_ylabel("speedup (baseline / arm)")
     ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=7)
+    place_legend(ax)
     return fig
 
 
@@ -396,5 +389,5 @@ def plot_sensitivity(
     if metric in ("bins_mastered", "time_iteration"):
         ax.yaxis.set_major_locator(IntegerTicks())
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    place_legend(ax)
     return fig

@@ -38,7 +38,7 @@ from matplotlib.figure import Figure
 from analysis import REFUSED, AnalysisError, error_line
 from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
-from analysis.plots import arm_colors
+from analysis.palette import arm_colors
 from bmimic.cli.common import path_arg
 from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
 

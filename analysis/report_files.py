@@ -12,6 +12,7 @@ from matplotlib.figure import Figure
 from analysis import curve_plots, plots, tables
 from analysis.files import save_figure, write_csv
 from analysis.knob_report import write_knob_files
+from analysis.palette import arm_colors
 from analysis.report_compute import ReportData
 from analysis.report_views import at_text, band_text
 from analysis.stats import MIN_SEEDS_IQM
@@ -32,7 +33,7 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
     inp, cur, tab, arms = d.inputs, d.curves, d.bins, d.arms
     places, adapt, sens = d.places, d.adaptation, d.sensitivity
     opts, bins, at, band = inp.opts, tab.bins, at_text(inp), band_text(inp)
-    colors = plots.arm_colors(inp.runs["arm"].dropna())  # one colour per arm, in every figure
+    colors = arm_colors(inp.runs["arm"].dropna())  # one colour per arm, in every figure
     write_csv(out / "curves.csv", cur.curves)
     figures = []
     for metric, (_, label) in tables.CURVE_METRICS.items():

@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from matplotlib import colormaps
 from matplotlib.collections import PathCollection, QuadMesh
 from matplotlib.patches import Rectangle
 
-from analysis import plots
+from analysis import curve_plots, palette, plots
 from analysis.files import save_figure
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -40,6 +41,47 @@ def test_arm_colors_are_stable_and_distinct():
     colors = plots.arm_colors(["b", "a", "c", "a"])
     assert list(colors) == ["a", "b", "c"] and len(set(colors.values())) == 3
     assert plots.arm_colors(["c", "a", "b"]) == colors
+
+
+STUDY_ARMS = ["sampler=adaptive", "sampler=uniform",
+              *(f"sampler.gamma={g},sampler=adaptive" for g in ("0.5", "0.7", "0.8", "0.95", "1.0")),
+              *(f"sampler.K={k},sampler=adaptive" for k in (1, 3, 9)),
+              *(f"sampler.bin_size_seconds={b},sampler=adaptive" for b in ("0.25", "0.5", "2.0", "4.0"))]
+
+
+def test_a_study_of_many_arms_gets_distinct_colours_by_family():
+    colors = palette.arm_colors(STUDY_ARMS)
+    assert len(STUDY_ARMS) > palette.MANY_ARMS and len(set(colors.values())) == len(STUDY_ARMS)
+    # the plain sampler choices stand apart: the reference black, uniform grey
+    assert colors["sampler=adaptive"] == palette.SINGLE_COLORS[0]
+    assert colors["sampler=uniform"] == palette.SINGLE_COLORS[1]
+
+    def darkness(arm):
+        return -sum(colors[arm][:3])
+
+    # one knob's levels share a hue and darken with the knob's value (numeric order: 9 after 3, 4.0 after 2.0)
+    assert darkness("sampler.K=1,sampler=adaptive") < darkness("sampler.K=3,sampler=adaptive") < darkness(
+        "sampler.K=9,sampler=adaptive")
+    assert darkness("sampler.bin_size_seconds=2.0,sampler=adaptive") < darkness(
+        "sampler.bin_size_seconds=4.0,sampler=adaptive")
+    hue = {arm: int(np.argmax(colors[arm][:3])) for arm in STUDY_ARMS if "gamma" in arm}
+    assert len(set(hue.values())) == 1
+    # few arms keep tab10 in sorted order (the committed reports' colours)
+    assert palette.arm_colors(STUDY_ARMS[:3]) == {a: colormaps["tab10"](i) for i, a in enumerate(sorted(STUDY_ARMS[:3]))}
+
+
+def test_many_arms_put_one_legend_beside_the_last_panel():
+    its = np.arange(4)
+    curves = pd.concat([pd.DataFrame({"arm": arm, "iteration": its, "point": its * 0.1, "ci_low": its * 0.1,
+                                      "ci_high": its * 0.1, "metric": m}) for arm in STUDY_ARMS
+                        for m in ("nominal", "robust")])
+    fig = curve_plots.plot_whole_clip_success(curves, curves.rename(columns={"point": "value"}).assign(run_dir="r"))
+    legends = [ax.get_legend() for ax in fig.axes]
+    assert legends[0] is None and legends[-1] is not None
+    assert len(legends[-1].get_texts()) == len(STUDY_ARMS)
+    assert fig.get_size_inches()[0] > 4.6 * 2  # widened once to hold it
+    few = plots.plot_learning_curve(curves[curves["arm"].isin(STUDY_ARMS[:2]) & (curves["metric"] == "nominal")])
+    assert few.axes[0].get_legend() is not None and tuple(few.get_size_inches()) == plots.FIGSIZE
 
 
 def test_learning_curve_one_line_per_arm_and_per_seed(tmp_path):
