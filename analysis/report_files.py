@@ -105,6 +105,7 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
         w = d.whole_clip
         write_csv(out / "whole_clip_curves.csv", w.curves)
         write_csv(out / "whole_clip_final.csv", w.final)
+        write_csv(out / "whole_clip_failure_places.csv", w.places)
         save_figure(out / "whole_clip_success.png", curve_plots.plot_whole_clip_success(w.curves, w.per_seed, colors))
         figures.append(("whole_clip_success.png", f"Whole-clip success over training per condition ({band}; thin "
                                                   "lines: seeds)"))

@@ -1,7 +1,8 @@
 """Whole-clip evaluations in a report (the runs' whole_clip tables, eval.whole_clip): success against
 iterations per arm and condition, each run's survival curve at its last whole-clip evaluation, and the
-final numbers with start transients apart from later failures. `compute` returns None when no run has
-the tables, and the report then says nothing about whole clips."""
+final numbers with start transients apart from later failures, and where in the clips the rollouts
+fail. `compute` returns None when no run has the tables, and the report then says nothing about whole
+clips."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ from analysis.tables import ReportOptions, learning_curves, summary_rows, use_bo
 from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
 
 COUNTS = ["rollouts", "completed", "transient_failures", "later_failures"]
+FAILURE_PLACES = 3
+"""The clip seconds listed per arm and condition in "where they fail" (the most failures first)."""
 TRACKED_S = "tracked_s"
 """Seconds of clip a rollout tracked before it failed (its clip's duration when it completed), mean over the
 rollouts of an evaluation: the area under its survival curve, which tells apart policies that all fail."""
@@ -34,6 +37,12 @@ class WholeClipReport:
     survival: pd.DataFrame
     """``arm, condition, time_s, n_seeds, tracking_frac, low, high``: the clips' rollouts still tracking at
     each second of each run's last whole-clip evaluation (clips pooled), mean and range over seeds."""
+    places: pd.DataFrame
+    """``arm, condition, clip_name, second, failures, share, arm_failures``: at each run's last whole-clip
+    evaluation, the failed rollouts of the arm's seeds pooled and counted per whole second of clip time
+    (``second`` s to ``second + 1`` s), ``share`` of the arm's failures in that condition; the
+    FAILURE_PLACES largest per arm and condition (empty without failures tables). Seconds, not bins: arms
+    of other bin sizes fail at comparable places."""
 
 
 def _per_run(clips: pd.DataFrame, failures: pd.DataFrame | None = None) -> pd.DataFrame:
@@ -78,6 +87,25 @@ def _final_rows(last: pd.DataFrame, runs: pd.DataFrame, opts: ReportOptions) -> 
     return pd.DataFrame(rows)
 
 
+def failure_places(failures: pd.DataFrame, last: pd.DataFrame, top: int = FAILURE_PLACES) -> pd.DataFrame:
+    """WholeClipReport.places from the failures table and each run's last evaluation (``run_dir,
+    condition, iteration``)."""
+    columns = ["arm", CONDITION, "clip_name", "second", "failures", "share", "arm_failures"]
+    if failures is None or not len(failures):
+        return pd.DataFrame(columns=columns)
+    f = failures.merge(last[["run_dir", CONDITION, ITERATION]].drop_duplicates(), on=["run_dir", CONDITION, ITERATION])
+    if not len(f):
+        return pd.DataFrame(columns=columns)
+    f = f.assign(second=np.floor(f["failure_time_s"].to_numpy(float)).astype(int),
+                 clip_name=f["clip_name"] if "clip_name" in f else f["clip"].astype(str))
+    counts = f.groupby(["arm", CONDITION, "clip_name", "second"], sort=True).size().rename("failures").reset_index()
+    counts["arm_failures"] = counts.groupby(["arm", CONDITION])["failures"].transform("sum")
+    counts["share"] = counts["failures"] / counts["arm_failures"]
+    counts = counts.sort_values(["arm", CONDITION, "failures", "clip_name", "second"],
+                                ascending=[True, True, False, True, True], kind="stable")
+    return counts.groupby(["arm", CONDITION], sort=False).head(top)[columns].reset_index(drop=True)
+
+
 def compute(runs: pd.DataFrame, opts: ReportOptions) -> WholeClipReport | None:
     """The whole-clip tables of `runs` (None when no included run has whole_clip.parquet)."""
     clips = load_table(runs, "whole_clip", opts.max_iteration)
@@ -96,7 +124,8 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> WholeClipReport | None:
         pooled = (pooled["tracking"] / pooled["rollouts"]).rename("frac").reset_index()
         survival = pooled.groupby(["arm", CONDITION, CLIP_TIME_S], sort=True)["frac"].agg(
             n_seeds="count", tracking_frac="mean", low="min", high="max").reset_index()
-    return WholeClipReport(per_seed, learning_curves(per_seed, runs, opts), _final_rows(last, runs, opts), survival)
+    return WholeClipReport(per_seed, learning_curves(per_seed, runs, opts), _final_rows(last, runs, opts), survival,
+                           failure_places(failures, last))
 
 
 def section(w: WholeClipReport) -> list[str]:
@@ -118,7 +147,22 @@ def section(w: WholeClipReport) -> list[str]:
             f"{START_TRANSIENT_S:g} s of the start are start transients; the others are later failures. Seconds "
             "tracked per rollout: the clip time a rollout tracked before it failed (its clip's length when it "
             "completed), mean over rollouts: the area under the survival curve, which separates policies that "
-            "all fail somewhere.", "", md_table(view), ""]
+            "all fail somewhere.", "", md_table(view), ""] + _places_section(w.places)
+
+
+def _places_section(places: pd.DataFrame) -> list[str]:
+    if not len(places):
+        return []
+    several = places["clip_name"].nunique() > 1
+    rows = []
+    for (arm, condition), g in places.groupby(["arm", CONDITION], sort=True):
+        cells = [f"{f'{c} ' if several else ''}{s}–{s + 1} s ({100 * share:.0f}%)"
+                 for c, s, share in zip(g["clip_name"], g["second"], g["share"], strict=True)]
+        rows.append({"arm": arm, "condition": condition, "failed rollouts (seeds pooled)": int(g["arm_failures"].iloc[0]),
+                     "where most failed (share of the failures)": ", ".join(cells)})
+    return ["Where they fail: the seconds of clip time holding the most failures at each run's last whole-clip "
+            f"evaluation, seeds pooled (up to {FAILURE_PLACES} per arm and condition).", "",
+            md_table(pd.DataFrame(rows)), ""]
 
 
 __all__ = ["WholeClipReport", "compute", "section"]

@@ -18,7 +18,7 @@ ARMS = {"sampler=uniform": (0.25, 0.5), "sampler=adaptive": (0.5, 1.0)}
 """Robust whole-clip success at iterations 30 and 60, per arm (8 rollouts on each of 2 clips)."""
 
 
-def _whole_clip_tables(run, success: tuple[float, float], seed: int) -> None:
+def _whole_clip_tables(run, success: tuple[float, float], seed: int, failures: bool = False) -> None:
     clips, survival = [], []
     for it, s in zip((30, 60), success):
         completed = round(8 * s)
@@ -35,15 +35,29 @@ def _whole_clip_tables(run, success: tuple[float, float], seed: int) -> None:
                           "tracking_frac": (8 if t <= 1.0 else completed) / 8} for t in times]
     pd.DataFrame(clips).to_parquet(run / "whole_clip.parquet")
     pd.DataFrame(survival).to_parquet(run / "whole_clip_survival.parquet")
+    # where the failed rollouts of the last evaluation fell: clip 0 three at 2.2 s and one transient at 0.5 s,
+    # clip 1 all at 1.2 s; the first evaluation's failures (at 0.3 s) are not the last one's
+    if not failures:
+        return
+    rows = []
+    for it, s in zip((30, 60), success):
+        for clip in (0, 1):
+            failed = 8 - round(8 * s)
+            late = [0.5] + [2.2] * (failed - 1) if clip == 0 else [1.2] * failed
+            times = [0.3] * failed if it == 30 else late if failed else []
+            rows += [{ITERATION: it, "env_steps": 1000 * it, CONDITION: "robust", "clip": clip,
+                      "clip_name": f"c{clip}", "rollout": r, "failure_time_s": t, "transient": t < 1.0}
+                     for r, t in enumerate(times)]
+    pd.DataFrame(rows).to_parquet(run / "whole_clip_failures.parquet")
 
 
-def _study(root, with_whole_clip: bool):
+def _study(root, with_whole_clip: bool, failures: bool = False):
     for arm, success in ARMS.items():
         for seed in (0, 1):
             run = write_run(root / arm / f"seed={seed}", sampler=arm.split("=")[1], seed=seed, overrides=[arm],
                             mastery=[10.0, 20.0, 30.0, 40.0])
             if with_whole_clip:
-                _whole_clip_tables(run, success, seed)
+                _whole_clip_tables(run, success, seed, failures)
     return root
 
 
@@ -70,6 +84,19 @@ def test_whole_clip_success_survival_and_final_table(tmp_path):
     assert uniform.loc[1.0, "tracking_frac"] == pytest.approx(1.0)  # both clips, all 8 rollouts
     assert uniform.loc[2.0, "tracking_frac"] == pytest.approx(0.5)  # clip 0 alone is 2.5 s long
     assert uniform.loc[1.5, "tracking_frac"] == pytest.approx(0.5)  # clip 1's last frame
+
+
+def test_where_whole_clip_rollouts_fail(tmp_path):
+    out = build_report([_study(tmp_path / "study", True, failures=True)], opts=OPTS)
+    places = pd.read_csv(out / "whole_clip_failure_places.csv")
+    # uniform at its last evaluation (60): 4 failures per clip and seed, 16 pooled over its 2 seeds
+    uniform = places[places["arm"].str.contains("uniform")]
+    assert list(zip(uniform["clip_name"], uniform["second"], strict=True)) == [("c1", 1), ("c0", 2), ("c0", 0)]
+    assert uniform["share"].tolist() == pytest.approx([0.5, 0.375, 0.125])
+    assert (uniform["arm_failures"] == 16).all()
+    assert not places["arm"].str.contains("adaptive").any()  # every rollout completed at iteration 60
+    md = (out / "report.md").read_text()
+    assert "Where they fail" in md and "c1 1–2 s (50%), c0 2–3 s (38%), c0 0–1 s (12%)" in md
 
 
 def test_a_report_without_whole_clip_tables_says_nothing_about_them(tmp_path):
