@@ -132,7 +132,12 @@ def _ratio_cell(ratio: float, status: str, lo: float, hi: float) -> str:
     if math.isnan(ratio):
         return "–"
     mark = {"lower_bound": "≥ ", "upper_bound": "≤ "}.get(status, "")
-    rng = f" [{fmt(lo)}, {fmt(hi)}]" if not (math.isnan(lo) or math.isnan(hi)) else ""
+    if math.isnan(lo) or math.isnan(hi):
+        rng = ""
+    elif lo <= 0 and math.isinf(hi):
+        rng = " [unbounded]"
+    else:
+        rng = f" [{fmt(lo)}, {'∞' if math.isinf(hi) else fmt(hi)}]"
     return f"{mark}x{fmt(ratio)}{rng}"
 
 
@@ -149,12 +154,13 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
     tag = int(round(THRESHOLDS[0] * 100))
     md = ["## Knobs", "",
           f"One knob of the reference arm changed at a time. Speedup = the reference's median iterations to "
-          f"{THRESHOLDS[0]:g} overall success / the level's (> 1: sooner); brackets: the range of the reference's "
-          "median over each seed's time (a seed that never got there counts at its last evaluation: a bound), "
-          "never an interval. Final failure difference: the level's mean minus the reference's, with its "
-          f"{100 * (1 - alpha):g}% confidence interval from the exact permutation test inverted (the shifts of the "
-          "level's seeds that test does not reject; unadjusted for the knob's levels; unbounded where the seeds "
-          "cannot bound it, e.g. one seed). \"differs\": some level's final failure or time differs from the "
+          f"{THRESHOLDS[0]:g} overall success / the level's (> 1: sooner), in brackets its {100 * (1 - alpha):g}% "
+          "confidence interval from the Gehan permutation test inverted (the speedups r for which the level's "
+          "times, censored ones too, multiplied by r do not differ from the reference's). Final failure "
+          f"difference: the level's mean minus the reference's, with its {100 * (1 - alpha):g}% confidence interval "
+          "from the exact permutation test inverted (the shifts of the level's seeds that test does not reject). "
+          "Both intervals are unadjusted for the knob's levels and unbounded where the seeds cannot bound them "
+          "(one or two seeds against five). \"differs\": some level's final failure or time differs from the "
           f"reference's at p < {alpha:g} (exact permutation / Gehan test) after Holm's step-down adjustment over "
           "the row's tests; \"uncorrected\" lists the levels below it before adjustment.", ""]
     view = pd.DataFrame({
@@ -162,7 +168,7 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
         "reference": summary["reference_value"].map(fmt),
         "levels": summary["levels"],
         **{f"{name} to {tag}%": [f"{fmt(r[f'{name}_value'])}: " + _ratio_cell(
-            r[f"{name}_speedup"], "estimate", r[f"{name}_speedup_seed_min"], r[f"{name}_speedup_seed_max"])
+            r[f"{name}_speedup"], "estimate", r[f"{name}_speedup_low"], r[f"{name}_speedup_high"])
             for _, r in summary.iterrows()] for name in ("slowest", "fastest")},
         f"final failure difference [{100 * (1 - alpha):g}% interval] (lowest / highest)": [
             f"{fmt(r.lowest_failure_value)}: {fmt(r.lowest_failure_difference)}"
@@ -187,8 +193,8 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
         for t in THRESHOLDS:
             k = int(round(t * 100))
             row[f"iterations to {k}%"] = f"{fmt(d[f'iterations_{k}'])} ({d[f'reached_{k}']}/{r.n_seeds})"
-            row[f"speedup {k}%"] = "–" if r.is_reference else _ratio_cell(
-                d[f"speedup_{k}"], d[f"speedup_status_{k}"], d[f"speedup_seed_min_{k}"], d[f"speedup_seed_max_{k}"])
+            row[f"speedup {k}% [{100 * (1 - alpha):g}% interval]"] = "–" if r.is_reference else _ratio_cell(
+                d[f"speedup_{k}"], d[f"speedup_status_{k}"], d[f"speedup_low_{k}"], d[f"speedup_high_{k}"])
             if uniform is not None:
                 row[f"vs uniform {k}%"] = _ratio_cell(d[f"vs_uniform_{k}"], d[f"vs_uniform_status_{k}"], math.nan,
                                                      math.nan)

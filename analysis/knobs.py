@@ -14,7 +14,8 @@ Per level (``knob_levels``), against the reference and against uniform:
 - iterations to ``THRESHOLDS`` overall success (sustained as the report's time to threshold;
   Kaplan-Meier median over seeds, censored at the run's last evaluation);
 - speedup = reference median / level median (> 1: the level reaches the threshold sooner), its status
-  (metrics.speedup: estimate, or a bound under censoring), the range of the per-seed ratios
+  (metrics.speedup: estimate, or a bound under censoring), its 1 - alpha interval (the Gehan test
+  inverted, shift_interval.ratio_interval), the range of the per-seed ratios
   (reference median / each seed's time; a seed that never got there gives a bound), and the Gehan
   permutation p of the censored times; the same against uniform, the speedup a user of the level
   gets over not adapting at all.
@@ -37,7 +38,7 @@ import numpy as np
 import pandas as pd
 
 from analysis.metrics import arm_time, event_times, speedup, time_to_threshold
-from analysis.shift_interval import shift_interval
+from analysis.shift_interval import ratio_interval, shift_interval
 from analysis.stats import holm, permutation_pvalue, smallest_pvalue
 from analysis.tables import ReportOptions
 
@@ -53,8 +54,8 @@ LEVEL_COLUMNS = [
     "knob", "value", "arm", "is_reference", "n_seeds", "final_failure", "final_failure_min", "final_failure_max",
     "failure_difference", "failure_difference_low", "failure_difference_high", "failure_p", "failure_smallest_p",
     *(f"{c}_{int(round(t * 100))}" for t in THRESHOLDS for c in (
-        "iterations", "reached", "speedup", "speedup_status", "speedup_seed_min", "speedup_seed_max",
-        "speedup_p", "vs_uniform", "vs_uniform_status")),
+        "iterations", "reached", "speedup", "speedup_status", "speedup_low", "speedup_high", "speedup_seed_min",
+        "speedup_seed_max", "speedup_p", "vs_uniform", "vs_uniform_status")),
 ]
 """Columns of knob_levels.csv (one row per knob and level, the reference's value included):
 ``final_failure`` is the mean over seeds of the final overall failure, ``failure_difference`` the
@@ -62,12 +63,15 @@ level's mean minus the reference's, ``failure_difference_low``/``_high`` its 1 -
 permutation test inverted; +-inf: unbounded), ``iterations_<t>`` the Kaplan-Meier median iterations to success
 >= t/100 (NaN: not reached by half the seeds), ``reached_<t>`` the seeds that reached it,
 ``speedup_<t>`` the reference's median / the level's (``speedup_status`` as metrics.speedup),
+``speedup_low``/``_high`` its 1 - alpha interval (the Gehan test inverted under a scale model,
+shift_interval.ratio_interval; 0 / inf: unbounded),
 ``speedup_seed_min``/``_max`` the range of reference median / each seed's time, ``speedup_p`` the Gehan
 permutation p, ``vs_uniform_<t>`` the speedup over uniform (NaN without a uniform arm)."""
 
 SUMMARY_COLUMNS = ["knob", "reference_value", "levels",
                    *(f"{end}_{c}" for end in ("slowest", "fastest")
-                     for c in ("value", "speedup", "speedup_seed_min", "speedup_seed_max")),
+                     for c in ("value", "speedup", "speedup_low", "speedup_high", "speedup_seed_min",
+                               "speedup_seed_max")),
                    "lowest_failure_value", "lowest_failure_difference", "lowest_failure_low", "lowest_failure_high",
                    "highest_failure_value", "highest_failure_difference", "highest_failure_low",
                    "highest_failure_high",
@@ -157,6 +161,9 @@ def knob_levels(knobs: pd.DataFrame, final_failure: pd.DataFrame, overall: pd.Da
             row[f"iterations_{tag}"] = arm_time(at, ae).median
             row[f"reached_{tag}"] = int(ae.sum())
             row[f"speedup_{tag}"], row[f"speedup_status_{tag}"] = s.ratio, s.status
+            low, high = (math.nan, math.nan) if same else ratio_interval(
+                bt, be, at, ae, 1.0 - opts.alpha, opts.n_permutations, opts.bootstrap_seed)
+            row[f"speedup_low_{tag}"], row[f"speedup_high_{tag}"] = low, high
             lo, hi = _seed_ratios(arm_time(bt, be).median, at, ae)
             row[f"speedup_seed_min_{tag}"], row[f"speedup_seed_max_{tag}"] = lo, hi
             row[f"speedup_p_{tag}"] = math.nan if same else s.p_value
@@ -193,7 +200,7 @@ def knob_summary(levels: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
             "levels": ", ".join(f"{v:g}" for v in sorted(g["value"])),
             **{f"{name}_{c}": row[f"{c}_{tag}" if c != "value" else "value"]
                for name, row in (("slowest", slow), ("fastest", fast))
-               for c in ("value", "speedup", "speedup_seed_min", "speedup_seed_max")},
+               for c in ("value", "speedup", "speedup_low", "speedup_high", "speedup_seed_min", "speedup_seed_max")},
             "lowest_failure_value": by_fail["value"].iloc[0],
             "lowest_failure_difference": by_fail["failure_difference"].iloc[0],
             "lowest_failure_low": by_fail["failure_difference_low"].iloc[0],

@@ -1,4 +1,5 @@
-"""A confidence interval for a difference of means over seeds: the exact permutation test inverted.
+"""Confidence intervals from the report's own permutation tests, inverted: for a difference of means over
+seeds (shift_interval) and for a speedup of censored times (ratio_interval).
 
 The report tests "level a differs from reference b" with the two-sided exact permutation test of the
 difference of means (analysis.stats.permutation_pvalue). The shifts d for which that same test, applied
@@ -21,7 +22,7 @@ import math
 
 import numpy as np
 
-from analysis.stats import EXACT_PERMUTATIONS, all_splits
+from analysis.stats import EXACT_PERMUTATIONS, all_splits, censored_pvalue
 
 
 def shift_interval(a, b, confidence: float = 0.95) -> tuple[float, float]:
@@ -53,4 +54,39 @@ def shift_interval(a, b, confidence: float = 0.95) -> tuple[float, float]:
     return float(crossings[m - 2]), float(crossings[n - m])
 
 
-__all__ = ["shift_interval"]
+def ratio_interval(base_time, base_event, arm_time, arm_event, confidence: float = 0.95, n_permutations: int = 9999,
+                   seed: int = 0) -> tuple[float, float]:
+    """(low, high) confidence interval for the speedup of ``arm`` over ``base`` (base median / arm median, as
+    analysis.metrics.speedup) from the Gehan permutation test of censored times (stats.censored_pvalue)
+    inverted under a scale model: the speedups r for which the arm's times (censored ones too) multiplied by
+    r do not differ from the baseline's at level 1 - confidence. Scaling one group changes only how its
+    times order against the other's, at the ratios base time / arm time, so p is tested at each such ratio
+    and between them; the interval spans the kept ones (0 or inf where the seeds cannot bound it; NaN
+    without an event or a time)."""
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    bt, be = np.asarray(base_time, float), np.asarray(base_event, bool)
+    at, ae = np.asarray(arm_time, float), np.asarray(arm_event, bool)
+    if not len(bt) or not len(at) or not (be.any() or ae.any()) or (at <= 0).any():
+        return math.nan, math.nan
+    alpha = 1.0 - confidence
+    crit = np.unique((bt[None, :] / at[:, None]).ravel())
+    crit = crit[crit > 0]
+    # one point per piece: below the first ratio, each ratio, between neighbours, above the last
+    inner = np.sqrt(crit[:-1] * crit[1:])
+    points = np.concatenate([[crit[0] / 2], crit, inner, [crit[-1] * 2]])
+    kind = np.concatenate([[0], np.ones(len(crit)), np.full(len(inner), 2), [3]])
+    order = np.argsort(points, kind="stable")
+    points, kind = points[order], kind[order]
+    kept = np.array([censored_pvalue(at * r, ae, bt, be, n_resamples=n_permutations, seed=seed) >= alpha
+                     for r in points])
+    if not kept.any():
+        return math.nan, math.nan
+    i, j = int(np.argmax(kept)), len(kept) - 1 - int(np.argmax(kept[::-1]))
+    # an open piece's bound is the ratio at its edge; the pieces at either end reach 0 and inf
+    low = 0.0 if kind[i] == 0 else float(points[i]) if kind[i] == 1 else float(points[i - 1])
+    high = math.inf if kind[j] == 3 else float(points[j]) if kind[j] == 1 else float(points[j + 1])
+    return low, high
+
+
+__all__ = ["ratio_interval", "shift_interval"]

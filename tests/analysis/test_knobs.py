@@ -87,6 +87,12 @@ def test_planted_speedups_and_tests(knob_report):
     # every seed of gamma 0.5 beats every seed of the reference: the smallest p 3 v 5 seeds allow
     assert lv.loc[("sampler.gamma", 0.5), "speedup_p_90"] == pytest.approx(2 / math.comb(8, 3))
     assert lv.loc[("sampler.gamma", 1.0), "speedup_p_90"] == pytest.approx(1.0)
+    # the speedup's 95% interval (the Gehan test inverted): gamma 0.5's excludes 1 as its p < 0.05 does and
+    # holds its planted x2; gamma 1.0's holds 1
+    low, high = lv.loc[("sampler.gamma", 0.5), ["speedup_low_90", "speedup_high_90"]]
+    assert 1.0 < low <= 2.0 <= high
+    low, high = lv.loc[("sampler.gamma", 1.0), ["speedup_low_90", "speedup_high_90"]]
+    assert low <= 1.0 <= high
     # final failure is planted per seed alike in every arm: seeds 0-2 (mean 0.03) against 0-4 (0.04)
     assert lv.loc[("sampler.gamma", 0.5), "failure_difference"] == pytest.approx(-0.01)
     assert lv.loc[("sampler.gamma", 0.5), "failure_p"] > 0.05
@@ -119,7 +125,7 @@ def _levels(knob: str, ps: dict[float, tuple[float, float]]) -> pd.DataFrame:
     rows += [{"knob": knob, "value": v, "arm": f"a{v}", "is_reference": False, "failure_p": fp, "speedup_p_90": tp}
              for v, (fp, tp) in ps.items()]
     out = pd.DataFrame(rows)
-    for c in ("speedup_90", "speedup_seed_min_90", "speedup_seed_max_90"):
+    for c in ("speedup_90", "speedup_low_90", "speedup_high_90", "speedup_seed_min_90", "speedup_seed_max_90"):
         out[c] = 1.0
     out["failure_difference"] = 0.0
     out["failure_difference_low"], out["failure_difference_high"] = -1.0, 1.0
