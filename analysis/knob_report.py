@@ -128,25 +128,21 @@ def write_knob_files(levels: pd.DataFrame, summary: pd.DataFrame, overall: pd.Da
     return figures
 
 
+def _bracket(low: float, high: float) -> str:
+    """`` [low, high]`` of an interval (∞ where a side is open), `` [unbounded]`` when it spans every value
+    its quantity can take (a speedup's 0 to ∞, a difference's -∞ to ∞), nothing without one."""
+    if math.isnan(low) or math.isnan(high):
+        return ""
+    if math.isinf(high) and (math.isinf(low) or low == 0):
+        return " [unbounded]"
+    return f" [{'-∞' if math.isinf(low) else fmt(low)}, {'∞' if math.isinf(high) else fmt(high)}]"
+
+
 def _ratio_cell(ratio: float, status: str, lo: float, hi: float) -> str:
     if math.isnan(ratio):
         return "–"
     mark = {"lower_bound": "≥ ", "upper_bound": "≤ "}.get(status, "")
-    if math.isnan(lo) or math.isnan(hi):
-        rng = ""
-    elif lo <= 0 and math.isinf(hi):
-        rng = " [unbounded]"
-    else:
-        rng = f" [{fmt(lo)}, {'∞' if math.isinf(hi) else fmt(hi)}]"
-    return f"{mark}x{fmt(ratio)}{rng}"
-
-
-def _interval_cell(low: float, high: float) -> str:
-    if math.isnan(low) or math.isnan(high):
-        return ""
-    if not (math.isfinite(low) and math.isfinite(high)):
-        return " [unbounded]"
-    return f" [{fmt(low)}, {fmt(high)}]"
+    return f"{mark}x{fmt(ratio)}{_bracket(lo, hi)}"
 
 
 def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | None, alpha: float) -> list[str]:
@@ -172,8 +168,8 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
             for _, r in summary.iterrows()] for name in ("slowest", "fastest")},
         f"final failure difference [{100 * (1 - alpha):g}% interval] (lowest / highest)": [
             f"{fmt(r.lowest_failure_value)}: {fmt(r.lowest_failure_difference)}"
-            f"{_interval_cell(r.lowest_failure_low, r.lowest_failure_high)} / {fmt(r.highest_failure_value)}: "
-            f"{fmt(r.highest_failure_difference)}{_interval_cell(r.highest_failure_low, r.highest_failure_high)}"
+            f"{_bracket(r.lowest_failure_low, r.lowest_failure_high)} / {fmt(r.highest_failure_value)}: "
+            f"{fmt(r.highest_failure_difference)}{_bracket(r.highest_failure_low, r.highest_failure_high)}"
             for r in summary.itertuples(index=False)],
         "tests": summary["tests"],
         "verdict": [(f"{v} ({d})" if d else v) + (f"; uncorrected: {u}" if u and u != d else "")
@@ -188,7 +184,7 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
                "seeds": r.n_seeds,
                "final failure [seeds]": f"{fmt(r.final_failure)} [{fmt(r.final_failure_min)}, {fmt(r.final_failure_max)}]",
                f"vs reference [{100 * (1 - alpha):g}% interval] (p)": "–" if r.is_reference else (
-                   f"{fmt(r.failure_difference)}{_interval_cell(r.failure_difference_low, r.failure_difference_high)}"
+                   f"{fmt(r.failure_difference)}{_bracket(r.failure_difference_low, r.failure_difference_high)}"
                    f" ({fmt(r.failure_p)})")}
         for t in THRESHOLDS:
             k = int(round(t * 100))

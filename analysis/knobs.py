@@ -37,6 +37,7 @@ import math
 import numpy as np
 import pandas as pd
 
+from analysis.load import arm_items
 from analysis.metrics import arm_time, event_times, speedup, time_to_threshold
 from analysis.shift_interval import ratio_interval, shift_interval
 from analysis.stats import holm, permutation_pvalue, smallest_pvalue
@@ -81,10 +82,6 @@ SUMMARY_COLUMNS = ["knob", "reference_value", "levels",
 Holm-adjusted p < alpha over the row's ``tests``, which the ``verdict`` follows."""
 
 
-def _items(overrides: str) -> dict[str, str]:
-    return dict(i.split("=", 1) for i in str(overrides).split(",") if "=" in i)
-
-
 def _numeric(value) -> bool:
     return isinstance(value, int | float | np.number) and not isinstance(value, bool) and math.isfinite(value)
 
@@ -95,7 +92,7 @@ def knob_arms(runs: pd.DataFrame) -> pd.DataFrame:
     arms = runs[runs["included"]].drop_duplicates("arm").set_index("arm")
     if arms.empty:
         return pd.DataFrame(columns=KNOB_ARM_COLUMNS)
-    items = {a: _items(arms.loc[a, "overrides"]) for a in arms.index}
+    items = {a: arm_items(arms.loc[a, "overrides"]) for a in arms.index}
     shared = set.intersection(*(set(i.items()) for i in items.values())) if len(items) > 1 else set()
     own = {a: {k: v for k, v in i.items() if (k, v) not in shared and k != "sampler"} for a, i in items.items()}
     references = {arms.loc[a, "sampler"]: a for a in sorted(arms.index) if not own[a]}

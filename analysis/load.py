@@ -182,6 +182,11 @@ def _missing_jobs(rows: list[dict]) -> list[dict]:
     return missing
 
 
+def arm_items(arm: str) -> dict[str, str]:
+    """An arm's (or an overrides string's) ``key=value`` items as {key: value}."""
+    return dict(i.split("=", 1) for i in str(arm).split(",") if "=" in i)
+
+
 def short_arm_labels(arms) -> tuple[dict[str, str], list[str]]:
     """Name arms by the overrides that differ between them: ``({arm: label}, shared items)``.
 

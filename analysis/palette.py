@@ -13,6 +13,8 @@ import math
 
 import numpy as np
 
+from analysis.load import arm_items
+
 MANY_ARMS = 10
 """Above this many arms a figure colours by family and puts its legend outside the axes."""
 
@@ -21,10 +23,6 @@ FAMILY_MAPS = ("Blues", "Oranges", "Greens", "Reds", "Purples", "YlOrBr", "RdPu"
 
 SINGLE_COLORS = ((0.0, 0.0, 0.0, 1.0), (0.55, 0.55, 0.55, 1.0))
 """The first plain sampler arms (sorted: e.g. `sampler=adaptive`, `sampler=uniform`); tab10 after them."""
-
-
-def _items(arm: str) -> dict[str, str]:
-    return dict(i.split("=", 1) for i in arm.split(",") if "=" in i)
 
 
 def _order_value(value: str) -> tuple[float, str]:
@@ -46,7 +44,7 @@ def arm_colors(arms) -> dict[str, tuple]:
     families: dict[tuple, list[str]] = {}
     singles = []
     for arm in arms:
-        items = _items(arm)
+        items = arm_items(arm)
         knobs = tuple(sorted(k for k in items if k != "sampler"))
         if knobs:
             families.setdefault((items.get("sampler", ""), knobs), []).append(arm)
@@ -58,7 +56,7 @@ def arm_colors(arms) -> dict[str, tuple]:
     for f, (key, members) in enumerate(sorted(families.items())):
         cmap = colormaps[FAMILY_MAPS[f % len(FAMILY_MAPS)]]
         knobs = key[1]
-        members = sorted(members, key=lambda a: tuple(_order_value(_items(a)[k]) for k in knobs))
+        members = sorted(members, key=lambda a: tuple(_order_value(arm_items(a)[k]) for k in knobs))
         shades = np.linspace(0.4, 0.95, len(members)) if len(members) > 1 else [0.7]
         out.update({arm: cmap(float(s)) for arm, s in zip(members, shades, strict=True)})
     return out

@@ -141,21 +141,35 @@ def _with_values(cfg: dict, resolved: dict) -> dict:
     return out
 
 
+def _override_items(run_dir: Path) -> list[tuple[str, str]]:
+    """``.hydra/overrides.yaml`` as (key, raw value) pairs in order, Hydra's ``+``/``++`` prefixes dropped and
+    ``~key`` deletions (no value) skipped; empty when the file is absent."""
+    path = run_dir / HYDRA_DIR / "overrides.yaml"
+    if not path.is_file():
+        return []
+    try:
+        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
+    except (OSError, ValueError, yaml.YAMLError) as e:  # ValueError: not UTF-8
+        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
+    if not isinstance(items, list):
+        raise AnalysisError(f"{path}: expected a list of 'key=value' strings")
+    out = []
+    for item in items:
+        text = str(item)
+        if text.startswith("~") or "=" not in text:
+            continue
+        key, value = text.split("=", 1)
+        out.append((key.lstrip("+"), value))
+    return out
+
+
 def read_sweep_file(run_dir: Path) -> str | None:
     """The ``sweep`` (or ``+sweep``) choice in ``.hydra/overrides.yaml``: the sweeps/ file a job was
     launched from, or None. A logistics key, so not part of the arm; it tells which jobs share a grid."""
-    path = run_dir / HYDRA_DIR / "overrides.yaml"
     try:
-        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
-    except (OSError, ValueError, yaml.YAMLError):
+        return next((value for key, value in _override_items(run_dir) if key == "sweep"), None)
+    except AnalysisError:
         return None  # read_overrides names the problem
-    if not isinstance(items, list):
-        return None
-    for item in items:
-        key, sep, value = str(item).partition("=")
-        if sep and key.lstrip("+") == "sweep":
-            return value
-    return None
 
 
 def read_overrides(run_dir: Path) -> dict[str, str]:
@@ -163,26 +177,8 @@ def read_overrides(run_dir: Path) -> dict[str, str]:
 
     Hydra's ``+``/``++`` prefixes are dropped; ``~key`` deletions carry no value and are skipped.
     """
-    path = run_dir / HYDRA_DIR / "overrides.yaml"
-    if not path.is_file():
-        return {}
-    try:
-        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
-    except (OSError, ValueError, yaml.YAMLError) as e:  # ValueError: not UTF-8
-        raise AnalysisError(f"{path}: not valid YAML ({e})") from e
-    if not isinstance(items, list):
-        raise AnalysisError(f"{path}: expected a list of 'key=value' strings")
-    out = {}
-    for item in items:
-        text = str(item)
-        if text.startswith("~") or "=" not in text:
-            continue
-        key, value = text.split("=", 1)
-        key = key.lstrip("+")
-        if key in IGNORED_OVERRIDE_KEYS or key.startswith("hydra."):
-            continue
-        out[key] = value
-    return out
+    return {key: value for key, value in _override_items(run_dir)
+            if key not in IGNORED_OVERRIDE_KEYS and not key.startswith("hydra.")}
 
 
 def config_value(cfg: dict, dotted: str):
