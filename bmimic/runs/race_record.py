@@ -82,6 +82,8 @@ class Race:
     eval_time_s: float = 0.0
     rank_launch_unix_s: list[float] = field(default_factory=list)
     """Under torchrun: every rank's launch, in rank order (`launch_unix_s` is the earliest); else empty."""
+    final_whole_clip: dict | None = None
+    """The final policy's robust whole-clip evaluation (record_final), whether or not the clock saw it."""
 
     def join_ranks(self, launches: list[float]) -> None:
         """One race over the ranks whose launch times these are: the clock starts at the earliest."""
@@ -126,6 +128,21 @@ class Race:
             return True
         return False
 
+    def record_final(self, metrics: dict) -> None:
+        """Keep the final policy's robust whole-clip result from the run's metrics.json (`final_whole_clip_*`,
+        eval.whole_clip.at_end): `in_clock` when the race's last evaluation had measured it already."""
+        final = {k.removeprefix("final_"): v for k, v in metrics.items() if k.startswith("final_whole_clip_robust_")}
+        if WHOLE_CLIP_METRIC not in final:
+            return
+        last = self.evaluations[-1] if self.evaluations else {}
+        it = int(metrics.get("iterations", -1))
+        self.final_whole_clip = {
+            ITERATION: it, ENV_STEPS: metrics.get(ENV_STEPS),
+            WHOLE_CLIP_METRIC: float(final[WHOLE_CLIP_METRIC]),
+            **{k: final[k] for k in (whole_clip_key("robust", "completed"), whole_clip_key("robust", "rollouts"))
+               if k in final},
+            "in_clock": last.get(ITERATION) == it and WHOLE_CLIP_METRIC in last}
+
     def lines(self) -> list[str]:
         """One line per threshold, then where the time went."""
         last = self.evaluations[-1] if self.evaluations else None
@@ -141,6 +158,12 @@ class Race:
                            f"({last['wall_from_launch_s']:.0f} s from launch; censored)")
             else:
                 out.append(f"race: {t.label} not reached (no evaluation ran)")
+        f = self.final_whole_clip
+        if f is not None:
+            done, n = f.get(whole_clip_key("robust", "completed")), f.get(whole_clip_key("robust", "rollouts"))
+            out.append(f"race: the final policy (iteration {f[ITERATION]}): robust whole-clip success "
+                       f"{f[WHOLE_CLIP_METRIC]:.3g}" + (f" ({done} of {n} rollouts)" if n else "")
+                       + ("" if f["in_clock"] else ", evaluated after the clock stopped"))
         summary = self.summary()
         if self.gpus > 1:
             out.append(f"race: one race over {self.gpus} ranks, launched within "
@@ -186,4 +209,5 @@ class Race:
                                                               "wall_from_first_iteration_s")}
                                if t.reached_at else {})} for t in self.thresholds],
             "evaluations": self.evaluations,
+            **({"final_whole_clip": self.final_whole_clip} if self.final_whole_clip is not None else {}),
         }

@@ -105,10 +105,33 @@ def test_whole_clip_thresholds_are_sustained_over_the_evaluations_that_measured_
 def test_the_race_evaluates_whole_clips_by_its_share_rule_unless_told_otherwise():
     defaults = race_overrides(["seed=3"])
     assert {"eval.whole_clip.conditions=[robust]", "eval.whole_clip.rollouts=128", "eval.whole_clip.after_success=0.95",
-            "eval.whole_clip.max_share=0.1"} <= set(defaults)
+            "eval.whole_clip.max_share=0.1", "eval.whole_clip.at_end=true"} <= set(defaults)
     assert not any(a.startswith("eval.whole_clip") for a in race_overrides(["seed=3"], whole_clip=False))
     mine = race_overrides(["eval.whole_clip.max_share=0.3"])
     assert "eval.whole_clip.max_share=0.1" not in mine and mine[-1] == "eval.whole_clip.max_share=0.3"
+
+
+def test_the_final_policys_whole_clips_are_recorded_and_say_whether_the_clock_saw_them():
+    race = Race([Threshold(WHOLE_CLIP_METRIC, 0.9)], budget_s=150.0, launch_unix_s=100.0)
+    assert race.on_evaluation(_trainer(100), {"eval_success_rate": 0.99}, now=260.0)  # budget spent, none measured
+    metrics = {"iterations": 100, "env_steps": 100_000, "final_eval_success_rate": 0.99,
+               f"final_{WHOLE_CLIP_METRIC}": 0.9296875, "final_whole_clip_robust_completed": 119,
+               "final_whole_clip_robust_rollouts": 128}
+    race.record_final(metrics)
+    assert race.final_whole_clip == {"iteration": 100, "env_steps": 100_000, WHOLE_CLIP_METRIC: 0.9296875,
+                                     "whole_clip_robust_completed": 119, "whole_clip_robust_rollouts": 128,
+                                     "in_clock": False}
+    record = race.to_json({}, None)
+    assert record["final_whole_clip"]["in_clock"] is False and record["thresholds"][0]["status"] == "censored"
+    assert "race: the final policy (iteration 100): robust whole-clip success 0.93 (119 of 128 rollouts), " \
+           "evaluated after the clock stopped" in race.lines()
+    seen = Race([Threshold(WHOLE_CLIP_METRIC, 0.9)], budget_s=150.0, launch_unix_s=100.0)
+    seen.on_evaluation(_trainer(100), {"eval_success_rate": 0.99, WHOLE_CLIP_METRIC: 0.9296875}, now=260.0)
+    seen.record_final(metrics)
+    assert seen.final_whole_clip["in_clock"] is True
+    none = Race([Threshold("eval_success_rate", 0.9)], budget_s=150.0)
+    none.record_final({"iterations": 100, "final_eval_success_rate": 0.99})  # --no-whole-clip: nothing to keep
+    assert none.final_whole_clip is None and "final_whole_clip" not in none.to_json({}, None)
 
 
 def test_one_evaluation_suffices_with_sustain_1():
@@ -236,4 +259,6 @@ def test_a_tiny_race_evaluates_whole_clips_and_records_them(tmp_path, monkeypatc
     assert record["thresholds"][2]["metric"] == WHOLE_CLIP_METRIC
     measured = [e[WHOLE_CLIP_METRIC] for e in record["evaluations"]]
     assert len(measured) == 2 and all(0 <= m <= 1 for m in measured)
+    final = record["final_whole_clip"]  # measured in the clock at the last evaluation: not evaluated again
+    assert final["iteration"] == 2 and final["in_clock"] is True and final[WHOLE_CLIP_METRIC] == measured[-1]
     assert (tmp_path / "run" / "whole_clip.parquet").exists()
