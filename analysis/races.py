@@ -26,7 +26,6 @@ from bmimic.cli.startup import leave_working_directory
 leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.startup); no MuJoCo here
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -39,11 +38,9 @@ from analysis import REFUSED, AnalysisError, error_line
 from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
 from analysis.palette import arm_colors
+from analysis.race_files import EVALUATION_KEYS, THRESHOLD_KEYS, read_race
 from bmimic.cli.common import path_arg
-from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE, whole_clip_key
-
-EVALUATION_KEYS = (ITERATION, ENV_STEPS, "wall_from_launch_s", SUCCESS_RATE, MPKPE_REL_MM)
-"""Keys every evaluation record of a race JSON must have."""
+from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, SUCCESS_RATE, whole_clip_key
 
 LABEL_IGNORED = ("seed", "hydra.", "logger", "progress_bar", "motion", "eval.", "run_name")
 """Overrides that do not name the trained config (its seed, where it logs, how it is evaluated)."""
@@ -53,49 +50,6 @@ SUCCESS_TARGET = 0.99
 
 LINESTYLES = ("-", "--", ":", "-.")
 """Line style per seed (cycles past four seeds)."""
-
-
-def read_race(path: str | Path) -> dict:
-    """One race JSON, checked: its kind, its config and every evaluation's keys (AnalysisError, one line
-    naming the file, otherwise)."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise AnalysisError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise AnalysisError(f"{path}: not a readable JSON file ({str(e).splitlines()[0]})") from None
-    if not isinstance(data, dict) or data.get("kind") != RACE_KIND:
-        kind = data.get("kind") if isinstance(data, dict) else type(data).__name__
-        raise AnalysisError(f"{path}: kind is {kind!r}, expected {RACE_KIND!r} (a bmimic.race --json file)")
-    if not isinstance(data.get("config"), dict):
-        raise AnalysisError(f"{path}: no 'config' object")
-    evals = data.get("evaluations")
-    if not isinstance(evals, list):
-        raise AnalysisError(f"{path}: 'evaluations' is not a list")
-    for i, ev in enumerate(evals):
-        missing = [k for k in EVALUATION_KEYS if not isinstance(ev, dict) or k not in ev]
-        if missing:
-            raise AnalysisError(f"{path}: evaluation {i} lacks {', '.join(missing)}")
-        bad = [k for k in EVALUATION_KEYS if not _number_or_null(ev[k])]
-        if bad or not (isinstance(ev[ITERATION], int) and not isinstance(ev[ITERATION], bool) and ev[ITERATION] >= 0):
-            key = bad[0] if bad else ITERATION
-            raise AnalysisError(f"{path}: evaluation {i}: {key} is {ev[key]!r}, not a number"
-                                f"{'' if bad else ' of iterations (an integer >= 0)'}")
-    thresholds = data.get("thresholds") or []
-    if not isinstance(thresholds, list) or not all(
-            isinstance(t, dict) and _number_or_null(t.get("threshold")) and t.get("threshold") is not None
-            and all(_number_or_null(t.get(k)) for k in THRESHOLD_KEYS[3:]) for t in thresholds):
-        raise AnalysisError(f"{path}: 'thresholds' must be a list of objects with a numeric threshold and "
-                            "numeric (or null) times")
-    if not isinstance(data["config"].get("overrides", []), list):
-        raise AnalysisError(f"{path}: config 'overrides' is not a list")
-    return data
-
-
-def _number_or_null(value) -> bool:
-    """A JSON number (not a boolean) or null (a value that was not a number when written)."""
-    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
 
 
 def config_label(config: dict) -> str:
@@ -141,11 +95,6 @@ def race_evaluations(races: list[tuple[str, dict]]) -> pd.DataFrame:
     rows = [{**_identity(name, data), **{k: e[k] for k in EVALUATION_KEYS}}
             for name, data in races for e in data["evaluations"]]
     return pd.DataFrame(rows, columns=[*IDENTITY, *EVALUATION_KEYS])
-
-
-THRESHOLD_KEYS = ("metric", "threshold", "status", ITERATION, ENV_STEPS, "wall_from_launch_s",
-                  "wall_from_first_iteration_s")
-"""What a race JSON records of each threshold (the times empty when censored)."""
 
 
 def race_thresholds(races: list[tuple[str, dict]]) -> pd.DataFrame:

@@ -58,6 +58,17 @@ class Threshold:
         x = float(summary.get(self.metric, math.nan))
         return x >= self.value if self.metric.endswith("success_rate") else x <= self.value
 
+    def observe(self, record: dict, summary: dict, sustain: int) -> None:
+        """One evaluation (`record`, with `summary` its measures): a threshold not measured in it waits (whole
+        clips run less often than windows); reached once met `sustain` evaluations in a row that measured it,
+        timed at the first of them."""
+        if self.metric not in summary:
+            return
+        self.streak = self.streak + 1 if self.met(summary) else 0
+        self.first = (record if self.streak == 1 else self.first) if self.streak else None
+        if self.reached_at is None and self.streak >= sustain:
+            self.reached_at = self.first
+
     @property
     def label(self) -> str:
         if self.metric == "eval_success_rate":
@@ -114,12 +125,7 @@ class Race:
             record[WHOLE_CLIP_METRIC] = float(summary[WHOLE_CLIP_METRIC])
         self.evaluations.append(record)
         for t in self.thresholds:
-            if t.metric not in summary:  # not measured this time (whole clips run less often): the streak waits
-                continue
-            t.streak = t.streak + 1 if t.met(summary) else 0
-            t.first = (record if t.streak == 1 else t.first) if t.streak else None
-            if t.reached_at is None and t.streak >= self.sustain:
-                t.reached_at = t.first
+            t.observe(record, summary, self.sustain)
         if all(t.reached_at is not None for t in self.thresholds):
             self.stopped = "every threshold reached"
             return True
@@ -203,11 +209,44 @@ class Race:
             "machine": provenance,
             **self.ranks(config.get("num_envs")),
             **self.summary(),
-            "thresholds": [{"metric": t.metric, "threshold": t.value,
-                            "status": "reached" if t.reached_at else "censored",
-                            **({k: t.reached_at[k] for k in (ITERATION, ENV_STEPS, "wall_from_launch_s",
-                                                              "wall_from_first_iteration_s")}
-                               if t.reached_at else {})} for t in self.thresholds],
+            "thresholds": threshold_entries(self.thresholds),
             "evaluations": self.evaluations,
             **({"final_whole_clip": self.final_whole_clip} if self.final_whole_clip is not None else {}),
         }
+
+
+def threshold_entries(thresholds: list[Threshold]) -> list[dict]:
+    """race.json's `thresholds`: each one's metric, value, status and, when reached, where and when."""
+    return [{"metric": t.metric, "threshold": t.value, "status": "reached" if t.reached_at else "censored",
+             **({k: t.reached_at[k] for k in (ITERATION, ENV_STEPS, "wall_from_launch_s", "wall_from_first_iteration_s")}
+                if t.reached_at else {})} for t in thresholds]
+
+
+RECORD_SUMMARY_KEYS = {SUCCESS_RATE: "eval_success_rate", MPKPE_REL_MM: summary_key(MPKPE_REL_MM),
+                       WHOLE_CLIP_METRIC: WHOLE_CLIP_METRIC}
+"""An evaluation record's measures (race.json) under the evaluation summary's names the thresholds read."""
+
+
+def rejudge(record: dict, measured: dict[int, float], source: str) -> dict:
+    """The race `record` (race.json) with robust whole-clip success measured afterwards (`measured`:
+    iteration -> success, e.g. from its checkpoints; each iteration must be one the race evaluated at) added
+    to its evaluations, and its thresholds decided again by the race's own rule (Threshold.observe) on the
+    race's clock. `source` says where the added values come from (`whole_clip_source`). What the race
+    measured itself is kept; an added value replaces none of it."""
+    evaluations = [dict(e) for e in record["evaluations"]]
+    at = {e[ITERATION]: e for e in evaluations}
+    missing = sorted(set(measured) - set(at))
+    if missing:
+        raise ValueError(f"iterations {', '.join(map(str, missing))} have no evaluation in the race's record "
+                         "(checkpoints align with evaluations when ppo.save_interval is a multiple of eval.every_iters)")
+    for it, value in measured.items():
+        if WHOLE_CLIP_METRIC not in at[it]:  # the race's own measurement stands
+            at[it].update({WHOLE_CLIP_METRIC: float(value), "whole_clip_after_the_race": True})
+    thresholds = [Threshold(t["metric"], float(t["threshold"])) for t in record["thresholds"]]
+    for e in sorted(evaluations, key=lambda e: e[ITERATION]):
+        summary = {name: e[key] for key, name in RECORD_SUMMARY_KEYS.items() if e.get(key) is not None}
+        for t in thresholds:
+            t.observe(e, summary, int(record["sustain"]))
+    return {**record, "evaluations": evaluations, "thresholds": threshold_entries(thresholds),
+            "whole_clip_source": source}
+
