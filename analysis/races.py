@@ -56,7 +56,9 @@ def config_label(config: dict) -> str:
     """What was trained, from a race's config: env, sampler, env count, then any other training override
     (seed, logging, motion and evaluation settings left out)."""
     overrides = [str(o) for o in config.get("overrides") or []]
-    env = next((o.split("=", 1)[1] for o in overrides if o.startswith("env=")), "beyondmimic")
+    # config["env"]: the env group the race trained (recorded since 2026-11-29); before, an override named it
+    # or the default (beyondmimic) ran.
+    env = config.get("env") or next((o.split("=", 1)[1] for o in overrides if o.startswith("env=")), "beyondmimic")
     parts = [f"env={env}", f"sampler={config.get('sampler', '?')}", f"num_envs={config.get('num_envs', '?')}"]
     named = ("env=", "sampler=", "num_envs=")
     parts += [o for o in overrides if not o.startswith(named) and not o.lstrip("+~").startswith(LABEL_IGNORED)]

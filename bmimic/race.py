@@ -217,8 +217,12 @@ def _race(argv: list[str] | None) -> int:
     # An absolute config path: the app runs from this module whether started with -m or imported.
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
     def app(cfg) -> float:
+        from hydra.core.hydra_config import HydraConfig
+
         out = launch(cfg, stop_rule=race.on_evaluation)
-        result["config"] = {"overrides": rest, "sampler": cfg.sampler.name, "motion": cfg.motion.name,
+        # The env group chosen (the race's default or an override): the overrides alone do not say it.
+        env = HydraConfig.get().runtime.choices.get("env") if HydraConfig.initialized() else None
+        result["config"] = {"overrides": rest, "env": env, "sampler": cfg.sampler.name, "motion": cfg.motion.name,
                             "env_action_rate": OmegaConf.select(cfg, "env.rewards.action_rate.weight"),
                             "num_envs": cfg.num_envs, "seed": cfg.seed, "device": cfg.device,
                             "eval": OmegaConf.to_container(cfg.eval)}

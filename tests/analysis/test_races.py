@@ -86,6 +86,9 @@ def test_config_label_names_what_was_trained_and_drops_seed_logging_and_evaluati
     assert config_label(cfg) == "env=tracking sampler=adaptive num_envs=8192 ppo.learning_rate=3e-4"
     assert config_label({"sampler": "uniform", "num_envs": 4096, "overrides": []}) == (
         "env=beyondmimic sampler=uniform num_envs=4096")
+    # A race records the env group it trained (its default env=tracking is in no override).
+    assert config_label({"env": "tracking", "sampler": "adaptive_hybrid", "num_envs": 4096, "overrides": []}) == (
+        "env=tracking sampler=adaptive_hybrid num_envs=4096")
 
 
 def test_the_figure_draws_one_line_per_race_on_each_panel_styled_by_seed(tmp_path):

@@ -187,6 +187,7 @@ def test_a_tiny_race_on_the_cpu_stops_at_its_thresholds_and_writes_its_record(tm
     assert record["thresholds"][0]["iteration"] == 1
     assert record["startup_s"] > 0 and 0 < record["eval_overhead"] < 1
     assert record["machine"]["device"] == "cpu" and record["config"]["eval"]["episodes_per_bin"] == 16
+    assert record["config"]["env"] == "tracking"  # the race's default env group, which no override names
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["iterations"] == 2  # the run itself ended where the race stopped, checkpoint and all
     assert (tmp_path / "run" / "checkpoints" / "model_2.pt").exists()
