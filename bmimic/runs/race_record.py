@@ -222,7 +222,7 @@ def threshold_entries(thresholds: list[Threshold]) -> list[dict]:
                 if t.reached_at else {})} for t in thresholds]
 
 
-RECORD_SUMMARY_KEYS = {SUCCESS_RATE: "eval_success_rate", MPKPE_REL_MM: summary_key(MPKPE_REL_MM),
+RECORD_SUMMARY_KEYS = {SUCCESS_RATE: summary_key(SUCCESS_RATE), MPKPE_REL_MM: summary_key(MPKPE_REL_MM),
                        WHOLE_CLIP_METRIC: WHOLE_CLIP_METRIC}
 """An evaluation record's measures (race.json) under the evaluation summary's names the thresholds read."""
 
