@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 from analysis import curve_plots, plots
 from analysis.files import save_figure, write_csv
 from analysis.knobs import THRESHOLDS
-from analysis.markdown import fmt, md_table
+from analysis.markdown import fmt, is_nan, md_table
 from analysis.speedup_curve import speedup_curve
 from analysis.tables import ReportOptions
 from bmimic.runs.schema import BIN, FAILURE_RATE, ITERATION
@@ -158,7 +158,11 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
           "Both intervals are unadjusted for the knob's levels and unbounded where the seeds cannot bound them "
           "(one or two seeds against five). \"differs\": some level's final failure or time differs from the "
           f"reference's at p < {alpha:g} (exact permutation / Gehan test) after Holm's step-down adjustment over "
-          "the row's tests; \"uncorrected\" lists the levels below it before adjustment.", ""]
+          "the row's tests; \"uncorrected\" lists the levels below it before adjustment. Trend: Spearman's rank "
+          "correlation of each run's final failure with the knob's value over all of the knob's runs (the "
+          "reference's included; > 0: failure rises with the value) and its two-sided permutation p (final "
+          "failures shuffled over the runs), a question about the whole range, outside the verdict and unadjusted.",
+          ""]
     view = pd.DataFrame({
         "knob": summary["knob"],
         "reference": summary["reference_value"].map(fmt),
@@ -170,6 +174,9 @@ def knob_section(levels: pd.DataFrame, summary: pd.DataFrame, uniform: str | Non
             f"{fmt(r.lowest_failure_value)}: {fmt(r.lowest_failure_difference)}"
             f"{_bracket(r.lowest_failure_low, r.lowest_failure_high)} / {fmt(r.highest_failure_value)}: "
             f"{fmt(r.highest_failure_difference)}{_bracket(r.highest_failure_low, r.highest_failure_high)}"
+            for r in summary.itertuples(index=False)],
+        "trend of final failure over values (ρ, p)": [
+            "–" if is_nan(r.trend_rho) else f"{r.trend_rho:+.2f} (p = {fmt(r.trend_p)}, {int(r.trend_runs)} runs)"
             for r in summary.itertuples(index=False)],
         "tests": summary["tests"],
         "verdict": [(f"{v} ({d})" if d else v) + (f"; uncorrected: {u}" if u and u != d else "")

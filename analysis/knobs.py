@@ -20,6 +20,13 @@ Per level (``knob_levels``), against the reference and against uniform:
   permutation p of the censored times; the same against uniform, the speedup a user of the level
   gets over not adapting at all.
 
+Per knob (``knob_trends``): whether final failure moves monotonically with the knob's value over all of the
+knob's runs, the reference's included: Spearman's rank correlation of value and final failure (average ranks
+for ties: the seeds of a level share its value) and its two-sided permutation p (final failures shuffled over
+the runs, exchangeable when the knob changes nothing). It asks a different question from the per-level tests
+(a dose-response over the whole range rather than one level against the reference), is post hoc in studies
+that did not plan it, and stays outside the verdict's Holm family.
+
 Per knob (``knob_summary``): the levels' speedups over the reference at the first threshold, lowest and
 highest, with their seed ranges; the final-failure differences, lowest and highest, with their
 intervals; and which levels
@@ -76,10 +83,15 @@ SUMMARY_COLUMNS = ["knob", "reference_value", "levels",
                    "lowest_failure_value", "lowest_failure_difference", "lowest_failure_low", "lowest_failure_high",
                    "highest_failure_value", "highest_failure_difference", "highest_failure_low",
                    "highest_failure_high",
-                   "tests", "differing_levels_uncorrected", "differing_levels", "verdict"]
+                   "tests", "differing_levels_uncorrected", "differing_levels", "verdict",
+                   "trend_runs", "trend_rho", "trend_p"]
 """Columns of knob_summary.csv, one row per knob (module docstring; speedups at THRESHOLDS[0]):
 ``differing_levels_uncorrected`` the levels with some p < alpha, ``differing_levels`` those with some
-Holm-adjusted p < alpha over the row's ``tests``, which the ``verdict`` follows."""
+Holm-adjusted p < alpha over the row's ``tests``, which the ``verdict`` follows; ``trend_rho``/``trend_p``
+knob_trends' rank correlation of value and final failure over the knob's ``trend_runs`` runs (NaN without it)."""
+
+TREND_COLUMNS = ["knob", "trend_runs", "trend_rho", "trend_p"]
+"""Columns of knob_trends (module docstring)."""
 
 
 def _numeric(value) -> bool:
@@ -174,8 +186,41 @@ def knob_levels(knobs: pd.DataFrame, final_failure: pd.DataFrame, overall: pd.Da
     return pd.DataFrame(rows, columns=LEVEL_COLUMNS)
 
 
-def knob_summary(levels: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
-    """SUMMARY_COLUMNS: one row per knob of ``levels`` (knob_levels)."""
+def rank_trend(values, outcomes, n_resamples: int = 9999, seed: int = 0) -> tuple[float, float]:
+    """(rho, p): Spearman's rank correlation of ``values`` and ``outcomes`` (average ranks for ties) and its
+    two-sided permutation p (outcomes shuffled over the pairs: exact up to EXACT_PERMUTATIONS orders, else
+    ``n_resamples`` seeded ones). (NaN, NaN) with fewer than 3 pairs or a constant side. NaN pairs dropped."""
+    from scipy import stats
+
+    x, y = np.asarray(values, dtype=float), np.asarray(outcomes, dtype=float)
+    keep = ~(np.isnan(x) | np.isnan(y))
+    x, y = pd.Series(x[keep]).rank().to_numpy(), pd.Series(y[keep]).rank().to_numpy()
+    if len(x) < 3 or np.all(x == x[0]) or np.all(y == y[0]):
+        return math.nan, math.nan
+
+    def rho(a, axis=-1):  # Pearson's r of the ranks: x fixed, a permuted
+        a_c = a - a.mean(axis=axis, keepdims=True)
+        x_c = x - x.mean()
+        return (a_c * x_c).sum(axis=axis) / np.sqrt((a_c ** 2).sum(axis=axis) * (x_c ** 2).sum())
+
+    res = stats.permutation_test((y,), rho, permutation_type="pairings", alternative="two-sided", vectorized=True,
+                                 n_resamples=n_resamples, rng=np.random.default_rng(seed))
+    return float(res.statistic), float(min(1.0, res.pvalue))
+
+
+def knob_trends(knobs: pd.DataFrame, final_failure: pd.DataFrame, opts: ReportOptions) -> pd.DataFrame:
+    """TREND_COLUMNS, one row per knob of ``knobs`` (knob_arms): rank_trend of the knob's value against each
+    run's final failure (``final_failure``: ``arm, seed, value`` per run) over the runs of its levels."""
+    rows = []
+    for knob, g in knobs.groupby("knob", sort=True):
+        runs = final_failure.merge(g[["arm", "value"]].rename(columns={"value": "level"}), on="arm")
+        r, p = rank_trend(runs["level"], runs["value"], opts.n_permutations, opts.bootstrap_seed)
+        rows.append({"knob": knob, "trend_runs": len(runs), "trend_rho": r, "trend_p": p})
+    return pd.DataFrame(rows, columns=TREND_COLUMNS)
+
+
+def knob_summary(levels: pd.DataFrame, alpha: float = 0.05, trends: pd.DataFrame | None = None) -> pd.DataFrame:
+    """SUMMARY_COLUMNS: one row per knob of ``levels`` (knob_levels), with ``trends`` (knob_trends) if given."""
     tag = int(round(THRESHOLDS[0] * 100))
     rows = []
     for knob, g in levels.groupby("knob", sort=True):
@@ -211,8 +256,10 @@ def knob_summary(levels: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
             "differing_levels": ", ".join(f"{v:g}" for v in sorted(differing["value"])),
             "verdict": "differs" if len(differing) else "within noise",
         })
-    return pd.DataFrame(rows, columns=SUMMARY_COLUMNS)
+    out = pd.DataFrame(rows, columns=[c for c in SUMMARY_COLUMNS if not c.startswith("trend_")])
+    trend = trends if trends is not None else pd.DataFrame(columns=TREND_COLUMNS)
+    return out.merge(trend, on="knob", how="left")[SUMMARY_COLUMNS]
 
 
-__all__ = ["KNOB_ARM_COLUMNS", "LEVEL_COLUMNS", "SUMMARY_COLUMNS", "THRESHOLDS", "knob_arms", "knob_levels",
-           "knob_summary"]
+__all__ = ["KNOB_ARM_COLUMNS", "LEVEL_COLUMNS", "SUMMARY_COLUMNS", "THRESHOLDS", "TREND_COLUMNS", "knob_arms",
+           "knob_levels", "knob_summary", "knob_trends", "rank_trend"]

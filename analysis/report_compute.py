@@ -13,7 +13,7 @@ import pandas as pd
 
 from analysis import bin_tables, clip_tables, comparisons, tables, whole_clip
 from analysis.adaptation import at_evaluations, sampling_support, signal_summary, support_summary
-from analysis.knobs import knob_arms, knob_levels, knob_summary
+from analysis.knobs import knob_arms, knob_levels, knob_summary, knob_trends
 from analysis.load import load_runs, load_segments, load_table, short_arm_labels
 from analysis.machines import machine_kinds, wall_time_comparable
 from analysis.metrics import (
@@ -267,7 +267,8 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
         uniform = sorted(set(runs.loc[runs["included"] & (runs["sampler"] == "uniform"), "arm"]))
         sensitivity.uniform_arm = uniform[0] if len(uniform) == 1 else None
         sensitivity.knob_levels = knob_levels(knobs, per_run["final_failure"], overall, opts, sensitivity.uniform_arm)
-        sensitivity.knob_summary = knob_summary(sensitivity.knob_levels, opts.alpha)
+        sensitivity.knob_summary = knob_summary(sensitivity.knob_levels, opts.alpha,
+                                                knob_trends(knobs, per_run["final_failure"], opts))
     return ReportData(
         inputs=Inputs(runs, opts, baseline, uniform_arms, kinds, wall_ok, measures, seeds, common[ITERATION],
                       tables.use_bootstrap(runs)),

@@ -9,7 +9,7 @@ import shutil
 import pandas as pd
 import pytest
 
-from analysis.knobs import knob_arms, knob_levels, knob_summary
+from analysis.knobs import knob_arms, knob_levels, knob_summary, knob_trends, rank_trend
 from analysis.load import load_runs
 from analysis.report import build_report
 from analysis.report_compute import read_runs
@@ -144,11 +144,39 @@ def test_the_verdict_follows_holm_over_the_rows_tests():
     assert s["tests"] == 1 and s["differing_levels"] == "0.5" and s["verdict"] == "differs"
 
 
+def test_rank_trend_is_spearmans_rho_with_a_permutation_p():
+    # a perfectly monotone 6 pairs: rho +-1, and exactly 2 of the 720 orders are as extreme
+    assert rank_trend([1, 2, 3, 4, 5, 6], [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]) == (1.0, pytest.approx(2 / 720))
+    assert rank_trend([1, 2, 3, 4, 5, 6], [6, 5, 4, 3, 2, 1]) == (-1.0, pytest.approx(2 / 720))
+    # ties (seeds share their level's value) take average ranks, as scipy's spearmanr
+    values = [0.25] * 3 + [0.5] * 3 + [1.0] * 5 + [2.0] * 3 + [4.0] * 3
+    outcomes = [0.3, 0.1, 0.7, 0.2, 0.9, 0.4, 0.5, 0.8, 0.6, 0.05, 0.75, 0.65, 0.15, 0.35, 0.85, 0.45, 0.55]
+    rho, p = rank_trend(values, outcomes)
+    from scipy.stats import spearmanr
+    assert rho == pytest.approx(spearmanr(values, outcomes).statistic) and 0.0 < p <= 1.0
+    assert all(math.isnan(x) for x in rank_trend([1, 2], [3, 4]) + rank_trend([1, 1, 1], [1, 2, 3]))
+
+
+def test_knob_trends_find_a_planted_dose_response_and_not_an_absent_one():
+    # knob "up": failure rises with the value in every seed; knob "flat": the same values at every level
+    rows, knobs = [], []
+    for knob, rise in (("up", 0.01), ("flat", 0.0)):
+        for v in (0.5, 1.0, 2.0, 4.0):
+            arm = f"{knob}={v}"
+            knobs.append({"arm": arm, "knob": knob, "value": v, "reference": f"{knob}=1.0"})
+            rows += [{"arm": arm, "seed": s, "value": 0.05 + rise * v + 0.001 * s} for s in range(3)]
+    trends = knob_trends(pd.DataFrame(knobs), pd.DataFrame(rows), ReportOptions()).set_index("knob")
+    assert trends.loc["up", "trend_runs"] == 12 and trends.loc["up", "trend_rho"] > 0.9
+    assert trends.loc["up", "trend_p"] < 0.001
+    assert abs(trends.loc["flat", "trend_rho"]) < 0.2 and trends.loc["flat", "trend_p"] > 0.5
+
+
 def test_report_has_the_knob_section_and_figures(knob_report, tmp_path):
     out, _, _ = knob_report
     text = (out / "report.md").read_text()
     assert "## Knobs" in text and "| sampler.gamma | 0.9 | 0.5, 0.9, 1 |" in text
     assert "vs reference [95% interval] (p)" in text and "exact permutation test inverted" in text
+    assert "trend of final failure over values (ρ, p)" in text and "Spearman's rank correlation" in text
     for key in ("gamma", "lambda_uniform"):
         for kind in ("speedup", "bins", "sampling"):
             assert (out / f"knob_{key}_{kind}.png").stat().st_size > 0
