@@ -263,3 +263,36 @@ def test_a_tiny_race_evaluates_whole_clips_and_records_them(tmp_path, monkeypatc
     final = record["final_whole_clip"]  # measured in the clock at the last evaluation: not evaluated again
     assert final["iteration"] == 2 and final["in_clock"] is True and final[WHOLE_CLIP_METRIC] == measured[-1]
     assert (tmp_path / "run" / "whole_clip.parquet").exists()
+
+
+@pytest.mark.slow
+def test_checkpoints_evaluated_after_a_tiny_race_decide_its_whole_clip_line(tmp_path, monkeypatch):
+    """The whole chain of analysis.race_whole_clip: a race whose share rule leaves no room for whole clips
+    (as on an H200 at 4096 envs), then `bmimic.eval CHECKPOINT --whole-clip` of each checkpoint, then the
+    thresholds decided afterwards on the race's clock."""
+    from analysis.race_whole_clip import main as rejudge_main
+    from bmimic.eval import main as eval_main
+    from bmimic.race import main
+
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "run"
+    args = ["--success", "0.01", "--mpkpe-rel-mm", "1000", "--whole-clip-success", "0.5",
+            *[a for a in TINY if not a.startswith(("max_iterations", "motion"))], "motion=easy_only", "motion.duration_s=7",
+            "max_iterations=2", "eval.every_iters=1", "ppo.save_interval=1", "eval.whole_clip.rollouts=2",
+            "eval.whole_clip.max_share=1e-9", f"hydra.run.dir={run}", "logger=none"]
+    assert main(args) == 0
+    record = json.loads((run / "race.json").read_text())
+    assert not any(WHOLE_CLIP_METRIC in e for e in record["evaluations"])  # no room in the clock
+    assert record["final_whole_clip"]["iteration"] == 2 and record["final_whole_clip"]["in_clock"] is False
+    for it in (1, 2):
+        assert eval_main([str(run / "checkpoints" / f"model_{it}.pt"), "--whole-clip", "2", "--conditions", "robust"]) == 0
+    out = tmp_path / "rejudged.json"
+    assert rejudge_main([str(run), "--json", str(out)]) == 0
+    rejudged = json.loads(out.read_text())
+    measured = {e["iteration"]: e[WHOLE_CLIP_METRIC] for e in rejudged["evaluations"] if WHOLE_CLIP_METRIC in e}
+    assert sorted(measured) == [1, 2] and all(0.0 <= v <= 1.0 for v in measured.values())
+    assert rejudged["thresholds"][:2] == record["thresholds"][:2]  # the window lines stand as the race decided them
+    line = rejudged["thresholds"][2]
+    assert line["metric"] == WHOLE_CLIP_METRIC and line["status"] == ("reached" if min(measured.values()) >= 0.5
+                                                                       else "censored")
+    assert "MuJoCo-Warp" in rejudged["whole_clip_source"]
