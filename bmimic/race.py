@@ -45,6 +45,13 @@ one every 15 minutes of racing, so whole-clip times are that coarse (docs/benchm
 take more of the time, none (measured: 6.4% on an H200 at 4096 envs, and no whole-clip evaluation in 1250 s). So
 the race also evaluates the final policy's whole clips once after its clock stopped (race.json's
 `final_whole_clip`, not a threshold's time): every race says where its policy ended.
+
+`--native-whole-clip W` judges the whole-clip thresholds in native MuJoCo instead, beside training: one
+`bmimic.sim2sim` of the newest checkpoint's ONNX at a time on W CPU processes (bmimic.runs.race_judge; the
+sim2sim extra, onnxruntime), checkpoints every 200 iterations (RACE_NATIVE), each result placed at its
+checkpoint's evaluation, so the thresholds are timed at the policy and the GPU never pauses for them:
+
+    python -m bmimic.race --native-whole-clip 12 motion=lafan_dance1_full num_envs=4096
 """
 
 from bmimic.cli.startup import start_command
@@ -92,6 +99,14 @@ and once more for the final policy after the clock stopped (race.json's `final_w
 6.4% of the wall time, so the share rule never had room."""
 
 
+RACE_NATIVE = {"ppo.save_interval": 200, "eval.whole_clip.rollouts": 128, "eval.whole_clip.after_success": 0.95}
+"""With --native-whole-clip, unless the overrides set them: a checkpoint (and its ONNX export, which the judge
+evaluates) every 200 iterations, a multiple of the evaluation's 100 so that each result lands on an evaluation
+(the default 500 would judge the dance every ~2 minutes of an H200; a save every 100 would cost ~5% of the wall
+time in exports); 128 robust rollouts per judgement, from the first window evaluation at 95% success, as
+RACE_WHOLE_CLIP's. None of these turns MuJoCo-Warp's whole-clip evaluation on."""
+
+
 def _floats(text: str) -> tuple[float, ...]:
     try:
         values = tuple(float(x) for x in text.split(",") if x.strip())
@@ -115,6 +130,9 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--whole-clip-success", type=_floats, default=DEFAULT_WHOLE_CLIP_SUCCESS,
                    help="robust whole-clip success thresholds (default 0.9,0.95; when whole clips are evaluated: below)")
     p.add_argument("--no-whole-clip", action="store_true", help="race to the window thresholds only")
+    p.add_argument("--native-whole-clip", type=int, metavar="WORKERS", default=None,
+                   help="judge the whole-clip thresholds in native MuJoCo on WORKERS CPU processes beside training "
+                        "(bmimic.runs.race_judge; needs onnxruntime) instead of MuJoCo-Warp evaluations that pause it")
     p.add_argument("--sustain", type=int, default=2, help="evaluations in a row a threshold must hold (default 2)")
     p.add_argument("--json", type=path_arg, default=None, help="also write the result here (e.g. docs/bench/...json)")
     args, rest = p.parse_known_args(argv)
@@ -130,6 +148,10 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         problems.append("--mpkpe-rel-mm thresholds must be > 0 mm")
     if args.sustain < 1:
         problems.append(f"--sustain must be >= 1, got {args.sustain}")
+    if args.native_whole_clip is not None and args.native_whole_clip < 1:
+        problems.append(f"--native-whole-clip must be >= 1 worker, got {args.native_whole_clip}")
+    if args.native_whole_clip is not None and args.no_whole_clip:
+        problems.append("--native-whole-clip and --no-whole-clip contradict each other")
     try:
         if args.json is not None:
             check_output_file("--json", args.json)
@@ -159,12 +181,13 @@ def _refuse(problem: str) -> None:
         torch.distributed.barrier()  # rank 0 has printed
 
 
-def race_overrides(rest: list[str], whole_clip: bool = True) -> list[str]:
-    """The race's configuration (RACE_CONFIG), evaluation schedules (`whole_clip`: RACE_WHOLE_CLIP too) and run
-    name, each unless overridden."""
+def race_overrides(rest: list[str], whole_clip: bool = True, native: bool = False) -> list[str]:
+    """The race's configuration (RACE_CONFIG), evaluation schedules (`whole_clip`: RACE_WHOLE_CLIP too; `native`:
+    RACE_NATIVE instead, the judge's settings) and run name, each unless overridden."""
     keys = {a.split("=", 1)[0].lstrip("+") for a in rest if "=" in a}
+    schedule = RACE_NATIVE if native else RACE_WHOLE_CLIP if whole_clip else {}
     defaults = {"eval.every_iters": RACE_EVAL_EVERY, "eval.episodes_per_bin": RACE_EPISODES_PER_BIN, "run_name": "race",
-                **RACE_CONFIG, **(RACE_WHOLE_CLIP if whole_clip else {})}
+                **RACE_CONFIG, **schedule}
     extra = [f"{k}={v}" for k, v in defaults.items() if k not in keys]
     return [*extra, *rest]
 
@@ -188,11 +211,12 @@ def main(argv: list[str] | None = None) -> int:
 
 def _race(argv: list[str] | None) -> int:
     args, rest = parse_args(sys.argv[1:] if argv is None else argv)
+    native = args.native_whole_clip is not None
     from bmimic.config import ConfigError, check_hydra_flags, check_overrides
 
     try:  # before anything trains: flags Hydra refuses with a traceback, overrides that do not compose (one
         check_hydra_flags(rest)  # line each, as bmimic.train)
-        check_overrides(race_overrides(rest, whole_clip=not args.no_whole_clip))
+        check_overrides(race_overrides(rest, whole_clip=not args.no_whole_clip, native=native))
     except ConfigError as e:
         _refuse(str(e))
         return 2
@@ -200,6 +224,10 @@ def _race(argv: list[str] | None) -> int:
                   + [Threshold("eval_mpkpe_rel_mm", v) for v in args.mpkpe_rel_mm]
                   + ([] if args.no_whole_clip else [Threshold(WHOLE_CLIP_METRIC, v) for v in args.whole_clip_success]))
     race = Race(thresholds, args.budget_s, args.sustain)
+    if native and process_rank() == 0:  # rank 0 decides; the judge's children run on its host's CPU cores
+        from bmimic.runs.race_judge import NativeJudge
+
+        race.judge = NativeJudge(args.native_whole_clip)  # its rollouts and opening from the config (app)
     result: dict = {}
     if process_world() > 1:
         init_distributed()  # the process group training would join: joined now, to gather the launch times
@@ -219,6 +247,14 @@ def _race(argv: list[str] | None) -> int:
     def app(cfg) -> float:
         from hydra.core.hydra_config import HydraConfig
 
+        if native and cfg.ppo.save_interval % cfg.eval.every_iters:
+            _refuse(f"--native-whole-clip: ppo.save_interval ({cfg.ppo.save_interval}) must be a multiple of "
+                    f"eval.every_iters ({cfg.eval.every_iters}), so that each judged checkpoint falls on an evaluation")
+            raise SystemExit(2)
+        if race.judge is not None:
+            race.judge.rollouts = int(cfg.eval.whole_clip.rollouts)
+            race.judge.after_success = float(cfg.eval.whole_clip.after_success or 0.0)
+            race.judge.seed = int(cfg.seed)
         out = launch(cfg, stop_rule=race.on_evaluation)
         # The env group chosen (the race's default or an override): the overrides alone do not say it.
         env = HydraConfig.get().runtime.choices.get("env") if HydraConfig.initialized() else None
@@ -229,7 +265,7 @@ def _race(argv: list[str] | None) -> int:
         return out
 
     saved = sys.argv
-    sys.argv = [saved[0], *race_overrides(rest, whole_clip=not args.no_whole_clip)]
+    sys.argv = [saved[0], *race_overrides(rest, whole_clip=not args.no_whole_clip, native=native)]
     try:
         app()
     except SystemExit as e:  # launch's one-line refusals (exit 2) end the race the same way
@@ -247,7 +283,11 @@ def _race(argv: list[str] | None) -> int:
     if race.run_dir is None:
         print("error: the race ran no evaluation (eval.every_iters=0, or max_iterations below it)", file=sys.stderr)
         return 2
-    race.record_final(read_json(Path(race.run_dir) / METRICS) or {})
+    metrics = read_json(Path(race.run_dir) / METRICS) or {}
+    if race.judge is not None:  # the final policy in native MuJoCo, after the clock (what the judge had running stops)
+        race.record_final_native(race.judge.judge_now(race.run_dir, int(metrics.get("iterations", -1))), metrics)
+    else:
+        race.record_final(metrics)
     record = race.to_json(result.get("config", {}), read_json(Path(race.run_dir) / PROVENANCE))
     atomic_write_json(Path(race.run_dir) / RACE, record)
     if args.json is not None:

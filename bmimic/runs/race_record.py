@@ -9,6 +9,7 @@ import math
 import os
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from bmimic.runs.folder import portable_path
 from bmimic.runs.schema import (
@@ -95,6 +96,9 @@ class Race:
     """Under torchrun: every rank's launch, in rank order (`launch_unix_s` is the earliest); else empty."""
     final_whole_clip: dict | None = None
     """The final policy's robust whole-clip evaluation (record_final), whether or not the clock saw it."""
+    judge: Any = None
+    """A bmimic.runs.race_judge.NativeJudge (--native-whole-clip): whole clips judged in native MuJoCo beside
+    training, each result placed at its checkpoint's evaluation (None: MuJoCo-Warp's, in the evaluations)."""
 
     def join_ranks(self, launches: list[float]) -> None:
         """One race over the ranks whose launch times these are: the clock starts at the earliest."""
@@ -126,6 +130,9 @@ class Race:
         self.evaluations.append(record)
         for t in self.thresholds:
             t.observe(record, summary, self.sustain)
+        if self.judge is not None:
+            for it, value in self.judge.poll(trainer.run_dir, float(summary.get("eval_success_rate", math.nan))):
+                self.judged(it, value)
         if all(t.reached_at is not None for t in self.thresholds):
             self.stopped = "every threshold reached"
             return True
@@ -133,6 +140,17 @@ class Race:
             self.stopped = f"wall budget of {self.budget_s:g} s from launch"
             return True
         return False
+
+    def judged(self, iteration: int, value: float) -> None:
+        """A native whole-clip result of the checkpoint of `iteration`: kept in that iteration's evaluation
+        record (`whole_clip_native`) and observed by the whole-clip thresholds there, in checkpoint order."""
+        record = next((e for e in reversed(self.evaluations) if e[ITERATION] == iteration), None)
+        if record is None:  # the launch checks that checkpoints fall on evaluations; a stray one is no result
+            return
+        record.update({WHOLE_CLIP_METRIC: float(value), "whole_clip_native": True})
+        for t in self.thresholds:
+            if t.metric == WHOLE_CLIP_METRIC:
+                t.observe(record, {WHOLE_CLIP_METRIC: float(value)}, self.sustain)
 
     def record_final(self, metrics: dict) -> None:
         """Keep the final policy's robust whole-clip result from the run's metrics.json (`final_whole_clip_*`,
@@ -148,6 +166,13 @@ class Race:
             **{k: final[k] for k in (whole_clip_key("robust", "completed"), whole_clip_key("robust", "rollouts"))
                if k in final},
             "in_clock": last.get(ITERATION) == it and WHOLE_CLIP_METRIC in last}
+
+    def record_final_native(self, value: float | None, metrics: dict) -> None:
+        """The final policy's robust whole-clip success in native MuJoCo (the judge's, after the clock)."""
+        if value is None:
+            return
+        self.final_whole_clip = {ITERATION: int(metrics.get("iterations", -1)), ENV_STEPS: metrics.get(ENV_STEPS),
+                                 WHOLE_CLIP_METRIC: float(value), "native": True, "in_clock": False}
 
     def lines(self) -> list[str]:
         """One line per threshold, then where the time went."""
@@ -167,8 +192,9 @@ class Race:
         f = self.final_whole_clip
         if f is not None:
             done, n = f.get(whole_clip_key("robust", "completed")), f.get(whole_clip_key("robust", "rollouts"))
-            out.append(f"race: the final policy (iteration {f[ITERATION]}): robust whole-clip success "
-                       f"{f[WHOLE_CLIP_METRIC]:.3g}" + (f" ({done} of {n} rollouts)" if n else "")
+            out.append(f"race: the final policy (iteration {f[ITERATION]}): robust whole-clip success"
+                       + (" in native MuJoCo " if f.get("native") else " ")
+                       + f"{f[WHOLE_CLIP_METRIC]:.3g}" + (f" ({done} of {n} rollouts)" if n else "")
                        + ("" if f["in_clock"] else ", evaluated after the clock stopped"))
         summary = self.summary()
         if self.gpus > 1:
