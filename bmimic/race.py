@@ -261,7 +261,8 @@ def _race(argv: list[str] | None) -> int:
         result["config"] = {"overrides": rest, "env": env, "sampler": cfg.sampler.name, "motion": cfg.motion.name,
                             "env_action_rate": OmegaConf.select(cfg, "env.rewards.action_rate.weight"),
                             "num_envs": cfg.num_envs, "seed": cfg.seed, "device": cfg.device,
-                            "eval": OmegaConf.to_container(cfg.eval)}
+                            "eval": OmegaConf.to_container(cfg.eval),
+                            **({"native_whole_clip_workers": args.native_whole_clip} if native else {})}
         return out
 
     saved = sys.argv
@@ -276,6 +277,8 @@ def _race(argv: list[str] | None) -> int:
         return 2
     finally:
         sys.argv = saved
+        if race.judge is not None:  # no sim2sim child outlives a race that failed or was interrupted
+            race.judge.close()
     if any(a in rest for a in ("--cfg", "-c", "--info", "-i", "--hydra-help", "--resolve")):
         return 0  # Hydra printed what was asked; nothing ran
     if process_rank() != 0:

@@ -135,6 +135,7 @@ def test_a_tiny_native_race_judges_its_checkpoints_beside_training(tmp_path, mon
             "eval.whole_clip.after_success=null", f"hydra.run.dir={run}", "logger=none"]
     assert main(args) == 0
     record = json.loads((run / "race.json").read_text())
+    assert record["config"]["native_whole_clip_workers"] == 1
     final = record["final_whole_clip"]  # the final policy, judged after the clock
     assert final["native"] is True and final["iteration"] == record["evaluations"][-1]["iteration"]
     assert 0.0 <= final[WHOLE_CLIP_METRIC] <= 1.0 and native_summary_path(run, final["iteration"]).is_file()
