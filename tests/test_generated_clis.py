@@ -122,6 +122,7 @@ COMMANDS = {
     "report": (_main("analysis.report"), []),
     "index": (_main("analysis.index"), []),
     "races": (_main("analysis.races"), []),
+    "race_whole_clip": (_main("analysis.race_whole_clip"), []),
 }
 """name -> (run(argv) -> exit status, the (module, attribute, replacement) stubs: `_reached` ends its
 expensive work; the others stand in for what a test machine lacks (OpenGL) or adds (a tracer))."""
@@ -225,7 +226,9 @@ FLAGS = {
     "races": {"--out": "path"},
     "race": {"--budget-s": NUMBERS, "--success": ["0.9", "0.9,0.99", "2", "x", "", "nan"],
              "--mpkpe-rel-mm": ["40", "0", "-1", "x"], "--sustain": NUMBERS, "--json": "path",
-             "--whole-clip-success": ["0.9", "0.9,0.95", "1.5", "x", "", "nan"], "--no-whole-clip": None},
+             "--whole-clip-success": ["0.9", "0.9,0.95", "1.5", "x", "", "nan"], "--no-whole-clip": None,
+             "--native-whole-clip": NUMBERS},
+    "race_whole_clip": {"--native": None, "--model": ["project", "menagerie", "", "x/y"], "--json": "path"},
     "index": {},
     "launch": {},
     "train": {},
