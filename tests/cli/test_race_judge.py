@@ -120,7 +120,8 @@ def test_a_judged_checkpoint_must_fall_on_an_evaluation(tmp_path, monkeypatch, c
     monkeypatch.chdir(tmp_path)
     assert main(["--native-whole-clip", "1", *TINY, "eval.every_iters=2", "ppo.save_interval=3",
                  f"hydra.run.dir={tmp_path / 'run'}", "logger=none"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    # (Warp's own CUDA notice may precede it when this is the first test of its process to import Warp)
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("Warp ")]
     assert len(err) == 1 and "ppo.save_interval (3) must be a multiple of eval.every_iters (2)" in err[0]
     assert not (tmp_path / "run" / "checkpoints").exists()
 
