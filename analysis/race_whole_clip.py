@@ -40,7 +40,8 @@ from bmimic.runs.folder import (
     WHOLE_CLIP_DIR,
     WHOLE_CLIP_FILES,
 )
-from bmimic.runs.race_record import WHOLE_CLIP_METRIC, rejudge
+from bmimic.runs.race_judge import NATIVE_MODEL
+from bmimic.runs.race_record import WHOLE_CLIP_METRIC, Threshold, rejudge
 from bmimic.runs.schema import ITERATION
 
 WARP_SUMMARY = WHOLE_CLIP_FILES[-1]
@@ -69,7 +70,7 @@ def _robust_success(path: Path, data: dict, native: bool) -> float | None:
     return float(value)
 
 
-def checkpoint_success(run_dir: str | Path, native: bool = False, model: str = "project") -> dict[int, tuple[float, Path]]:
+def checkpoint_success(run_dir: str | Path, native: bool = False, model: str = NATIVE_MODEL) -> dict[int, tuple[float, Path]]:
     """Iteration -> (robust whole-clip success, its summary file) of every checkpoint evaluated under RUN:
     RUN/eval/*/whole_clip (bmimic.eval) or, `native`, RUN/sim2sim/<model>/*/whole_clip (bmimic.sim2sim). Two
     summaries of one iteration that disagree are refused (one line naming both)."""
@@ -90,7 +91,7 @@ def checkpoint_success(run_dir: str | Path, native: bool = False, model: str = "
     return found
 
 
-def race_whole_clip(run_dir: str | Path, native: bool = False, model: str = "project") -> dict:
+def race_whole_clip(run_dir: str | Path, native: bool = False, model: str = NATIVE_MODEL) -> dict:
     """The run's race.json with its checkpoints' robust whole-clip success added and its thresholds decided
     again (module docstring); AnalysisError (one line) when there is nothing to add or it does not align."""
     run_dir = Path(run_dir)
@@ -109,11 +110,10 @@ def race_whole_clip(run_dir: str | Path, native: bool = False, model: str = "pro
 
 
 def lines(record: dict) -> list[str]:
-    """One line per threshold, as the race prints them, then where the whole clips came from."""
+    """One line per threshold, labelled as the race labels it, then where the whole clips came from."""
     out = []
     for t in record["thresholds"]:
-        name = (f"robust whole-clip success >= {t['threshold']:g}" if t["metric"] == WHOLE_CLIP_METRIC
-                else f"{t['metric']} {'<=' if 'mpkpe' in t['metric'] else '>='} {t['threshold']:g}")
+        name = Threshold(t["metric"], float(t["threshold"])).label
         if t["status"] == "reached":
             out.append(f"{name}: iteration {t[ITERATION]}, {t['wall_from_launch_s']:.0f} s from launch")
         else:
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m analysis.race_whole_clip", description=__doc__.splitlines()[0])
     parser.add_argument("run", type=path_arg, help="the race's run folder (its race.json and evaluated checkpoints)")
     parser.add_argument("--native", action="store_true", help="the checkpoints' native-MuJoCo whole clips (bmimic.sim2sim)")
-    parser.add_argument("--model", default="project", help="with --native: the sim2sim model's folder (default project)")
+    parser.add_argument("--model", default=NATIVE_MODEL, help="with --native: the sim2sim model's folder (default project)")
     parser.add_argument("--json", type=path_arg, help="write the record here (e.g. docs/bench/<name>.json)")
     args = parser.parse_args(argv)
     try:

@@ -224,10 +224,6 @@ def _race(argv: list[str] | None) -> int:
                   + [Threshold("eval_mpkpe_rel_mm", v) for v in args.mpkpe_rel_mm]
                   + ([] if args.no_whole_clip else [Threshold(WHOLE_CLIP_METRIC, v) for v in args.whole_clip_success]))
     race = Race(thresholds, args.budget_s, args.sustain)
-    if native and process_rank() == 0:  # rank 0 decides; the judge's children run on its host's CPU cores
-        from bmimic.runs.race_judge import NativeJudge
-
-        race.judge = NativeJudge(args.native_whole_clip)  # its rollouts and opening from the config (app)
     result: dict = {}
     if process_world() > 1:
         init_distributed()  # the process group training would join: joined now, to gather the launch times
@@ -251,10 +247,11 @@ def _race(argv: list[str] | None) -> int:
             _refuse(f"--native-whole-clip: ppo.save_interval ({cfg.ppo.save_interval}) must be a multiple of "
                     f"eval.every_iters ({cfg.eval.every_iters}), so that each judged checkpoint falls on an evaluation")
             raise SystemExit(2)
-        if race.judge is not None:
-            race.judge.rollouts = int(cfg.eval.whole_clip.rollouts)
-            race.judge.after_success = float(cfg.eval.whole_clip.after_success or 0.0)
-            race.judge.seed = int(cfg.seed)
+        if native and process_rank() == 0:  # rank 0 decides; the judge's children run on its host's CPU cores
+            from bmimic.runs.race_judge import NativeJudge
+
+            race.judge = NativeJudge(args.native_whole_clip, int(cfg.eval.whole_clip.rollouts), int(cfg.seed),
+                                     float(cfg.eval.whole_clip.after_success or 0.0))
         out = launch(cfg, stop_rule=race.on_evaluation)
         # The env group chosen (the race's default or an override): the overrides alone do not say it.
         env = HydraConfig.get().runtime.choices.get("env") if HydraConfig.initialized() else None

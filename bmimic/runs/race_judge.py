@@ -97,13 +97,17 @@ class NativeJudge:
         self.opened = self.opened or window_success >= self.after_success
         if self.opened and self.running is None and (newest := self._newest(run_dir)) is not None:
             it, onnx = newest
-            out = native_summary_path(run_dir, it).parent
-            out.parent.mkdir(parents=True, exist_ok=True)
-            with open(run_dir / SIM2SIM_DIR / JUDGE_LOG, "a") as f:
-                self.running = (it, subprocess.Popen(self.command(onnx, out), stdout=f, stderr=subprocess.STDOUT,
-                                                     stdin=subprocess.DEVNULL))
+            self.running = (it, self._start(run_dir, it, onnx))
             self.started.append(it)
         return done
+
+    def _start(self, run_dir: Path, iteration: int, onnx: Path) -> subprocess.Popen:
+        """The child evaluating `onnx` (checkpoint `iteration`), its output appended to the judge's log."""
+        out = native_summary_path(run_dir, iteration).parent
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with open(run_dir / SIM2SIM_DIR / JUDGE_LOG, "a") as f:  # the child keeps its own handle
+            return subprocess.Popen(self.command(onnx, out), stdout=f, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL)
 
     def judge_now(self, run_dir: str | Path, iteration: int) -> float | None:
         """Evaluate checkpoint `iteration` and wait for it (the race's final policy, after its clock stopped);
@@ -113,11 +117,7 @@ class NativeJudge:
         onnx = checkpoints_dir(run_dir) / motion_policy_onnx_name(iteration)
         if not onnx.is_file():
             return None
-        out = native_summary_path(run_dir, iteration).parent
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with open(run_dir / SIM2SIM_DIR / JUDGE_LOG, "a") as f:
-            code = subprocess.run(self.command(onnx, out), stdout=f, stderr=subprocess.STDOUT,
-                                  stdin=subprocess.DEVNULL).returncode
+        code = self._start(run_dir, iteration, onnx).wait()
         return robust_success(native_summary_path(run_dir, iteration)) if code == 0 else None
 
     def close(self) -> None:
