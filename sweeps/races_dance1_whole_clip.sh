@@ -14,6 +14,11 @@
 # launch; a row whose thresholds are all reached stops sooner. Rows that share a GPU are never raced:
 # the clock is the measurement.
 #
+# Two one-GPU rows may run at once on a 2-GPU machine, each alone on its GPU, the host's cores split between
+# their judges (say so beside the times: the host is shared):
+#   CUDA_VISIBLE_DEVICES=0 JUDGE_WORKERS=12 bash sweeps/races_dance1_whole_clip.sh 1x4096-hybrid-s1 &
+#   CUDA_VISIBLE_DEVICES=1 JUDGE_WORKERS=12 bash sweeps/races_dance1_whole_clip.sh 1x8192-hybrid-s0
+#
 # Measured so far (docs/benchmarks.md): 2x4096-hybrid-s0 on 2 x H200, cold: 95% robust whole clip at 422 s.
 set -euo pipefail
 
@@ -54,7 +59,8 @@ card=$( (nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null || echo u
         | sed -E 's/^NVIDIA //; s/ .*//' | tr 'A-Z' 'a-z')
 json="docs/bench/$(date +%F)_${card}_race_${row}.json"
 run="outputs/runs/race/$row"
-workers=$(( $(nproc) * 3 / 4 ))  # the judge's CPU workers: the rest of the cores feed the GPUs
+workers=${JUDGE_WORKERS:-$(( $(nproc) * 3 / 4 ))}  # the judge's CPU workers: the rest of the cores feed the GPUs
+[ "$workers" -ge 1 ] || workers=1
 overrides=(motion=lafan_dance1_full env=tracking "sampler=$sampler" "num_envs=$envs" "seed=$seed" progress_bar=false)
 race=(-m bmimic.race --native-whole-clip "$workers" --budget-s "${BUDGET_S:-1500}" --json "$json"
       "${overrides[@]}" "hydra.run.dir=$run")

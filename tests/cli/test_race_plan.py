@@ -50,6 +50,13 @@ def test_every_row_is_a_race_that_composes_to_its_row():
             "lafan_dance1_full", expected["sampler"], expected["num_envs_per_gpu"], expected["seed"])
 
 
+def test_the_judges_workers_follow_the_cores_unless_given():
+    default = shlex.split(_plan("1x4096-hybrid-s0", "--dry-run").stdout.splitlines()[-1])
+    given = shlex.split(_plan("1x4096-hybrid-s0", "--dry-run", JUDGE_WORKERS="5").stdout.splitlines()[-1])
+    assert int(default[default.index("--native-whole-clip") + 1]) >= 1
+    assert given[given.index("--native-whole-clip") + 1] == "5"
+
+
 def test_an_unknown_row_is_one_error_line_and_exit_2():
     done = _plan("8x4096-hybrid-s0")
     assert done.returncode == 2 and done.stdout == ""
