@@ -240,21 +240,25 @@ class Trainer:
 
     def _evaluate_and_checkpoint(self, last: bool) -> bool:
         """After an iteration, as scheduled: the evaluation (rank 0) and the sampler's evaluation feedback
-        (every rank), then a checkpoint. True: the stopping rule (`after_evaluation`) says stop."""
-        it, stop = self.progress.iteration, False
-        if self.schedule.evaluates(it):
+        (every rank), a checkpoint, then the stopping rule (`after_evaluation`; True: stop). The rule comes
+        last so that it sees this iteration's checkpoint: the race's native judge evaluates its ONNX export."""
+        it, summary = self.progress.iteration, None
+        evaluates = self.schedule.evaluates(it)
+        if evaluates:
             if self.is_main:
                 summary = self.evaluate()
                 if self._whole_clip_due(summary):
                     summary = {**summary, **self.evaluate_whole_clip()}
-                stop = self.after_evaluation is not None and bool(self.after_evaluation(self, summary))
-            if self.after_evaluation is not None and self.runner.is_distributed:
-                # Rank 0 alone evaluates and decides (bmimic.race); every rank stops after the same iteration.
-                stop = any_rank(stop, self.device)
             self.feedback.after_evaluation(self._clip_outcomes, self.schedule.eval_every)
         if self.is_main and self.schedule.checkpoints(it, last):
             self.checkpoint.save()
             write_status(self.run_dir, "running", it)
+        if not evaluates or self.after_evaluation is None:
+            return False
+        stop = summary is not None and bool(self.after_evaluation(self, summary))
+        if self.runner.is_distributed:
+            # Rank 0 alone evaluates and decides (bmimic.race); every rank stops after the same iteration.
+            stop = any_rank(stop, self.device)
         return stop
 
     def _record_iteration(self, it: int, losses: dict, collect_s: float, learn_s: float, steps: int,

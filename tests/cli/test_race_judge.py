@@ -145,3 +145,25 @@ def test_a_tiny_native_race_judges_its_checkpoints_beside_training(tmp_path, mon
             assert e["whole_clip_native"] is True and 0.0 <= e[WHOLE_CLIP_METRIC] <= 1.0
             assert native_summary_path(run, e["iteration"]).is_file()
     assert not any(p.name == "whole_clip.parquet" for p in run.iterdir())  # MuJoCo-Warp never paused training
+
+
+def test_the_judge_sees_the_checkpoint_of_the_evaluation_it_follows(tmp_path, monkeypatch):
+    """The stopping rule runs after the iteration's checkpoint, so the judge polled after evaluation k finds
+    motion_policy_k.onnx: it starts on the policy whose windows opened it, not one save interval behind."""
+    monkeypatch.chdir(tmp_path)
+    run, seen = tmp_path / "run", []
+    real_poll = NativeJudge.poll
+
+    def poll(self, run_dir, window_success):
+        seen.append(sorted(int(p.stem.rsplit("_", 1)[1]) for p in Path(run_dir, "checkpoints").glob("motion_policy_*.onnx")))
+        return real_poll(self, run_dir, window_success)
+
+    monkeypatch.setattr(NativeJudge, "poll", poll)
+    monkeypatch.setattr(NativeJudge, "sim2sim_command", lambda self, onnx, out: _stand_in(onnx, out))
+    args = ["--native-whole-clip", "1", "--success", "0.01", "--mpkpe-rel-mm", "1000", "--whole-clip-success", "0.5",
+            *[a for a in TINY if not a.startswith("max_iterations")], "max_iterations=3", "eval.every_iters=1",
+            "ppo.save_interval=1", "eval.whole_clip.rollouts=2", "eval.whole_clip.after_success=null",
+            f"hydra.run.dir={run}", "logger=none"]
+    assert main(args) == 0
+    # evaluations after iterations 1, 2 and 3; the loop checkpoints every iteration but the last (the job then does)
+    assert seen[:2] == [[1], [1, 2]]
