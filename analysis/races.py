@@ -11,6 +11,8 @@ change is judged against its baseline (issue 33: the change's learning curve bes
 - ``race_thresholds``: one row per race and threshold (reached or censored, when);
 - ``race_summary`` / ``summary_markdown``: one row per race (start-up, seconds per iteration,
   evaluation share, each threshold's time and iteration): the race tables of docs/benchmarks.md;
+- ``whole_clip_markdown``: the races judged on the whole clip, with env steps to each whole-clip threshold
+  and to 99% window success and their final policy's whole-clip success (issue 44's whole-clip table);
 - ``plot_races``: failure (1 - success, log scale, so 99% success is visible) and MPKPE against wall
   time from launch, iterations and env steps (all ranks' together: the axis on which 1 x 8192, 2 x 4096
   and 4 x 2048 envs compare); one colour per config and GPU count, one line style per seed.
@@ -40,7 +42,8 @@ from analysis.markdown import is_nan, md_table
 from analysis.palette import arm_colors
 from analysis.race_files import EVALUATION_KEYS, THRESHOLD_KEYS, read_race
 from bmimic.cli.common import path_arg
-from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, SUCCESS_RATE, whole_clip_key
+from bmimic.runs.race_record import WHOLE_CLIP_METRIC
+from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, SUCCESS_RATE
 
 LABEL_IGNORED = ("seed", "hydra.", "logger", "progress_bar", "motion", "eval.", "run_name")
 """Overrides that do not name the trained config (its seed, where it logs, how it is evaluated)."""
@@ -109,7 +112,7 @@ def race_thresholds(races: list[tuple[str, dict]]) -> pd.DataFrame:
 
 
 def _threshold_name(metric: str, value: float) -> str:
-    if metric == whole_clip_key("robust", "success_rate"):
+    if metric == WHOLE_CLIP_METRIC:
         return f"{value:.0%} robust whole-clip success"
     return f"{value:.0%} success" if metric == "eval_success_rate" else f"MPKPE <= {value:g} mm"
 
@@ -168,6 +171,48 @@ CURVE_AXES = (("wall_from_launch_s", "wall time from launch [s]"), (ITERATION, "
 """The x axes of the race curves, one column of panels each."""
 
 
+def _steps(x) -> str:
+    """Env steps as `1.97e8`."""
+    mantissa, exponent = f"{float(x):.2e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def _steps_cell(t: dict, censored_at: float) -> str:
+    """`371 s (it 1000, 1.97e8)` for a reached threshold, `> 1257 s` for a censored one."""
+    if t.get("status") == "reached":
+        return f"{t['wall_from_launch_s']:.0f} s (it {t[ITERATION]}, {_steps(t[ENV_STEPS])})"
+    return f"> {censored_at:.0f} s" if np.isfinite(censored_at) else "–"
+
+
+def whole_clip_markdown(races: list[tuple[str, dict]]) -> str | None:
+    """The races judged on the whole clip (a robust whole-clip threshold in their JSON), one row each: GPUs and
+    envs per GPU, seed, start-up, wall time from launch, iteration and env steps to each whole-clip threshold
+    and to 99% window success (`> T s` when the race ended at T without it), and the final policy's robust
+    whole-clip success with its judge (native MuJoCo or MuJoCo-Warp). None when no race has a whole-clip line."""
+    rows = []
+    for name, data in races:
+        ts = data.get("thresholds") or []
+        whole = [t for t in ts if t.get("metric") == WHOLE_CLIP_METRIC]
+        if not whole:
+            continue
+        last = data["evaluations"][-1] if data["evaluations"] else {}
+        end = float(last.get("wall_from_launch_s", math.nan))
+        ident = _identity(name, data)
+        row = {"config": ident["config"], "GPUs": gpu_label(pd.Series([ident["gpu"]]), pd.Series([ident["gpus"]]))[0],
+               "envs per GPU": ident["num_envs_per_gpu"], "seed": ident["seed"], "date": ident["date"],
+               "start-up": "–" if data.get("startup_s") is None else f"{data['startup_s']:.0f} s"}
+        for t in sorted(whole, key=lambda t: float(t["threshold"])):
+            row[_threshold_name(WHOLE_CLIP_METRIC, float(t["threshold"]))] = _steps_cell(t, end)
+        window = [t for t in ts if t.get("metric") == "eval_success_rate" and float(t["threshold"]) == SUCCESS_TARGET]
+        row[f"{SUCCESS_TARGET:.0%} window success"] = _steps_cell(window[0], end) if window else "–"
+        final = data.get("final_whole_clip") or {}
+        value = final.get(WHOLE_CLIP_METRIC)
+        row["final policy, robust whole clip"] = "–" if value is None else (
+            f"{value:.3f} ({'native MuJoCo' if final.get('native') else 'MuJoCo-Warp'}, it {final.get(ITERATION)})")
+        rows.append(row)
+    return md_table(pd.DataFrame(rows).fillna("–")) if rows else None
+
+
 def plot_races(evals: pd.DataFrame, figsize=(15.0, 7.0)) -> Figure:
     """Six panels: failure (log, top) and MPKPE (bottom) against wall time from launch, iterations and
     env steps (CURVE_AXES). One line per race: colour by config, GPU kind and count, date and evaluation
@@ -203,16 +248,17 @@ def plot_races(evals: pd.DataFrame, figsize=(15.0, 7.0)) -> Figure:
 
 
 def write_race_curves(paths, out: str | Path) -> list[Path]:
-    """Write ``race_evaluations.csv``, ``race_thresholds.csv``, ``race_summary.csv``, ``race_table.md``
-    and ``race_curves.png`` into ``out`` (every input is read and checked before anything is written)."""
+    """Write ``race_evaluations.csv``, ``race_thresholds.csv``, ``race_summary.csv``, ``race_table.md``,
+    ``whole_clip_table.md`` (when a race was judged on the whole clip) and ``race_curves.png`` into ``out`` (every input is read and checked before anything is written)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise AnalysisError(f"--out {out}: is a file, not a folder")
     races = read_races(paths)
     evals, thresholds, summary = race_evaluations(races), race_thresholds(races), race_summary(races)
-    fig = plot_races(evals)
+    fig, whole = plot_races(evals), whole_clip_markdown(races)
     return [write_csv(out / "race_evaluations.csv", evals), write_csv(out / "race_thresholds.csv", thresholds),
             write_csv(out / "race_summary.csv", summary), write_text(out / "race_table.md", summary_markdown(summary)),
+            *([] if whole is None else [write_text(out / "whole_clip_table.md", whole)]),
             save_figure(out / "race_curves.png", fig)]
 
 

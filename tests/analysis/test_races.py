@@ -22,6 +22,7 @@ from analysis.races import (
     read_race,
     read_races,
     summary_markdown,
+    whole_clip_markdown,
 )
 from bmimic.race import WHOLE_CLIP_METRIC, Race, Threshold
 from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM
@@ -209,6 +210,10 @@ def test_the_committed_race_tables_rebuild_from_the_committed_race_jsons(tmp_pat
         assert main([*map(str, paths), "--out", str(tmp_path / folder.name)]) == 0
         rebuilt = (tmp_path / folder.name / "race_table.md").read_bytes()
         assert rebuilt == (folder / "race_table.md").read_bytes(), folder.name
+        whole = tmp_path / folder.name / "whole_clip_table.md"  # written where a race was judged on the whole clip
+        assert whole.exists() == (folder / whole.name).exists(), folder.name
+        if whole.exists():
+            assert whole.read_bytes() == (folder / whole.name).read_bytes(), folder.name
 
 
 def test_a_whole_clip_threshold_gets_a_column_of_its_own(tmp_path):
@@ -224,3 +229,29 @@ def test_a_whole_clip_threshold_gets_a_column_of_its_own(tmp_path):
     summary = race_summary(read_races([path]))
     assert summary.loc[0, "90% robust whole-clip success"] == "40 s (it 200)"  # launch at 100 s
     assert "90% robust whole-clip success" in summary_markdown(summary).splitlines()[0]
+
+
+def test_the_whole_clip_table_gives_time_iteration_and_env_steps_and_the_final_judgement(tmp_path):
+    race = Race([Threshold("eval_success_rate", 0.99), Threshold(WHOLE_CLIP_METRIC, 0.9),
+                 Threshold(WHOLE_CLIP_METRIC, 0.95)], budget_s=1e9, sustain=1, launch_unix_s=100.0)
+    race.join_ranks([100.0, 100.5])
+    for i, (window, whole) in enumerate(((0.995, None), (0.999, 0.92), (1.0, 0.93)), start=1):
+        progress = SimpleNamespace(iteration=100 * i, env_steps=196_608_000 * i, wall_time_s=10.0 * i)
+        trainer = SimpleNamespace(run_dir="RUN", learn_started_unix_s=120.0, eval_time_s=0.5 * i, progress=progress)
+        summary = {"eval_success_rate": window, **({} if whole is None else {WHOLE_CLIP_METRIC: whole})}
+        race.on_evaluation(trainer, summary, now=120.0 + 10.0 * i)
+    race.record_final_native(0.9453125, {"iterations": 300, "env_steps": 3 * 196_608_000})
+    judged = tmp_path / "judged.json"
+    judged.write_text(json.dumps(race.to_json({"seed": 1, "num_envs": 4096, "eval": {"every_iters": 100}},
+                                              {"gpu": {"name": "NVIDIA H200"}, "created": "2026-11-29T21:00:00"})))
+    plain = _race_json(tmp_path / "plain.json", [0.5, 0.95], [60.0, 45.0])  # no whole-clip line: no row
+    table = whole_clip_markdown(read_races([judged, plain])).splitlines()
+    assert len(table) == 3  # header, rule, the judged race alone
+    header = [c.strip() for c in table[0].strip("|").split("|")]
+    row = dict(zip(header, (c.strip() for c in table[2].strip("|").split("|")), strict=True))
+    assert (row["GPUs"], row["envs per GPU"], row["seed"]) == ("2 x H200", "4096", "1")
+    assert row["99% window success"] == "30 s (it 100, 1.97e8)"  # the clock starts at the earlier rank's launch
+    assert row["90% robust whole-clip success"] == "40 s (it 200, 3.93e8)"
+    assert row["95% robust whole-clip success"] == "> 50 s"  # 0.93 at the end: censored at the race's end
+    assert row["final policy, robust whole clip"] == "0.945 (native MuJoCo, it 300)"
+    assert whole_clip_markdown(read_races([plain])) is None
