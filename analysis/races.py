@@ -117,10 +117,17 @@ def _threshold_name(metric: str, value: float) -> str:
     return f"{value:.0%} success" if metric == "eval_success_rate" else f"MPKPE <= {value:g} mm"
 
 
-def _cell(t: dict, censored_at: float) -> str:
-    """`440 s (it 1600)` for a reached threshold, `> 538 s` for a censored one (not by the race's end)."""
+def _steps(x) -> str:
+    """Env steps as `1.97e8`."""
+    mantissa, exponent = f"{float(x):.2e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def _cell(t: dict, censored_at: float, steps: bool = False) -> str:
+    """`440 s (it 1600)` for a reached threshold (`steps`: `440 s (it 1600, 1.57e8)`), `> 538 s` for a censored
+    one (not by the race's end)."""
     if t.get("status") == "reached":
-        return f"{t['wall_from_launch_s']:.0f} s (it {t[ITERATION]})"
+        return f"{t['wall_from_launch_s']:.0f} s (it {t[ITERATION]}" + (f", {_steps(t[ENV_STEPS])})" if steps else ")")
     return f"> {censored_at:.0f} s" if np.isfinite(censored_at) else "–"
 
 
@@ -171,19 +178,6 @@ CURVE_AXES = (("wall_from_launch_s", "wall time from launch [s]"), (ITERATION, "
 """The x axes of the race curves, one column of panels each."""
 
 
-def _steps(x) -> str:
-    """Env steps as `1.97e8`."""
-    mantissa, exponent = f"{float(x):.2e}".split("e")
-    return f"{mantissa}e{int(exponent)}"
-
-
-def _steps_cell(t: dict, censored_at: float) -> str:
-    """`371 s (it 1000, 1.97e8)` for a reached threshold, `> 1257 s` for a censored one."""
-    if t.get("status") == "reached":
-        return f"{t['wall_from_launch_s']:.0f} s (it {t[ITERATION]}, {_steps(t[ENV_STEPS])})"
-    return f"> {censored_at:.0f} s" if np.isfinite(censored_at) else "–"
-
-
 def whole_clip_markdown(races: list[tuple[str, dict]]) -> str | None:
     """The races judged on the whole clip (a robust whole-clip threshold in their JSON), one row each: GPUs and
     envs per GPU, seed, start-up, wall time from launch, iteration and env steps to each whole-clip threshold
@@ -198,19 +192,23 @@ def whole_clip_markdown(races: list[tuple[str, dict]]) -> str | None:
         last = data["evaluations"][-1] if data["evaluations"] else {}
         end = float(last.get("wall_from_launch_s", math.nan))
         ident = _identity(name, data)
-        row = {"config": ident["config"], "GPUs": gpu_label(pd.Series([ident["gpu"]]), pd.Series([ident["gpus"]]))[0],
+        row = {"config": ident["config"], "gpu": ident["gpu"], "gpus": ident["gpus"],
                "envs per GPU": ident["num_envs_per_gpu"], "seed": ident["seed"], "date": ident["date"],
                "start-up": "–" if data.get("startup_s") is None else f"{data['startup_s']:.0f} s"}
         for t in sorted(whole, key=lambda t: float(t["threshold"])):
-            row[_threshold_name(WHOLE_CLIP_METRIC, float(t["threshold"]))] = _steps_cell(t, end)
+            row[_threshold_name(WHOLE_CLIP_METRIC, float(t["threshold"]))] = _cell(t, end, steps=True)
         window = [t for t in ts if t.get("metric") == "eval_success_rate" and float(t["threshold"]) == SUCCESS_TARGET]
-        row[f"{SUCCESS_TARGET:.0%} window success"] = _steps_cell(window[0], end) if window else "–"
+        row[f"{SUCCESS_TARGET:.0%} window success"] = _cell(window[0], end, steps=True) if window else "–"
         final = data.get("final_whole_clip") or {}
         value = final.get(WHOLE_CLIP_METRIC)
         row["final policy, robust whole clip"] = "–" if value is None else (
             f"{value:.3f} ({'native MuJoCo' if final.get('native') else 'MuJoCo-Warp'}, it {final.get(ITERATION)})")
         rows.append(row)
-    return md_table(pd.DataFrame(rows).fillna("–")) if rows else None
+    if not rows:
+        return None
+    table = pd.DataFrame(rows).fillna("–")
+    table.insert(1, "GPUs", gpu_label(table.pop("gpu"), table.pop("gpus")))
+    return md_table(table)
 
 
 def plot_races(evals: pd.DataFrame, figsize=(15.0, 7.0)) -> Figure:

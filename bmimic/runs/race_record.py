@@ -9,7 +9,7 @@ import math
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from bmimic.runs.folder import portable_path
 from bmimic.runs.schema import (
@@ -21,6 +21,9 @@ from bmimic.runs.schema import (
     summary_key,
     whole_clip_key,
 )
+
+if TYPE_CHECKING:
+    from bmimic.runs.race_judge import NativeJudge
 
 
 def _process_start_unix_s() -> float:
@@ -96,7 +99,7 @@ class Race:
     """Under torchrun: every rank's launch, in rank order (`launch_unix_s` is the earliest); else empty."""
     final_whole_clip: dict | None = None
     """The final policy's robust whole-clip evaluation (record_final), whether or not the clock saw it."""
-    judge: Any = None
+    judge: NativeJudge | None = None
     """A bmimic.runs.race_judge.NativeJudge (--native-whole-clip): whole clips judged in native MuJoCo beside
     training, each result placed at its checkpoint's evaluation (None: MuJoCo-Warp's, in the evaluations)."""
 
@@ -131,7 +134,7 @@ class Race:
         for t in self.thresholds:
             t.observe(record, summary, self.sustain)
         if self.judge is not None:
-            for it, value in self.judge.poll(trainer.run_dir, float(summary.get("eval_success_rate", math.nan))):
+            for it, value in self.judge.poll(trainer.run_dir, record[SUCCESS_RATE]):
                 self.judged(it, value)
         if all(t.reached_at is not None for t in self.thresholds):
             self.stopped = "every threshold reached"
