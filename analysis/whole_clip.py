@@ -17,6 +17,8 @@ from analysis.tables import ReportOptions, learning_curves, summary_rows, use_bo
 from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
 
 COUNTS = ["rollouts", "completed", "transient_failures", "later_failures"]
+KAPLAN_MEIER_NOTE = (" The clips differ in length, so the survival figure pools them as a Kaplan-Meier curve: a "
+                     "rollout that reaches its clip's last frame leaves those at risk there without failing.")
 FAILURE_PLACES = 3
 """The clip seconds listed per arm and condition in "where they fail" (the most failures first)."""
 TRACKED_S = "tracked_s"
@@ -43,6 +45,10 @@ class WholeClipReport:
     (``second`` s to ``second + 1`` s), ``share`` of the arm's failures in that condition; the
     FAILURE_PLACES largest per arm and condition (empty without failures tables). Seconds, not bins: arms
     of other bin sizes fail at comparable places."""
+    survival_kaplan_meier: bool = False
+    """Whether `survival` pooled clips of different lengths as Kaplan-Meier curves (pooled_survival)."""
+    per_clip: pd.DataFrame | None = None
+    """Libraries only (None for one clip): per_clip_rows, each clip's success per arm and condition."""
 
 
 def _per_run(clips: pd.DataFrame, failures: pd.DataFrame | None = None) -> pd.DataFrame:
@@ -118,14 +124,84 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> WholeClipReport | None:
     last_it = per_run.groupby(["run_dir", CONDITION])[ITERATION].transform("max")
     last = per_run[per_run[ITERATION] == last_it]
     survival = load_table(runs, "whole_clip_survival", opts.max_iteration)
+    kaplan_meier = False
     if len(survival):
         survival = survival.merge(last[["run_dir", CONDITION, ITERATION]], on=["run_dir", CONDITION, ITERATION])
-        pooled = survival.groupby(["arm", "run_dir", CONDITION, CLIP_TIME_S], sort=True)[["tracking", "rollouts"]].sum()
-        pooled = (pooled["tracking"] / pooled["rollouts"]).rename("frac").reset_index()
+        pooled = pooled_survival(survival)
+        kaplan_meier = bool(pooled["kaplan_meier"].any())
         survival = pooled.groupby(["arm", CONDITION, CLIP_TIME_S], sort=True)["frac"].agg(
             n_seeds="count", tracking_frac="mean", low="min", high="max").reset_index()
     return WholeClipReport(per_seed, learning_curves(per_seed, runs, opts), _final_rows(last, runs, opts), survival,
-                           failure_places(failures, last))
+                           failure_places(failures, last), kaplan_meier, per_clip_rows(clips, last))
+
+
+CLIP_SUCCESS_LINES = (0.9, 0.95)
+"""Whole-clip success a library's clips are counted at (the library issue's targets: robust >= 0.90)."""
+
+
+def per_clip_rows(clips: pd.DataFrame, last: pd.DataFrame) -> pd.DataFrame | None:
+    """``arm, condition, clip, clip_name, n_seeds, success, low, high, mpkpe_rel_mm``: each clip's whole-clip
+    success at each run's last whole-clip evaluation, the mean over seeds and their range, and the
+    root-relative MPKPE of its completed rollouts (mean over seeds that completed any); None for one clip."""
+    if clips["clip"].nunique() < 2:
+        return None
+    c = clips.merge(last[["run_dir", CONDITION, ITERATION]], on=["run_dir", CONDITION, ITERATION])
+    c = c.assign(success=c["completed"] / c["rollouts"].where(c["rollouts"] > 0),
+                 clip_name=c["clip_name"] if "clip_name" in c else c["clip"].astype(str))
+    if MPKPE_REL_MM not in c:
+        c[MPKPE_REL_MM] = np.nan
+    out = c.groupby(["arm", CONDITION, "clip", "clip_name"], sort=True).agg(
+        n_seeds=("success", "count"), success=("success", "mean"), low=("success", "min"), high=("success", "max"),
+        **{MPKPE_REL_MM: (MPKPE_REL_MM, "mean")})
+    return out.reset_index()
+
+
+def _per_clip_section(per_clip: pd.DataFrame) -> list[str]:
+    """The per-clip table of a library and how many of its clips reach each of CLIP_SUCCESS_LINES."""
+    view = per_clip.assign(cell=[f"{fmt(r['success'])} ({fmt(r['low'])}–{fmt(r['high'])})" if r["n_seeds"] > 1
+                                 else f"{fmt(r['success'])} (1 seed)" for r in per_clip.to_dict("records")])
+    table = view.pivot_table(index=["clip", "clip_name"], columns=["arm", CONDITION], values="cell", aggfunc="first")
+    table.columns = [f"{arm}, {condition}" for arm, condition in table.columns]
+    table = table.reset_index(level="clip", drop=True).rename_axis("clip").reset_index()
+    md = ["Per clip: whole-clip success at each run's last whole-clip evaluation (mean over seeds; brackets: "
+          "range of the seeds).", "", md_table(table), ""]
+    n_clips = per_clip["clip"].nunique()
+    for (arm, condition), g in per_clip.groupby(["arm", CONDITION], sort=True):
+        counts = ", ".join(f">= {line:g}: {int((g['success'] >= line).sum())}" for line in CLIP_SUCCESS_LINES)
+        md.append(f"- `{arm}`, {condition}: clips at whole-clip success {counts} of {n_clips}; root-relative MPKPE "
+                  f"of completed rollouts {fmt(g[MPKPE_REL_MM].min())}–{fmt(g[MPKPE_REL_MM].max())} mm over the "
+                  f"clips with any.")
+    return md + [""]
+
+
+def pooled_survival(survival: pd.DataFrame) -> pd.DataFrame:
+    """``arm, run_dir, condition, time_s, frac, kaplan_meier``: the rollouts of every clip still tracking at
+    each time, and whether they pooled as a Kaplan-Meier curve.
+
+    Clips of one length (a single clip, or a library's equal ones) pool as the tracking count over the
+    rollouts. Clips of different lengths pool as a Kaplan-Meier curve: a rollout that reaches its clip's
+    last frame leaves those at risk there, uncounted as a failure, so the curve falls only where rollouts
+    fail; the plain fraction would drop to the failures of the few clips still running and jump as clips
+    end. A clip's failures between two of its times count at the later one, its rollouts at risk there being
+    its count at the earlier one (other clips' times may lie between)."""
+    keys = ["arm", "run_dir", CONDITION]
+    out = []
+    for key, df in survival.groupby(keys, sort=True):
+        ends = df.groupby("clip")[CLIP_TIME_S].max()
+        if ends.nunique() == 1:
+            per_t = df.groupby(CLIP_TIME_S, sort=True)[["tracking", "rollouts"]].sum()
+            frac = per_t["tracking"] / per_t["rollouts"]
+        else:
+            tracking = df.pivot_table(index=CLIP_TIME_S, columns="clip", values="tracking", aggfunc="sum").sort_index()
+            rollouts = df.groupby("clip")["rollouts"].max()
+            # at risk at t: each clip's count at its last time before t, while t is within the clip
+            at_risk = tracking.ffill().shift(1).fillna(rollouts).where(tracking.index.to_numpy()[:, None] <= ends.to_numpy())
+            failed = (at_risk - tracking).where(tracking.notna(), 0.0)
+            n, d = at_risk.sum(axis=1), failed.sum(axis=1)
+            frac = (1.0 - (d / n).where(n > 0, 0.0)).cumprod()
+        out.append(pd.DataFrame({**dict(zip(keys, key, strict=True)), CLIP_TIME_S: frac.index, "frac": frac.to_numpy(),
+                                 "kaplan_meier": ends.nunique() > 1}))
+    return pd.concat(out, ignore_index=True)
 
 
 def section(w: WholeClipReport) -> list[str]:
@@ -147,7 +223,8 @@ def section(w: WholeClipReport) -> list[str]:
             f"{START_TRANSIENT_S:g} s of the start are start transients; the others are later failures. Seconds "
             "tracked per rollout: the clip time a rollout tracked before it failed (its clip's length when it "
             "completed), mean over rollouts: the area under the survival curve, which separates policies that "
-            "all fail somewhere.", "", md_table(view), ""] + _places_section(w.places)
+            "all fail somewhere." + KAPLAN_MEIER_NOTE * w.survival_kaplan_meier, "", md_table(view), ""] + (
+            _per_clip_section(w.per_clip) if w.per_clip is not None else []) + _places_section(w.places)
 
 
 def _places_section(places: pd.DataFrame) -> list[str]:

@@ -5,6 +5,7 @@ of whole clips."""
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -82,8 +83,10 @@ def test_whole_clip_success_survival_and_final_table(tmp_path):
     survival = pd.read_csv(out / "whole_clip_survival.csv").set_index(["arm", CLIP_TIME_S])
     uniform = survival.loc[arm["sampler=uniform"]]
     assert uniform.loc[1.0, "tracking_frac"] == pytest.approx(1.0)  # both clips, all 8 rollouts
-    assert uniform.loc[2.0, "tracking_frac"] == pytest.approx(0.5)  # clip 0 alone is 2.5 s long
-    assert uniform.loc[1.5, "tracking_frac"] == pytest.approx(0.5)  # clip 1's last frame
+    # clips of 2.5 s and 1.5 s, half of each one's rollouts failing between 1 and 2 s: a Kaplan-Meier curve
+    assert uniform.loc[1.5, "tracking_frac"] == pytest.approx(0.75)  # 4 of clip 1's 8 at clip 1's end, 16 at risk
+    assert uniform.loc[2.0, "tracking_frac"] == pytest.approx(0.375)  # then 4 of clip 0's 8, clip 1 ended
+    assert uniform.loc[2.5, "tracking_frac"] == pytest.approx(0.375)
 
 
 def test_where_whole_clip_rollouts_fail(tmp_path):
@@ -179,3 +182,21 @@ def test_a_checkpoint_evaluation_without_its_iteration_is_one_line(tmp_path):
     summary.write_text(json.dumps({"iteration": "sixty"}))
     with pytest.raises(AnalysisError, match=r"whole_clip_summary.json: 'iteration' must be an integer >= 0, got 'sixty'"):
         build_report([root], opts=OPTS)
+
+
+def test_clips_of_different_lengths_pool_as_a_kaplan_meier_curve_and_equal_ones_as_the_fraction():
+    from analysis.whole_clip import pooled_survival
+
+    def table(rows: list[tuple[int, float, int]]) -> pd.DataFrame:  # (clip, time_s, tracking) of 2 rollouts each
+        return pd.DataFrame([{"arm": "a", "run_dir": "r", "condition": "robust", "clip": c, "time_s": t,
+                              "rollouts": 2, "tracking": k} for c, t, k in rows])
+
+    # clip 0 ends at 2 s, one rollout failing in (0, 1]; clip 1 ends at 4 s, one failing in (2, 3]
+    km = pooled_survival(table([(0, 0.0, 2), (0, 1.0, 1), (0, 2.0, 1),
+                                (1, 0.0, 2), (1, 1.0, 2), (1, 2.0, 2), (1, 3.0, 1), (1, 4.0, 1)]))
+    assert km["kaplan_meier"].all()
+    # at risk 4, 4, 3, 2, 1; failures 0, 1, 0, 1, 0 (the plain fraction would read 0.5 at 3 s: clip 1 alone)
+    np.testing.assert_allclose(km["frac"], [1.0, 0.75, 0.75, 0.375, 0.375])
+    same = pooled_survival(table([(0, 0.0, 2), (0, 1.0, 1), (1, 0.0, 2), (1, 1.0, 2)]))
+    assert not same["kaplan_meier"].any()
+    np.testing.assert_allclose(same["frac"], [1.0, 0.75])
