@@ -781,3 +781,19 @@ def test_the_baseline_is_chosen_in_numbers_and_said_in_words():
     assert say("u1", ["u1"]) == "baseline `u1` (its sampler is uniform)"
     assert say("a", []) == "baseline `a` (given)"
     assert say(None, []).endswith("speedups are skipped")
+
+
+def test_the_per_bin_mastery_table_prints_up_to_its_limit_and_points_to_the_csv_beyond():
+    from analysis.report_views import MASTERY_TABLE_MAX_BINS, per_bin_mastery
+    from bmimic.runs.schema import BIN, HORIZON_TRUNCATED
+
+    def mastery(n_bins: int) -> pd.DataFrame:
+        return pd.DataFrame({BIN: range(n_bins), "arm": "a", "mastery_iteration": 100.0, "n_mastered": 1,
+                             "n_seeds": 1, "segment": "s", HORIZON_TRUNCATED: False})
+
+    small = "\n".join(per_bin_mastery(mastery(3)))
+    assert small.count("(1/1)") == 3 and "mastery.csv" not in small
+    at_limit = "\n".join(per_bin_mastery(mastery(MASTERY_TABLE_MAX_BINS))).splitlines()
+    assert sum(line.startswith("| ") for line in at_limit) == MASTERY_TABLE_MAX_BINS + 1  # header + a row per bin
+    big = "\n".join(per_bin_mastery(mastery(MASTERY_TABLE_MAX_BINS + 1)))
+    assert "(1/1)" not in big and f"{MASTERY_TABLE_MAX_BINS + 1} bins" in big and "mastery.csv" in big
