@@ -84,12 +84,26 @@ def compact_run(run_dir: Path, write: bool = True) -> tuple[int, int]:
     return before, after
 
 
+DATA_FOLDER_NAME = "$BMIMIC_LAFAN_DIR"
+"""What an absolute data.lafan_dir outside the launch directory reads as in committed records."""
+
+
+def _data_folder(run_dir: Path) -> str | None:
+    """The run's absolute data.lafan_dir from resolved_config.json (None when absent or relative)."""
+    try:
+        folder = json.loads((run_dir / "resolved_config.json").read_text()).get("data", {}).get("lafan_dir")
+    except (OSError, ValueError, AttributeError):
+        return None  # no record (or not one this can read): nothing of it to rewrite
+    return folder.rstrip("/") if isinstance(folder, str) and folder.startswith("/") and folder != "/" else None
+
+
 def portable_records(run_dir: Path, write: bool = True) -> int:
     """Make ``run_dir``'s records machine-independent; returns how many files it changed (or would).
 
     Paths under the launch's working directory (Hydra's ``runtime.cwd`` in .hydra/hydra.yaml: the machine's
     copy of the repository) become relative to it in every JSON record (a whole-clip summary's checkpoint
-    and run folder, the resolved config's data folder), and hydra.yaml itself goes: no report reads it, and
+    and run folder, the resolved config's data folder); a data folder elsewhere (data.lafan_dir) becomes
+    DATA_FOLDER_NAME; and hydra.yaml itself goes: no report reads it, and
     it holds the machine's paths and the launcher's internals. A run without hydra.yaml is left as it is.
     """
     hydra_yaml = run_dir / HYDRA_DIR / "hydra.yaml"
@@ -102,11 +116,17 @@ def portable_records(run_dir: Path, write: bool = True) -> int:
     rewritten = {}  # every record read and checked before any is written: a bad one leaves the run as it was
     if isinstance(cwd, str) and cwd.startswith("/"):
         root = cwd.rstrip("/")
+        # the clips' folder outside the checkout (data.lafan_dir, e.g. an unpacked archive) becomes the
+        # variable that names it: where a reader keeps LAFAN1 is theirs
+        data = _data_folder(run_dir)
+        replace = [(root, "."), *([(data, DATA_FOLDER_NAME)] if data and not data.startswith(root + "/") else [])]
         for path in sorted(run_dir.rglob("*.json")):
             try:
-                text = path.read_text()
-                # Whole JSON strings only: the root itself, or the root and a path below it.
-                new = text.replace(json.dumps(root), json.dumps(".")).replace(json.dumps(root + "/")[:-1], '"')
+                text = new = path.read_text()
+                # Whole JSON strings only: the folder itself, or the folder and a path below it.
+                for folder, name in replace:
+                    new = new.replace(json.dumps(folder), json.dumps(name)).replace(
+                        json.dumps(folder + "/")[:-1], json.dumps(name + "/")[:-1] if name != "." else '"')
                 if new != text:
                     json.loads(new)  # still JSON
                     rewritten[path] = new

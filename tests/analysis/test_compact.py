@@ -68,6 +68,23 @@ def test_records_lose_the_machines_paths(tmp_path):
     assert portable_records(run) == 0  # done once
 
 
+def test_a_data_folder_outside_the_checkout_becomes_the_variable_that_names_it(tmp_path):
+    import json
+
+    from analysis.compact import DATA_FOLDER_NAME, portable_records
+    sweep = make_knob_study(tmp_path)
+    run = next(sweep.glob("*/seed=0"))
+    (run / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    cwd: /srv/box/repo\n")
+    config = {"data": {"lafan_dir": "/tmp/lafan36"}, "motion": {"folder": "/tmp/lafan36", "other": "/tmp/lafan365/x"}}
+    (run / "resolved_config.json").write_text(json.dumps(config, indent=2))
+    (run / "s.json").write_text(json.dumps({"clip": "/tmp/lafan36/walk1.csv", "run_dir": "/srv/box/repo/o"}))
+    assert portable_records(run) == 3
+    got = json.loads((run / "resolved_config.json").read_text())
+    assert got["data"]["lafan_dir"] == got["motion"]["folder"] == DATA_FOLDER_NAME
+    assert got["motion"]["other"] == "/tmp/lafan365/x"  # another folder that only starts alike
+    assert json.loads((run / "s.json").read_text()) == {"clip": f"{DATA_FOLDER_NAME}/walk1.csv", "run_dir": "o"}
+
+
 def test_a_broken_record_is_one_line_and_the_run_keeps_its_hydra_record(tmp_path, capsys):
     sweep = make_knob_study(tmp_path)
     run = next(sweep.glob("*/seed=0"))
