@@ -64,4 +64,23 @@ def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd
     return out.sort_values(["clip", "arm"], key=lambda s: s.map(order) if s.name == "clip" else s).reset_index(drop=True)
 
 
-__all__ = ["bin_clips", "clip_failure", "clip_mass"]
+HARDEST_CLIPS = 6
+"""How many clips the hardest clips' learning-curve figure shows."""
+
+
+def hardest_clip_curves(eval_df: pd.DataFrame, clip_tab: pd.DataFrame, k: int = HARDEST_CLIPS) -> pd.DataFrame:
+    """``clip, arm, run_dir, iteration, failure_rate``: failure per started episode at every evaluation of
+    the ``k`` clips with the highest final failure (mean over arms of clip_failure's point), hardest first
+    (``clip`` ordered so); empty for a single clip."""
+    clips = bin_clips(eval_df)
+    if clips.empty or not len(clip_tab):
+        return pd.DataFrame()
+    order = clip_tab.groupby("clip", sort=False)["final_failure"].mean().sort_values(ascending=False, kind="stable")
+    hardest = list(order.index[:k])
+    curves = start_failure(eval_df, clips).rename(columns={"group": "clip"})
+    curves = curves[curves["clip"].isin(hardest)][["clip", "arm", "run_dir", ITERATION, FAILURE_RATE]]
+    curves["clip"] = pd.Categorical(curves["clip"], categories=hardest, ordered=True)
+    return curves.sort_values(["clip", "arm", "run_dir", ITERATION]).reset_index(drop=True)
+
+
+__all__ = ["HARDEST_CLIPS", "bin_clips", "clip_failure", "clip_mass", "hardest_clip_curves"]

@@ -143,3 +143,35 @@ def plot_whole_clip_survival(survival: pd.DataFrame, colors: dict | None = None)
         ax.grid(alpha=0.3)
         place_legend(ax)
     return fig
+
+
+def plot_hardest_clips(curves: pd.DataFrame, colors: dict | None = None) -> Figure:
+    """Failure per started episode against iteration for each clip of ``curves`` (analysis.clip_tables.
+    hardest_clip_curves, one panel per clip, hardest first), one line per arm: the mean over seeds, and
+    each seed thin."""
+    clips = list(curves["clip"].cat.categories) if hasattr(curves["clip"], "cat") else list(dict.fromkeys(curves["clip"]))
+    ncols = min(3, len(clips))
+    nrows = -(-len(clips) // ncols)
+    fig = Figure(figsize=(3.3 * ncols, 2.6 * nrows), layout="constrained")
+    colors = colors or arm_colors(curves["arm"])
+    axes = np.atleast_1d(fig.subplots(nrows, ncols, sharex=True)).ravel()
+    for ax, clip in zip(axes, clips, strict=False):
+        for arm, g in curves[curves["clip"] == clip].groupby("arm", sort=True, observed=True):
+            for _, run in g.groupby("run_dir", sort=True):
+                ax.plot(run[ITERATION].to_numpy(float), run["failure_rate"].to_numpy(float), color=colors[arm],
+                        lw=0.6, alpha=0.45)
+            mean = g.groupby(ITERATION, sort=True)["failure_rate"].mean()
+            ax.plot(mean.index.to_numpy(float), mean.to_numpy(float), color=colors[arm], lw=1.6, label=arm,
+                    **_marker(len(mean)))
+        ax.set_title(str(clip), fontsize=8)
+        ax.set_ylim(bottom=0.0)
+        ax.grid(alpha=0.3)
+        ax.xaxis.set_major_locator(IntegerTicks())
+    for ax in axes[len(clips):]:
+        ax.set_visible(False)
+    for ax in axes[::ncols]:
+        ax.set_ylabel("failure (by start clip)")
+    for ax in axes[max(0, len(clips) - ncols):len(clips)]:
+        ax.set_xlabel("iteration")
+    place_legend(axes[0])
+    return fig

@@ -152,6 +152,8 @@ class Places:
 
     seg: pd.DataFrame
     clip_tab: pd.DataFrame
+    hardest_clips: pd.DataFrame
+    """clip_tables.hardest_clip_curves: the hardest clips' failure at every evaluation (empty: one clip)."""
 
 
 @dataclass
@@ -277,7 +279,7 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
                   bin_tables.over_clip_time(eval_df, sampler_df) if other_bins else pd.DataFrame()),
         arms=Arms(per_run, summary, times, time_df, errors, broken, comp, comp_robust, comp_errors, comp_base, shown,
                   smooth),
-        places=Places(seg, clip_tab), adaptation=adaptation, sensitivity=sensitivity, speedups=speedups,
+        places=Places(seg, clip_tab, clip_tables.hardest_clip_curves(eval_clips, clip_tab)), adaptation=adaptation, sensitivity=sensitivity, speedups=speedups,
         whole_clip=whole)
 
 

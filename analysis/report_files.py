@@ -92,6 +92,13 @@ def write_files(d: ReportData, out: Path) -> list[tuple[str, str]]:
         write_csv(out / "segment_failure.csv", places.seg)
     if len(places.clip_tab):
         write_csv(out / "clip_failure.csv", places.clip_tab)
+    if len(places.hardest_clips):
+        write_csv(out / "hardest_clips.csv", places.hardest_clips)
+        save_figure(out / "hardest_clips.png", curve_plots.plot_hardest_clips(places.hardest_clips, colors))
+        n = places.hardest_clips["clip"].nunique()
+        figures.append(("hardest_clips.png", f"Learning curves of the {n} hardest clips (highest final failure, mean "
+                                             "over arms): failure per started episode by start clip (mean over "
+                                             "seeds; thin lines: seeds)"))
     if len(adapt.support):
         write_csv(out / "sampling_support.csv", adapt.support)
         write_csv(out / "sampling_support_summary.csv", adapt.support_sum)

@@ -797,3 +797,25 @@ def test_the_per_bin_mastery_table_prints_up_to_its_limit_and_points_to_the_csv_
     assert sum(line.startswith("| ") for line in at_limit) == MASTERY_TABLE_MAX_BINS + 1  # header + a row per bin
     big = "\n".join(per_bin_mastery(mastery(MASTERY_TABLE_MAX_BINS + 1)))
     assert "(1/1)" not in big and f"{MASTERY_TABLE_MAX_BINS + 1} bins" in big and "mastery.csv" in big
+
+
+def test_the_hardest_clips_curves_follow_the_planted_failures_hardest_first():
+    from analysis.clip_tables import hardest_clip_curves
+    from analysis.curve_plots import plot_hardest_clips
+    from bmimic.runs.schema import BIN, ITERATION
+
+    # 3 clips of 2 bins; per started episode at iterations 10 / 20: clip a 0.5 / 0.25, b 0.1 / 0.0, c 0.9 / 0.6
+    planted = {"a": (0.5, 0.25), "b": (0.1, 0.0), "c": (0.9, 0.6)}
+    rows = [{"run_dir": "r0", "arm": "x", "seed": 0, ITERATION: it, BIN: 2 * k + j, "clip": clip,
+             "start_failures": 20 * planted[clip][i], "start_episodes": 20}
+            for k, clip in enumerate(planted) for j in range(2) for i, it in enumerate((10, 20))]
+    eval_df = pd.DataFrame(rows)
+    clip_tab = pd.DataFrame({"arm": "x", "clip": list(planted), "final_failure": [v[1] for v in planted.values()]})
+    curves = hardest_clip_curves(eval_df, clip_tab, k=2)
+    assert list(curves["clip"].cat.categories) == ["c", "a"]  # hardest first; b is left out
+    got = curves.set_index(["clip", ITERATION])["failure_rate"]
+    assert got[("c", 10)] == pytest.approx(0.9) and got[("c", 20)] == pytest.approx(0.6)
+    assert got[("a", 10)] == pytest.approx(0.5) and got[("a", 20)] == pytest.approx(0.25)
+    fig = plot_hardest_clips(curves)
+    assert [ax.get_title() for ax in fig.axes if ax.get_visible()] == ["c", "a"]
+    assert hardest_clip_curves(eval_df.assign(clip="a"), clip_tab).empty  # one clip: no figure
