@@ -31,7 +31,7 @@ import yaml
 from analysis import AnalysisError
 from analysis.run_files import REPORT_COLUMNS, find_run_dirs
 from bmimic.runs.atomic_io import atomic_write_bytes
-from bmimic.runs.folder import HYDRA_DIR, table_path
+from bmimic.runs.folder import HYDRA_DIR, RESOLVED_CONFIG, table_path
 
 STUDY_BUDGET_MB = 10.0
 """Largest size of one study's folder under docs/results (runs, report.md, figures; not the report's CSVs,
@@ -91,7 +91,7 @@ DATA_FOLDER_NAME = "$BMIMIC_LAFAN_DIR"
 def _data_folder(run_dir: Path) -> str | None:
     """The run's absolute data.lafan_dir from resolved_config.json (None when absent or relative)."""
     try:
-        folder = json.loads((run_dir / "resolved_config.json").read_text()).get("data", {}).get("lafan_dir")
+        folder = json.loads((run_dir / RESOLVED_CONFIG).read_text()).get("data", {}).get("lafan_dir")
     except (OSError, ValueError, AttributeError):
         return None  # no record (or not one this can read): nothing of it to rewrite
     return folder.rstrip("/") if isinstance(folder, str) and folder.startswith("/") and folder != "/" else None

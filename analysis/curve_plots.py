@@ -9,7 +9,7 @@ from matplotlib.figure import Figure
 
 from analysis.palette import arm_colors, place_legend
 from analysis.plots import IntegerTicks, _axes, _marker, plot_learning_curve
-from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION
+from bmimic.runs.schema import CLIP_TIME_S, CONDITION, FAILURE_RATE, ITERATION
 
 CURVE_MARKERS = {"estimate": "o", "lower_bound": "^", "upper_bound": "v"}
 """Marker of each speedup status on the curve figures (not estimable: not drawn)."""
@@ -158,9 +158,9 @@ def plot_hardest_clips(curves: pd.DataFrame, colors: dict | None = None) -> Figu
     for ax, clip in zip(axes, clips, strict=False):
         for arm, g in curves[curves["clip"] == clip].groupby("arm", sort=True, observed=True):
             for _, run in g.groupby("run_dir", sort=True):
-                ax.plot(run[ITERATION].to_numpy(float), run["failure_rate"].to_numpy(float), color=colors[arm],
+                ax.plot(run[ITERATION].to_numpy(float), run[FAILURE_RATE].to_numpy(float), color=colors[arm],
                         lw=0.6, alpha=0.45)
-            mean = g.groupby(ITERATION, sort=True)["failure_rate"].mean()
+            mean = g.groupby(ITERATION, sort=True)[FAILURE_RATE].mean()
             ax.plot(mean.index.to_numpy(float), mean.to_numpy(float), color=colors[arm], lw=1.6, label=arm,
                     **_marker(len(mean)))
         ax.set_title(str(clip), fontsize=8)
