@@ -149,7 +149,7 @@ def plot_hardest_clips(curves: pd.DataFrame, colors: dict | None = None) -> Figu
     """Failure per started episode against iteration for each clip of ``curves`` (analysis.clip_tables.
     hardest_clip_curves, one panel per clip, hardest first), one line per arm: the mean over seeds, and
     each seed thin."""
-    clips = list(curves["clip"].cat.categories) if hasattr(curves["clip"], "cat") else list(dict.fromkeys(curves["clip"]))
+    clips = list(curves["clip"].cat.categories)  # hardest first
     ncols = min(3, len(clips))
     nrows = -(-len(clips) // ncols)
     fig = Figure(figsize=(3.3 * ncols, 2.6 * nrows), layout="constrained")

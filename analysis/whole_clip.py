@@ -223,7 +223,7 @@ def section(w: WholeClipReport) -> list[str]:
             f"{START_TRANSIENT_S:g} s of the start are start transients; the others are later failures. Seconds "
             "tracked per rollout: the clip time a rollout tracked before it failed (its clip's length when it "
             "completed), mean over rollouts: the area under the survival curve, which separates policies that "
-            "all fail somewhere." + KAPLAN_MEIER_NOTE * w.survival_kaplan_meier, "", md_table(view), ""] + (
+            "all fail somewhere." + (KAPLAN_MEIER_NOTE if w.survival_kaplan_meier else ""), "", md_table(view), ""] + (
             _per_clip_section(w.per_clip) if w.per_clip is not None else []) + _places_section(w.places)
 
 
