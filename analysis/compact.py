@@ -21,7 +21,9 @@ leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.s
 import argparse
 import io
 import json
+import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pyarrow as pa
@@ -97,13 +99,20 @@ def _data_folder(run_dir: Path) -> str | None:
     return folder.rstrip("/") if isinstance(folder, str) and folder.startswith("/") and folder != "/" else None
 
 
+def _yaml_value(name: str) -> Callable[[re.Match[str]], str]:
+    """re.sub's replacement of a folder by `name` in `key: FOLDER[/below]` (the checkout's root: relative paths)."""
+    def replace(m: re.Match[str]) -> str:
+        return m.group(1) + ("" if name == "." and m.group(2) == "/" else name + m.group(2))
+    return replace
+
+
 def portable_records(run_dir: Path, write: bool = True) -> int:
     """Make ``run_dir``'s records machine-independent; returns how many files it changed (or would).
 
     Paths under the launch's working directory (Hydra's ``runtime.cwd`` in .hydra/hydra.yaml: the machine's
     copy of the repository) become relative to it in every JSON record (a whole-clip summary's checkpoint
-    and run folder, the resolved config's data folder); a data folder elsewhere (data.lafan_dir) becomes
-    DATA_FOLDER_NAME; and hydra.yaml itself goes: no report reads it, and
+    and run folder, the resolved config's data folder) and in Hydra's config.yaml (whole values); a data
+    folder elsewhere (data.lafan_dir) becomes DATA_FOLDER_NAME; and hydra.yaml itself goes: no report reads it, and
     it holds the machine's paths and the launcher's internals. A run without hydra.yaml is left as it is.
     """
     hydra_yaml = run_dir / HYDRA_DIR / "hydra.yaml"
@@ -132,6 +141,20 @@ def portable_records(run_dir: Path, write: bool = True) -> int:
                     rewritten[path] = new
             except (OSError, ValueError) as e:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
                 raise AnalysisError(f"{path}: unreadable JSON record ({type(e).__name__}); its run's records are left as they were") from e
+        # Hydra's composed config holds the same folders as plain YAML scalars (motion.folder resolved)
+        config_yaml = run_dir / HYDRA_DIR / "config.yaml"
+        if config_yaml.is_file():
+            text = new = config_yaml.read_text()
+            for folder, name in replace:
+                # a whole value only: `key: FOLDER` or `key: FOLDER/below`, never a folder that only starts alike
+                new = re.sub(rf"(?m)(:[ \t]+){re.escape(folder)}(/|[ \t]*$)", _yaml_value(name), new)
+            if new != text:
+                try:
+                    yaml.safe_load(new)  # still YAML
+                except yaml.YAMLError as e:
+                    raise AnalysisError(f"{config_yaml}: not YAML once its paths are rewritten ({type(e).__name__}); "
+                                        "its run's records are left as they were") from e
+                rewritten[config_yaml] = new
     if write:
         for path, new in rewritten.items():
             atomic_write_bytes(path, new.encode())

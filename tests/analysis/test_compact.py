@@ -85,6 +85,24 @@ def test_a_data_folder_outside_the_checkout_becomes_the_variable_that_names_it(t
     assert json.loads((run / "s.json").read_text()) == {"clip": f"{DATA_FOLDER_NAME}/walk1.csv", "run_dir": "o"}
 
 
+def test_hydras_config_record_loses_the_folders_as_whole_values(tmp_path):
+    import yaml
+
+    from analysis.compact import DATA_FOLDER_NAME, portable_records
+    sweep = make_knob_study(tmp_path)
+    run = next(sweep.glob("*/seed=0"))
+    (run / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    cwd: /srv/box/repo\n")
+    (run / "resolved_config.json").write_text('{"data": {"lafan_dir": "/tmp/lafan36"}}')
+    (run / ".hydra" / "config.yaml").write_text(
+        "motion:\n  folder: /tmp/lafan36\n  near: /tmp/lafan365\n  clip: /tmp/lafan36/walk1.csv\n"
+        "data:\n  lafan_dir: ${oc.env:BMIMIC_LAFAN_DIR,null}\nout: /srv/box/repo/outputs/x\nnote: see /tmp/lafan36\n")
+    assert portable_records(run) == 3  # hydra.yaml, resolved_config.json, config.yaml
+    got = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
+    assert got["motion"] == {"folder": DATA_FOLDER_NAME, "near": "/tmp/lafan365", "clip": f"{DATA_FOLDER_NAME}/walk1.csv"}
+    assert got["out"] == "outputs/x" and got["data"]["lafan_dir"] == "${oc.env:BMIMIC_LAFAN_DIR,null}"
+    assert got["note"] == "see /tmp/lafan36"  # only whole values are paths
+
+
 def test_a_broken_record_is_one_line_and_the_run_keeps_its_hydra_record(tmp_path, capsys):
     sweep = make_knob_study(tmp_path)
     run = next(sweep.glob("*/seed=0"))
