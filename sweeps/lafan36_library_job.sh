@@ -9,7 +9,9 @@
 # first call starts the job, later ones continue it (resume=true: the config is checked first, and the clips
 # must sit at the same absolute path every sitting, since data.lafan_dir is compared). The job's folder is the
 # multirun's, RUNS_ROOT/motion=lafan_folder,sampler=ARM/seed=SEED (RUNS_ROOT: outputs/sweeps/lafan36_library),
-# so `python -m analysis.report RUNS_ROOT` reads the jobs as one study. On a 2-GPU machine two jobs share a
+# so `python -m analysis.report RUNS_ROOT` reads the jobs as one study. ITERS (optional) stops the job at that
+# iteration instead of the study's max_iterations (8400), to bring an arm to another arm's iterations: the
+# arms are compared at equal iterations (a later call without ITERS continues the job to 8400). On a 2-GPU machine two jobs share a
 # sitting, one per GPU (compared by iterations, never by wall time):
 #   CUDA_VISIBLE_DEVICES=0 bash sweeps/lafan36_library_job.sh adaptive_hybrid 0 &
 #   CUDA_VISIBLE_DEVICES=1 bash sweeps/lafan36_library_job.sh adaptive 0
@@ -27,6 +29,11 @@ train_s=${TRAIN_S:-1000}
 [[ "$train_s" =~ ^[0-9]+$ ]] && [ "$train_s" -gt 0 ] || { echo "error: TRAIN_S must be a positive whole number of seconds, got '$train_s'" >&2; exit 2; }
 nproc=${NPROC:-1}
 [[ "$nproc" =~ ^[1-9][0-9]*$ ]] || { echo "error: NPROC must be a positive whole number, got '$nproc'" >&2; exit 2; }
+iters=()
+if [ -n "${ITERS:-}" ]; then
+  [[ "$ITERS" =~ ^[1-9][0-9]*$ ]] || { echo "error: ITERS must be a positive whole number of iterations, got '$ITERS'" >&2; exit 2; }
+  iters=("max_iterations=$ITERS")
+fi
 run="${RUNS_ROOT:-outputs/sweeps/lafan36_library}/motion=lafan_folder,sampler=$arm/seed=$seed"
 
 # the training time the job has had (0 before its first checkpoint), read weights-only
@@ -39,7 +46,7 @@ else
   resume=()
 fi
 args=(-m bmimic.train +sweep=lafan36_library "sampler=$arm" "seed=$seed" "hydra.run.dir='$run'" "${resume[@]}"
-      "time_limit_s=$((done_s + train_s))" logger=none progress_bar=false)
+      "time_limit_s=$((done_s + train_s))" "${iters[@]}" logger=none progress_bar=false)
 if [ "$nproc" -gt 1 ]; then launcher=(torchrun --standalone --nproc_per_node "$nproc"); else launcher=(python); fi
 if [ "$dry" = "--dry-run" ]; then
   printf '%q ' "${launcher[@]}" "${args[@]}" | sed 's/ $//'; echo  # shell-quoted: pastes back as these arguments

@@ -50,11 +50,18 @@ def test_a_job_with_a_checkpoint_continues_for_train_s_more_seconds(tmp_path):
     assert "resume=true" in command and "time_limit_s=1320" in command
 
 
+def test_iters_stops_a_job_at_another_arms_iterations(tmp_path):
+    command = _command(_job("adaptive", "0", "--dry-run", RUNS_ROOT=str(tmp_path), ITERS="2038", TRAIN_S="900"))
+    cfg = compose([o for o in command[3:] if not o.startswith("hydra.")])
+    assert (cfg.max_iterations, cfg.time_limit_s, cfg.sampler.name) == (2038, 900, "adaptive")
+
+
 @pytest.mark.parametrize("args, env, what", [
     (("fast", "0"), {}, "unknown ARM 'fast'"),
     (("adaptive", "x"), {}, "SEED must be a whole number"),
     (("adaptive", "0"), {"TRAIN_S": "0"}, "TRAIN_S must be a positive"),
     (("adaptive", "0"), {"NPROC": "0"}, "NPROC must be a positive"),
+    (("adaptive", "0"), {"ITERS": "-5"}, "ITERS must be a positive"),
     (("adaptive", "0"), {"BMIMIC_LAFAN_DIR": "/nonexistent/clips"}, "BMIMIC_LAFAN_DIR must name the folder"),
 ])
 def test_bad_input_is_one_line_exit_2_and_starts_nothing(tmp_path, args, env, what):
