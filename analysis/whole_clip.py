@@ -140,9 +140,10 @@ CLIP_SUCCESS_LINES = (0.9, 0.95)
 
 
 def per_clip_rows(clips: pd.DataFrame, last: pd.DataFrame) -> pd.DataFrame | None:
-    """``arm, condition, clip, clip_name, n_seeds, success, low, high, mpkpe_rel_mm``: each clip's whole-clip
-    success at each run's last whole-clip evaluation, the mean over seeds and their range, and the
-    root-relative MPKPE of its completed rollouts (mean over seeds that completed any); None for one clip."""
+    """``arm, condition, clip, clip_name, n_seeds, success, low, high, rollouts, mpkpe_rel_mm``: each clip's
+    whole-clip success at each run's last whole-clip evaluation, the mean over seeds and their range, its
+    rollouts (fewest over seeds), and the root-relative MPKPE of its completed rollouts (mean over seeds that
+    completed any); None for one clip."""
     if clips["clip"].nunique() < 2:
         return None
     c = clips.merge(last[["run_dir", CONDITION, ITERATION]], on=["run_dir", CONDITION, ITERATION])
@@ -152,8 +153,22 @@ def per_clip_rows(clips: pd.DataFrame, last: pd.DataFrame) -> pd.DataFrame | Non
         c[MPKPE_REL_MM] = np.nan
     out = c.groupby(["arm", CONDITION, "clip", "clip_name"], sort=True).agg(
         n_seeds=("success", "count"), success=("success", "mean"), low=("success", "min"), high=("success", "max"),
-        **{MPKPE_REL_MM: (MPKPE_REL_MM, "mean")})
+        rollouts=("rollouts", "min"), **{MPKPE_REL_MM: (MPKPE_REL_MM, "mean")})
     return out.reset_index()
+
+
+def per_clip_resolution(per_clip: pd.DataFrame) -> str:
+    """How finely one evaluation resolves a clip's success, per condition: R rollouts of a clip are R
+    Bernoulli draws, so a success p read from them has the binomial standard error sqrt(p (1 - p) / R),
+    largest at p = 0.5 (0.5 / sqrt(R)); a deterministic condition has one rollout per clip, 0 or 1."""
+    parts = []
+    for condition, g in per_clip.groupby(CONDITION, sort=True):
+        r = int(g["rollouts"].min())
+        parts.append(f"{condition}: one rollout per clip (0 or 1)" if r <= 1 else
+                     f"{condition}: {r} rollouts per clip, a binomial standard error of up to {fmt(0.5 / np.sqrt(r))} "
+                     f"(at success 0.5)")
+    return ("One evaluation's resolution per clip (seed by seed, before any spread over seeds): "
+            + "; ".join(parts) + ".")
 
 
 def _per_clip_section(per_clip: pd.DataFrame) -> list[str]:
@@ -164,7 +179,7 @@ def _per_clip_section(per_clip: pd.DataFrame) -> list[str]:
     table.columns = [f"{arm}, {condition}" for arm, condition in table.columns]
     table = table.reset_index(level="clip", drop=True).rename_axis("clip").reset_index()
     md = ["Per clip: whole-clip success at each run's last whole-clip evaluation (mean over seeds; brackets: "
-          "range of the seeds).", "", md_table(table), ""]
+          "range of the seeds).", "", md_table(table), "", per_clip_resolution(per_clip), ""]
     n_clips = per_clip["clip"].nunique()
     for (arm, condition), g in per_clip.groupby(["arm", CONDITION], sort=True):
         counts = ", ".join(f">= {line:g}: {int((g['success'] >= line).sum())}" for line in CLIP_SUCCESS_LINES)

@@ -67,6 +67,8 @@ def test_whole_clip_success_survival_and_final_table(tmp_path):
     md = (out / "report.md").read_text()
     assert "## Whole clips" in md
     assert "![Whole-clip success over training per condition" in md and "whole_clip_survival.png" in md
+    # two clips of 8 robust rollouts: 0.5 / sqrt(8) = 0.177
+    assert "robust: 8 rollouts per clip, a binomial standard error of up to 0.177 (at success 0.5)" in md
     for name in ("whole_clip_success.png", "whole_clip_survival.png", "whole_clip_curves.csv", "whole_clip_final.csv"):
         assert (out / name).stat().st_size > 0
     curves = pd.read_csv(out / "whole_clip_curves.csv").set_index(["arm", ITERATION])
@@ -200,3 +202,12 @@ def test_clips_of_different_lengths_pool_as_a_kaplan_meier_curve_and_equal_ones_
     same = pooled_survival(table([(0, 0.0, 2), (0, 1.0, 1), (1, 0.0, 2), (1, 1.0, 2)]))
     assert not same["kaplan_meier"].any()
     np.testing.assert_allclose(same["frac"], [1.0, 0.75])
+
+
+def test_the_per_clip_table_says_how_finely_one_evaluation_resolves_a_clip():
+    from analysis.whole_clip import per_clip_resolution
+    rows = [{"arm": "a", CONDITION: c, "clip": k, "rollouts": r} for c, r in (("robust", 32), ("nominal", 1)) for k in (0, 1)]
+    line = per_clip_resolution(pd.DataFrame(rows))
+    # 0.5 / sqrt(32) = 0.0884: the largest standard error of a success read from 32 rollouts
+    assert "robust: 32 rollouts per clip, a binomial standard error of up to 0.0884" in line
+    assert "nominal: one rollout per clip (0 or 1)" in line
