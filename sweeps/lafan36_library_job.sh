@@ -11,8 +11,8 @@
 # multirun's, RUNS_ROOT/motion=lafan_folder,sampler=ARM/seed=SEED (RUNS_ROOT: outputs/sweeps/lafan36_library),
 # so `python -m analysis.report RUNS_ROOT` reads the jobs as one study. ITERS (optional) stops the job at that
 # iteration instead of the study's max_iterations (8400), to bring an arm to another arm's iterations: the
-# arms are compared at equal iterations (a later call without ITERS continues the job to 8400). On a 2-GPU machine two jobs share a
-# sitting, one per GPU (compared by iterations, never by wall time):
+# arms are compared at equal iterations (a later call without ITERS continues the job to 8400). On a 2-GPU
+# machine two jobs share a sitting, one per GPU (compared by iterations, never by wall time):
 #   CUDA_VISIBLE_DEVICES=0 bash sweeps/lafan36_library_job.sh adaptive_hybrid 0 &
 #   CUDA_VISIBLE_DEVICES=1 bash sweeps/lafan36_library_job.sh adaptive 0
 # Measured (docs/benchmarks.md, 2026-11-30): one H200 at 8192 envs trains ~2,800 iterations per 1000 s.
