@@ -15,7 +15,7 @@ import pandas as pd
 
 from analysis.metrics import at_budget, start_failure
 from analysis.stats import seed_interval
-from analysis.tables import ReportOptions, use_bootstrap
+from analysis.tables import ReportOptions, per_seed_text, seeds_text, use_bootstrap
 from bmimic.runs.schema import BIN, FAILURE_RATE, ITERATION
 
 
@@ -39,8 +39,9 @@ def clip_mass(sampler_df: pd.DataFrame, clips: pd.Series) -> pd.Series:
 
 def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd.DataFrame, runs: pd.DataFrame,
                  opts: ReportOptions) -> pd.DataFrame:
-    """One row per ``arm, clip``: final failure per started episode (point and interval over seeds),
-    its bins, bins never mastered, and the mean sampling probability mass (NaN without sampler tables)."""
+    """One row per ``arm, clip``: final failure per started episode (point and interval over seeds; each
+    seed's in ``per_seed``, in the order of ``seeds``), its bins, bins never mastered, and the mean
+    sampling probability mass (NaN without sampler tables)."""
     clips = bin_clips(eval_df)
     if clips.empty:
         return pd.DataFrame()
@@ -55,8 +56,10 @@ def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd
     for (arm, clip), g in per_run.groupby(["arm", "clip"], sort=False):
         p, low, high, method = seed_interval(g[FAILURE_RATE].dropna(), boot, opts.n_resamples, opts.confidence,
                                              opts.bootstrap_seed)
+        g = g.sort_values("seed", kind="stable")
         rows.append({"arm": arm, "clip": clip, "num_bins": int((clips == clip).sum()), "final_failure": p,
                      "final_failure_low": low, "final_failure_high": high, "ci_method": method, "n_seeds": len(g),
+                     "seeds": seeds_text(g["seed"]), "per_seed": per_seed_text(g[FAILURE_RATE]),
                      "bins_not_mastered": int(never.get((arm, clip), 0)),
                      "sampling_mass": float(mass.get((arm, clip), float("nan")))})
     order = {c: i for i, c in enumerate(dict.fromkeys(clips))}

@@ -144,12 +144,19 @@ CLIP_WINDOW_SUCCESS_LINE = 0.95
 
 
 def _clips_at_success(clip_tab: pd.DataFrame) -> list[str]:
-    """Per arm: how many clips reach CLIP_WINDOW_SUCCESS_LINE (final failure <= 1 - the line, point over seeds)."""
+    """Per arm: how many clips reach CLIP_WINDOW_SUCCESS_LINE (final failure <= 1 - the line), by the point
+    over seeds and, for several seeds, by each seed's own failures (a seed's count is what one policy does)."""
     lines = []
+    limit = 1.0 - CLIP_WINDOW_SUCCESS_LINE + 1e-12
     for arm, g in clip_tab.groupby("arm", sort=True):
-        k = int((g["final_failure"] <= 1.0 - CLIP_WINDOW_SUCCESS_LINE + 1e-12).sum())
-        lines.append(f"- `{arm}`: {k} of {len(g)} clips at final success >= {CLIP_WINDOW_SUCCESS_LINE:g} (failure "
-                     f"<= {1.0 - CLIP_WINDOW_SUCCESS_LINE:.2g}).")
+        k = int((g["final_failure"] <= limit).sum())
+        line = (f"- `{arm}`: {k} of {len(g)} clips at final success >= {CLIP_WINDOW_SUCCESS_LINE:g} (failure "
+                f"<= {1.0 - CLIP_WINDOW_SUCCESS_LINE:.2g})")
+        if "per_seed" in g and int(g["n_seeds"].max()) > 1:
+            per = tables.count_per_seed(g["seeds"], g["per_seed"], lambda v: v <= limit)
+            point = "IQM" if int(g["n_seeds"].max()) >= MIN_SEEDS_IQM else "mean"  # clip_failure's point
+            line += f" by the {point} over seeds; per seed: " + ", ".join(f"{n} (seed {s})" for s, n in per.items())
+        lines.append(line + ".")
     return lines
 
 

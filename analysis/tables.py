@@ -218,6 +218,22 @@ def per_seed_text(values: pd.Series) -> str:
     return ";".join(f"{float(v):.6g}" for v in values)
 
 
+def seeds_text(seeds: pd.Series) -> str:
+    """The seeds of a `per_seed` column, in its order, as a `seeds` column writes them: `;`-separated."""
+    return ";".join(str(int(s)) for s in seeds)
+
+
+def count_per_seed(seeds: pd.Series, per_seed: pd.Series, hit) -> dict[int, int]:
+    """Per seed: how many rows (clips) have a value for which ``hit(value)`` holds, from the ``seeds`` and
+    ``per_seed`` columns (seeds_text, per_seed_text) of a table with one row per clip; seeds in order."""
+    counts: dict[int, int] = {}
+    for ss, vs in zip(seeds, per_seed, strict=True):
+        for s, v in zip(str(ss).split(";"), str(vs).split(";"), strict=True):
+            if s != "":
+                counts[int(s)] = counts.get(int(s), 0) + bool(hit(float(v)))
+    return dict(sorted(counts.items()))
+
+
 def summary_rows(arm: str, metric: str, per_run: pd.DataFrame, value: str, boot: bool, opts: ReportOptions) -> dict:
     """One summary.csv row from a frame with one row per run (``seed`` and ``value``)."""
     per_run = per_run.sort_values("seed")

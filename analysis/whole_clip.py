@@ -13,7 +13,15 @@ import pandas as pd
 
 from analysis.load import load_table
 from analysis.markdown import fmt, md_table, row_cell
-from analysis.tables import ReportOptions, learning_curves, summary_rows, use_bootstrap
+from analysis.tables import (
+    ReportOptions,
+    count_per_seed,
+    learning_curves,
+    per_seed_text,
+    seeds_text,
+    summary_rows,
+    use_bootstrap,
+)
 from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
 
 COUNTS = ["rollouts", "completed", "transient_failures", "later_failures"]
@@ -140,8 +148,9 @@ CLIP_SUCCESS_LINES = (0.9, 0.95)
 
 
 def per_clip_rows(clips: pd.DataFrame, last: pd.DataFrame) -> pd.DataFrame | None:
-    """``arm, condition, clip, clip_name, n_seeds, success, low, high, rollouts, mpkpe_rel_mm``: each clip's
-    whole-clip success at each run's last whole-clip evaluation, the mean over seeds and their range, its
+    """``arm, condition, clip, clip_name, n_seeds, success, low, high, seeds, per_seed, rollouts, mpkpe_rel_mm``:
+    each clip's whole-clip success at each run's last whole-clip evaluation, the mean over seeds, their range and
+    each seed's (``per_seed`` in the order of ``seeds``), its
     rollouts (fewest over seeds), and the root-relative MPKPE of its completed rollouts (mean over seeds that
     completed any); None for one clip."""
     if clips["clip"].nunique() < 2:
@@ -151,8 +160,9 @@ def per_clip_rows(clips: pd.DataFrame, last: pd.DataFrame) -> pd.DataFrame | Non
                  clip_name=c["clip_name"] if "clip_name" in c else c["clip"].astype(str))
     if MPKPE_REL_MM not in c:
         c[MPKPE_REL_MM] = np.nan
-    out = c.groupby(["arm", CONDITION, "clip", "clip_name"], sort=True).agg(
+    out = c.sort_values("seed", kind="stable").groupby(["arm", CONDITION, "clip", "clip_name"], sort=True).agg(
         n_seeds=("success", "count"), success=("success", "mean"), low=("success", "min"), high=("success", "max"),
+        seeds=("seed", seeds_text), per_seed=("success", per_seed_text),
         rollouts=("rollouts", "min"), **{MPKPE_REL_MM: (MPKPE_REL_MM, "mean")})
     return out.reset_index()
 
@@ -171,6 +181,12 @@ def per_clip_resolution(per_clip: pd.DataFrame) -> str:
             + "; ".join(parts) + ".")
 
 
+def _counts_by_seed(g: pd.DataFrame) -> list[tuple[int, ...]]:
+    """``(seed, clips at each of CLIP_SUCCESS_LINES)`` for every seed of one arm and condition's per-clip rows."""
+    per_line = [count_per_seed(g["seeds"], g["per_seed"], lambda v, line=line: v >= line) for line in CLIP_SUCCESS_LINES]
+    return [(s, *(counts[s] for counts in per_line)) for s in per_line[0]]
+
+
 def _per_clip_section(per_clip: pd.DataFrame) -> list[str]:
     """The per-clip table of a library and how many of its clips reach each of CLIP_SUCCESS_LINES."""
     view = per_clip.assign(cell=[f"{fmt(r['success'])} ({fmt(r['low'])}–{fmt(r['high'])})" if r["n_seeds"] > 1
@@ -183,7 +199,12 @@ def _per_clip_section(per_clip: pd.DataFrame) -> list[str]:
     n_clips = per_clip["clip"].nunique()
     for (arm, condition), g in per_clip.groupby(["arm", CONDITION], sort=True):
         counts = ", ".join(f">= {line:g}: {int((g['success'] >= line).sum())}" for line in CLIP_SUCCESS_LINES)
-        md.append(f"- `{arm}`, {condition}: clips at whole-clip success {counts} of {n_clips}; root-relative MPKPE "
+        per_seed = ""
+        if int(g["n_seeds"].max()) > 1:  # the mean's count, then what each seed's policy does on its own
+            per_seed = " by the mean over seeds (per seed: " + "; ".join(
+                f"seed {s} " + ", ".join(f">= {line:g}: {n}" for line, n in zip(CLIP_SUCCESS_LINES, ns, strict=True))
+                for s, *ns in _counts_by_seed(g)) + ")"
+        md.append(f"- `{arm}`, {condition}: clips at whole-clip success {counts} of {n_clips}{per_seed}; root-relative MPKPE "
                   f"of completed rollouts {fmt(g[MPKPE_REL_MM].min())}–{fmt(g[MPKPE_REL_MM].max())} mm over the "
                   f"clips with any.")
     return md + [""]

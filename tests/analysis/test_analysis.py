@@ -688,6 +688,8 @@ def test_the_report_has_a_per_clip_table_for_a_library(tmp_path):
     # here; seed s adds 0.01 s to every rate)
     assert table.loc[("sampler=adaptive", "jump"), "final_failure"] == pytest.approx((0.02 + 0.5) / 2 + 0.005)
     assert table.loc[("sampler=uniform", "walk"), "final_failure"] == pytest.approx(0.02 + 0.005)
+    assert table.loc[("sampler=uniform", "walk"), "seeds"] == "0;1"  # and each seed's failure, in that order
+    assert [float(v) for v in table.loc[("sampler=uniform", "walk"), "per_seed"].split(";")] == pytest.approx([0.02, 0.03])
     assert table.loc[("sampler=adaptive", "jump"), "bins_not_mastered"] == 1
     assert table.loc[("sampler=uniform", "jump"), "bins_not_mastered"] == 0
     # the sampler's probability mass on the clip (uniform over 4 bins: half on each clip of 2)
@@ -698,6 +700,24 @@ def test_the_report_has_a_per_clip_table_for_a_library(tmp_path):
     # one clip: no per-clip section
     assert clip_failure(pd.DataFrame({"bin": [0], "clip": ["a"]}), pd.DataFrame(), pd.DataFrame(), pd.DataFrame(),
                         None).empty
+
+
+def test_a_library_counts_clips_at_95_percent_by_the_mean_and_by_each_seed():
+    """Planted final failures of 3 clips over seeds 0 and 1: (0.04, 0.05), (0.01, 0.02), (0.07, 0.02). The
+    means 0.045, 0.015, 0.045 put all 3 clips at success >= 0.95; seed 0 alone has 2 there, seed 1 all 3
+    (0.05 is on the line)."""
+    from analysis.report_views import _clips_at_success
+
+    per_seed = ["0.04;0.05", "0.01;0.02", "0.07;0.02"]
+    tab = pd.DataFrame({"arm": "a", "clip": ["x", "y", "z"], "n_seeds": 2, "seeds": "0;1", "per_seed": per_seed,
+                        "final_failure": [0.045, 0.015, 0.045]})
+    assert _clips_at_success(tab) == ["- `a`: 3 of 3 clips at final success >= 0.95 (failure <= 0.05) by the mean "
+                                      "over seeds; per seed: 2 (seed 0), 3 (seed 1)."]
+    four = tab.assign(n_seeds=4, seeds="0;1;2;3", per_seed=["0.04;0.05;0.01;0.01", "0.01;0.02;0.01;0.01",
+                                                             "0.07;0.02;0.01;0.01"])
+    assert "by the IQM over seeds; per seed: 2 (seed 0), 3 (seed 1), 3 (seed 2), 3 (seed 3)." in _clips_at_success(four)[0]
+    one = tab.assign(n_seeds=1, seeds="0", per_seed=["0.04", "0.01", "0.07"], final_failure=[0.04, 0.01, 0.07])
+    assert _clips_at_success(one) == ["- `a`: 2 of 3 clips at final success >= 0.95 (failure <= 0.05)."]
 
 
 # --------------------------------------------------------------------------------------------- budgets

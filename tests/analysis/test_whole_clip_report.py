@@ -211,3 +211,24 @@ def test_the_per_clip_table_says_how_finely_one_evaluation_resolves_a_clip():
     # 0.5 / sqrt(32) = 0.0884: the largest standard error of a success read from 32 rollouts
     assert "robust: 32 rollouts per clip, a binomial standard error of up to 0.0884" in line
     assert "nominal: one rollout per clip (0 or 1)" in line
+
+
+def test_a_library_counts_its_clips_by_the_mean_and_by_each_seed():
+    """Planted: 3 clips, 2 seeds, 32 robust rollouts. Seed 0 completes 32, 30 and 16 (1, 0.9375, 0.5), seed 1
+    28, 32 and 31 (0.875, 1, 0.96875): the means 0.9375, 0.96875, 0.734 put 2 clips at >= 0.9 and 1 at >= 0.95,
+    seed 0 alone 2 and 1, seed 1 alone 2 and 2 (a seed's count is one policy's, not read off the mean)."""
+    from analysis.whole_clip import _per_clip_section, per_clip_rows
+
+    completed = {0: (32, 30, 16), 1: (28, 32, 31)}
+    clips = pd.DataFrame([{"run_dir": f"s{seed}", "arm": "a", "seed": seed, CONDITION: "robust", ITERATION: 100,
+                           "clip": k, "clip_name": f"c{k}", "rollouts": 32, "completed": n, MPKPE_REL_MM: 40.0}
+                          for seed, ns in completed.items() for k, n in enumerate(ns)])
+    last = pd.DataFrame({"run_dir": ["s0", "s1"], CONDITION: "robust", ITERATION: 100})
+    rows = per_clip_rows(clips, last)
+    assert list(rows["seeds"]) == ["0;1"] * 3 and list(rows["per_seed"]) == ["1;0.875", "0.9375;1", "0.5;0.96875"]
+    text = "\n".join(_per_clip_section(rows))
+    assert ("- `a`, robust: clips at whole-clip success >= 0.9: 2, >= 0.95: 1 of 3 by the mean over seeds (per seed: "
+            "seed 0 >= 0.9: 2, >= 0.95: 1; seed 1 >= 0.9: 2, >= 0.95: 2); ") in text
+    # one seed: the count alone
+    one = per_clip_rows(clips[clips["seed"] == 0], last)
+    assert "- `a`, robust: clips at whole-clip success >= 0.9: 2, >= 0.95: 1 of 3; " in "\n".join(_per_clip_section(one))
