@@ -9,6 +9,7 @@ the metric definitions ``analysis.metrics``. Fixed RNG seeds: the same runs alwa
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -223,7 +224,7 @@ def seeds_text(seeds: pd.Series) -> str:
     return ";".join(str(int(s)) for s in seeds)
 
 
-def count_per_seed(seeds: pd.Series, per_seed: pd.Series, hit) -> dict[int, int]:
+def count_per_seed(seeds: pd.Series, per_seed: pd.Series, hit: Callable[[float], bool]) -> dict[int, int]:
     """Per seed: how many rows (clips) have a value for which ``hit(value)`` holds, from the ``seeds`` and
     ``per_seed`` columns (seeds_text, per_seed_text) of a table with one row per clip; seeds in order."""
     counts: dict[int, int] = {}

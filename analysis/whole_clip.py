@@ -6,7 +6,9 @@ clips."""
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -149,10 +151,9 @@ CLIP_SUCCESS_LINES = (0.9, 0.95)
 
 def per_clip_rows(clips: pd.DataFrame, last: pd.DataFrame) -> pd.DataFrame | None:
     """``arm, condition, clip, clip_name, n_seeds, success, low, high, seeds, per_seed, rollouts, mpkpe_rel_mm``:
-    each clip's whole-clip success at each run's last whole-clip evaluation, the mean over seeds, their range and
-    each seed's (``per_seed`` in the order of ``seeds``), its
-    rollouts (fewest over seeds), and the root-relative MPKPE of its completed rollouts (mean over seeds that
-    completed any); None for one clip."""
+    each clip's whole-clip success at each run's last whole-clip evaluation (the mean over seeds, their range,
+    and each seed's in ``per_seed``, in the order of ``seeds``), its rollouts (fewest over seeds), and the
+    root-relative MPKPE of its completed rollouts (mean over seeds that completed any); None for one clip."""
     if clips["clip"].nunique() < 2:
         return None
     c = clips.merge(last[["run_dir", CONDITION, ITERATION]], on=["run_dir", CONDITION, ITERATION])
@@ -183,7 +184,7 @@ def per_clip_resolution(per_clip: pd.DataFrame) -> str:
 
 def _counts_by_seed(g: pd.DataFrame) -> list[tuple[int, ...]]:
     """``(seed, clips at each of CLIP_SUCCESS_LINES)`` for every seed of one arm and condition's per-clip rows."""
-    per_line = [count_per_seed(g["seeds"], g["per_seed"], lambda v, line=line: v >= line) for line in CLIP_SUCCESS_LINES]
+    per_line = [count_per_seed(g["seeds"], g["per_seed"], partial(operator.le, line)) for line in CLIP_SUCCESS_LINES]
     return [(s, *(counts[s] for counts in per_line)) for s in per_line[0]]
 
 
