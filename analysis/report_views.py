@@ -152,9 +152,10 @@ def _clips_at_success(clip_tab: pd.DataFrame) -> list[str]:
         k = int((g["final_failure"] <= limit).sum())
         line = (f"- `{arm}`: {k} of {len(g)} clips at final success >= {CLIP_WINDOW_SUCCESS_LINE:g} (failure "
                 f"<= {1.0 - CLIP_WINDOW_SUCCESS_LINE:.2g})")
-        if "per_seed" in g and int(g["n_seeds"].max()) > 1:
+        n_seeds = int(g["n_seeds"].max())
+        if n_seeds > 1:
             per = tables.count_per_seed(g["seeds"], g["per_seed"], lambda v: v <= limit)
-            point = "IQM" if int(g["n_seeds"].max()) >= MIN_SEEDS_IQM else "mean"  # clip_failure's point
+            point = "IQM" if n_seeds >= MIN_SEEDS_IQM else "mean"  # clip_failure's point
             line += f" by the {point} over seeds; per seed: " + ", ".join(f"{n} (seed {s})" for s, n in per.items())
         lines.append(line + ".")
     return lines
