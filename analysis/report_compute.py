@@ -83,6 +83,10 @@ class Inputs:
     """The evaluation the final numbers are read at: the last one every run has."""
     bootstrap: bool
     """Intervals are bootstrap intervals (every arm has enough seeds), else the range of the seeds."""
+    final_read: tuple = ()
+    """The iterations the runs are read at for ``final_iteration``: each run's last evaluation at or before
+    it, so more than one when the runs evaluated on different schedules (a run stopped between two of
+    another's evaluations)."""
 
 
 @dataclass
@@ -273,7 +277,8 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
                                                 knob_trends(knobs, per_run["final_failure"], opts))
     return ReportData(
         inputs=Inputs(runs, opts, baseline, uniform_arms, kinds, wall_ok, measures, seeds, common[ITERATION],
-                      tables.use_bootstrap(runs)),
+                      tables.use_bootstrap(runs),
+                      tuple(sorted(tables.final_overall(overall)[ITERATION].unique().tolist()))),
         curves=Curves(overall, per_seed_curves, curves, budget),
         bins=Bins(eval_df, bins, bin_fail, final_bins, samp, mastery_seed_df, mastery_df, other_bins,
                   bin_tables.over_clip_time(eval_df, sampler_df) if other_bins else pd.DataFrame()),

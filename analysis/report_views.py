@@ -39,8 +39,13 @@ tracking; the policy's smoothness is SMOOTHNESS_METRICS, compared in its own blo
 
 
 def at_text(inp: Inputs) -> str:
-    """Where the final numbers are read."""
-    return f"iteration {fmt(inp.final_iteration)}, the last evaluation every run has"
+    """Where the final numbers are read (and, when the runs evaluated on different schedules, the
+    iterations each was in fact read at: a run is never read past the common budget)."""
+    if set(inp.final_read) <= {inp.final_iteration}:
+        return f"iteration {fmt(inp.final_iteration)}, the last evaluation every run has"
+    read = ", ".join(fmt(i) for i in inp.final_read)
+    return (f"iteration {fmt(inp.final_iteration)}, the last iteration every run's evaluations reach; each run "
+            f"is read at its last evaluation at or before it: iterations {read}")
 
 
 def band_text(inp: Inputs) -> str:

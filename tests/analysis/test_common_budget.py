@@ -8,7 +8,7 @@ import pytest
 
 from analysis.report import build_report, main
 from analysis.tables import ReportOptions
-from tests.analysis.synthetic_runs import make_speedup_sweep
+from tests.analysis.synthetic_runs import make_speedup_sweep, write_run
 
 
 def test_a_common_budget_censors_what_came_later_and_drops_the_later_rows(tmp_path):
@@ -38,3 +38,31 @@ def test_a_budget_below_one_iteration_is_refused_in_one_line(tmp_path, value, ca
     assert main([str(sweep), "--max-iteration", value, "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"error: --max-iteration must be >= 1, got {value}" and not (tmp_path / "r").exists()
+
+
+def test_runs_on_different_evaluation_schedules_are_read_at_or_before_the_common_budget_and_the_report_says_so(
+        tmp_path):
+    # A stops at 60 evaluating every 20 iterations, B at 55 evaluating every 5: the common budget is 55, where A
+    # has no evaluation, so A is read at 40 (never past the budget) and the text names both iterations.
+    sweep = tmp_path / "schedules"
+    mastery = [10.0, 30.0, 50.0, None]
+    write_run(sweep / "sampler=uniform" / "seed=0", sampler="uniform", seed=0, overrides=["sampler=uniform"],
+              mastery=mastery, last_iteration=60, eval_every=20)
+    write_run(sweep / "sampler=adaptive" / "seed=0", sampler="adaptive", seed=0, overrides=["sampler=adaptive"],
+              mastery=mastery, last_iteration=55, eval_every=5)
+    out = build_report(sweep, tmp_path / "rep", ReportOptions(n_resamples=20))
+    md = (out / "report.md").read_text()
+    assert ("iteration 55, the last iteration every run's evaluations reach; each run is read at its last "
+            "evaluation at or before it: iterations 40, 55") in md
+    assert "iteration 55, the last evaluation every run has" not in md
+    # A's final failure is its evaluation at 40: bin 2 (mastered at 50) still fails there.
+    summary = pd.read_csv(out / "summary.csv").set_index(["arm", "metric"])
+    evals = pd.read_parquet(sweep / "sampler=uniform" / "seed=0" / "eval.parquet")
+    at_40 = evals[evals["iteration"] == 40]
+    assert summary.loc[("sampler=uniform", "final_failure"), "mean"] == pytest.approx(
+        at_40["failures"].sum() / at_40["start_episodes"].sum())
+    # The same schedules with B also stopping at 60: every run has an evaluation at 60, the usual words.
+    write_run(sweep / "sampler=adaptive" / "seed=0", sampler="adaptive", seed=0, overrides=["sampler=adaptive"],
+              mastery=mastery, last_iteration=60, eval_every=5)
+    md = (build_report(sweep, tmp_path / "rep2", ReportOptions(n_resamples=20)) / "report.md").read_text()
+    assert "iteration 60, the last evaluation every run has" in md and "each run is read at" not in md
