@@ -62,14 +62,17 @@ def sampling_support(sampler_df: pd.DataFrame, clips: pd.Series | None = None) -
     return out[SUPPORT_COLUMNS]
 
 
-def at_evaluations(support: pd.DataFrame, eval_iterations) -> pd.DataFrame:
-    """The support rows nearest before each evaluation iteration (the distribution the evaluated policy
-    was trained with last), per run, labelled with the evaluation's ``iteration``."""
+def at_evaluations(support: pd.DataFrame, evaluations: pd.DataFrame) -> pd.DataFrame:
+    """Per run, the support row nearest before each of that run's own evaluations (``evaluations``: one row
+    per ``run_dir`` and ``iteration``; the distribution the evaluated policy was trained with last),
+    labelled with the evaluation's ``iteration``. A run is never read at an evaluation it did not have (one
+    that stopped earlier, or evaluated on another schedule, than the others)."""
     frames = []
-    for _, g in support.groupby("run_dir", sort=True):
+    own = evaluations.groupby("run_dir")[ITERATION].agg(lambda v: sorted(set(v)))
+    for run, g in support.groupby("run_dir", sort=True):
         g = g.sort_values(ITERATION)
         its = g[ITERATION].to_numpy()
-        for e in eval_iterations:
+        for e in own.get(run, []):
             i = np.searchsorted(its, e, side="right") - 1
             if i >= 0:
                 frames.append(g.iloc[[i]].assign(**{ITERATION: e}))

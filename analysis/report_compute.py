@@ -247,7 +247,7 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> ReportData:
     comp_base = comparisons.baseline_comparisons(per_run, "final_failure", baseline, opts)
     clips = clip_tables.bin_clips(eval_clips)
     support = sampling_support(sampler_clips if len(clips) else sampler_df, clips if len(clips) else None)
-    support_eval = at_evaluations(support, sorted(overall[ITERATION].unique())) if len(support) else support
+    support_eval = at_evaluations(support, overall[["run_dir", ITERATION]]) if len(support) else support
     support_sum = support_summary(support_eval) if len(support_eval) else pd.DataFrame()
     signals = signal_summary(support) if len(support) else pd.DataFrame()
     speedups = None

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.adaptation import sampling_support, signal_summary
+from analysis.adaptation import at_evaluations, sampling_support, signal_summary
 from analysis.comparisons import baseline_comparisons
 from analysis.curve_text import flat_span
 from analysis.report import build_report
@@ -161,6 +161,16 @@ def test_effective_support_of_known_distributions():
     assert s.loc[0, "clip_max_p_rel"] == pytest.approx(1.5)
     assert s.loc[1, "effective_support"] == pytest.approx(1.0) and s.loc[1, "max_p_rel"] == pytest.approx(1.0)
     assert s.loc[0, "signal_flat"] == 0 and s.loc[1, "signal_flat"] == 1
+
+
+def test_support_is_read_at_each_runs_own_evaluations_from_the_update_logged_before_them():
+    # A logs its sampler at 0, 500, 1000 and evaluated at 500 and 1000; B logs at 0 and 500, evaluated at 400
+    # and stopped there: B is read at 400 (from its log at 0) and never at A's 500 or 1000.
+    support = pd.DataFrame({"run_dir": ["A", "A", "A", "B", "B"], "arm": ["a", "a", "a", "b", "b"],
+                            "iteration": [0, 500, 1000, 0, 500], "effective_support": [1.0, 0.5, 0.25, 0.9, 0.8]})
+    evaluations = pd.DataFrame({"run_dir": ["A", "A", "B"], "iteration": [500, 1000, 400]})
+    got = at_evaluations(support, evaluations).set_index(["run_dir", "iteration"])["effective_support"]
+    assert got.to_dict() == {("A", 500): 0.5, ("A", 1000): 0.25, ("B", 400): 0.9}
 
 
 def test_a_flat_signal_is_degenerate_and_named(tmp_path):
