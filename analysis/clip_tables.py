@@ -40,14 +40,18 @@ def clip_mass(sampler_df: pd.DataFrame, clips: pd.Series) -> pd.Series:
 def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd.DataFrame, runs: pd.DataFrame,
                  opts: ReportOptions) -> pd.DataFrame:
     """One row per ``arm, clip``: final failure per started episode (point and interval over seeds; each
-    seed's in ``per_seed``, in the order of ``seeds``), its bins, bins never mastered, and the mean
-    sampling probability mass (NaN without sampler tables)."""
+    seed's in ``per_seed``, in the order of ``seeds``, read at ``iterations``: the common budget), its bins,
+    bins never mastered, and the mean sampling probability mass (NaN without sampler tables). A run that went
+    past the common budget is also read at its own last evaluation: ``per_seed_at_end`` at
+    ``end_iterations`` (equal to ``per_seed`` and ``iterations`` when every run ends at the budget)."""
     clips = bin_clips(eval_df)
     if clips.empty:
         return pd.DataFrame()
     common = float(eval_df.groupby("run_dir")[ITERATION].max().min())
     last = at_budget(eval_df, "iteration", common)
     per_run = start_failure(last, clips).rename(columns={"group": "clip"})
+    ends = eval_df[eval_df[ITERATION] == eval_df.groupby("run_dir")[ITERATION].transform("max")]
+    at_end = start_failure(ends, clips).rename(columns={"group": "clip"}).set_index(["arm", "clip", "seed"])
     never = mastery_df[mastery_df["mastery_iteration"].isna()].assign(clip=lambda d: d[BIN].map(clips))
     never = never.groupby(["arm", "clip"]).size()
     mass = clip_mass(sampler_df, clips)
@@ -57,9 +61,12 @@ def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd
         p, low, high, method = seed_interval(g[FAILURE_RATE].dropna(), boot, opts.n_resamples, opts.confidence,
                                              opts.bootstrap_seed)
         g = g.sort_values("seed", kind="stable")
+        end = at_end.loc[[(arm, clip, seed) for seed in g["seed"]]]
         rows.append({"arm": arm, "clip": clip, "num_bins": int((clips == clip).sum()), "final_failure": p,
                      "final_failure_low": low, "final_failure_high": high, "ci_method": method, "n_seeds": len(g),
                      "seeds": seeds_text(g["seed"]), "per_seed": per_seed_text(g[FAILURE_RATE]),
+                     "iterations": seeds_text(g[ITERATION]), "end_iterations": seeds_text(end[ITERATION]),
+                     "per_seed_at_end": per_seed_text(end[FAILURE_RATE]),
                      "bins_not_mastered": int(never.get((arm, clip), 0)),
                      "sampling_mass": float(mass.get((arm, clip), float("nan")))})
     order = {c: i for i, c in enumerate(dict.fromkeys(clips))}

@@ -66,3 +66,25 @@ def test_runs_on_different_evaluation_schedules_are_read_at_or_before_the_common
               mastery=mastery, last_iteration=60, eval_every=5)
     md = (build_report(sweep, tmp_path / "rep2", ReportOptions(n_resamples=20)) / "report.md").read_text()
     assert "iteration 60, the last evaluation every run has" in md and "each run is read at" not in md
+
+
+def test_a_library_run_past_the_common_budget_also_gets_its_clip_count_at_its_own_last_evaluation(tmp_path):
+    # Clips walk (bins 0, 1) and jump (2, 3); failure 0.02 once a bin is mastered, 0.5 before. Uniform evaluates
+    # every 20 to 60, adaptive every 5 to 55: at the common budget uniform is read at 40 (jump's bin 2, mastered
+    # at 50, still fails: 1 clip at 95%); at its own last evaluation, 60, both clips pass.
+    sweep = tmp_path / "library"
+    clips, mastery = ["walk", "walk", "jump", "jump"], [10.0, 30.0, 50.0, 58.0]
+    write_run(sweep / "sampler=uniform" / "seed=0", sampler="uniform", seed=0, overrides=["sampler=uniform"],
+              mastery=mastery, last_iteration=60, eval_every=20, clips=clips)
+    write_run(sweep / "sampler=adaptive" / "seed=0", sampler="adaptive", seed=0, overrides=["sampler=adaptive"],
+              mastery=mastery, last_iteration=55, eval_every=5, clips=clips)
+    out = build_report(sweep, tmp_path / "rep", ReportOptions(n_resamples=20))
+    md = (out / "report.md").read_text()
+    assert ("- `sampler=uniform`: 1 of 2 clips at final success >= 0.95 (failure <= 0.05); at each seed's own last "
+            "evaluation: 2 (seed 0, iteration 60).") in md
+    assert "- `sampler=adaptive`: 1 of 2 clips at final success >= 0.95 (failure <= 0.05)." in md  # ends at 55
+    table = pd.read_csv(out / "clip_failure.csv", dtype={"iterations": str, "end_iterations": str}
+                        ).set_index(["arm", "clip"])
+    assert table.loc[("sampler=uniform", "jump"), ["iterations", "end_iterations"]].tolist() == ["40", "60"]
+    assert float(table.loc[("sampler=uniform", "jump"), "per_seed_at_end"]) == pytest.approx(0.02)
+    assert table.loc[("sampler=adaptive", "jump"), ["iterations", "end_iterations"]].tolist() == ["55", "55"]
