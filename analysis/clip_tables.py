@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from analysis.metrics import at_budget, start_failure
+from analysis.metrics import at_budget, final_rows, start_failure
 from analysis.stats import seed_interval
 from analysis.tables import ReportOptions, per_seed_text, seeds_text, use_bootstrap
 from bmimic.runs.schema import BIN, FAILURE_RATE, ITERATION
@@ -50,8 +50,7 @@ def clip_failure(eval_df: pd.DataFrame, sampler_df: pd.DataFrame, mastery_df: pd
     common = float(eval_df.groupby("run_dir")[ITERATION].max().min())
     last = at_budget(eval_df, "iteration", common)
     per_run = start_failure(last, clips).rename(columns={"group": "clip"})
-    ends = eval_df[eval_df[ITERATION] == eval_df.groupby("run_dir")[ITERATION].transform("max")]
-    at_end = start_failure(ends, clips).rename(columns={"group": "clip"}).set_index(["arm", "clip", "seed"])
+    at_end = start_failure(final_rows(eval_df), clips).rename(columns={"group": "clip"}).set_index(["arm", "clip", "seed"])
     never = mastery_df[mastery_df["mastery_iteration"].isna()].assign(clip=lambda d: d[BIN].map(clips))
     never = never.groupby(["arm", "clip"]).size()
     mass = clip_mass(sampler_df, clips)
