@@ -162,7 +162,7 @@ def _clips_at_success(clip_tab: pd.DataFrame) -> list[str]:
             per = tables.count_per_seed(g["seeds"], g["per_seed"], lambda v: v <= limit)
             point = "IQM" if n_seeds >= MIN_SEEDS_IQM else "mean"  # clip_failure's point
             line += f" by the {point} over seeds; per seed: " + ", ".join(f"{n} (seed {s})" for s, n in per.items())
-        if "end_iterations" in g and (g["end_iterations"] != g["iterations"]).any():  # a run went past the budget
+        if (g["end_iterations"] != g["iterations"]).any():  # a run went past the common budget
             ends = dict(zip(g["seeds"].iloc[0].split(";"), g["end_iterations"].iloc[0].split(";"), strict=True))
             at_end = tables.count_per_seed(g["seeds"], g["per_seed_at_end"], lambda v: v <= limit)
             line += "; at each seed's own last evaluation: " + ", ".join(

@@ -710,14 +710,21 @@ def test_a_library_counts_clips_at_95_percent_by_the_mean_and_by_each_seed():
 
     per_seed = ["0.04;0.05", "0.01;0.02", "0.07;0.02"]
     tab = pd.DataFrame({"arm": "a", "clip": ["x", "y", "z"], "n_seeds": 2, "seeds": "0;1", "per_seed": per_seed,
-                        "final_failure": [0.045, 0.015, 0.045]})
+                        "final_failure": [0.045, 0.015, 0.045], "iterations": "60;60", "end_iterations": "60;60",
+                        "per_seed_at_end": per_seed})
     assert _clips_at_success(tab) == ["- `a`: 3 of 3 clips at final success >= 0.95 (failure <= 0.05) by the mean "
                                       "over seeds; per seed: 2 (seed 0), 3 (seed 1)."]
     four = tab.assign(n_seeds=4, seeds="0;1;2;3", per_seed=["0.04;0.05;0.01;0.01", "0.01;0.02;0.01;0.01",
                                                              "0.07;0.02;0.01;0.01"])
     assert "by the IQM over seeds; per seed: 2 (seed 0), 3 (seed 1), 3 (seed 2), 3 (seed 3)." in _clips_at_success(four)[0]
-    one = tab.assign(n_seeds=1, seeds="0", per_seed=["0.04", "0.01", "0.07"], final_failure=[0.04, 0.01, 0.07])
+    one = tab.assign(n_seeds=1, seeds="0", per_seed=["0.04", "0.01", "0.07"], final_failure=[0.04, 0.01, 0.07],
+                     iterations="60", end_iterations="60", per_seed_at_end=["0.04", "0.01", "0.07"])
     assert _clips_at_success(one) == ["- `a`: 2 of 3 clips at final success >= 0.95 (failure <= 0.05)."]
+    # seed 1 went on to iteration 90, where clip z fails more (0.06): its own count there is 2
+    past = tab.assign(iterations="60;60", end_iterations="60;90", per_seed_at_end=["0.04;0.05", "0.01;0.02", "0.07;0.06"])
+    assert _clips_at_success(past)[0].endswith(
+        "per seed: 2 (seed 0), 3 (seed 1); at each seed's own last evaluation: 2 (seed 0, iteration 60), "
+        "2 (seed 1, iteration 90).")
 
 
 # --------------------------------------------------------------------------------------------- budgets
