@@ -11,7 +11,10 @@
 # multirun's, RUNS_ROOT/motion=lafan_folder,sampler=ARM/seed=SEED (RUNS_ROOT: outputs/sweeps/lafan36_library),
 # so `python -m analysis.report RUNS_ROOT` reads the jobs as one study. ITERS (optional) stops the job at that
 # iteration instead of the study's max_iterations (8400), to bring an arm to another arm's iterations: the
-# arms are compared at equal iterations (a later call without ITERS continues the job to 8400). On a 2-GPU
+# arms are compared at equal iterations (a later call without ITERS continues the job to 8400). EGM anneals
+# over sampler.schedule_iterations, which a run otherwise takes from its max_iterations: its jobs get the
+# study's max_iterations there in every call, so a sitting stopped by ITERS changes neither its schedule nor
+# what a later call may resume (a resume that changed it would be refused). On a 2-GPU
 # machine two jobs share a sitting, one per GPU (compared by iterations, never by wall time):
 #   CUDA_VISIBLE_DEVICES=0 bash sweeps/lafan36_library_job.sh adaptive_hybrid 0 &
 #   CUDA_VISIBLE_DEVICES=1 bash sweeps/lafan36_library_job.sh adaptive 0
@@ -29,10 +32,15 @@ train_s=${TRAIN_S:-1000}
 [[ "$train_s" =~ ^[0-9]+$ ]] && [ "$train_s" -gt 0 ] || { echo "error: TRAIN_S must be a positive whole number of seconds, got '$train_s'" >&2; exit 2; }
 nproc=${NPROC:-1}
 [[ "$nproc" =~ ^[1-9][0-9]*$ ]] || { echo "error: NPROC must be a positive whole number, got '$nproc'" >&2; exit 2; }
-iters=()
+overrides=()
+if [ "$arm" = egm ]; then  # the schedule spans the study's budget, whatever one sitting's ITERS says
+  study_iters=$(sed -n 's/^max_iterations: *\([0-9][0-9]*\).*/\1/p' sweeps/lafan36_library.yaml)
+  [ -n "$study_iters" ] || { echo "error: sweeps/lafan36_library.yaml: no top-level max_iterations for EGM's schedule" >&2; exit 2; }
+  overrides=("sampler.schedule_iterations=$study_iters")
+fi
 if [ -n "${ITERS:-}" ]; then
   [[ "$ITERS" =~ ^[1-9][0-9]*$ ]] || { echo "error: ITERS must be a positive whole number of iterations, got '$ITERS'" >&2; exit 2; }
-  iters=("max_iterations=$ITERS")
+  overrides+=("max_iterations=$ITERS")
 fi
 run="${RUNS_ROOT:-outputs/sweeps/lafan36_library}/motion=lafan_folder,sampler=$arm/seed=$seed"
 
@@ -46,7 +54,7 @@ else
   resume=()
 fi
 args=(-m bmimic.train +sweep=lafan36_library "sampler=$arm" "seed=$seed" "hydra.run.dir='$run'" "${resume[@]}"
-      "time_limit_s=$((done_s + train_s))" "${iters[@]}" logger=none progress_bar=false)
+      "time_limit_s=$((done_s + train_s))" "${overrides[@]}" logger=none progress_bar=false)
 if [ "$nproc" -gt 1 ]; then launcher=(torchrun --standalone --nproc_per_node "$nproc"); else launcher=(python); fi
 if [ "$dry" = "--dry-run" ]; then
   printf '%q ' "${launcher[@]}" "${args[@]}" | sed 's/ $//'; echo  # shell-quoted: pastes back as these arguments
