@@ -6,8 +6,10 @@ rewrites each run's tables in place, atomically, keeping only REPORT_COLUMNS (th
 reads, analysis.run_files) and storing floating-point columns with Parquet's byte-stream-split encoding
 under zstd level 19: lossless, so a report rebuilt from the compacted runs is byte-identical, and
 about half the size. Rows are never dropped or thinned here (thinning sampler.parquet would change the
-sampling figures). It also makes the run's records portable (portable_records: no path of the machine
-it ran on). Run it before committing a study's runs; ``--check`` only prints what it would do.
+sampling figures). Survival tables of whole-clip evaluations go (drop_survival_views): they are a view
+of the clips and failures tables, which the analysis derives again, and they are dropped only where that
+derivation gives them back exactly. It also makes the run's records portable (portable_records: no path of
+the machine it ran on). Run it before committing a study's runs; ``--check`` only prints what it would do.
 
 STUDY_BUDGET_MB is the size a study's folder may take in the repository; STUDY_BUDGETS_MB records the
 studies allowed more, each with its reason. tests/test_results_size.py holds every folder of
@@ -26,6 +28,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import yaml
@@ -33,7 +37,21 @@ import yaml
 from analysis import AnalysisError
 from analysis.run_files import REPORT_COLUMNS, find_run_dirs
 from bmimic.runs.atomic_io import atomic_write_bytes
-from bmimic.runs.folder import HYDRA_DIR, RESOLVED_CONFIG, table_path
+from bmimic.runs.folder import (
+    EVAL_DIR,
+    HYDRA_DIR,
+    RESOLVED_CONFIG,
+    WHOLE_CLIP_DIR,
+    WHOLE_CLIP_FILES,
+    table_path,
+)
+from bmimic.runs.schema import (
+    CLIP_TIME_S,
+    CONDITION,
+    ITERATION,
+    WHOLE_CLIP_SURVIVAL_COLUMNS,
+    whole_clip_survival,
+)
 
 STUDY_BUDGET_MB = 10.0
 """Largest size of one study's folder under docs/results (runs, report.md, figures; not the report's CSVs,
@@ -87,6 +105,58 @@ def compact_run(run_dir: Path, write: bool = True) -> tuple[int, int]:
         if write and len(data) < path.stat().st_size:
             atomic_write_bytes(path, data)
     return before, after
+
+
+def _survival_sources(run_dir: Path) -> list[tuple[Path, Path, Path, tuple[str, ...]]]:
+    """(survival, clips, failures, keys) of every whole-clip evaluation of ``run_dir`` that stored a survival
+    table: training's parquet tables (keyed by iteration) and each checkpoint's eval/<label>/whole_clip/."""
+    found: list[tuple[Path, Path, Path, tuple[str, ...]]] = []
+    parquet = table_path(run_dir, "whole_clip_survival")
+    if parquet.is_file():
+        found.append((parquet, table_path(run_dir, "whole_clip"), table_path(run_dir, "whole_clip_failures"),
+                      (ITERATION,)))
+    for folder in sorted((run_dir / EVAL_DIR).glob(f"*/{WHOLE_CLIP_DIR}")):
+        clips, survival, failures = (folder / name for name in WHOLE_CLIP_FILES[:3])
+        if survival.is_file():
+            found.append((survival, clips, failures, ()))
+    return found
+
+
+def _read(path: Path) -> pd.DataFrame:
+    if path.suffix == ".csv":
+        return pd.read_csv(path)
+    return pd.read_parquet(path)
+
+
+def drop_survival_views(run_dir: Path, write: bool = True) -> tuple[int, int]:
+    """Delete ``run_dir``'s stored whole-clip survival tables that bmimic.runs.schema.whole_clip_survival
+    derives back exactly from the same evaluation's clips and failures tables (every column, every row);
+    one that differs, or whose sources are missing or unreadable, stays. Returns (files, bytes) dropped
+    (or that would be)."""
+    files = size = 0
+    for survival_path, clips_path, failures_path, keys in _survival_sources(run_dir):
+        try:
+            stored, clips = _read(survival_path), _read(clips_path)
+            failures = _read(failures_path) if failures_path.is_file() else pd.DataFrame(
+                columns=[*keys, CONDITION, "clip", "failure_time_s"])
+            derived = whole_clip_survival(clips, failures, keys)
+        except Exception:  # a damaged or foreign file: keep the stored view, which is then the only record
+            continue
+        columns = [*keys, *WHOLE_CLIP_SURVIVAL_COLUMNS]
+        if set(columns) - set(stored.columns):
+            continue
+        order = [*keys, CONDITION, "clip", CLIP_TIME_S]
+        a = stored[columns].sort_values(order, kind="stable").reset_index(drop=True)
+        b = derived[columns].sort_values(order, kind="stable").reset_index(drop=True)
+        same = len(a) == len(b) and all(
+            np.array_equal(a[c].to_numpy(), b[c].to_numpy(), equal_nan=c == "tracking_frac") if c != "clip_name"
+            else a[c].astype(str).tolist() == b[c].astype(str).tolist() for c in columns)
+        if not same:
+            continue
+        files, size = files + 1, size + survival_path.stat().st_size
+        if write:
+            survival_path.unlink()
+    return files, size
 
 
 DATA_FOLDER_NAME = "$BMIMIC_LAFAN_DIR"
@@ -174,16 +244,18 @@ def main(argv: list[str] | None = None) -> int:
         runs = [r for path in args.paths for r in find_run_dirs(path)]
         if not runs:
             raise AnalysisError(f"no run folders under {[str(x) for x in args.paths]}")
-        before = after = records = 0
+        before = after = records = views = 0
         for run in runs:
             b, a = compact_run(run, write=not args.check)
-            before, after = before + b, after + a
+            n, dropped = drop_survival_views(run, write=not args.check)
+            before, after, views = before + b + dropped, after + a, views + n
             records += portable_records(run, write=not args.check)
     except AnalysisError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     verb = "would shrink" if args.check else "shrank"
-    print(f"{len(runs)} runs: tables {verb} from {before / 1e6:.2f} MB to {after / 1e6:.2f} MB; "
+    print(f"{len(runs)} runs: tables {verb} from {before / 1e6:.2f} MB to {after / 1e6:.2f} MB "
+          f"({views} survival views {'would be ' if args.check else ''}dropped: derived again from clips and failures); "
           f"{records} record files {'would be ' if args.check else ''}made free of the machine's paths")
     return 0
 

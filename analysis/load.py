@@ -330,9 +330,10 @@ def load_segments(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(columns=["name", "start_s", "end_s", "difficulty"])
 
 
-CHECKPOINT_WHOLE_CLIP_FILES = dict(zip(("whole_clip", "whole_clip_survival", "whole_clip_failures"), WHOLE_CLIP_FILES))
-"""The run tables that `python -m bmimic.eval RUN --whole-clip` also writes, per checkpoint, as
-eval/<checkpoint label>/whole_clip/<file> (without the iteration, which its summary holds)."""
+CHECKPOINT_WHOLE_CLIP_FILES = {"whole_clip": WHOLE_CLIP_FILES[0], "whole_clip_failures": WHOLE_CLIP_FILES[2]}
+"""The run tables the analysis reads that `python -m bmimic.eval RUN --whole-clip` also writes, per
+checkpoint, as eval/<checkpoint label>/whole_clip/<file> (without the iteration, which its summary holds).
+The survival file is a view of these two (bmimic.runs.schema.whole_clip_survival), derived again, never read."""
 
 
 def _check_read(path: Path, name: str, table: pd.DataFrame, run_dir) -> None:

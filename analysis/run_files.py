@@ -23,7 +23,6 @@ from bmimic.runs.folder import (
 from bmimic.runs.schema import (
     BIN,
     BIN_COLUMNS,
-    CLIP_TIME_S,
     CONDITION,
     ENV_STEPS,
     ERROR_COLUMNS,
@@ -42,7 +41,6 @@ REQUIRED_COLUMNS = {
     "clip_eval": [ITERATION, "clip", "failed"],
     "whole_clip": [ITERATION, CONDITION, "clip", "clip_duration_s", "rollouts", "completed", "transient_failures",
                    "later_failures"],
-    "whole_clip_survival": [ITERATION, CONDITION, "clip", CLIP_TIME_S, "rollouts", "tracking"],
     "whole_clip_failures": [ITERATION, CONDITION, "clip", "failure_time_s", "transient"],
 }
 """The columns the analysis reads from each table; other columns are carried along untouched."""
@@ -66,7 +64,7 @@ REPORT_COLUMNS: dict[str, tuple[str, ...] | None] = {
     "eval_robust": (*REQUIRED_COLUMNS["eval_robust"], *_EVAL_OPTIONAL),
     "sampler": (*REQUIRED_COLUMNS["sampler"], "bin_start_s", "bin_end_s", "clip", "episodes", "failures",
                 "smoothed_failure_rate"),
-    "clip_eval": None, "whole_clip": None, "whole_clip_survival": None, "whole_clip_failures": None,
+    "clip_eval": None, "whole_clip": None, "whole_clip_failures": None,
 }
 """Every column the analysis reads from each table, the optional ones included (None: the whole table):
 what analysis.compact keeps of a committed run. ``episodes`` is the start count of evaluation tables

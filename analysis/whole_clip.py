@@ -24,7 +24,14 @@ from analysis.tables import (
     summary_rows,
     use_bootstrap,
 )
-from bmimic.runs.schema import CLIP_TIME_S, CONDITION, ITERATION, MPKPE_REL_MM, START_TRANSIENT_S
+from bmimic.runs.schema import (
+    CLIP_TIME_S,
+    CONDITION,
+    ITERATION,
+    MPKPE_REL_MM,
+    START_TRANSIENT_S,
+    whole_clip_survival,
+)
 
 COUNTS = ["rollouts", "completed", "transient_failures", "later_failures"]
 KAPLAN_MEIER_NOTE = (" The clips differ in length, so the survival figure pools them as a Kaplan-Meier curve: a "
@@ -133,10 +140,13 @@ def compute(runs: pd.DataFrame, opts: ReportOptions) -> WholeClipReport | None:
         columns={CONDITION: "metric", "success": "value"})
     last_it = per_run.groupby(["run_dir", CONDITION])[ITERATION].transform("max")
     last = per_run[per_run[ITERATION] == last_it]
-    survival = load_table(runs, "whole_clip_survival", opts.max_iteration)
+    # the survival curves are a view of the clips and failures tables (one rule: runs.schema), not read from disk
+    at_last = last[["run_dir", CONDITION, ITERATION]]
+    survival = whole_clip_survival(clips.merge(at_last, on=["run_dir", CONDITION, ITERATION]),
+                                   failures.merge(at_last, on=["run_dir", CONDITION, ITERATION]),
+                                   keys=("arm", "run_dir", ITERATION))
     kaplan_meier = False
     if len(survival):
-        survival = survival.merge(last[["run_dir", CONDITION, ITERATION]], on=["run_dir", CONDITION, ITERATION])
         pooled = pooled_survival(survival)
         kaplan_meier = bool(pooled["kaplan_meier"].any())
         survival = pooled.groupby(["arm", CONDITION, CLIP_TIME_S], sort=True)["frac"].agg(

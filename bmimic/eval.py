@@ -34,7 +34,8 @@ RUN_DIR/eval/<checkpoint>/whole_clip/ (or --out):
 
     whole_clip.csv            per condition and clip: rollouts, completed, success, start transients
                               (failures in the first second) and later failures, errors over completed ones
-    whole_clip_survival.csv   per condition, clip and second: rollouts still tracking
+    whole_clip_survival.csv   per condition, clip and second: rollouts still tracking (a view of the
+                              other two; the analysis derives it again)
     whole_clip_failures.csv   one row per failed rollout: frame, time into the clip, bin, kind
     whole_clip_summary.json   overall numbers (whole_clip_<condition>_success_rate, ...)
 

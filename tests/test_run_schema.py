@@ -62,3 +62,24 @@ def test_every_tracking_error_is_printed_under_its_own_title():
     titles = [c.title for c in TRACKING_ERRORS]
     assert all(titles) and len(set(titles)) == len(titles)
     assert [_SHOWN[c.name][0] for c in TRACKING_ERRORS] == titles
+
+
+def test_whole_clip_survival_is_derived_from_the_clips_and_failures_tables():
+    """Known answers: a failure at a listed time counts there, the last frame's fraction is the clip's
+    success, each evaluation (keys) sees only its own failures, and no failures leave every rollout tracking."""
+    CLIP_TIME_S, CONDITION, ITERATION, whole_clip_survival = rs.CLIP_TIME_S, rs.CONDITION, rs.ITERATION, rs.whole_clip_survival
+    clips = pd.DataFrame([{ITERATION: it, CONDITION: "robust", "clip": c, "clip_name": n, "clip_duration_s": d,
+                           "rollouts": r} for it in (10, 20) for c, n, d, r in ((0, "dance", 2.58, 4), (1, "walk", 2.0, 2))])
+    failures = pd.DataFrame([{ITERATION: 10, CONDITION: "robust", "clip": 0, "failure_time_s": 1.0},
+                             {ITERATION: 10, CONDITION: "robust", "clip": 0, "failure_time_s": 2.3},
+                             {ITERATION: 20, CONDITION: "robust", "clip": 0, "failure_time_s": 0.04}])
+    sv = whole_clip_survival(clips, failures, keys=(ITERATION,))
+    assert list(sv.columns) == [ITERATION, *rs.WHOLE_CLIP_SURVIVAL_COLUMNS]
+    dance = sv[(sv[ITERATION] == 10) & (sv["clip"] == 0)]
+    assert dance[CLIP_TIME_S].tolist() == [0.0, 1.0, 2.0, 2.58]
+    assert dance["tracking"].tolist() == [4, 3, 3, 2] and dance["tracking_frac"].iloc[-1] == 0.5
+    assert sv[(sv[ITERATION] == 20) & (sv["clip"] == 0)]["tracking"].tolist() == [4, 3, 3, 3]
+    walk = sv[sv["clip"] == 1]
+    assert walk[CLIP_TIME_S].tolist() == [0.0, 1.0, 2.0] * 2 and walk["tracking"].eq(2).all()
+    none = whole_clip_survival(clips, failures.iloc[:0], keys=(ITERATION,))
+    assert none["tracking_frac"].eq(1.0).all() and len(none) == len(sv)

@@ -83,7 +83,9 @@ WHOLE_CLIP_DIR = "whole_clip"
 """`python -m bmimic.eval --whole-clip` writes eval/<checkpoint label>/whole_clip/ (WHOLE_CLIP_FILES);
 `python -m bmimic.sim2sim --whole-clip R` sim2sim/<model>/<checkpoint label>/whole_clip/."""
 WHOLE_CLIP_SURVIVAL = "whole_clip_survival.csv"
-"""Survival over clip time of whole-clip rollouts (runs.schema.WHOLE_CLIP_SURVIVAL_COLUMNS)."""
+"""Survival over clip time of whole-clip rollouts (runs.schema.WHOLE_CLIP_SURVIVAL_COLUMNS): a view derived
+from the clips and failures files (runs.schema.whole_clip_survival), which the analysis derives again and
+analysis.compact drops from committed runs, as it does training's whole_clip_survival.parquet."""
 WHOLE_CLIP_FILES = ("whole_clip.csv", WHOLE_CLIP_SURVIVAL, "whole_clip_failures.csv", "whole_clip_summary.json")
 """One whole-clip evaluation's files (the columns of training's whole_clip tables without the iteration);
 the summary is written last, so its presence means a complete set."""

@@ -123,7 +123,9 @@ WHOLE_CLIP_SURVIVAL_COLUMNS = (CONDITION, "clip", "clip_name", CLIP_TIME_S, "rol
 """A survival table of whole-clip rollouts (whole_clip_survival.parquet after `iteration, env_steps`;
 `bmimic.eval --whole-clip`'s and sim2sim's whole_clip_survival.csv): per condition and clip, at every
 whole second of it and at its last frame, the rollouts still tracking (no failure at or before that time)
-and their fraction; at the last frame that is the clip's success rate."""
+and their fraction; at the last frame that is the clip's success rate. A view derived from the clips and
+failures tables (whole_clip_survival below), written for whoever reads the files; the analysis derives it
+again and analysis.compact drops it from committed runs."""
 WHOLE_CLIP_FAILURE_COLUMNS = (CONDITION, "clip", "clip_name", "rollout", "failure_frame", "failure_time_s", BIN,
                               "transient", "terminated", "broken")
 """whole_clip_failures.parquet's columns after `iteration, env_steps`: one row per failed rollout, where
@@ -134,6 +136,41 @@ WHOLE_CLIP_SUMMARY_KEYS = ("success_rate", "rollouts", "completed", "transient_f
 """A whole-clip evaluation's summary per condition, each key named by `whole_clip_key` (over every clip;
 errors: step-weighted over the completed rollouts); metrics.json holds the one at the end as
 `final_<key>`."""
+
+
+def whole_clip_survival(clips: "pd.DataFrame", failures: "pd.DataFrame", keys: tuple[str, ...] = ()) -> "pd.DataFrame":
+    """The survival view of whole-clip evaluations, derived from their two tables (the one rule for every
+    writer and reader): per row of `clips` (WHOLE_CLIP_COLUMNS; one condition and clip of the evaluation
+    that `keys` name, e.g. ITERATION), at every whole second of the clip and at its last frame, the rollouts
+    still tracking, i.e. without a row in `failures` (WHOLE_CLIP_FAILURE_COLUMNS) at or before that time, and
+    their fraction. Columns: `keys`, then WHOLE_CLIP_SURVIVAL_COLUMNS. Times compare at 1e-6 s (a control
+    step is 0.02 s), so a failure at a listed time counts there; at the last frame the fraction is the
+    clip's success rate."""
+    import math
+
+    import numpy as np
+    import pandas as pd
+
+    group = [*keys, CONDITION, "clip"]
+    failed_at: dict[tuple, np.ndarray] = {}
+    if len(failures):
+        for key, df in failures.groupby(group, sort=False, dropna=False):
+            failed_at[key] = np.sort(np.round(df["failure_time_s"].to_numpy(dtype=float), 6))
+    none = np.zeros(0)
+    parts = []
+    for row in clips[[*group, "clip_name", "clip_duration_s", "rollouts"]].to_dict("records"):
+        end_s = round(float(row["clip_duration_s"]), 6)
+        times = np.unique(np.r_[np.arange(math.floor(end_s + 1e-9) + 1, dtype=float), end_s])
+        fails = failed_at.get(tuple(row[c] for c in group), none)
+        tracking = int(row["rollouts"]) - np.searchsorted(fails, times, side="right")
+        parts.append(pd.DataFrame({**{c: row[c] for c in group}, "clip_name": row["clip_name"], CLIP_TIME_S: times,
+                                   "rollouts": int(row["rollouts"]), "tracking": tracking.astype(np.int64)}))
+    columns = [*keys, *WHOLE_CLIP_SURVIVAL_COLUMNS]
+    if not parts:
+        return pd.DataFrame(columns=columns)
+    out = pd.concat(parts, ignore_index=True)
+    out["tracking_frac"] = out["tracking"] / out["rollouts"].where(out["rollouts"] > 0)
+    return out[columns]
 
 
 def whole_clip_key(condition: str, key: str) -> str:

@@ -38,7 +38,7 @@ from bmimic.runs.schema import (
     START_TRANSIENT_S,
     WHOLE_CLIP_CONDITIONS,
     WHOLE_CLIP_ROLLOUT_COLUMNS,
-    WHOLE_CLIP_SURVIVAL_COLUMNS,
+    whole_clip_survival,
 )
 from bmimic.sim2sim.model import build_model
 from bmimic.sim2sim.native_eval import checkpoint_label, collect
@@ -144,15 +144,13 @@ def rollout_table(episodes: pd.DataFrame, raw: pd.DataFrame, condition: str, cli
 
 def survival_table(rollouts: pd.DataFrame, durations_s: np.ndarray) -> pd.DataFrame:
     """Per condition and clip, at every whole second of the clip and at its last frame: the rollouts
-    still tracking (not failed at or before that time) and their fraction (WHOLE_CLIP_SURVIVAL_COLUMNS)."""
-    rows = []
-    for (condition, clip), df in rollouts.groupby(["condition", "clip"], sort=False):
-        end_s = float(durations_s[clip])
-        failure_s = df["failure_time_s"].to_numpy(dtype=float)
-        for t in np.r_[np.arange(0.0, end_s, 1.0), end_s]:
-            tracking = int((np.isnan(failure_s) | (failure_s > t)).sum())
-            rows.append((condition, int(clip), df["clip_name"].iloc[0], float(t), len(df), tracking, tracking / len(df)))
-    return pd.DataFrame(rows, columns=list(WHOLE_CLIP_SURVIVAL_COLUMNS))
+    still tracking (not failed at or before that time) and their fraction (WHOLE_CLIP_SURVIVAL_COLUMNS;
+    bmimic.runs.schema.whole_clip_survival, the rule bmimic's own whole-clip tables follow)."""
+    clips = rollouts.groupby(["condition", "clip"], sort=False).agg(
+        clip_name=("clip_name", "first"), rollouts=("clip_name", "size")).reset_index()
+    clips["clip_duration_s"] = np.asarray(durations_s, dtype=float)[clips["clip"].to_numpy(dtype=np.int64)]
+    failed = rollouts[rollouts["failure_time_s"].notna()]
+    return whole_clip_survival(clips, failed)
 
 
 def condition_summary(rollouts: pd.DataFrame) -> dict:

@@ -34,7 +34,6 @@ import torch
 
 from bmimic.runs.schema import (
     BIN,
-    CLIP_TIME_S,
     CONDITION,
     ERROR_COLUMNS,
     SMOOTHNESS_COLUMNS,
@@ -42,8 +41,8 @@ from bmimic.runs.schema import (
     WHOLE_CLIP_COLUMNS,
     WHOLE_CLIP_FAILURE_COLUMNS,
     WHOLE_CLIP_SUCCESS,
-    WHOLE_CLIP_SURVIVAL_COLUMNS,
     whole_clip_key,
+    whole_clip_survival,
 )
 from bmimic.training.clip_rollouts import clip_bounds, clip_start_rollouts
 
@@ -58,7 +57,7 @@ class WholeClipResult:
     clips: pd.DataFrame
     """WHOLE_CLIP_COLUMNS then the error and smoothness means over the completed rollouts."""
     survival: pd.DataFrame
-    """WHOLE_CLIP_SURVIVAL_COLUMNS."""
+    """WHOLE_CLIP_SURVIVAL_COLUMNS (bmimic.runs.schema.whole_clip_survival of the other two)."""
     failures: pd.DataFrame
     """WHOLE_CLIP_FAILURE_COLUMNS: one row per failed rollout."""
     summary: dict
@@ -108,27 +107,13 @@ def clip_tables(episodes: pd.DataFrame, condition: str, layout, step_dt: float, 
             rows[col] = sums / np.where(done_steps > 0, done_steps, np.nan)
     clips = pd.DataFrame(rows, columns=[*WHOLE_CLIP_COLUMNS, *measured])
 
-    survival = []
-    for c in range(len(starts)):
-        last = int(ends[c] - starts[c] - 1)  # frames from the clip's first to its last
-        seconds = np.arange(int(math.floor(last * step_dt + 1e-9)) + 1) / step_dt
-        frames = np.unique(np.minimum(np.r_[np.round(seconds).astype(np.int64), last], last))
-        times = np.round(frames * step_dt, 6)
-        mine = clip == c
-        alive = ~failed[mine][None, :] | (offset[mine][None, :] > frames[:, None])
-        survival.append(pd.DataFrame({CONDITION: condition, "clip": c, "clip_name": names[c], CLIP_TIME_S: times,
-                                      "rollouts": int(mine.sum()), "tracking": alive.sum(axis=1)}))
-    survival = pd.concat(survival, ignore_index=True)
-    survival["tracking_frac"] = survival["tracking"] / survival["rollouts"].where(survival["rollouts"] > 0)
-    survival = survival[list(WHOLE_CLIP_SURVIVAL_COLUMNS)]
-
     f = np.flatnonzero(failed)
     failures = pd.DataFrame({CONDITION: condition, "clip": clip[f], "clip_name": [names[i] for i in clip[f]],
                              "rollout": episodes["rollout"].to_numpy(dtype=np.int64)[f], "failure_frame": fail_frame[f],
                              "failure_time_s": offset[f] * step_dt, BIN: layout.frame_to_bin.cpu().numpy()[fail_frame[f]],
                              "transient": transient[f], "terminated": terminated[f], "broken": broken[f]},
                             columns=list(WHOLE_CLIP_FAILURE_COLUMNS))
-    return clips, survival, failures
+    return clips, whole_clip_survival(clips, failures), failures
 
 
 def summarize_whole_clip(clips: pd.DataFrame) -> dict[str, float]:

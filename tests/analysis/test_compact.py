@@ -115,3 +115,39 @@ def test_a_broken_record_is_one_line_and_the_run_keeps_its_hydra_record(tmp_path
     assert (run / ".hydra" / "hydra.yaml").is_file()  # nothing half done: run it again once the file is mended
     assert (run / "a.json").read_text() == '{"run_dir": "/srv/box/repo/outputs/x"}'
     assert (run / "summary.json").read_text() == '{"run_dir": "/srv/box/repo/outputs/x", '
+
+
+def test_survival_views_go_only_where_the_clips_and_failures_give_them_back(tmp_path, capsys):
+    """A checkpoint's whole_clip_survival.csv that bmimic.runs.schema.whole_clip_survival derives back
+    exactly is dropped; one that says something else (here a planted extra failure) stays; --check drops nothing."""
+    import json
+
+    from analysis.compact import drop_survival_views
+    from bmimic.runs.folder import WHOLE_CLIP_FILES
+    from bmimic.runs.schema import whole_clip_survival
+
+    sweep = make_knob_study(tmp_path)
+    run = next(sweep.glob("*/seed=0"))
+    clips = pd.DataFrame([{"condition": "robust", "clip": 0, "clip_name": "dance", "clip_duration_s": 2.58,
+                           "rollouts": 4, "completed": 3, "success_rate": 0.75, "transient_failures": 0,
+                           "later_failures": 1}])
+    failures = pd.DataFrame([{"condition": "robust", "clip": 0, "clip_name": "dance", "rollout": 2,
+                              "failure_frame": 60, "failure_time_s": 1.2, "bin": 1, "transient": False,
+                              "terminated": True, "broken": False}])
+    folders = {}
+    for label, edit in (("model_5", 0), ("model_9", 1)):
+        folder = run / "eval" / label / "whole_clip"
+        folder.mkdir(parents=True)
+        survival = whole_clip_survival(clips, failures)
+        survival.loc[survival.index[-1], "tracking"] -= edit  # model_9's view disagrees with its failures
+        names = dict(zip(("clips", "survival", "failures", "summary"), WHOLE_CLIP_FILES, strict=True))
+        clips.to_csv(folder / names["clips"], index=False)
+        failures.to_csv(folder / names["failures"], index=False)
+        survival.to_csv(folder / names["survival"], index=False)
+        (folder / names["summary"]).write_text(json.dumps({"iteration": int(label.split("_")[1])}))
+        folders[label] = folder / names["survival"]
+    assert main([str(sweep), "--check"]) == 0 and all(p.is_file() for p in folders.values())
+    assert "1 survival views would be dropped" in capsys.readouterr().out
+    dropped, size = drop_survival_views(run)
+    assert dropped == 1 and size > 0
+    assert not folders["model_5"].is_file() and folders["model_9"].is_file()

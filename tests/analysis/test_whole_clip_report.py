@@ -20,7 +20,11 @@ ARMS = {"sampler=uniform": (0.25, 0.5), "sampler=adaptive": (0.5, 1.0)}
 
 
 def _whole_clip_tables(run, success: tuple[float, float], seed: int, failures: bool = False) -> None:
-    clips, survival = [], []
+    """The run's whole-clip tables: clips, and the failed rollouts, which are all the survival curve is
+    derived from (the report never reads a survival file). By default every failed rollout failed between
+    1 and 2 s in (clip 0 at 1.6 s, clip 1 at 1.2 s); with `failures`, the last evaluation's failures fall
+    where test_where_whole_clip_rollouts_fail plants them and the first one's at 0.3 s."""
+    clips, rows = [], []
     for it, s in zip((30, 60), success):
         completed = round(8 * s)
         for clip, duration in ((0, 2.5), (1, 1.5)):
@@ -29,26 +33,17 @@ def _whole_clip_tables(run, success: tuple[float, float], seed: int, failures: b
                           "completed": completed, "success_rate": completed / 8, "failures": 8 - completed,
                           "transient_failures": min(1, 8 - completed), "later_failures": 8 - completed - min(1, 8 - completed),
                           MPKPE_REL_MM: 30.0 + seed})
-            # every failed rollout failed between 1 and 2 s in: all 8 tracking at 0 and 1 s, `completed` after
-            times = [0.0, 1.0, 2.0, duration] if duration > 2 else [0.0, 1.0, duration]
-            survival += [{ITERATION: it, "env_steps": 1000 * it, CONDITION: "robust", "clip": clip, "clip_name": f"c{clip}",
-                          CLIP_TIME_S: t, "rollouts": 8, "tracking": 8 if t <= 1.0 else completed,
-                          "tracking_frac": (8 if t <= 1.0 else completed) / 8} for t in times]
-    pd.DataFrame(clips).to_parquet(run / "whole_clip.parquet")
-    pd.DataFrame(survival).to_parquet(run / "whole_clip_survival.parquet")
-    # where the failed rollouts of the last evaluation fell: clip 0 three at 2.2 s and one transient at 0.5 s,
-    # clip 1 all at 1.2 s; the first evaluation's failures (at 0.3 s) are not the last one's
-    if not failures:
-        return
-    rows = []
-    for it, s in zip((30, 60), success):
-        for clip in (0, 1):
-            failed = 8 - round(8 * s)
-            late = [0.5] + [2.2] * (failed - 1) if clip == 0 else [1.2] * failed
-            times = [0.3] * failed if it == 30 else late if failed else []
+            failed = 8 - completed
+            if not failures:
+                times = [1.6 if clip == 0 else 1.2] * failed
+            elif it == 30:
+                times = [0.3] * failed
+            else:  # clip 0 three at 2.2 s and one transient at 0.5 s, clip 1 all at 1.2 s
+                times = ([0.5] + [2.2] * (failed - 1) if clip == 0 else [1.2] * failed) if failed else []
             rows += [{ITERATION: it, "env_steps": 1000 * it, CONDITION: "robust", "clip": clip,
                       "clip_name": f"c{clip}", "rollout": r, "failure_time_s": t, "transient": t < 1.0}
                      for r, t in enumerate(times)]
+    pd.DataFrame(clips).to_parquet(run / "whole_clip.parquet")
     pd.DataFrame(rows).to_parquet(run / "whole_clip_failures.parquet")
 
 
@@ -169,7 +164,9 @@ def test_a_checkpoint_evaluation_adds_only_what_training_did_not_evaluate(tmp_pa
     uniform = next(a for a in final.index.get_level_values("arm") if "uniform" in a)
     assert final.loc[(uniform, "robust"), "mean"] == pytest.approx(0.5)  # training's, not the planted 0
     assert final.loc[(uniform, "nominal"), "mean"] == pytest.approx(1.0)
-    assert pd.isna(final.loc[(uniform, "robust"), "tracked_s_mean"])  # training wrote no failures table here
+    # training's failures, not the planted ones: 4 of 8 per clip at 1.6 s (clip 0, 2.5 s) and 1.2 s (clip 1,
+    # 1.5 s), the others tracked to the end: (4 * 1.6 + 4 * 2.5 + 4 * 1.2 + 4 * 1.5) / 16
+    assert final.loc[(uniform, "robust"), "tracked_s_mean"] == pytest.approx(1.7)
 
 
 def test_a_checkpoint_evaluation_without_its_iteration_is_one_line(tmp_path):
