@@ -176,7 +176,7 @@ def plan_job(cfg: PlacedConfig, launch_dir: Path, sweep_job: bool, ctx: RunConte
         log.warning(plan.note)
     changes = check_resume_changes(plan, resolved, allowed, fill_defaults=with_schema_defaults)
     if plan.continues:
-        refuse_finished(plan, cfg.max_iterations)
+        refuse_finished(plan, cfg.max_iterations, cfg.stop_at_iteration)
     if place.device == "cpu" and not sweep_job:  # a sweep's jobs were estimated together when it started (cli)
         from bmimic.robot import load_mjmodel
 

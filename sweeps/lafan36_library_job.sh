@@ -9,12 +9,13 @@
 # first call starts the job, later ones continue it (resume=true: the config is checked first, and the clips
 # must sit at the same absolute path every sitting, since data.lafan_dir is compared). The job's folder is the
 # multirun's, RUNS_ROOT/motion=lafan_folder,sampler=ARM/seed=SEED (RUNS_ROOT: outputs/sweeps/lafan36_library),
-# so `python -m analysis.report RUNS_ROOT` reads the jobs as one study. ITERS (optional) stops the job at that
-# iteration instead of the study's max_iterations (8400), to bring an arm to another arm's iterations: the
-# arms are compared at equal iterations (a later call without ITERS continues the job to 8400). EGM anneals
-# over sampler.schedule_iterations, which a run otherwise takes from its max_iterations: its jobs get the
-# study's max_iterations there in every call, so a sitting stopped by ITERS changes neither its schedule nor
-# what a later call may resume (a resume that changed it would be refused). On a 2-GPU
+# so `python -m analysis.report RUNS_ROOT` reads the jobs as one study. ITERS (optional) pauses the job after
+# that iteration (stop_at_iteration), to bring an arm to another arm's iterations: the arms are compared at
+# equal iterations, and a later call without ITERS continues the job to the study's max_iterations (8400),
+# which stays the job's recorded budget. (Jobs paused before stop_at_iteration existed had ITERS written as
+# max_iterations; a later call sets it back to 8400, a change a resume accepts.) EGM's jobs also get the
+# study's max_iterations as sampler.schedule_iterations in every call, as they always have, so its annealing
+# spans the study whatever a sitting does. On a 2-GPU
 # machine two jobs share a sitting, one per GPU (compared by iterations, never by wall time):
 #   CUDA_VISIBLE_DEVICES=0 bash sweeps/lafan36_library_job.sh adaptive_hybrid 0 &
 #   CUDA_VISIBLE_DEVICES=1 bash sweeps/lafan36_library_job.sh adaptive 0
@@ -40,7 +41,7 @@ if [ "$arm" = egm ]; then  # the schedule spans the study's budget, whatever one
 fi
 if [ -n "${ITERS:-}" ]; then
   [[ "$ITERS" =~ ^[1-9][0-9]*$ ]] || { echo "error: ITERS must be a positive whole number of iterations, got '$ITERS'" >&2; exit 2; }
-  overrides+=("max_iterations=$ITERS")
+  overrides+=("stop_at_iteration=$ITERS")
 fi
 run="${RUNS_ROOT:-outputs/sweeps/lafan36_library}/motion=lafan_folder,sampler=$arm/seed=$seed"
 

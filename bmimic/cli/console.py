@@ -162,7 +162,8 @@ def start_summary(cfg, requested_device: str, world: int, smoke: bool, motion, l
     return summary_block(title, [
         ("device", f"{cfg.device} (requested {requested_device})"),
         ("envs", f"{cfg.num_envs}{ranks}"),
-        ("iterations", f"{cfg.max_iterations} of {cfg.ppo.num_steps_per_env} steps per env"),
+        ("iterations", f"{cfg.max_iterations} of {cfg.ppo.num_steps_per_env} steps per env"
+                       + (f", pausing after {cfg.stop_at_iteration}" if cfg.stop_at_iteration else "")),
         ("motion", f"{choices.get('motion') or m.name}: {source}; {motion.duration_s:.1f} s at {motion.fps:g} Hz"),
         ("bins", layout.describe()),
         ("sampler", variant if variant == cfg.sampler.name else f"{variant} ({cfg.sampler.name})"),

@@ -33,8 +33,10 @@ class BudgetError(BmimicError):
 
 def cpu_training_s(cfg: Any, done_iterations: int = 0) -> float:
     """Estimated seconds of training on a CPU for `cfg` after runtime resolution (num_envs and
-    max_iterations filled), from `done_iterations` on (a resume)."""
-    iterations = max(0, int(cfg.max_iterations) - int(done_iterations))
+    max_iterations filled), from `done_iterations` on (a resume) to max_iterations or stop_at_iteration."""
+    stop_at = cfg.get("stop_at_iteration") if hasattr(cfg, "get") else getattr(cfg, "stop_at_iteration", None)
+    end = min(int(cfg.max_iterations), int(stop_at)) if stop_at else int(cfg.max_iterations)
+    iterations = max(0, end - int(done_iterations))
     seconds = iterations * int(cfg.ppo.num_steps_per_env) * (CPU_S_PER_STEP + CPU_S_PER_ENV_STEP * int(cfg.num_envs))
     limit = cfg.get("time_limit_s") if hasattr(cfg, "get") else getattr(cfg, "time_limit_s", None)
     return min(seconds, float(limit)) if limit else seconds

@@ -53,6 +53,11 @@ class TrainConfig:
     time_limit_s: Optional[float] = None
     """Stop after the iteration during which this much training wall time has passed (then the
     final evaluation and checkpoint run as usual); null: no limit. For fixed-time budgets and queues."""
+    stop_at_iteration: Optional[int] = None
+    """Pause after this iteration (counted from the run's start, as max_iterations is): the final evaluation
+    and checkpoint run as usual and `resume=true` continues toward max_iterations; null: no pause. Unlike
+    lowering max_iterations it leaves the run's budget, and every schedule that spans it (EGM's annealing),
+    as configured: for long jobs trained sitting by sitting and arms brought to equal iterations."""
     resume: Optional[str] = None
     """`true`: continue the latest run of this run_name (a sweep job: its own folder); or a run folder
     or checkpoint path. Continuing a run checks its config first and refuses any change not named in

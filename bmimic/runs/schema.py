@@ -224,7 +224,8 @@ def counts_as_mastered(per_bin: "pd.DataFrame", threshold: float = MASTERED_BELO
 # --------------------------------------------------------------------------------------------- logistics
 LOGISTICS_KEYS = ("seed", "sweep_name", "run_name", "device", "resume", "sweep", "+sweep", "logger", "progress_bar",
                   "max_iterations", "num_envs", "time_limit_s", "eval.every_iters", "ppo.save_interval",
-                  "wandb_project", "verbose", "data.lafan_dir", "resume_allow_changes", "max_cpu_hours")
+                  "wandb_project", "verbose", "data.lafan_dir", "resume_allow_changes", "max_cpu_hours",
+                  "stop_at_iteration")
 """Override keys that are budgets or logistics, not arms: they stay out of a sweep job's folder name
 (conf/train.yaml's `hydra.job.config.override_dirname.exclude_keys`, which a test holds equal) and
 out of the analysis's arm names."""

@@ -30,7 +30,7 @@ LAUNCH_KEYS = ("resume", "resume_allow_changes")
 """Keys that say how a launch treats an existing run, not how the run trains: never a change of the
 run (resumes.json does not list them)."""
 RESULT_NEUTRAL_KEYS = (*LAUNCH_KEYS, "device", "progress_bar", "verbose", "logger", "max_cpu_hours", "wandb_project",
-                       "run_name", "sweep_name", "ppo.save_interval", "data.lafan_dir")
+                       "run_name", "sweep_name", "ppo.save_interval", "data.lafan_dir", "stop_at_iteration")
 """Keys that say where and how a run is launched and logged, never what it trains or for how long:
 runs that differ only in these are the same job (bmimic.sweeping.jobs)."""
 BUDGET_KEYS = ("max_iterations", "time_limit_s", "eval.every_iters")
@@ -262,10 +262,15 @@ def _short(value: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def refuse_finished(plan: RunPlan, max_iterations: int) -> None:
-    """Continuing a run that already reached max_iterations would only rewrite its files."""
+def refuse_finished(plan: RunPlan, max_iterations: int, stop_at_iteration: int | None = None) -> None:
+    """Continuing a run that already reached max_iterations, or the iteration it is asked to pause at,
+    would only rewrite its files."""
     iteration = int(plan.state.get("iter", -1)) if plan.state else -1
     if read_status(plan.run_dir).get("status") == "done" and iteration >= max_iterations:
         raise ResumeRefusedError(
             f"resume: {plan.run_dir} is done at iteration {iteration} (max_iterations={max_iterations}); "
             "raise max_iterations to train it further")
+    if stop_at_iteration is not None and iteration >= stop_at_iteration:
+        raise ResumeRefusedError(
+            f"resume: {plan.run_dir} is at iteration {iteration}, so stop_at_iteration={stop_at_iteration} leaves "
+            "nothing to train; raise it or leave it out")

@@ -185,8 +185,9 @@ class Trainer:
 
     # ------------------------------------------------------------------ the loop
     def learn(self, signals=None) -> None:
-        """Train from the current iteration to `max_iterations` (or until `time_limit_s` of training, or
-        until a stop was requested of `signals` (training.interrupts.StopSignals): `interrupted` is then True)."""
+        """Train from the current iteration to `max_iterations` (or to `stop_at_iteration`, or until
+        `time_limit_s` of training, or until a stop was requested of `signals`
+        (training.interrupts.StopSignals): `interrupted` is then True)."""
         env, alg, cfg = self.env, self.alg, self.cfg
         self.signals = signals
         time_limit_s = cfg.time_limit_s
@@ -205,9 +206,11 @@ class Trainer:
             log.info("sampler.parquet: %d bins x %d iterations, so one table every %d iterations and at the last "
                      "(sampler.log_every=null keeps it under about %.0e rows)", env.layout.num_bins, end_it,
                      self._sampler_every, diagnostics.MAX_SAMPLER_ROWS)
-        self.logger.start(start_it, end_it)
+        # A pause (stop_at_iteration) ends this launch early; the budget, and what spans it, stay end_it.
+        stop_it = min(end_it, cfg.stop_at_iteration) if cfg.stop_at_iteration else end_it
+        self.logger.start(start_it, stop_it)
         self.learn_started_unix_s = time.time()
-        for it in range(start_it, end_it):
+        for it in range(start_it, stop_it):
             t0 = time.perf_counter()
             with torch.inference_mode():
                 for _ in range(self.ppo_cfg.num_steps_per_env):
@@ -226,11 +229,14 @@ class Trainer:
             self.progress.env_steps += steps_per_it
             self.progress.wall_time_s += t2 - t0
             out_of_time = time_limit_s is not None and any_rank(self.progress.wall_time_s >= time_limit_s, self.device)
-            done = self.progress.iteration == end_it or out_of_time
+            done = self.progress.iteration == stop_it or out_of_time
             self._record_iteration(it, losses, t1 - t0, t2 - t1, steps_per_it, last=done)
             stop = self._evaluate_and_checkpoint(last=done)
             if out_of_time:
                 log.info("time limit of %.0f s reached after %d iterations", time_limit_s, self.progress.iteration)
+            elif done and stop_it < end_it:
+                log.info("paused at iteration %d (stop_at_iteration); resume=true continues it to %d",
+                         stop_it, end_it)
             if out_of_time or stop:
                 break
             if not done and signals is not None and any_rank(signals.requested, self.device):

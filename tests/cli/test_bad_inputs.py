@@ -477,6 +477,7 @@ def cases() -> list[Case]:
         ("+env.rewards.extra={func:not_a_reward}", "extra"),
         ("~env.policy_observations", "policy_observations"),
         ("logger=mlflow", "logger"), ("time_limit_s=0", "time_limit_s"), ("time_limit_s=-5", "time_limit_s"),
+        ("stop_at_iteration=0", "stop_at_iteration"),
         ("run_name=../escape", "run_name"), ("run_name=a/b", "run_name"), ("run_name=''", "run_name"),
         ("sweep_name=..", "sweep_name"),
         ("sampler.bin_size_seconds=0", "bin_size_seconds"), ("sampler.bin_size_seconds=100", "bin_size_seconds"),

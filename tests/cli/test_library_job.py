@@ -50,20 +50,20 @@ def test_a_job_with_a_checkpoint_continues_for_train_s_more_seconds(tmp_path):
     assert "resume=true" in command and "time_limit_s=1320" in command
 
 
-def test_iters_stops_a_job_at_another_arms_iterations(tmp_path):
+def test_iters_pauses_a_job_at_another_arms_iterations_and_keeps_its_budget(tmp_path):
     command = _command(_job("adaptive", "0", "--dry-run", RUNS_ROOT=str(tmp_path), ITERS="2038", TRAIN_S="900"))
     cfg = compose([o for o in command[3:] if not o.startswith("hydra.")])
-    assert (cfg.max_iterations, cfg.time_limit_s, cfg.sampler.name) == (2038, 900, "adaptive")
+    assert (cfg.stop_at_iteration, cfg.max_iterations, cfg.time_limit_s, cfg.sampler.name) == (
+        2038, 8400, 900, "adaptive")
 
 
 def test_egm_anneals_over_the_studys_budget_whatever_a_sitting_stops_at(tmp_path):
-    """EGM's schedule would otherwise follow max_iterations: a job stopped by ITERS would anneal over 2038
-    iterations, and a later call toward 8400 would change the schedule (a resume refuses that)."""
+    """EGM's schedule spans the study's 8400 iterations in every call, paused by ITERS or not."""
     for env in ({"ITERS": "2038"}, {}):
         command = _command(_job("egm", "0", "--dry-run", RUNS_ROOT=str(tmp_path), **env))
         cfg = compose([o for o in command[3:] if not o.startswith("hydra.")])
         assert (cfg.sampler.name, cfg.sampler.schedule_iterations) == ("egm", 8400)
-        assert cfg.max_iterations == (2038 if env else 8400)
+        assert cfg.max_iterations == 8400 and cfg.stop_at_iteration == (2038 if env else None)
     gmt = _command(_job("gmt", "0", "--dry-run", RUNS_ROOT=str(tmp_path), ITERS="2038"))
     assert not any(o.startswith("sampler.schedule_iterations") for o in gmt)  # no schedule to pin
 

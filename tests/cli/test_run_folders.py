@@ -270,6 +270,26 @@ def test_resume_of_a_run_at_max_iterations_adds_no_second_final_evaluation(tmp_p
 
 
 @pytest.mark.slow
+def test_stop_at_iteration_pauses_a_run_that_resume_continues_to_its_budget(tmp_path) -> None:
+    """stop_at_iteration=1 of max_iterations=3: the run pauses after iteration 1 with its budget (3) recorded;
+    asking again to pause at 1 is refused in one line, the run byte-identical; resume=true trains 2 and 3."""
+    run = tmp_path / "run"
+    out = train_ok(tmp_path, "max_iterations=3", "stop_at_iteration=1", f"hydra.run.dir={run}")
+    assert "paused at iteration 1" in out
+    assert json.loads((run / "status.json").read_text())["iteration"] == 1
+    assert json.loads((run / "resolved_config.json").read_text())["max_iterations"] == 3
+    before = tree(run)
+    code, out = run_train(*TINY, "max_iterations=3", "stop_at_iteration=1", f"hydra.run.dir={run}", "resume=true",
+                          cwd=tmp_path)
+    assert code == 2 and "stop_at_iteration=1 leaves nothing to train" in one_error(out)
+    assert tree(run) == before
+    train_ok(tmp_path, "max_iterations=3", f"hydra.run.dir={run}", "resume=true")
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 3
+    changes = json.loads((run / "resumes.json").read_text())[-1]["changes"]
+    assert "max_iterations" not in changes and changes["stop_at_iteration"] == [1, None]
+
+
+@pytest.mark.slow
 def test_resume_into_another_folder_does_not_copy_that_folders_log(tmp_path) -> None:
     """`resume=A hydra.run.dir=B`: A's log gets this launch's lines, not B's earlier log; B keeps it."""
     run_a = tmp_path / "a"
