@@ -28,7 +28,6 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -123,9 +122,7 @@ def _survival_sources(run_dir: Path) -> list[tuple[Path, Path, Path, tuple[str, 
 
 
 def _read(path: Path) -> pd.DataFrame:
-    if path.suffix == ".csv":
-        return pd.read_csv(path)
-    return pd.read_parquet(path)
+    return pd.read_csv(path) if path.suffix == ".csv" else pd.read_parquet(path)
 
 
 def drop_survival_views(run_dir: Path, write: bool = True) -> tuple[int, int]:
@@ -135,23 +132,14 @@ def drop_survival_views(run_dir: Path, write: bool = True) -> tuple[int, int]:
     (or that would be)."""
     files = size = 0
     for survival_path, clips_path, failures_path, keys in _survival_sources(run_dir):
+        columns, order = [*keys, *WHOLE_CLIP_SURVIVAL_COLUMNS], [*keys, CONDITION, "clip", CLIP_TIME_S]
         try:
-            stored, clips = _read(survival_path), _read(clips_path)
-            failures = _read(failures_path) if failures_path.is_file() else pd.DataFrame(
-                columns=[*keys, CONDITION, "clip", "failure_time_s"])
-            derived = whole_clip_survival(clips, failures, keys)
-        except Exception:  # a damaged or foreign file: keep the stored view, which is then the only record
-            continue
-        columns = [*keys, *WHOLE_CLIP_SURVIVAL_COLUMNS]
-        if set(columns) - set(stored.columns):
-            continue
-        order = [*keys, CONDITION, "clip", CLIP_TIME_S]
-        a = stored[columns].sort_values(order, kind="stable").reset_index(drop=True)
-        b = derived[columns].sort_values(order, kind="stable").reset_index(drop=True)
-        same = len(a) == len(b) and all(
-            np.array_equal(a[c].to_numpy(), b[c].to_numpy(), equal_nan=c == "tracking_frac") if c != "clip_name"
-            else a[c].astype(str).tolist() == b[c].astype(str).tolist() for c in columns)
-        if not same:
+            stored = _read(survival_path)[columns]
+            derived = whole_clip_survival(_read(clips_path), _read(failures_path), keys)[columns]
+            pd.testing.assert_frame_equal(stored.sort_values(order, kind="stable").reset_index(drop=True),
+                                          derived.sort_values(order, kind="stable").reset_index(drop=True),
+                                          check_dtype=False, check_exact=True)
+        except Exception:  # missing, damaged or different: the stored view stays, the only record of itself
             continue
         files, size = files + 1, size + survival_path.stat().st_size
         if write:
