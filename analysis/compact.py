@@ -60,9 +60,9 @@ STUDY_BUDGETS_MB = {
     "peer_samplers": 16.0,  # 40 runs of 627 bins, committed (and thinned) before compaction existed: 15.1 MB
     "design_choices_dance1": 17.5,  # 30 runs of 132 bins evaluated every 50 iterations: 16.9 MB compacted
     "sensitivity_dance1": 22.5,  # 67 runs (18.4 MB compacted: the 0.25/0.5 s bins carry 4x/2x the bins) + 33 figures (3.4 MB)
-    "lafan36_library": 35.5,  # 6 runs of 8,018 bins (eval.parquet ~0.46 MB per evaluation: 2.3 MB at 2038 iterations,
+    "lafan36_library": 42.5,  # 8 runs of 8,018 bins (eval.parquet ~0.46 MB per evaluation: 2.3-2.9 MB at 2038 iterations,
     # 5.0-5.5 MB for the four jobs continued to 4,604; whole-clip clips and failures CSVs ~0.07 MB per evaluation,
-    # their survival views dropped) + the continued jobs' report (1.0 MB): 34.9 MB
+    # their survival views dropped) + the continued jobs' report (1.0 MB): 41.9 MB
 }
 """Studies allowed more than STUDY_BUDGET_MB, in MB, with why."""
 
