@@ -3,7 +3,8 @@ creates or writes anything.
 
 - A single run (`on_run_start`): the folder names are plain names, the run folder is claimed
   (bmimic.runs.claim: a fresh folder per launch, a pinned folder holding a run refused without
-  resume), and a study's sweep parameters given without `-m` are said to be ignored.
+  resume), and a study's sweep parameters that the run does not follow without `-m` are said to be
+  ignored (those the command line sets, or that the config already holds, are followed).
 - A multirun (`on_multirun_start`): `sweep_name` is a plain name (the sweep folder stays under
   outputs/sweeps/), and every job is expanded, composed and checked as `python -m bmimic.launch list`
   does (bmimic.sweeping.jobs.check_jobs): a job that would be refused, or two jobs that map to one
@@ -33,6 +34,36 @@ def _refuse(e: BaseException) -> None:
 
     print(f"error: {first_line(e)}", file=sys.stderr)
     sys.exit(2)
+
+
+def ignored_sweep_params(config: DictConfig) -> list[str]:
+    """The study's sweep parameters (hydra.sweeper.params) that a single run does not follow: those the
+    command line does not set and whose sweep the run's config does not already hold (several values, or one
+    the config has otherwise). A study that also sets a parameter's one value at the top level, for its
+    torchrun jobs, leaves nothing ignored there."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+    given = {o.split("=", 1)[0].lstrip("+~") for o in (OmegaConf.select(config, "hydra.overrides.task") or [])}
+    choices = OmegaConf.select(config, "hydra.runtime.choices") or {}
+    parser = OverridesParser.create()
+    ignored = []
+    for key, values in params.items():
+        key = str(key)
+        name = key.lstrip("+~")  # a sweep may add a key (+key): the command line then names it either way
+        if name in given:
+            continue
+        try:
+            override = parser.parse_override(f"{key}={values}")
+        except Exception:  # noqa: BLE001 - Hydra's multirun reports a malformed sweep in its own words
+            ignored.append(key)
+            continue
+        if not override.is_sweep_override():
+            held = choices[name] if name in choices else OmegaConf.select(config, name, default=None)
+            if held is not None and str(held) == str(override.value()):
+                continue
+        ignored.append(key)
+    return ignored
 
 
 def _folder_name(config: DictConfig, key: str) -> None:
@@ -80,11 +111,11 @@ class LaunchGuard(Callback):
         if str(claimed.run_dir) != os.path.abspath(run_dir):
             with read_write(config.hydra.run):
                 config.hydra.run.dir = str(claimed.run_dir)
-        params = OmegaConf.select(config, "hydra.sweeper.params") or {}
-        if len(params):
+        ignored = ignored_sweep_params(config)
+        if ignored:
             study = OmegaConf.select(config, "hydra.runtime.choices.sweep") or "the study"
-            print(f"warning: +sweep={study} sets sweep parameters ({', '.join(map(str, params))}) that only a "
-                  f"multirun expands; this single run ignores them (run the study with -m)", file=sys.stderr)
+            print(f"warning: +sweep={study} sweeps {', '.join(ignored)}, which only a multirun expands; this "
+                  f"single run ignores them (give each a value, or run the study with -m)", file=sys.stderr)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from hydra.core.global_hydra import GlobalHydra

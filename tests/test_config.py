@@ -264,3 +264,29 @@ def test_a_placed_job_config_is_resolved_validated_and_read_only():
         cfg.num_envs = 8
     with pytest.raises(ReadonlyConfigError):
         cfg.sampler.gamma = 0.5
+
+
+@pytest.mark.parametrize(("overrides", "ignored"), [
+    # the library study sets motion and max_iterations at the top level too (for its torchrun jobs), so a
+    # single run that names its sampler and seed follows every parameter of the sweep
+    (["+sweep=lafan36_library", "sampler=gmt", "seed=0"], []),
+    (["+sweep=lafan36_library"], ["sampler", "seed"]),
+    # gamma's budget lives only in the sweep: a single run keeps its own unless it is given
+    (["+sweep=gamma", "seed=1", "sampler.gamma=0.5"], ["max_iterations"]),
+    (["+sweep=gamma", "seed=1", "sampler.gamma=0.5", "max_iterations=5000"], []),
+    (["+sweep=gamma"], ["max_iterations", "seed", "sampler.gamma"]),
+    ([], []),
+])
+def test_a_single_run_is_warned_of_exactly_the_sweep_parameters_it_does_not_follow(overrides, ignored):
+    from bmimic.launch_guard import ignored_sweep_params
+
+    assert ignored_sweep_params(compose(overrides, return_hydra_config=True)) == ignored
+
+
+def test_a_single_run_of_a_study_names_the_parameters_it_ignores(tmp_path):
+    from tests.conftest import TINY
+
+    # TINY sets motion and max_iterations, so of gamma's parameters only sampler.gamma goes unfollowed
+    code, out = run_train(*TINY, "+sweep=gamma", "seed=0", f"hydra.run.dir={tmp_path / 'run'}", "logger=none")
+    assert code == 0, out
+    assert "+sweep=gamma sweeps sampler.gamma, which only a multirun expands" in out
