@@ -59,7 +59,10 @@ def ignored_sweep_params(config: DictConfig) -> list[str]:
             ignored.append(key)
             continue
         if not override.is_sweep_override():
-            held = choices[name] if name in choices else OmegaConf.select(config, name, default=None)
+            try:
+                held = choices[name] if name in choices else OmegaConf.select(config, name, default=None)
+            except Exception:  # noqa: BLE001 - an unresolvable value: the config checks report it in their words
+                held = None
             if held is not None and str(held) == str(override.value()):
                 continue
         ignored.append(key)
