@@ -55,7 +55,16 @@ class Motion:
     def __post_init__(self) -> None:
         self.fps = float(self.fps)
         for key in NPZ_ARRAY_KEYS:
-            setattr(self, key, np.asarray(getattr(self, key), dtype=np.float32))
+            source = np.asarray(getattr(self, key))
+            with np.errstate(over="ignore"):  # a value beyond float32 becomes inf: refused here, by where it is
+                array = source.astype(np.float32, copy=False)
+            if source.dtype.kind == "f" and source.dtype.itemsize > 4:
+                overflow = np.isinf(array) & np.isfinite(source)
+                if overflow.any():
+                    at = tuple(int(i) for i in np.argwhere(overflow)[0])
+                    raise MotionDataError(f"{key} at frame {at[0]} is {float(source[at]):.3g}, beyond float32's "
+                                          f"range (a motion is stored as float32)")
+            setattr(self, key, array)
         self.joint_names = [str(n) for n in self.joint_names]
         self.body_names = [str(n) for n in self.body_names]
         self.segments = [Segment(str(n), float(a), float(b), str(d)) for n, a, b, d in self.segments]

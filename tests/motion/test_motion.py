@@ -248,6 +248,8 @@ def _bad(kind: str) -> tuple[str, np.ndarray | None]:
         rows[1, 7 + CSV_JOINT_NAMES.index("left_knee_joint")] = 3.2
     elif kind == "short":
         rows = rows[:1]
+    elif kind == "huge":  # finite, so the reader takes it; float32, which stores the motion, cannot
+        rows[2, 0] = 1e39
     return text, rows
 
 
@@ -262,6 +264,7 @@ MALFORMED = [
     ("quat", {}, ["row 2, column 4", "norm 0.99"]),
     ("limit", {}, ["row 2, column 11", "left_knee_joint", "outside its range"]),
     ("short", {}, ["fewer than 2 frames"]),
+    ("huge", {}, ["body_pos_w at frame", "beyond float32's range"]),  # resampled: frame and value move
     ("ok", {"fps_out": 0.0}, ["fps_in and fps_out must be positive"]),
     ("ok", {"fps_in": -30.0}, ["fps_in and fps_out must be positive"]),
     ("missing", {}, ["file not found"]),
@@ -492,3 +495,13 @@ def test_resample_known_answers():
     lib = Motion.concatenate([m, m])
     with pytest.raises(MotionDataError, match="2 clips"):
         lib.resample(40)
+
+
+def test_a_value_beyond_float32_is_refused_where_it_is_not_called_not_finite():
+    t = np.linspace(0.0, 1.0, 5)
+    joint_pos = t[:, None].copy()
+    joint_pos[2, 0] = -1e39
+    with pytest.raises(MotionDataError, match=r"^joint_pos at frame 2 is -1e\+39, beyond float32's range"):
+        Motion(fps=10, joint_pos=joint_pos, joint_vel=np.ones((5, 1)), body_pos_w=np.zeros((5, 1, 3)),
+               body_quat_w=np.tile([1.0, 0.0, 0.0, 0.0], (5, 1, 1)), body_lin_vel_w=np.zeros((5, 1, 3)),
+               body_ang_vel_w=np.zeros((5, 1, 3)), joint_names=["j"], body_names=["b"])
