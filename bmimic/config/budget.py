@@ -31,14 +31,20 @@ class BudgetError(BmimicError):
     """A run or sweep whose estimated CPU training time is over max_cpu_hours."""
 
 
+def optional_key(cfg: Any, key: str) -> Any:
+    """`cfg`'s value of a top-level key that older run configs and plain namespaces may lack (None then)."""
+    return cfg.get(key) if hasattr(cfg, "get") else getattr(cfg, key, None)
+
+
 def cpu_training_s(cfg: Any, done_iterations: int = 0) -> float:
     """Estimated seconds of training on a CPU for `cfg` after runtime resolution (num_envs and
     max_iterations filled), from `done_iterations` on (a resume) to max_iterations or stop_at_iteration."""
-    stop_at = cfg.get("stop_at_iteration") if hasattr(cfg, "get") else getattr(cfg, "stop_at_iteration", None)
-    end = min(int(cfg.max_iterations), int(stop_at)) if stop_at else int(cfg.max_iterations)
+    from bmimic.training.config import launch_end_iteration
+
+    end = launch_end_iteration(cfg.max_iterations, optional_key(cfg, "stop_at_iteration"))
     iterations = max(0, end - int(done_iterations))
     seconds = iterations * int(cfg.ppo.num_steps_per_env) * (CPU_S_PER_STEP + CPU_S_PER_ENV_STEP * int(cfg.num_envs))
-    limit = cfg.get("time_limit_s") if hasattr(cfg, "get") else getattr(cfg, "time_limit_s", None)
+    limit = optional_key(cfg, "time_limit_s")
     return min(seconds, float(limit)) if limit else seconds
 
 

@@ -12,6 +12,7 @@ from typing import Any, cast
 
 from bmimic.cli.extras import require_extra
 from bmimic.config import ConfigError, TrainConfig
+from bmimic.config.budget import optional_key
 from bmimic.envs.config import EnvConfigError, check_env
 from bmimic.runs.folder import check_folder_name
 from bmimic.sampling.config import sampler_config
@@ -164,7 +165,7 @@ def validate(cfg, motion_duration_s: float | None = None, composed_checked: bool
         _fail("num_envs", f"must be >= 1, got {cfg.num_envs}")
     if cfg.max_iterations is None or not 0 <= cfg.max_iterations <= MAX_ITERATION:
         _fail("max_iterations", f"must be in [0, {MAX_ITERATION}], got {cfg.max_iterations}")
-    stop_at = cfg.get("stop_at_iteration") if hasattr(cfg, "get") else getattr(cfg, "stop_at_iteration", None)
+    stop_at = optional_key(cfg, "stop_at_iteration")
     if stop_at is not None and not 1 <= stop_at <= MAX_ITERATION:
         _fail("stop_at_iteration", f"must be in [1, {MAX_ITERATION}] or null, got {stop_at}")
     ppo = cfg.ppo

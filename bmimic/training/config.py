@@ -122,3 +122,9 @@ class EvalConfig:
     (eval_robust.parquet; `final_robust_eval_*` in metrics.json)."""
     whole_clip: WholeClipConfig = field(default_factory=WholeClipConfig)
     """Whole-clip evaluation (whole_clip*.parquet during training; `python -m bmimic.eval --whole-clip`)."""
+
+
+def launch_end_iteration(max_iterations: int, stop_at_iteration: int | None) -> int:
+    """The iteration a launch trains to: max_iterations, or stop_at_iteration when it pauses earlier (the
+    run's budget, and every schedule spanning it, stay max_iterations)."""
+    return min(int(max_iterations), int(stop_at_iteration)) if stop_at_iteration else int(max_iterations)

@@ -32,6 +32,7 @@ from bmimic.runs.schema import ENV_STEPS, FAILURE_RATE, ITERATION, WALL_TIME_S, 
 from bmimic.runtime import any_rank, torchrun_env
 from bmimic.sampling import diagnostics
 from bmimic.training.clip_rollouts import CLIP_ROLLOUT_COLUMNS, clip_rollouts, clips_failed, eval_mode
+from bmimic.training.config import launch_end_iteration
 from bmimic.training.evaluator import summarize
 from bmimic.training.health import Health
 from bmimic.training.logger import TAG_GROUPS, RunLogger
@@ -206,8 +207,7 @@ class Trainer:
             log.info("sampler.parquet: %d bins x %d iterations, so one table every %d iterations and at the last "
                      "(sampler.log_every=null keeps it under about %.0e rows)", env.layout.num_bins, end_it,
                      self._sampler_every, diagnostics.MAX_SAMPLER_ROWS)
-        # A pause (stop_at_iteration) ends this launch early; the budget, and what spans it, stay end_it.
-        stop_it = min(end_it, cfg.stop_at_iteration) if cfg.stop_at_iteration else end_it
+        stop_it = launch_end_iteration(end_it, cfg.stop_at_iteration)  # a pause; the budget stays end_it
         self.logger.start(start_it, stop_it)
         self.learn_started_unix_s = time.time()
         for it in range(start_it, stop_it):
