@@ -53,13 +53,27 @@ def cfg():
     return compose()
 
 
+def run_module_as_main(name: str) -> None:
+    """`python -m NAME` in this process. A module that an earlier test imported is set aside for the run
+    and put back after it: runpy would otherwise warn that it found it in sys.modules (the run is a fresh
+    `__main__` either way)."""
+    import runpy
+    import sys
+
+    imported = sys.modules.pop(name, None)
+    try:
+        runpy.run_module(name, run_name="__main__")
+    finally:
+        if imported is not None:
+            sys.modules[name] = imported
+
+
 def run_train(*args: str, cwd: Path | None = None, env: dict | None = None) -> tuple[int, str]:
     """`python -m bmimic.train ARGS` in this process (the real Hydra app, without a new interpreter's
     start-up): its exit status and everything it printed. `env` sets (value None: removes) variables
     for the run; the working directory, sys.argv and the environment are restored after it."""
     import contextlib
     import io
-    import runpy
     import sys
 
     saved = sys.argv, os.getcwd(), {k: os.environ.get(k) for k in (env or {})}
@@ -72,7 +86,7 @@ def run_train(*args: str, cwd: Path | None = None, env: dict | None = None) -> t
         sys.argv = ["bmimic.train", *args]
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
             try:
-                runpy.run_module("bmimic.train", run_name="__main__")
+                run_module_as_main("bmimic.train")
                 code = 0
             except SystemExit as e:
                 code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)

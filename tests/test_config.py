@@ -114,6 +114,17 @@ def test_default_config_is_valid():
     validate(_resolved([]), motion_duration_s=30.0)
 
 
+def test_an_in_process_train_warns_nothing_and_keeps_the_imported_module(recwarn):
+    """The in-process CLI runs (run_train) execute bmimic.train as __main__ after other tests imported it:
+    runpy must not warn about the imported copy, and that copy is back in sys.modules afterwards."""
+    import bmimic.train as imported
+
+    code, out = run_train("--help")
+    assert code == 0, out
+    assert [str(w.message) for w in recwarn if issubclass(w.category, RuntimeWarning)] == []
+    assert sys.modules["bmimic.train"] is imported
+
+
 def test_config_error_is_one_line_from_train(tmp_path):
     code, out = run_train("device=cpu", "sampler.lambda_uniform=2", "motion=easy_only",
                           f"hydra.run.dir={tmp_path}/run", cwd=tmp_path)

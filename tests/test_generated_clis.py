@@ -18,7 +18,6 @@ import io
 import json
 import os
 import re
-import runpy
 import shutil
 import sys
 from pathlib import Path
@@ -28,6 +27,8 @@ import pandas as pd
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+from tests.conftest import run_module_as_main
 
 FAST = settings(derandomize=True, database=None, deadline=None, max_examples=30,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -90,7 +91,7 @@ def tree(folder: Path) -> dict[str, str]:
 def _hydra_app(module: str):
     def run(argv):
         sys.argv = [module, *argv]
-        runpy.run_module(module, run_name="__main__")
+        run_module_as_main(module)
         return 0
     return run
 
