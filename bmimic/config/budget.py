@@ -14,6 +14,7 @@ import math
 from typing import Any, Sequence
 
 from bmimic import BmimicError
+from bmimic.training.config import launch_end_iteration
 
 CPU_S_PER_STEP = 0.011
 """Seconds of one control step of a training iteration on a CPU whatever the env count (Python, torch
@@ -39,8 +40,6 @@ def optional_key(cfg: Any, key: str) -> Any:
 def cpu_training_s(cfg: Any, done_iterations: int = 0) -> float:
     """Estimated seconds of training on a CPU for `cfg` after runtime resolution (num_envs and
     max_iterations filled), from `done_iterations` on (a resume) to max_iterations or stop_at_iteration."""
-    from bmimic.training.config import launch_end_iteration
-
     end = launch_end_iteration(cfg.max_iterations, optional_key(cfg, "stop_at_iteration"))
     iterations = max(0, end - int(done_iterations))
     seconds = iterations * int(cfg.ppo.num_steps_per_env) * (CPU_S_PER_STEP + CPU_S_PER_ENV_STEP * int(cfg.num_envs))
