@@ -20,7 +20,8 @@
 #   CUDA_VISIBLE_DEVICES=1 JUDGE_WORKERS=12 bash sweeps/races_dance1_whole_clip.sh 1x8192-hybrid-s0
 #
 # Measured so far (docs/benchmarks.md): 2x4096-hybrid-s0 on 2 x H200, cold: 95% robust whole clip at 422 s;
-# 1x4096-hybrid-s0 on one H200, cold: 90% at 607 s, 95% not held twice in 900 s (judged 0.906-0.969).
+# 1x4096-hybrid-s0 on one H200, cold: 90% at 607 s, 95% not held twice in 900 s (judged 0.906-0.969);
+# 1x4096-hybrid-s1: 90% at 651 s, 95% not in 850 s; 1x4096-design-s0: 90% not in 865 s (judged 0.867 at it 2600).
 set -euo pipefail
 
 # row: GPUs, envs per GPU, sampler, seed. 1x4096-uniform asks whether uniform ever finishes in 30 minutes
