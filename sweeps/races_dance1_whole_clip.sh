@@ -21,7 +21,8 @@
 #
 # Measured so far (docs/benchmarks.md): 2x4096-hybrid-s0 on 2 x H200, cold: 95% robust whole clip at 422 s;
 # 1x4096-hybrid-s0 on one H200, cold: 90% at 607 s, 95% not held twice in 900 s (judged 0.906-0.969);
-# 1x4096-hybrid-s1: 90% at 651 s, 95% not in 850 s; 1x4096-design-s0: 90% not in 865 s (judged 0.867 at it 2600).
+# 1x4096-hybrid-s1: 90% at 651 s, 95% not in 850 s; 1x4096-design-s0: 90% not in 865 s (judged 0.867 at it 2600);
+# 1x4096-uniform-s0 (BUDGET_S=1480): no robust whole clip at all in 1483 s (0 of 128 at every judgement to it 4000).
 set -euo pipefail
 
 # row: GPUs, envs per GPU, sampler, seed. 1x4096-uniform asks whether uniform ever finishes in 30 minutes
