@@ -23,6 +23,7 @@
 # 1x4096-hybrid-s0 on one H200, cold: 90% at 607 s, 95% not held twice in 900 s (judged 0.906-0.969);
 # 1x4096-hybrid-s1: 90% at 651 s, 95% not in 850 s; 1x4096-design-s0: 90% not in 865 s (judged 0.867 at it 2600);
 # 1x4096-uniform-s0 (BUDGET_S=1480): no robust whole clip at all in 1483 s (0 of 128 at every judgement to it 4000).
+# 1x8192-hybrid-s0, cold: 90% at 549 s, 95% at 697 s; 1x8192-hybrid-s1 (BUDGET_S=540, warm caches): 90% at 389 s.
 set -euo pipefail
 
 # row: GPUs, envs per GPU, sampler, seed. 1x4096-uniform asks whether uniform ever finishes in 30 minutes
