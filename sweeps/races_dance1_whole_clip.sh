@@ -24,10 +24,14 @@
 # 1x4096-hybrid-s1: 90% at 651 s, 95% not in 850 s; 1x4096-design-s0: 90% not in 865 s (judged 0.867 at it 2600);
 # 1x4096-uniform-s0 (BUDGET_S=1480): no robust whole clip at all in 1483 s (0 of 128 at every judgement to it 4000).
 # 1x8192-hybrid-s0, cold: 90% at 549 s, 95% at 697 s; 1x8192-hybrid-s1 (BUDGET_S=540, warm caches): 90% at 389 s.
+# 1x8192-hybrid-s2: 90% at 431 s, 95% not in 810 s; 2x4096-hybrid-s1, cold: 90% at 389 s, 95% not in 654 s (judged
+# 0.906-0.953 past it 1000: the 95% line is within noise of where the hybrid plateaus).
 set -euo pipefail
 
 # row: GPUs, envs per GPU, sampler, seed, and optionally one more Hydra override (a variant raced against the
-# plain row of the same seed, both at once on a 2-GPU machine, one GPU each). 1x4096-uniform asks whether uniform ever finishes in 30 minutes
+# plain row of the same seed, both at once on a 2-GPU machine, one GPU each; the record
+# 2026-12-01_h200_race_1x8192-hybrid-s2-overlap.json raced ppo.overlap_update=true of commit a23f2eb this way,
+# an option since removed). 1x4096-uniform asks whether uniform ever finishes in 30 minutes
 # (BUDGET_S=1800 for it where a machine can be held that long past staging; a lent machine's 30 minutes allowed
 # 1480 s, the record of 2026-12-01).
 ROWS="
@@ -36,7 +40,6 @@ ROWS="
 1x8192-hybrid-s0   1 8192 adaptive_hybrid 0
 1x8192-hybrid-s1   1 8192 adaptive_hybrid 1
 1x8192-hybrid-s2   1 8192 adaptive_hybrid 2
-1x8192-hybrid-s2-overlap 1 8192 adaptive_hybrid 2 ppo.overlap_update=true
 1x4096-design-s0   1 4096 adaptive        0
 1x4096-uniform-s0  1 4096 uniform         0
 2x4096-hybrid-s0   2 4096 adaptive_hybrid 0

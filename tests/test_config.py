@@ -110,15 +110,6 @@ def test_validation_names_the_key(overrides, key):
     assert "\n" not in str(err.value).strip()
 
 
-def test_overlap_update_is_refused_under_torchrun_in_one_line(monkeypatch):
-    cfg = _resolved(["ppo.overlap_update=true"])
-    validate(cfg, motion_duration_s=30.0)  # one process: fine
-    monkeypatch.setenv("WORLD_SIZE", "2")
-    with pytest.raises(ConfigError) as err:
-        validate(cfg, motion_duration_s=30.0)
-    assert "ppo.overlap_update" in str(err.value) and "\n" not in str(err.value).strip()
-
-
 def test_default_config_is_valid():
     validate(_resolved([]), motion_duration_s=30.0)
 

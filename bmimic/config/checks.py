@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 from typing import Any, cast
 
 from bmimic.cli.extras import require_extra
@@ -193,9 +192,6 @@ def validate(cfg, motion_duration_s: float | None = None, composed_checked: bool
         _fail("ppo.float32_matmul_precision", f"must be highest, high or medium, got {ppo.float32_matmul_precision!r}")
     if ppo.save_interval < 1:
         _fail("ppo.save_interval", f"must be >= 1, got {ppo.save_interval}")
-    if ppo.overlap_update and _world_size() > 1:
-        _fail("ppo.overlap_update", "runs on one process; under torchrun its update's collectives would race the "
-                                    "rollout's (set it false)")
     if ppo.num_learning_epochs < 1:
         _fail("ppo.num_learning_epochs", f"must be >= 1, got {ppo.num_learning_epochs}")
     for key in ("clip_param", "max_grad_norm", "init_noise_std", "desired_kl"):
@@ -338,9 +334,3 @@ def check_evaluates(cfg, cpu_default: bool) -> None:
         raise ConfigError(f"a race times evaluations, and with max_iterations={budget}{where} and eval.every_iters="
                           f"{every} none would run; set max_iterations >= eval.every_iters >= 1 (on a CPU with "
                           "max_cpu_hours=<h>), or train with bmimic-train instead")
-
-
-def _world_size() -> int:
-    """torchrun's WORLD_SIZE (1 without it, or malformed: torchrun_env refuses that in one line first)."""
-    value = os.environ.get("WORLD_SIZE", "1").strip()
-    return int(value) if value.isdigit() else 1

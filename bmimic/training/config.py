@@ -61,11 +61,6 @@ class PPOConfig:
     cuda_graphs: bool = True
     """On a GPU, replay the policy's action sampling and each PPO mini-batch step from CUDA graphs
     (the same computation as rsl-rl's PPO, without its per-mini-batch host reads); CPU ignores it."""
-    overlap_update: bool = False
-    """Run each PPO update on a side CUDA stream while the next rollout collects, acting with a copy of the
-    policy from before that update: one update of policy lag (asynchronous PPO), logged losses one
-    iteration late. It targets the idle GPU time of a launch-bound update; not yet raced against the
-    default (issue 44), so off. On a CPU the same lag runs in line. One process only (not torchrun)."""
     float32_matmul_precision: str = "high"
     """torch.set_float32_matmul_precision for the policy and value networks: `high` (TF32 tensor
     cores on Ampere+ GPUs; the PPO update at 4096 envs on an H100 takes 0.040 s instead of 0.063 s,

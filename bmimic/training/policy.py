@@ -21,7 +21,6 @@ def rsl_rl_train_cfg(ppo, run_name: str) -> dict:
         "algorithm": {
             "class_name": "bmimic.training.ppo:GraphPPO",
             "cuda_graphs": ppo.cuda_graphs,
-            "overlap_update": ppo.overlap_update,
             "learning_rate": ppo.learning_rate,
             "num_learning_epochs": ppo.num_learning_epochs,
             "num_mini_batches": ppo.num_mini_batches,

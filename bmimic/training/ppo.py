@@ -21,18 +21,11 @@ iteration and cannot queue work ahead; its `act` launches ~40 small kernels per 
 
 The mathematics, the order of random draws and the mini-batch order are rsl-rl's
 (`tests/training/test_ppo.py` compares the two updates). Not supported: recurrent models, RND, symmetry.
-
-With `overlap_update` (bmimic.training.overlap) each update runs on the graphs' side stream while the
-next rollout collects, acting with the policy from before that update. Everything that reads the learner
-(get_policy, save, load) waits for the update in flight first; the losses and learning rate an update
-returns are the latest finished update's (one iteration late on a GPU). On a CPU the update runs in
-line with the same lag. One process only.
 """
 
 from __future__ import annotations
 
-import math
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from itertools import chain
 from typing import Any
 
@@ -40,16 +33,13 @@ import torch
 import torch.nn as nn
 from rsl_rl.algorithms import PPO
 
-from bmimic.training.inplace import average_gradients, update_normalization_in_place
-from bmimic.training.overlap import Behaviour, StagedRollout
-
 
 class GraphPPO(PPO):
     """rsl-rl's PPO whose update never waits for the GPU; CUDA-graph replay with `cuda_graphs`."""
 
     optimizer: torch.optim.Optimizer
 
-    def __init__(self, *args, cuda_graphs: bool = False, overlap_update: bool = False, **kwargs) -> None:
+    def __init__(self, *args, cuda_graphs: bool = False, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         if self.rnd or self.symmetry or self.actor.is_recurrent or self.critic.is_recurrent:
             raise ValueError("GraphPPO supports feed-forward actor and critic without RND or symmetry")
@@ -73,23 +63,11 @@ class GraphPPO(PPO):
         self._act_calls = 0
         self._stream: Any = None
         self._grad_flat: torch.Tensor | None = None  # the gradient all-reduce's buffer (torchrun)
-        self.overlap_update = bool(overlap_update)
-        if self.overlap_update and self.is_multi_gpu:  # two streams' collectives on one communicator would race
-            raise ValueError("GraphPPO's overlap_update runs on one process")
-        self._act_noise: torch.Tensor | None = None  # overlap_update with graphs: the actions' noise, drawn eagerly
-        self._behaviour = Behaviour(self.actor, self.critic) if self.overlap_update else None
-        self._staged = StagedRollout()  # overlap_update: the rollout copy the update in flight reads
-        self._in_flight = False  # an update was launched and not waited for
-        self._finished = {"value": math.nan, "surrogate": math.nan, "entropy": math.nan}
-        self._lr_seen = float(self._lr)  # the learning rate after the latest finished update (host)
 
     # ------------------------------------------------------------------ learning rate on the device
     @property
     def learning_rate(self) -> float:
-        """The current learning rate (a host read: for logging, not for the hot path). With
-        overlap_update: the rate after the latest finished update, read when it was waited for."""
-        if getattr(self, "overlap_update", False):
-            return self._lr_seen
+        """The current learning rate (a host read: for logging, not for the hot path)."""
         return float(self._lr)
 
     @learning_rate.setter
@@ -98,7 +76,6 @@ class GraphPPO(PPO):
             self._lr = torch.tensor(float(value), dtype=torch.float32, device=self.device)
         else:
             self._lr.fill_(float(value))
-        self._lr_seen = float(value)
 
     def _adapt_learning_rate(self, old_params, new_params) -> None:
         """rsl-rl's adaptive rule (divide by 1.5 above 2x the KL target, multiply below half),
@@ -121,10 +98,6 @@ class GraphPPO(PPO):
 
     # ------------------------------------------------------------------ acting
     def act(self, obs):
-        with self._acting():  # overlap_update: the behaviour policy acts
-            return self._act(obs)
-
-    def _act(self, obs):
         if not self.cuda_graphs:
             return super().act(obs)
         if self._act_graph is None:
@@ -135,8 +108,6 @@ class GraphPPO(PPO):
             self._act_graph = self._capture_act(obs)
         g, static_obs, actions, values, log_prob, mean, std = self._act_graph
         static_obs.update_(obs)
-        if self._act_noise is not None:
-            self._act_noise.normal_()  # eager, on this stream: see _capture_act
         g.replay()
         t = self.transition
         t.hidden_states = (None, None)
@@ -148,8 +119,6 @@ class GraphPPO(PPO):
 
     def _capture_act(self, obs) -> tuple:
         static_obs = obs.clone()
-        if self.overlap_update:
-            self._act_noise = torch.empty_like(self.storage.actions[0])  # [num_envs, num_actions]
         torch.cuda.synchronize(self.device)
         g = torch.cuda.CUDAGraph()
         with torch.cuda.graph(g, stream=self._capture_stream()):
@@ -157,10 +126,7 @@ class GraphPPO(PPO):
             std = self.actor.distribution.std
             # torch.normal(mean, std) draws normal_(0, 1) and scales it: the same numbers, without
             # its host-side check that std >= 0, which a capture cannot contain.
-            # overlap_update: a graph's draw reads an offset that any graph's replay rewrites on its own stream
-            # (the update's, on the side stream), so the noise is drawn eagerly before each replay instead.
-            noise = self._act_noise if self.overlap_update else torch.randn_like(mean)
-            actions = mean + std * noise
+            actions = mean + std * torch.randn_like(mean)
             values = self.critic(static_obs)
             log_prob = self.actor.get_output_log_prob(actions)
         return g, static_obs, actions, values, log_prob, mean, std
@@ -185,15 +151,9 @@ class GraphPPO(PPO):
             yield
         main.wait_stream(side)
 
-    def _acting(self):
-        return self._behaviour.acting(self) if self._behaviour is not None else nullcontext()
-
     # ------------------------------------------------------------------ returns
     def compute_returns(self, obs) -> None:
-        with self._acting():  # the bootstrap value comes from the critic that valued the rollout
-            super().compute_returns(obs)
-        if self.overlap_update:
-            return  # staged by the update, once the update in flight is done reading them
+        super().compute_returns(obs)
         adv = self.storage.advantages.flatten(0, 1)
         if self._adv is None:
             self._adv = torch.empty_like(adv)
@@ -216,8 +176,7 @@ class GraphPPO(PPO):
         with torch.amp.autocast(device_type=torch.device(self.device).type, enabled=self.use_mixed_precision,
                                 dtype=torch.bfloat16):
             mean = self._policy_distribution(obs)
-            if not self.overlap_update:  # (overlapped, the update's graphs must draw nothing: _capture_act)
-                torch.randn_like(mean)  # rsl-rl draws (and discards) a sample here: keep the RNG stream in step
+            torch.randn_like(mean)  # rsl-rl draws (and discards) a sample here: keep the RNG stream in step
             log_prob = self.actor.get_output_log_prob(actions)
             values = self.critic(obs)
             new_params = self.actor.output_distribution_params
@@ -247,61 +206,8 @@ class GraphPPO(PPO):
             self._loss_sums += torch.stack((value_loss.detach(), surrogate_loss.detach(), entropy_mean.detach()))
 
     def update(self) -> dict[str, float]:
-        if self.overlap_update:
-            return self._overlapped_update()
-        self._launch_update(self._flat_storage())
-        self.storage.clear()
-        return self._read_losses()
-
-    def _flat_storage(self) -> dict:
         st = self.storage
-        return {
-            "obs": st.observations.flatten(0, 1),
-            "actions": st.actions.flatten(0, 1),
-            "values": st.values.flatten(0, 1),
-            "returns": st.returns.flatten(0, 1),
-            "log_prob": st.actions_log_prob.flatten(0, 1),
-            "dist": tuple(p.flatten(0, 1) for p in st.distribution_params),
-        }
-
-    def _read_losses(self) -> dict[str, float]:
-        """The finished update's mean losses and learning rate: the update's one host read."""
-        num_updates = self.num_learning_epochs * self.num_mini_batches
-        value, surrogate, entropy, lr = torch.cat((self._loss_sums / num_updates, self._lr.view(1))).tolist()
-        self._lr_seen = lr
-        self._finished = {"value": value, "surrogate": surrogate, "entropy": entropy}
-        return dict(self._finished)
-
-    def _overlapped_update(self) -> dict[str, float]:
-        """Wait for the update in flight, hand its result to the behaviour policy, stage this rollout and
-        launch its update on the side stream (in line on a CPU, and for the eager warm-up update)."""
-        self.wait_update()
-        assert self._behaviour is not None
-        self._behaviour.copy_from(self._raw_actor, self._raw_critic)
-        flat, self._adv = self._staged.stage(self._flat_storage(), self.storage.advantages.flatten(0, 1))
-        if self.cuda_graphs and self._updates_done >= 1:  # graphs captured (now or before): on the side stream
-            side = self._capture_stream()
-            side.wait_stream(torch.cuda.current_stream(self.device))  # the staged copy is ready
-            with torch.cuda.stream(side):
-                self._launch_update(flat)
-            self._in_flight = True
-        else:
-            self._launch_update(flat)
-            self._read_losses()
-        self.storage.clear()
-        return dict(self._finished)
-
-    def wait_update(self) -> None:
-        """The current stream waits for the update in flight (if any), then its losses are read."""
-        if not self._in_flight:
-            return
-        torch.cuda.current_stream(self.device).wait_stream(self._capture_stream())
-        self._in_flight = False
-        self._read_losses()
-
-    def _launch_update(self, flat: dict) -> None:
-        """Queue one update over `flat` on the current stream (its losses accumulate in _loss_sums)."""
-        batch_size = flat["obs"].shape[0]
+        batch_size = st.num_envs * st.num_transitions_per_env
         mini_batch_size = batch_size // self.num_mini_batches
         # rsl-rl 5.5 draws one permutation per update and reuses it every epoch.
         perm = torch.randperm(self.num_mini_batches * mini_batch_size, device=self.device)
@@ -309,6 +215,14 @@ class GraphPPO(PPO):
             self._perm = perm
         else:
             self._perm.copy_(perm)
+        flat = {
+            "obs": st.observations.flatten(0, 1),
+            "actions": st.actions.flatten(0, 1),
+            "values": st.values.flatten(0, 1),
+            "returns": st.returns.flatten(0, 1),
+            "log_prob": st.actions_log_prob.flatten(0, 1),
+            "dist": tuple(p.flatten(0, 1) for p in st.distribution_params),
+        }
         self._loss_sums.zero_()
         # Under torchrun the captured steps hold their collectives; every rank captures in the same
         # update (the second), so the ranks' graphs replay matching collectives in the same order.
@@ -328,7 +242,11 @@ class GraphPPO(PPO):
 
         obs = flat["obs"]
         for model in (self.actor, self.critic):
-            update_normalization_in_place(model, obs)
+            _update_normalization_in_place(model, obs)
+        num_updates = self.num_learning_epochs * self.num_mini_batches
+        value, surrogate, entropy = (self._loss_sums / num_updates).tolist()  # the update's one host read
+        st.clear()
+        return {"value": value, "surrogate": surrogate, "entropy": entropy}
 
     def _epochs(self, mini_batch_size: int, flat: dict) -> None:
         for _ in range(self.num_learning_epochs):
@@ -349,41 +267,36 @@ class GraphPPO(PPO):
         self._update_graphs = graphs
 
     def reduce_parameters(self) -> None:
-        """rsl-rl's gradient average over the ranks, capturable (bmimic.training.inplace)."""
+        """rsl-rl's gradient average over the ranks (sum, then divide by the world size), through
+        one flat buffer allocated at the first (eager) call: gather the gradients into it,
+        all-reduce it in place, scale it, copy it back. No allocation and no host read, so the
+        captured mini-batch step holds it; elementwise the same arithmetic as rsl-rl's buckets."""
         grads = [p.grad for p in chain(self.actor.parameters(), self.critic.parameters()) if p.grad is not None]
-        self._grad_flat = average_gradients(grads, self._grad_flat, self.gpu_world_size)
+        numel = sum(g.numel() for g in grads)
+        if self._grad_flat is None or self._grad_flat.numel() != numel:
+            if len({g.dtype for g in grads}) != 1:
+                raise ValueError("GraphPPO's gradient all-reduce needs one dtype for every gradient")
+            self._grad_flat = torch.empty(numel, dtype=grads[0].dtype, device=grads[0].device)
+        flat = self._grad_flat
+        torch.cat([g.reshape(-1) for g in grads], out=flat)
+        torch.distributed.all_reduce(flat, op=torch.distributed.ReduceOp.SUM)
+        flat.div_(self.gpu_world_size)
+        offset = 0
+        for g in grads:
+            g.copy_(flat[offset : offset + g.numel()].view_as(g))
+            offset += g.numel()
 
     # ------------------------------------------------------------------ state
-    def get_policy(self):
-        self.wait_update()  # the learner's weights, not those an update in flight is writing
-        return super().get_policy()
-
-    def compile(self, mode: str | None = None) -> None:
-        super().compile(mode)
-        behaviour: Behaviour | None = getattr(self, "_behaviour", None)  # (None while PPO.__init__ runs)
-        if behaviour is not None:
-            behaviour.compile(mode)
-
-    def save(self) -> dict:
-        self.wait_update()
-        state = super().save()
-        if self._behaviour is not None:  # the policy the next rollout acts with: a resume continues the lag
-            state.update(self._behaviour.state_dict())
-        return state
-
     def load(self, loaded_dict: dict, load_cfg: dict | None, strict: bool) -> bool:
         self.release_graphs()  # loading replaces the optimiser state the graphs point at
         out = super().load(loaded_dict, load_cfg, strict)
         for group in self.optimizer.param_groups:
             self.learning_rate = float(group["lr"])
             group["lr"] = self._lr
-        if self._behaviour is not None:
-            self._behaviour.load(loaded_dict, strict, self._raw_actor, self._raw_critic)
         return out
 
     def release_graphs(self) -> None:
         """Drop the captured graphs (before destroy_process_group under torchrun, or a reload)."""
-        self.wait_update()
         if self._update_graphs is not None or self._act_graph is not None:
             torch.cuda.synchronize(self.device)
         self._update_graphs = None
@@ -393,8 +306,19 @@ class GraphPPO(PPO):
 
     def action_std(self) -> torch.Tensor:
         """Per-action standard deviation of the Gaussian policy, from its parameters."""
-        # With overlap_update, the policy that acted (reading the learner would wait for the update).
-        dist = (self._behaviour.modules[0] if self._behaviour is not None else self.get_policy()).distribution
+        dist = self.get_policy().distribution
         if dist.std_type == "log":
             return torch.exp(dist.log_std_param.clamp(*dist.log_std_range)).detach()
         return dist.std_param.clamp(*dist.std_range).detach()
+
+
+def _update_normalization_in_place(model, obs) -> None:
+    """rsl-rl's normaliser update, keeping the `_std` buffer's address (captured graphs read it)."""
+    if not getattr(model, "obs_normalization", False):
+        return
+    norm = model.obs_normalizer
+    std = norm._std
+    model.update_normalization(obs)
+    if norm._std is not std:
+        std.copy_(norm._std)
+        norm._std = std

@@ -135,22 +135,3 @@ def test_resume_restores_exact_state(trained, tmp_path):
     for key, value in ckpt["sampler"].items():
         if isinstance(value, torch.Tensor):
             assert torch.equal(sampler.state_dict()[key], value), key
-
-
-def test_overlap_update_trains_checkpoints_and_resumes_on_cpu(tmp_path):
-    """`ppo.overlap_update=true` end to end (in line on a CPU): the checkpoint holds the acting policy beside
-    the learner, a resume continues it, and every logged loss is finite."""
-    from tests.conftest import train_in_process
-
-    run = tmp_path / "run"
-    args = [*[a for a in TINY if not a.startswith("max_iterations")], "ppo.overlap_update=true", "ppo.save_interval=1"]
-    train_in_process(run, *args, "max_iterations=2", cwd=tmp_path)
-    state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
-    assert {"behaviour_actor_state_dict", "behaviour_critic_state_dict"} <= state.keys()
-    assert state["behaviour_actor_state_dict"].keys() == state["actor_state_dict"].keys()
-    train_in_process(run, *args, "max_iterations=3", "resume=true", cwd=tmp_path)
-    train = pd.read_parquet(run / "train_metrics.parquet")
-    assert list(train["iteration"]) == [0, 1, 2]
-    losses = train[[c for c in train.columns if c.startswith("loss/")]]
-    assert losses.notna().all().all() and len(losses.columns) == 3
-    assert json.loads((run / "status.json").read_text())["iteration"] == 3

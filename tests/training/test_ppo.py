@@ -3,7 +3,6 @@ and under torchrun (here 2 CPU ranks, gloo) the same update as one rank given th
 
 from __future__ import annotations
 
-import copy
 import os
 
 import pytest
@@ -308,90 +307,3 @@ def test_cuda_graph_update_under_torchrun_matches_eager(tmp_path):
         assert graphed["lr"] == pytest.approx(eager["lr"], rel=1e-5)
         for k in eager["params"]:
             torch.testing.assert_close(graphed["params"][k], eager["params"][k], rtol=1e-3, atol=1e-4, msg=k)
-
-
-# ----------------------------------------------------------------------------- overlap_update: one update of lag
-def _actor_params(model) -> dict[str, torch.Tensor]:
-    return {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-
-
-def test_overlap_acts_with_the_policy_from_before_the_last_update():
-    """Rollout k+1 acts with the parameters from before update k; iteration 0 (rollout and update) is the
-    default's; the learner is never behind."""
-    kw = dict(schedule="adaptive", desired_kl=0.01, learning_rate=1e-3)
-    plain, lagged = _make(GraphPPO, "cpu", **kw), _make(GraphPPO, "cpu", overlap_update=True, **kw)
-    initial = _actor_params(lagged.actor)
-    first_plain, first_lagged = _train(plain, 1, "cpu"), _train(lagged, 1, "cpu")
-    for k in first_plain[0]:  # the same data, the same policy, the same update
-        assert first_lagged[0][k] == pytest.approx(first_plain[0][k], rel=1e-5, abs=1e-7), k
-    for k, v in _params(plain).items():
-        torch.testing.assert_close(_params(lagged)[k], v, msg=k)
-    behaviour_actor, behaviour_critic = lagged._behaviour.raw
-    after_one = _actor_params(lagged.actor)
-    for k, v in initial.items():  # the next rollout acts with L0, not L1
-        torch.testing.assert_close(_actor_params(behaviour_actor)[k], v, msg=k)
-    assert any(not torch.equal(after_one[k], initial[k]) for k in initial)  # (the update did change L)
-    _train(lagged, 1, "cpu", data_seed=3)
-    for k, v in after_one.items():  # after update 1 was launched the behaviour holds L1
-        torch.testing.assert_close(_actor_params(behaviour_actor)[k], v, msg=k)
-    assert _actor_params(behaviour_critic).keys() == lagged.critic.state_dict().keys()
-
-
-def test_overlap_changes_the_learning_from_the_second_iteration_on():
-    """Rollout 1 under lag comes from another policy, so update 1 differs from the default's (the lag is real)."""
-    kw = dict(schedule="fixed", learning_rate=1e-2)
-    plain, lagged = _make(GraphPPO, "cpu", **kw), _make(GraphPPO, "cpu", overlap_update=True, **kw)
-    _train(plain, 2, "cpu"), _train(lagged, 2, "cpu")
-    pa, pb = _params(plain), _params(lagged)
-    assert any(not torch.allclose(pa[k], pb[k]) for k in pa if k.startswith("actor.mlp"))
-    for losses in _train(lagged, 2, "cpu", data_seed=4):
-        assert all(torch.isfinite(torch.tensor(v)) for v in losses.values())
-
-
-def test_overlap_checkpoint_resumes_the_lag_exactly():
-    """Save after 2 iterations, load into a fresh algorithm: the third iteration is the uninterrupted run's
-    (the behaviour policy is part of the checkpoint; without it the resumed rollout would act with L2)."""
-    kw = dict(schedule="adaptive", desired_kl=0.01, learning_rate=1e-3, overlap_update=True)
-    a = _make(GraphPPO, "cpu", **kw)
-    _train(a, 2, "cpu")
-    state = copy.deepcopy(a.save())  # (a state dict holds the live tensors; a checkpoint file is a copy)
-    assert {"behaviour_actor_state_dict", "behaviour_critic_state_dict"} <= state.keys()
-    la = _train(a, 1, "cpu", data_seed=7)
-    b = _make(GraphPPO, "cpu", **{**kw, "learning_rate": 5e-4})
-    b.load(state, None, strict=True)
-    lb = _train(b, 1, "cpu", data_seed=7)
-    assert lb[0] == pytest.approx(la[0], rel=1e-6)
-    for k, v in _params(a).items():
-        torch.testing.assert_close(_params(b)[k], v, msg=k)
-    for x, y in zip(a._behaviour.raw, b._behaviour.raw):
-        for k, v in _actor_params(x).items():
-            torch.testing.assert_close(_actor_params(y)[k], v, msg=k)
-    # A checkpoint without a behaviour policy (a default run's) acts with its learner's.
-    c = _make(GraphPPO, "cpu", **kw)
-    plain = _make(GraphPPO, "cpu")
-    _train(plain, 1, "cpu")
-    c.load(plain.save(), None, strict=True)
-    for k, v in _actor_params(plain.actor).items():
-        torch.testing.assert_close(_actor_params(c._behaviour.raw[0])[k], v, msg=k)
-
-
-def test_overlap_action_std_reads_the_acting_policy():
-    a = _make(GraphPPO, "cpu", overlap_update=True)
-    with torch.no_grad():
-        a._behaviour.raw[0].distribution.std_param.copy_(torch.tensor([0.25, 0.5, 2.0]))
-    torch.testing.assert_close(a.action_std(), torch.tensor([0.25, 0.5, 2.0]))
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA streams and graphs need a GPU")
-def test_overlap_on_a_gpu_matches_the_lag_computed_in_line():
-    """The side-stream update (graphs replayed while the next rollout acts) computes what the in-line lag
-    does: the same learner after 4 iterations, up to float order, and its losses arrive one iteration late."""
-    kw = dict(schedule="adaptive", desired_kl=0.01, learning_rate=1e-3, overlap_update=True)
-    inline, overlapped = _make(GraphPPO, "cuda", **kw), _make(GraphPPO, "cuda", cuda_graphs=True, **kw)
-    li, lo = _train(inline, 4, "cuda"), _train(overlapped, 4, "cuda")
-    assert overlapped._update_graphs is not None and overlapped._act_graph is not None
-    overlapped.wait_update()
-    assert lo[2]["value"] == pytest.approx(li[1]["value"], rel=1e-2)  # iteration 2 reports update 1
-    pa, pb = _params(inline), _params(overlapped)
-    for k in pa:
-        torch.testing.assert_close(pb[k], pa[k], rtol=1e-2, atol=1e-3, msg=k)
