@@ -12,7 +12,8 @@ change is judged against its baseline (issue 33: the change's learning curve bes
 - ``race_summary`` / ``summary_markdown``: one row per race (start-up, seconds per iteration,
   evaluation share, each threshold's time and iteration): the race tables of docs/benchmarks.md;
 - ``whole_clip_markdown``: the races judged on the whole clip, with env steps to each whole-clip threshold
-  and to 99% window success and their final policy's whole-clip success (issue 44's whole-clip table);
+  and to 99% window success and their final policy's whole-clip success with Wilson's interval over its
+  rollouts (issue 44's whole-clip table);
 - ``plot_races``: failure (1 - success, log scale, so 99% success is visible) and MPKPE against wall
   time from launch, iterations and env steps (all ranks' together: the axis on which 1 x 8192, 2 x 4096
   and 4 x 2048 envs compare); one colour per config and GPU count, one line style per seed.
@@ -37,6 +38,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from analysis import REFUSED, AnalysisError, error_line
+from analysis.binomial import wilson_interval
 from analysis.files import save_figure, write_csv, write_text
 from analysis.markdown import is_nan, md_table
 from analysis.palette import arm_colors
@@ -178,11 +180,31 @@ CURVE_AXES = (("wall_from_launch_s", "wall time from launch [s]"), (ITERATION, "
 """The x axes of the race curves, one column of panels each."""
 
 
+FINAL_WHOLE_CLIP = "final policy, robust whole clip [95% Wilson interval over its rollouts]"
+"""The whole-clip table's last column: one judgement of R rollouts pins the policy's success down only to
+about ±0.04 at 0.95 with R = 128, the width that decides whether a 95% line is held twice in a row."""
+
+
+def _whole_clip_rollouts(data: dict) -> int | None:
+    """How many rollouts each whole-clip judgement of a race ran (its config's eval.whole_clip.rollouts)."""
+    rollouts = ((data["config"].get("eval") or {}).get("whole_clip") or {}).get("rollouts")
+    return int(rollouts) if isinstance(rollouts, int | float) and rollouts >= 1 else None
+
+
+def _wilson_text(success: float, rollouts: int | None) -> str:
+    """`` [low, high]`` of a success read from ``rollouts`` rollouts, or nothing when their number is unknown."""
+    if rollouts is None:
+        return ""
+    low, high = wilson_interval(round(success * rollouts), rollouts)
+    return f" [{low:.3f}, {high:.3f}]"
+
+
 def whole_clip_markdown(races: list[tuple[str, dict]]) -> str | None:
     """The races judged on the whole clip (a robust whole-clip threshold in their JSON), one row each: GPUs and
     envs per GPU, seed, start-up, wall time from launch, iteration and env steps to each whole-clip threshold
     and to 99% window success (`> T s` when the race ended at T without it), and the final policy's robust
-    whole-clip success with its judge (native MuJoCo or MuJoCo-Warp). None when no race has a whole-clip line."""
+    whole-clip success with its judge (native MuJoCo or MuJoCo-Warp) and, where the race recorded its number
+    of rollouts, Wilson's 95% interval over them. None when no race has a whole-clip line."""
     rows = []
     for name, data in races:
         ts = data.get("thresholds") or []
@@ -201,8 +223,9 @@ def whole_clip_markdown(races: list[tuple[str, dict]]) -> str | None:
         row[f"{SUCCESS_TARGET:.0%} window success"] = _cell(window[0], end, steps=True) if window else "–"
         final = data.get("final_whole_clip") or {}
         value = final.get(WHOLE_CLIP_METRIC)
-        row["final policy, robust whole clip"] = "–" if value is None else (
-            f"{value:.3f} ({'native MuJoCo' if final.get('native') else 'MuJoCo-Warp'}, it {final.get(ITERATION)})")
+        row[FINAL_WHOLE_CLIP] = "–" if value is None else (
+            f"{value:.3f}{_wilson_text(value, _whole_clip_rollouts(data))} "
+            f"({'native MuJoCo' if final.get('native') else 'MuJoCo-Warp'}, it {final.get(ITERATION)})")
         rows.append(row)
     if not rows:
         return None

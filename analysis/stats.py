@@ -27,6 +27,9 @@ The rules a reviewer would apply, in one place:
   handled as in Kaplan-Meier), else "not reached". Two arms' times are compared with a permutation
   test of Gehan's generalised Wilcoxon scores (``gehan_scores``), which treat a censored time as
   "later than anything observed before it".
+- One policy's success over the R rollouts of one evaluation is a binomial proportion: its interval is
+  Wilson's score interval (``analysis.binomial.wilson_interval``), over rollouts of that policy, never
+  over seeds; it stays honest at 0 of R and R of R, where p ± z·SE collapses to a point.
 
 All randomness comes from fixed seeds, so the same runs always give the same report.
 """

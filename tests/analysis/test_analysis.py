@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis import AnalysisError
+from analysis.binomial import wilson_interval
 from analysis.comparisons import baseline_comparisons, comparisons
 from analysis.index import build_index, write_index
 from analysis.load import load_runs, load_table
@@ -118,6 +119,26 @@ def test_permutation_pvalues_are_exact_for_small_n():
     assert permutation_pvalue([0.0], [1.0, 2.0]) == pytest.approx(2 / 3)
     assert permutation_pvalue([1.0, 2.0], [0.0]) == pytest.approx(2 / 3)
     assert permutation_pvalue([5.0], [4.0]) == 1.0
+
+
+@pytest.mark.parametrize(("successes", "trials", "low", "high"), [
+    (81, 263, 0.2553, 0.3662), (15, 148, 0.0624, 0.1605), (0, 20, 0.0, 0.1611), (1, 29, 0.0061, 0.1718)])
+def test_wilson_interval_matches_newcombes_published_intervals(successes, trials, low, high):
+    # Newcombe (1998), Statistics in Medicine 17:857, Table I, method 3 (score interval without correction)
+    got = wilson_interval(successes, trials)
+    assert got == pytest.approx((low, high), abs=5e-5)
+
+
+def test_wilson_interval_holds_the_estimate_narrows_with_rollouts_and_ends_at_the_bounds():
+    assert wilson_interval(0, 128)[0] == 0.0 and wilson_interval(128, 128)[1] == 1.0
+    assert 0.0 < wilson_interval(0, 128)[1] < 0.03  # 0 of 128 still allows up to ~3%
+    widths = [np.subtract(*wilson_interval(n * 95 // 100, n)[::-1]) for n in (20, 128, 1000)]
+    assert widths[0] > widths[1] > widths[2] > 0
+    low, high = wilson_interval(121, 128)
+    assert low < 121 / 128 < high and wilson_interval(121, 128, confidence=0.5)[0] > low
+    for bad in ((1, 0), (-1, 10), (11, 10)):
+        with pytest.raises(ValueError, match="successes"):
+            wilson_interval(*bad)
 
 
 def test_km_median_known_answers():

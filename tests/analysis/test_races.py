@@ -12,6 +12,7 @@ import pytest
 
 from analysis import AnalysisError
 from analysis.races import (
+    FINAL_WHOLE_CLIP,
     LINESTYLES,
     config_label,
     main,
@@ -242,7 +243,8 @@ def test_the_whole_clip_table_gives_time_iteration_and_env_steps_and_the_final_j
         race.on_evaluation(trainer, summary, now=120.0 + 10.0 * i)
     race.record_final_native(0.9453125, {"iterations": 300, "env_steps": 3 * 196_608_000})
     judged = tmp_path / "judged.json"
-    judged.write_text(json.dumps(race.to_json({"seed": 1, "num_envs": 4096, "eval": {"every_iters": 100}},
+    judged.write_text(json.dumps(race.to_json({"seed": 1, "num_envs": 4096,
+                                               "eval": {"every_iters": 100, "whole_clip": {"rollouts": 128}}},
                                               {"gpu": {"name": "NVIDIA H200"}, "created": "2026-11-29T21:00:00"})))
     plain = _race_json(tmp_path / "plain.json", [0.5, 0.95], [60.0, 45.0])  # no whole-clip line: no row
     table = whole_clip_markdown(read_races([judged, plain])).splitlines()
@@ -253,5 +255,6 @@ def test_the_whole_clip_table_gives_time_iteration_and_env_steps_and_the_final_j
     assert row["99% window success"] == "30 s (it 100, 1.97e8)"  # the clock starts at the earlier rank's launch
     assert row["90% robust whole-clip success"] == "40 s (it 200, 3.93e8)"
     assert row["95% robust whole-clip success"] == "> 50 s"  # 0.93 at the end: censored at the race's end
-    assert row["final policy, robust whole clip"] == "0.945 (native MuJoCo, it 300)"
+    # 121 of 128 rollouts: Wilson's 95% interval [0.891, 0.973] (the race recorded its rollouts per judgement)
+    assert row[FINAL_WHOLE_CLIP] == "0.945 [0.891, 0.973] (native MuJoCo, it 300)"
     assert whole_clip_markdown(read_races([plain])) is None
