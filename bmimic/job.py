@@ -221,28 +221,30 @@ def learn_and_evaluate(trainer, task, place: Placement, stop: StopSignals | None
     window evaluation unless the last iteration had one, the robust one (eval.robust) and the whole
     clips (eval.whole_clip.at_end). (final summary, metrics.json's final_robust_* and final_whole_clip_*);
     both empty when a signal interrupted (trainer.interrupted)."""
-    cfg = task.cfg
-    final, robust = dict[str, Any](), dict[str, Any]()
+    from bmimic.training.run_state import rng_untouched
+
+    cfg, final, robust = task.cfg, dict[str, Any](), dict[str, Any]()
     try:
         trainer.learn(signals=stop)
         if trainer.interrupted:
             return final, robust
-        final = trainer.progress.last_eval
-        # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
-        # their graphs and leave the process group meanwhile, and return NaN.
-        if not place.main_rank:
-            final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
-        elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
-            # (a resume of a run that reached max_iterations already holds its final evaluation)
-            final = trainer.evaluate()
-        robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
-            cfg.eval.robust and place.main_rank) else {}
-        whole_clip = trainer.whole_clip
-        if whole_clip is not None and cfg.eval.whole_clip.at_end and (
-                trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
-            trainer.evaluate_whole_clip()
-        if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
-            robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
+        with rng_untouched():  # drawing nothing of training's: a pause here resumes as one unbroken run
+            final = trainer.progress.last_eval
+            # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
+            # their graphs and leave the process group meanwhile, and return NaN.
+            if not place.main_rank:
+                final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
+            elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
+                # (a resume of a run that reached max_iterations already holds its final evaluation)
+                final = trainer.evaluate()
+            robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
+                cfg.eval.robust and place.main_rank) else {}
+            whole_clip = trainer.whole_clip
+            if whole_clip is not None and cfg.eval.whole_clip.at_end and (
+                    trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
+                trainer.evaluate_whole_clip()
+            if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
+                robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
     except StopNow:  # a signal during an evaluation (bmimic.training.interrupts): the iteration is kept
         trainer.interrupted = True
     return final, robust

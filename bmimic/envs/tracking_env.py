@@ -233,6 +233,8 @@ class TrackingEnv(VecEnv):
         mask = self._ones if mask is None else mask
         frames = self.segments.start(mask, frames.to(self.device).long())
         write_reference_state(self.sim, self.reference, mask, frames)
+        # A placed world starts cold, as a fresh one would: its result never depends on earlier waves.
+        self.sim.qacc_warmstart.masked_fill_(mask[:, None], 0.0)
         self.events.reset(self, mask)
         self.episode_length_buf.masked_fill_(mask, 0)
         self.actions.masked_fill_(mask[:, None], 0.0)

@@ -105,6 +105,7 @@ class Simulator:
         self.qpos = t(d.qpos)  # [N, nq]: free joint (pos 3, quat wxyz 4) then hinges
         self.qvel = t(d.qvel)  # [N, nv]: free joint (lin world 3, ang body-frame 3) then hinges
         self.ctrl = t(d.ctrl)  # [N, nu]
+        self.qacc_warmstart = t(d.qacc_warmstart)  # [N, nv] the constraint solver's starting guess
         self.xpos = t(d.xpos)  # [N, nbody, 3] world body origins
         self.xquat = t(d.xquat)  # [N, nbody, 4] wxyz
         self.cvel = t(d.cvel)  # [N, nbody, 6] (ang, lin) about subtree_com of the body's root

@@ -5,15 +5,17 @@ checked, with the run's tables read back (`load`; `RunRecord.truncate`). The Tra
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Iterator, Protocol
 
 from bmimic import BmimicError
+from bmimic.envs.carry import EnvStateError, env_state, load_env_state
 from bmimic.runs.folder import checkpoint_path, checkpoints_dir, latest_checkpoint
 from bmimic.runtime import rng_state, set_rng_state
 from bmimic.training.checkpoints import (
@@ -104,6 +106,8 @@ class Checkpoint:
             meta=self.meta(),
             config=json.dumps(t.run_config, sort_keys=True, default=str) if t.run_config else None,
         )
+        if not t.runner.is_distributed:  # under torchrun rank 0 alone saves: the other ranks' worlds are not its
+            state["env"] = env_state(t.env)
         return state
 
     def save(self) -> Path:
@@ -154,6 +158,7 @@ class Checkpoint:
             raise CheckpointMismatchError(f"{path}: {e}") from None
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             raise CheckpointMismatchError(f"{path}: malformed checkpoint ({type(e).__name__}: {e})") from None
+        self._load_env(state.get("env"), path)
         t.runner.current_learning_iteration = t.progress.iteration
         t.record.truncate(t.progress.iteration)
         rows = t.record.rows("train_metrics")
@@ -161,6 +166,34 @@ class Checkpoint:
             t.total_resets[key] = int(sum(_count(r.get(key)) for r in rows))
         t.overflow_world_steps = int(sum(_count(r.get("overflow_worlds")) for r in rows))
         log.info("resumed from %s at iteration %d (lr %.2e)", path, t.progress.iteration, t.alg.learning_rate)
+
+
+    def _load_env(self, saved: dict | None, path: str | os.PathLike) -> None:
+        """The worlds as the checkpoint left them (one process, same num_envs and env config): the resumed
+        run then continues exactly as one unbroken run would. Otherwise every world starts afresh, as at a
+        run's start (a checkpoint without `env`, under torchrun, or after an allowed change of the env)."""
+        t = self.trainer
+        why = ("it holds no env state" if saved is None else "the run trains on several GPUs"
+               if t.runner.is_distributed else None)
+        if why is None:
+            try:
+                load_env_state(t.env, saved)
+                return
+            except EnvStateError as e:
+                why = str(e)
+        log.warning("%s: the worlds start afresh, not where the checkpoint left them (%s)", path, why)
+
+
+@contextlib.contextmanager
+def rng_untouched() -> Iterator[None]:
+    """Run a block (an evaluation) without moving any global random stream: what it draws is undone
+    after it, so training draws the same numbers whether or not, and wherever, it evaluated (a run paused
+    and evaluated at iteration N continues as an unbroken one)."""
+    state = rng_state()
+    try:
+        yield
+    finally:
+        set_rng_state(state)
 
 
 def _count(value) -> float:
@@ -171,4 +204,4 @@ def _count(value) -> float:
         return 0.0
 
 
-__all__ = ["Checkpoint", "Checkpointed", "Progress"]
+__all__ = ["Checkpoint", "Checkpointed", "Progress", "rng_untouched"]

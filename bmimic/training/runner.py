@@ -37,7 +37,7 @@ from bmimic.training.evaluator import summarize
 from bmimic.training.health import Health
 from bmimic.training.logger import TAG_GROUPS, RunLogger
 from bmimic.training.policy import rsl_rl_train_cfg
-from bmimic.training.run_state import Checkpoint, Progress
+from bmimic.training.run_state import Checkpoint, Progress, rng_untouched
 from bmimic.training.schedule import Schedule, WholeClipSchedule
 
 if TYPE_CHECKING:
@@ -120,7 +120,7 @@ class Trainer:
     def evaluate(self) -> dict:
         """Evaluate the current policy (eval.parquet row, logged); returns the summary."""
         t0 = time.perf_counter()
-        with self._at_once(), eval_mode(self.alg.get_policy()) as policy:
+        with rng_untouched(), self._at_once(), eval_mode(self.alg.get_policy()) as policy:
             per_bin = self.evaluator.evaluate(policy, self.progress.iteration, self.progress.env_steps,
                                               self.progress.wall_time_s)
         self.record.append("eval", per_bin)
@@ -171,7 +171,7 @@ class Trainer:
     def _clip_outcomes(self, max_s: float | None) -> torch.Tensor:
         """Rank 0, for a sampler that learns from clip outcomes (phc, protomotions): one rollout per clip
         from its first frame (clip_rollouts; a row of clip_eval.parquet each); [C] > 0 where one failed."""
-        with self._at_once(), eval_mode(self.alg.get_policy()) as policy:
+        with rng_untouched(), self._at_once(), eval_mode(self.alg.get_policy()) as policy:
             rows = clip_rollouts(self.evaluator, policy, max_s)
         p = self.progress
         self.record.append("clip_eval", rows.assign(**{ITERATION: p.iteration, ENV_STEPS: p.env_steps})[
