@@ -39,7 +39,8 @@ from tests.conftest import REPO
 PACKAGES = ("bmimic", "analysis")
 MAX_LINES = 400
 
-ENTRY_POINTS = ("bmimic.train", "bmimic.race", "bmimic.eval", "bmimic.play", "bmimic.bench", "bmimic.export", "bmimic.sim2sim",
+ENTRY_POINTS = ("bmimic.train", "bmimic.race", "bmimic.eval", "bmimic.play", "bmimic.bench", "bmimic.export", "bmimic.state",
+                "bmimic.sim2sim",
                 "bmimic.launch", "bmimic.motion.convert", "analysis.report", "analysis.index")
 """The command lines (`python -m <name>`); a package entry point (sim2sim) is all of its modules."""
 
