@@ -3,10 +3,10 @@ the race commands of analysis share (analysis.races, analysis.race_whole_clip)."
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from analysis import AnalysisError
+from bmimic.runs import safe_read
 from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, RACE_KIND, SUCCESS_RATE
 
 EVALUATION_KEYS = (ITERATION, ENV_STEPS, "wall_from_launch_s", SUCCESS_RATE, MPKPE_REL_MM)
@@ -22,10 +22,10 @@ def read_race(path: str | Path) -> dict:
     naming the file, otherwise)."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = safe_read.read_json(path)
     except FileNotFoundError:
         raise AnalysisError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, ValueError) as e:
         raise AnalysisError(f"{path}: not a readable JSON file ({str(e).splitlines()[0]})") from None
     if not isinstance(data, dict) or data.get("kind") != RACE_KIND:
         kind = data.get("kind") if isinstance(data, dict) else type(data).__name__

@@ -31,6 +31,7 @@ from analysis import REFUSED, AnalysisError, error_line
 from analysis.files import write_text
 from analysis.race_files import read_race
 from bmimic.cli.common import path_arg
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     EVAL_DIR,
     EVAL_SUMMARY,
@@ -52,8 +53,8 @@ NATIVE_SUMMARY = EVAL_SUMMARY
 
 def _read(path: Path) -> dict:
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        data = safe_read.read_json(path)
+    except (OSError, ValueError) as e:
         raise AnalysisError(f"{path}: not a readable JSON file ({str(e).splitlines()[0]})") from None
     if not isinstance(data, dict) or not isinstance(data.get(ITERATION), int):
         raise AnalysisError(f"{path}: no integer {ITERATION!r}")

@@ -11,6 +11,7 @@ import pyarrow.parquet as pq
 import yaml
 
 from analysis import AnalysisError
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     CHECKPOINTS_DIR,
     HYDRA_DIR,
@@ -115,7 +116,7 @@ def read_config(run_dir: Path) -> dict:
     if not path.is_file():
         return {}
     try:
-        cfg = yaml.safe_load(path.read_text(encoding="utf-8"))
+        cfg = safe_read.read_yaml(path)
     except (OSError, ValueError, yaml.YAMLError) as e:  # ValueError: not UTF-8
         raise AnalysisError(f"{path}: not valid YAML ({e})") from e
     if not isinstance(cfg, dict):
@@ -146,7 +147,7 @@ def _override_items(run_dir: Path) -> list[tuple[str, str]]:
     if not path.is_file():
         return []
     try:
-        items = yaml.safe_load(path.read_text(encoding="utf-8")) or []
+        items = safe_read.read_yaml(path) or []
     except (OSError, ValueError, yaml.YAMLError) as e:  # ValueError: not UTF-8
         raise AnalysisError(f"{path}: not valid YAML ({e})") from e
     if not isinstance(items, list):

@@ -39,6 +39,7 @@ import torch
 
 from bmimic import BmimicError
 from bmimic.cli.common import path_arg
+from bmimic.runs import safe_read
 
 
 def _sync(device: str) -> None:
@@ -288,7 +289,7 @@ def read_multigpu_rows(path: str | os.PathLike) -> list[dict]:
     if not path.exists():
         return []
     try:
-        rows = json.loads(path.read_text())
+        rows = safe_read.read_json(path)
     except (OSError, ValueError) as e:
         raise BmimicError(f"{path}: not readable as JSON ({e})") from None
     if not isinstance(rows, list):

@@ -4,13 +4,13 @@ task rebuilt (robot, motion, bins) as training built it. Used by eval, play and 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 from bmimic import BmimicError
 from bmimic.cli.common import first_line
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     CHECKPOINTS_DIR,
     HYDRA_DIR,
@@ -100,7 +100,7 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
 
     path = run_dir / HYDRA_DIR / "config.yaml"
     try:
-        loaded = OmegaConf.load(path)
+        loaded = OmegaConf.create(safe_read.read_yaml_text(path))
         resolved = read_resolved_config(run_dir)
         if resolved is not None and isinstance(tree := OmegaConf.to_container(loaded, resolve=False), dict):
             # a run recorded before bmimic recorded values: its interpolations get the values it trained with
@@ -141,7 +141,7 @@ def anchor_relative_paths(cfg, run_dir: Path) -> None:
     from omegaconf import OmegaConf
 
     try:
-        launch_dir = Path(OmegaConf.load(run_dir / HYDRA_DIR / "hydra.yaml").hydra.runtime.cwd)
+        launch_dir = Path(OmegaConf.create(safe_read.read_yaml_text(run_dir / HYDRA_DIR / "hydra.yaml")).hydra.runtime.cwd)
     except Exception:  # no hydra.yaml (a hand-made run folder): paths stay relative to here
         return
     for group, key in (("motion", "path"), ("motion", "folder"), ("robot", "mjcf_path"), ("data", "lafan_dir")):
@@ -208,7 +208,7 @@ def load_run_checkpoint(run: LoadedRun) -> dict:
     allowed = [*named, *accepted_changes(run.run_dir)]
     differ = []
     try:
-        own = json.loads(state["config"]) if isinstance(state.get("config"), str) else None
+        own = safe_read.parse_json(state["config"]) if isinstance(state.get("config"), str) else None
     except ValueError:
         own = None
     ours = read_resolved_config(run.run_dir)

@@ -7,6 +7,7 @@ import json
 from typing import NamedTuple, Sequence
 
 from bmimic import BmimicError
+from bmimic.runs import safe_read
 
 
 class MotionDataError(BmimicError, ValueError):
@@ -28,7 +29,7 @@ def segments_to_json(segments: Sequence[Segment]) -> str:
 
 def segments_from_json(text: str) -> list[Segment]:
     try:
-        items = json.loads(text)
+        items = safe_read.parse_json(text, "segments")
     except ValueError as err:
         raise MotionDataError(f"segments is not valid JSON ({err})") from None
     if not isinstance(items, list):

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from bmimic import BmimicError
+from bmimic.runs import safe_read
 from bmimic.runs.atomic_io import (  # noqa: F401  (the writer of every run-folder file, re-exported)
     WriteError,
     atomic_append_text,
@@ -188,9 +189,8 @@ def is_run_folder(path: str | os.PathLike) -> bool:
 def read_json(path: str | os.PathLike, default: Any = None) -> Any:
     """The parsed JSON at `path`, or `default` when it is absent or unreadable."""
     try:
-        with open(path) as f:
-            return json.load(f)
-    except (OSError, ValueError):  # absent, a folder, a loop of links, not JSON, not UTF-8
+        return safe_read.read_json(path)
+    except (OSError, ValueError):  # absent, a folder, a FIFO or device, too deep or large, not JSON, not UTF-8
         return default
 
 
@@ -201,10 +201,12 @@ class RunFolderError(BmimicError):
 def load_json(path: str | os.PathLike) -> Any:
     """The parsed JSON at `path`, None when it is absent; RunFolderError when it cannot be read."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         return None
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return safe_read.read_json(path)
+    except safe_read.UnsafeFileError as e:
+        raise RunFolderError(str(e)) from None
     except (OSError, ValueError) as e:
         raise RunFolderError(f"{path}: not valid JSON ({e})") from e
 
@@ -303,7 +305,7 @@ def read_hydra_config(run_dir: str | os.PathLike) -> dict | None:
     import yaml
 
     try:
-        cfg = yaml.safe_load((Path(run_dir) / HYDRA_DIR / "config.yaml").read_text(encoding="utf-8"))
+        cfg = safe_read.read_yaml(Path(run_dir) / HYDRA_DIR / "config.yaml")
     except (OSError, ValueError, yaml.YAMLError):
         return None
     return cfg if isinstance(cfg, dict) else None

@@ -13,13 +13,13 @@ torch, no sim2sim import (the evaluation is a child process), so bmimic.race may
 
 from __future__ import annotations
 
-import json
 import logging
 import subprocess
 import sys
 from pathlib import Path
 from typing import Callable
 
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     EVAL_SUMMARY,
     MOTION_POLICY,
@@ -46,7 +46,7 @@ def native_summary_path(run_dir: str | Path, iteration: int) -> Path:
 def robust_success(path: Path) -> float | None:
     """The robust whole-clip success in a sim2sim summary (None: absent or unreadable)."""
     try:
-        value = json.loads(path.read_text(encoding="utf-8"))["conditions"]["robust"]["success_rate"]
+        value = safe_read.read_json(path)["conditions"]["robust"]["success_rate"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from bmimic.runs.schema import BIN, FAILURE_RATE, HORIZON_TRUNCATED, ITERATION, 
 
 if TYPE_CHECKING:
     import pandas as pd
+from bmimic.runs import safe_read
 from bmimic.sim2sim.spec import Sim2SimError
 
 log = logging.getLogger("bmimic.sim2sim")
@@ -63,7 +63,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
     if summary_file.is_file() and bins_file.is_file():
         with readable(summary_file):
-            s = json.loads(summary_file.read_text())
+            s = safe_read.read_json(summary_file)
             success, mpkpe = (math.nan if s[k] is None else float(s[k]) for k in ("eval_success_rate", "eval_mpkpe_rel_mm"))
         with readable(bins_file):
             bins = pd.read_parquet(bins_file)

@@ -8,6 +8,7 @@ import re
 from pathlib import Path
 from typing import cast
 
+from bmimic.runs import safe_read
 from bmimic.runs.folder import HYDRA_DIR
 from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, first_line, policy_error
 
@@ -44,7 +45,7 @@ def _project_spec(run_dir: Path | None):
     from omegaconf import OmegaConf
 
     try:
-        robot = OmegaConf.merge(OmegaConf.structured(RobotConfig), OmegaConf.load(run_dir / HYDRA_DIR / "config.yaml").robot)
+        robot = OmegaConf.merge(OmegaConf.structured(RobotConfig), OmegaConf.create(safe_read.read_yaml_text(run_dir / HYDRA_DIR / "config.yaml")).robot)
         cfg = cast(RobotConfig, OmegaConf.to_object(robot))
     except Exception as e:  # omegaconf raises many types; all mean the same to the user
         raise Sim2SimError(f"{run_dir / HYDRA_DIR / 'config.yaml'}: robot config unreadable: {first_line(e)}") from None
@@ -53,7 +54,7 @@ def _project_spec(run_dir: Path | None):
     mjcf = Path(cfg.mjcf_path).expanduser()
     if not mjcf.is_absolute() and not mjcf.exists():
         try:  # relative to where training was started (as bmimic.eval resolves it)
-            launch = Path(OmegaConf.load(run_dir / HYDRA_DIR / "hydra.yaml").hydra.runtime.cwd)
+            launch = Path(OmegaConf.create(safe_read.read_yaml_text(run_dir / HYDRA_DIR / "hydra.yaml")).hydra.runtime.cwd)
             mjcf = launch / mjcf if (launch / mjcf).exists() else mjcf
         except Exception:  # no hydra.yaml: leave the path as written
             pass

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from bmimic import BmimicError
+from bmimic.runs import safe_read
 from bmimic.runs.schema import ITERATION
 
 if TYPE_CHECKING:
@@ -167,8 +168,8 @@ def read_policy(path: str | Path) -> PolicySpec:
 
     def json_list(key: str) -> list[dict]:
         try:
-            items = json.loads(get(key))
-        except json.JSONDecodeError:
+            items = safe_read.parse_json(get(key), key)
+        except ValueError:
             raise policy_error(path, f"metadata {key!r} is not JSON") from None
         if not isinstance(items, list) or not all(isinstance(i, dict) for i in items):
             raise policy_error(path, f"metadata {key!r} must be a JSON list of objects")

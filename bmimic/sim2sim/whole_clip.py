@@ -31,6 +31,7 @@ from typing import Sequence, cast
 import numpy as np
 import pandas as pd
 
+from bmimic.runs import safe_read
 from bmimic.runs.folder import HYDRA_DIR, RESOLVED_CONFIG, read_resolved_config
 from bmimic.runs.schema import (
     ERROR_COLUMNS,
@@ -90,7 +91,7 @@ def run_config_section(run_dir: Path | None, key: str) -> tuple[dict | None, str
     from omegaconf import DictConfig, OmegaConf
 
     try:
-        section = OmegaConf.to_container(cast(DictConfig, OmegaConf.load(composed))[key], resolve=True)
+        section = OmegaConf.to_container(cast(DictConfig, OmegaConf.create(safe_read.read_yaml_text(composed)))[key], resolve=True)
     except Exception as e:  # omegaconf raises many types; all mean the same to the user
         raise Sim2SimError(f"{composed}: its {key} config is unreadable: {first_line(e)}") from None
     return (section, f"{composed} ({key})") if isinstance(section, dict) else (None, "")

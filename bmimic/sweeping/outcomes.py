@@ -6,7 +6,6 @@ job failed or was refused.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 import shutil
@@ -19,6 +18,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from bmimic.cli.common import shell_arg
+from bmimic.runs import safe_read
 from bmimic.runs.folder import atomic_write_json
 
 log = logging.getLogger("bmimic.launch")
@@ -48,7 +48,7 @@ def read_job_outcomes(folder: Path) -> list[dict]:
     out = []
     for path in sorted(Path(folder).glob("*.json")):
         try:
-            item = json.loads(path.read_text())
+            item = safe_read.read_json(path)
         except (OSError, ValueError):
             continue
         if isinstance(item, dict):

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from bmimic import BmimicError
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     CHECKPOINTS_DIR,
     checkpoint_files,
@@ -225,7 +226,7 @@ def previous_config(plan: RunPlan) -> dict | None:
     text = (plan.state or {}).get("config")
     if isinstance(text, str):
         try:
-            cfg = json.loads(text)
+            cfg = safe_read.parse_json(text, "the checkpoint's config")
         except ValueError:
             cfg = None
         if isinstance(cfg, dict):
