@@ -211,7 +211,7 @@ FLAGS = {
     "play": {"--seconds": NUMBERS, "--start-s": NUMBERS, "--out": "path", "--width": NUMBERS, "--height": NUMBERS,
              "--fps": NUMBERS, "--device": "device", "--msaa": NUMBERS, "--no-ghost": None, "--no-text": None,
              "--trust-checkpoint": None},
-    "export": {"--out": "path", "--trust-checkpoint": None},
+    "export": {"--out": "path", "--force": None, "--trust-checkpoint": None},
     "sim2sim": {"--model": ["project", "menagerie", "/nonexistent.xml", "path"], "--episodes-per-bin": NUMBERS,
                 "--horizon-s": NUMBERS, "--max-mpkpe-rel-mm": NUMBERS, "--workers": NUMBERS,
                 "--joint-dynamics": ["model", "metadata", "x"], "--video": "path", "--video-start-s": NUMBERS,
@@ -339,7 +339,11 @@ DAMAGE_FILES = ["status.json", "metrics.json", "provenance.json", "resolved_conf
                 ".hydra/config.yaml", ".hydra/overrides.yaml", ".hydra/hydra.yaml", "checkpoints/latest.pt",
                 "checkpoints/model_1.pt", "checkpoints/motion_policy_1.onnx", "train_metrics.parquet",
                 "eval.parquet", "sampler.parquet"]
-DAMAGE = ["delete", "empty", "garbage", "truncate", "folder", "symlink_dir", "symlink_loop", "json_types", "yaml_types"]
+DAMAGE = ["delete", "empty", "garbage", "truncate", "folder", "symlink_dir", "symlink_loop", "json_types", "yaml_types",
+          "deep", "fifo", "device", "alias_bomb"]
+ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{c}: &{c} [{', '.join(['*' + p] * 10)}]\n" for p, c in zip("abcdefg", "bcdefgh"))
+"""YAML whose document has 10**8 leaves once its aliases are expanded (issue 77)."""
 TOOLS = {"report": lambda run: [str(run)], "index": lambda run: [str(run.parent)],
          "eval": lambda run: [str(run), "--episodes-per-bin", "1"], "export": lambda run: [str(run)],
          "sim2sim": lambda run: [str(run), "--episodes-per-bin", "1", "--workers", "1"],
@@ -356,8 +360,10 @@ def _remove(path: Path) -> None:
 
 def damage(run: Path, rel: str, how: str, n: int) -> None:
     path = run / rel
-    if how in ("empty", "garbage", "truncate", "json_types", "yaml_types") and not path.is_file():
+    if how in ("empty", "garbage", "truncate", "json_types", "yaml_types", "deep", "alias_bomb") and not path.is_file():
         return  # (an earlier damage made it a folder or a link)
+    if how in ("fifo", "device") and path.suffix not in (".json", ".yaml"):
+        return  # the records' guarded reader (bmimic.runs.safe_read) is what these draw against
     if how == "delete":
         _remove(path)
     elif how == "empty" and path.is_file():
@@ -378,6 +384,16 @@ def damage(run: Path, rel: str, how: str, n: int) -> None:
         path.symlink_to(path)
     elif how == "json_types" and path.suffix == ".json":
         path.write_text(json.dumps([None, "x", {"status": 5, "iteration": "1x", "num_bins": -1, "seed": "a"}][n % 3]))
+    elif how == "deep" and path.suffix in (".json", ".yaml"):
+        path.write_text("[" * (2000 + n) + "]" * (2000 + n))
+    elif how == "fifo":
+        _remove(path)
+        os.mkfifo(path)
+    elif how == "device":
+        _remove(path)
+        path.symlink_to("/dev/zero")
+    elif how == "alias_bomb" and path.suffix == ".yaml":
+        path.write_text(ALIAS_BOMB)
     elif how == "yaml_types" and path.suffix == ".yaml":
         path.write_text(["[]\n", "seed: '${oc.env:NOPE}'\n", "{a: {b: 1}}\n", "- x\n- 1\n"][n % 4])
 

@@ -216,9 +216,25 @@ def check_overrides(argv: Sequence[str], multirun: bool | None = None, loader=No
                 raise ConfigError(override_error(e, overrides)) from None
             _refuse_additions_under_null(base, adds)
         try:
-            return loader.load_configuration("train", overrides, run_mode=mode)
+            cfg = loader.load_configuration("train", overrides, run_mode=mode)
         except Exception as e:  # noqa: BLE001 - Hydra's, OmegaConf's or a value's error alike: one line
             raise ConfigError(override_error(e, overrides)) from None
+    _refuse_record_overrides(cfg)
+    return cfg
+
+
+def _refuse_record_overrides(cfg) -> None:
+    """The two Hydra settings that keep a run's record its own are not overridable: Hydra's output subdir
+    (Hydra would rewrite .hydra/ of the run a launch names before bmimic's checks run, even one they
+    refuse) and the launch guard (which refuses a launch into a folder or run it does not own)."""
+    hydra = cfg.get("hydra") or {}
+    if hydra.get("output_subdir") is not None:
+        raise ConfigError(f"hydra.output_subdir={hydra.get('output_subdir')}: bmimic writes a run's launch record "
+                          "(.hydra/) itself, once, into a new run; Hydra's copy would rewrite an existing run's record "
+                          "before any check: leave it out")
+    if "launch_guard" not in (hydra.get("callbacks") or {}):
+        raise ConfigError("hydra.callbacks.launch_guard: the launch guard cannot be removed (it keeps a launch "
+                          "from writing into a run or a folder it does not own)")
 
 
 def override_error(e: BaseException, overrides: Sequence[str] = ()) -> str:
