@@ -27,20 +27,27 @@ from bmimic.runs.folder import checkpoints_dir, make_folder
 log = logging.getLogger("bmimic.export")
 
 
-def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False) -> list[Path]:
+def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False, force: bool = False) -> list[Path]:
     """Export the run's latest checkpoint (or the given one); returns the written files. `trust`
     (--trust-checkpoint): a run config whose env terms import code outside bmimic is loaded, as
-    bmimic.eval does."""
+    bmimic.eval does. Existing ONNX files of the same iteration are replaced only with `force`."""
+    from bmimic import BmimicError
     from bmimic.evaluation.saved_run import load_run, load_run_checkpoint
+    from bmimic.runs.folder import motion_policy_onnx_name, policy_onnx_name
     from bmimic.task import build_evaluator
     from bmimic.training.onnx_export import export_checkpoint_onnx
     from bmimic.training.policy import build_policy
 
-    if out_dir is not None:
-        make_folder(out_dir)
     run = load_run(path, ["device=cpu", "eval.max_envs=1"], trust=trust)
     task = run.task
     state = load_run_checkpoint(run)
+    target = out_dir or checkpoints_dir(run.run_dir)
+    it = int(state.get("iter", -1))
+    there = [n for n in (policy_onnx_name(it), motion_policy_onnx_name(it)) if (target / n).exists()]
+    if there and not force:
+        raise BmimicError(f"{target / there[0]}: exists; add --force to replace it")
+    if out_dir is not None:
+        make_folder(out_dir)
     env = build_evaluator(task).env
     policy = build_policy(state, env, task.cfg.ppo, task.device, run.checkpoint)
     iteration = int(state.get("iter", -1))
@@ -51,6 +58,7 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bmimic.export", description=__doc__.splitlines()[0].split(": ", 1)[1])
     p.add_argument("path", type=path_arg, help="a run folder (its latest checkpoint) or a checkpoint file in one")
     p.add_argument("--out", type=path_arg, help="folder for the files (default RUN_DIR/checkpoints)")
+    p.add_argument("--force", action="store_true", help="replace ONNX files of the same iteration that exist")
     add_trust_flag(p)
     return p
 
@@ -62,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     quiet_warp()
     try:
-        paths = export_run(args.path, args.out, trust=args.trust_checkpoint)
+        paths = export_run(args.path, args.out, trust=args.trust_checkpoint, force=args.force)
     except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)
         return 2
