@@ -498,6 +498,12 @@ def test_export_command_rewrites_the_files(trained, tmp_path):
     old = sim2sim.policy_session(trained / "checkpoints" / "motion_policy_2.onnx").run(None, feed)
     for a, b in zip(new, old):
         np.testing.assert_allclose(a, b, atol=1e-6)
+    # the files exist now: replaced only with --force, and a refusal leaves them byte-identical
+    stamp = (tmp_path / "policy_2.onnx").read_bytes()
+    again = run("bmimic.export", trained, "--out", tmp_path, cwd=tmp_path, check=False)
+    assert again.returncode == 2 and again.stderr.strip().startswith("error: ") and "--force" in again.stderr
+    assert (tmp_path / "policy_2.onnx").read_bytes() == stamp
+    run("bmimic.export", trained, "--out", tmp_path, "--force", cwd=tmp_path)
 
 
 @pytest.mark.slow
