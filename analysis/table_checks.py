@@ -25,6 +25,7 @@ from bmimic.runs.schema import (
     HORIZON_TRUNCATED,
     ITERATION,
     WALL_TIME_S,
+    table_problems,
 )
 
 RATE_COLUMNS = (FAILURE_RATE, "probability", "raw_failure_rate")
@@ -93,6 +94,9 @@ def check_table(path: Path, name: str, table: pd.DataFrame, run_dir: str | Path)
             _check_range(path, table[column], column, 0.0, 1.0)
     if BIN in table.columns and name in BINNED:
         _check_bins(path, name, table, run_dir)
+    broken = table_problems(name, table)  # counts within their totals, errors >= 0, monotone iterations
+    if broken:
+        raise AnalysisError(f"{path}: {broken[0]}: the table is damaged; move the run aside or train it again")
 
 
 def _numeric(values: pd.Series) -> bool:

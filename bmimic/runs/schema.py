@@ -138,6 +138,40 @@ errors: step-weighted over the completed rollouts); metrics.json holds the one a
 `final_<key>`."""
 
 
+_COUNTS_WITHIN = (("failures", "visits"), ("start_failures", "start_episodes"), ("completed", "rollouts"))
+
+
+def table_problems(name: str, table: "pd.DataFrame") -> list[str]:
+    """What in a run table breaks its invariants (empty: none): counts negative or beyond their totals
+    (failures within visits, start failures within start episodes), tracking errors negative, iterations
+    and env steps not increasing row by row (train_metrics) or negative (every table). A damaged table is
+    refused by its readers rather than reported as numbers it cannot hold."""
+    import numpy as np
+
+    def col(c: str) -> "np.ndarray | None":
+        return table[c].to_numpy(dtype=float, na_value=np.nan) if c in table.columns else None
+
+    out = []
+    for c in (ITERATION, ENV_STEPS):
+        v = col(c)
+        if v is not None and (v < 0).any():
+            out.append(f"column {c} negative")
+    if name == "train_metrics":
+        for c in (ITERATION, ENV_STEPS):
+            v = col(c)
+            if v is not None and len(v) > 1 and not (np.diff(v) > 0).all():
+                out.append(f"column {c} not increasing from row to row")
+    for part, whole in _COUNTS_WITHIN:
+        a, b = col(part), col(whole)
+        if a is not None and ((a < 0).any() or (b is not None and (a > b).any())):
+            out.append(f"column {part} negative or more than {whole}")
+    for c in ERROR_COLUMNS:
+        v = col(c)
+        if v is not None and (v < 0).any():
+            out.append(f"column {c} negative")
+    return out
+
+
 def whole_clip_survival(clips: "pd.DataFrame", failures: "pd.DataFrame", keys: tuple[str, ...] = ()) -> "pd.DataFrame":
     """The survival view of whole-clip evaluations, derived from their two tables (the one rule for every
     writer and reader): per row of `clips` (WHOLE_CLIP_COLUMNS; one condition and clip of the evaluation

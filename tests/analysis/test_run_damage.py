@@ -56,6 +56,12 @@ def _damage(run, table, change):
     ("train_metrics", lambda d: d.__setitem__("iteration", d["iteration"] + 0.5), "iteration", "not a whole number"),
     ("train_metrics", lambda d: d.__setitem__("mean_reward", np.nan), "mean_reward", "episodes ended"),
     ("sampler", lambda d: d.__setitem__("probability", 0.5), "probability", "sums to 2"),
+    # issue 77: invariants across columns and rows
+    ("eval", lambda d: d.__setitem__("failures", d["visits"] + 1), "failures", "more than visits"),
+    ("eval", lambda d: d.__setitem__("mpkpe_mm", -1.0), "mpkpe_mm", "negative"),
+    ("train_metrics", lambda d: d.__setitem__("iteration", 0), "iteration", "not increasing from row to row"),
+    ("train_metrics", lambda d: d.__setitem__("env_steps", d["env_steps"][::-1].to_numpy()), "env_steps",
+     "not increasing"),
 ])
 def test_a_table_out_of_range_is_one_line_naming_file_and_column(tmp_path, capsys, table, change, column, words):
     run = _run(tmp_path)
