@@ -120,7 +120,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
                 write_status(plan.run_dir, "interrupted", trainer.progress.iteration)
             raise TrainingInterrupted(cast(StopSignals, stop), trainer.progress.iteration, plan.run_dir)
         if place.main_rank:
-            trainer.checkpoint.save()
+            trainer.checkpoint.save(final=True)
     finally:
         try:
             trainer.close()

@@ -110,8 +110,10 @@ class Checkpoint:
             state["env"] = env_state(t.env)
         return state
 
-    def save(self) -> Path:
-        """Write model_<it>.pt and latest.pt (tables first) and their ONNX exports."""
+    def save(self, final: bool = False) -> Path:
+        """Write model_<it>.pt and latest.pt (tables first) and their ONNX exports. A periodic export that
+        fails is a warning; the `final` one (the run's deliverable, which its record lists) fails the run
+        (BmimicError), so that a run is never `done` without it (a full disk: free space, resume=true)."""
         from bmimic.training.onnx_export import export_checkpoint_onnx
 
         t = self.trainer
@@ -124,7 +126,11 @@ class Checkpoint:
         atomic_torch_save(path, state)
         try:  # policy_<it>.onnx and the BeyondMimic-compatible motion_policy_<it>.onnx
             export_checkpoint_onnx(t.alg.get_policy(), t.env, checkpoints_dir(t.run_dir), it)
-        except Exception as e:  # export must never cost a training run
+        except Exception as e:  # a periodic export must never cost a training run
+            if final:
+                raise BmimicError(f"{checkpoints_dir(t.run_dir)}: the ONNX export of the final checkpoint (iteration "
+                                  f"{it}) failed ({type(e).__name__}: {e}); the checkpoint itself is written: "
+                                  "resume=true writes the export again") from None
             log.warning("ONNX export failed at iteration %d: %s", it, e)
         return path
 

@@ -189,3 +189,20 @@ def test_bad_states_are_refused_and_nothing_written(legs, tmp_path):
     refused(["save", str(split), str(foreign)], root, str(foreign), "not a state this command may replace")
     assert foreign.read_text() == "mine"
     refused(["save", str(split), str(other)], root, "another job")
+
+
+def test_a_failed_final_export_fails_the_run(tmp_path):
+    """A full disk at the final ONNX export: the run ends `failed` (one error line, exit 2), never `done`
+    without the file its record lists; the checkpoint is there for resume=true (issue 77)."""
+    run = tmp_path / "run"
+    code = ("import sys, errno\nimport bmimic.training.onnx_export as o\n"
+            "def full(*a, **k):\n    raise OSError(errno.ENOSPC, 'No space left on device')\n"
+            "o.export_checkpoint_onnx = full\nfrom bmimic.train import cli\n"
+            f"sys.argv = ['bmimic.train', *{[*TINY, 'logger=none', f'hydra.run.dir={run}']!r}]\ncli()\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900,
+                         env=cli_env())
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert out.returncode == 2 and len(errors) == 1 and "ONNX export of the final checkpoint" in errors[0], out.stderr
+    import json
+    assert json.loads((run / "status.json").read_text())["status"] == "failed"
+    assert (run / "checkpoints" / "latest.pt").is_file()
