@@ -37,6 +37,7 @@ from analysis import AnalysisError
 from analysis.run_files import REPORT_COLUMNS, find_run_dirs
 from bmimic.runs.atomic_io import atomic_write_bytes
 from bmimic.runs.folder import (
+    DATA_FOLDER_NAME,
     EVAL_DIR,
     HYDRA_DIR,
     RESOLVED_CONFIG,
@@ -147,8 +148,6 @@ def drop_survival_views(run_dir: Path, write: bool = True) -> tuple[int, int]:
     return files, size
 
 
-DATA_FOLDER_NAME = "$BMIMIC_LAFAN_DIR"
-"""What an absolute data.lafan_dir outside the launch directory reads as in committed records."""
 
 
 def _data_folder(run_dir: Path) -> str | None:

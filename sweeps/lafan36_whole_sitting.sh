@@ -13,7 +13,7 @@
 #   restore` the state into it. A first sitting has neither: training starts the job.
 # train: sweeps/lafan36_library_job.sh ARM SEED with RUNS_ROOT (resume=true once a checkpoint exists).
 # save: `bmimic.state save` the run's newest checkpoint to STATE_DIR/ARM-sSEED.pt (fp32 weights, Adam moments
-#   in MOMENTS, default bf16; no worlds' state), and copy its record (no checkpoints or ONNX) to
+#   in MOMENTS, default bf16; no worlds' state), and copy its record (no checkpoints, ONNX or log) to
 #   RECORD_DIR/JOB compacted (analysis.compact). Commit both.
 # Defaults: RUNS_ROOT=outputs/sweeps/lafan36_whole, STATE_DIR=docs/results/lafan36_whole/state,
 # RECORD_DIR=docs/results/lafan36_whole/runs. The clips must sit at the same absolute path every sitting
@@ -49,7 +49,7 @@ case "$step" in
     mkdir -p "$state_dir" "$record_dir/$job"
     python -m bmimic.state save "$run" "$state" --moments "${MOMENTS:-bf16}"
     tmp=$(mktemp -d)
-    tar -C "$run" --exclude=checkpoints --exclude='*.lock' --exclude='.lock*' -cf - . | tar -C "$tmp" -xf -
+    tar -C "$run" --exclude=checkpoints --exclude=.bmimic.lock --exclude=train.log -cf - . | tar -C "$tmp" -xf -
     python -m analysis.compact "$tmp"
     rm -rf "${record_dir:?}/$job" && mv "$tmp" "$record_dir/$job" ;;
   *) echo "error: unknown step '$step'; $usage" >&2; exit 2 ;;

@@ -66,6 +66,7 @@ class Checkpointed(Protocol):
     run_dir: Path
     run_config: dict | None
     progress: Progress
+    fresh_worlds: bool
     total_resets: dict[str, int]
     overflow_world_steps: int
 
@@ -184,6 +185,7 @@ class Checkpoint:
         if why is None:
             try:
                 load_env_state(t.env, saved)
+                t.fresh_worlds = False
                 return
             except EnvStateError as e:
                 why = str(e)

@@ -87,6 +87,8 @@ class Trainer:
         self.runner = _Runner(env, rsl_rl_train_cfg(self.ppo_cfg, cfg.run_name), log_dir=None, device=device)
         self.alg = self.runner.alg
         self.progress = Progress()
+        self.fresh_worlds = True
+        """The worlds start where the sampler puts them, not where a checkpoint left them (run_state)."""
         self.record = RunRecord(self.run_dir, enabled=is_main_rank)
         """The run's tables (train_metrics, sampler, eval, clip_eval): rows, resume truncation, flushes."""
         self.total_resets = {"nonfinite_resets": 0, "out_of_bounds_resets": 0}
@@ -192,7 +194,8 @@ class Trainer:
         env, alg, cfg = self.env, self.alg, self.cfg
         self.signals = signals
         time_limit_s = cfg.time_limit_s
-        if self.ppo_cfg.init_at_random_ep_len and self.progress.iteration == 0:
+        if self.ppo_cfg.init_at_random_ep_len and self.fresh_worlds:
+            # (also after a resume whose worlds start afresh: their time-outs would otherwise fall together)
             # In place: the environment's captured CUDA graphs hold this buffer's address.
             env.episode_length_buf.copy_(torch.randint_like(env.episode_length_buf, high=int(env.max_episode_length)))
         obs = env.get_observations().to(self.device)

@@ -16,6 +16,7 @@ No motion data is in it (the meta holds the motion's digest, not its frames).
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ import torch
 
 from bmimic import BmimicError
 from bmimic.runs.folder import (
+    DATA_FOLDER_NAME,
     checkpoint_path,
     checkpoints_dir,
     is_run_folder,
@@ -60,6 +62,8 @@ def pack(checkpoint: dict, moments: str = "fp32") -> dict:
     state["optimizer_state_dict"] = _cast_moments(checkpoint["optimizer_state_dict"],
                                                   torch.bfloat16 if moments == "bf16" else None)
     state.update(format=STATE_FORMAT, checkpoint_format=checkpoint.get("format"), moments=moments)
+    if isinstance(checkpoint.get("config"), str):  # no path of the machine it trained on (its clips' folder)
+        state["config"] = json.dumps(_portable(_config(checkpoint, "checkpoint")), sort_keys=True)
     return state
 
 
@@ -140,7 +144,7 @@ def restore_state(state_path: Path, run_dir: Path) -> Path:
     record_config = read_resolved_config(run_dir)
     if record_config is None:
         raise StateError(f"{run_dir}: no readable resolved_config.json to compare the state with")
-    differ = _other_job(_config(state, state_path), record_config)
+    differ = _other_job(_config(state, state_path), _portable(record_config))
     if differ:
         shown = ", ".join(f"{k} ({v[0]!r} -> {v[1]!r})" for k, v in sorted(differ.items())[:3])
         raise StateError(f"{state_path}: trained another job than {run_dir} ({shown})")
@@ -154,6 +158,7 @@ def restore_state(state_path: Path, run_dir: Path) -> Path:
         raise StateError(f"{run_dir}: already holds a checkpoint ({latest.name}); a state is restored into a "
                          "run folder without one")
     checkpoint = unpack(state)
+    checkpoint["config"] = json.dumps(_localised(_config(state, state_path), state_path), sort_keys=True)
     atomic_torch_save(checkpoint_path(run_dir, iteration), checkpoint)
     atomic_torch_save(latest, checkpoint)
     return latest
@@ -165,6 +170,38 @@ def _other_job(old: dict, new: dict) -> dict:
     recorded = flatten_config(old)
     changes = {k: v for k, v in config_changes(old, new).items() if k in recorded}
     return {k: changes[k] for k in refused_changes(changes, ())}
+
+
+def _portable(config: dict) -> dict:
+    """`config` as a committed record holds it (analysis.compact): its absolute data.lafan_dir, wherever it
+    appears, as DATA_FOLDER_NAME."""
+    folder = (config.get("data") or {}).get("lafan_dir")
+    if not isinstance(folder, str) or not folder.startswith("/") or folder == "/":
+        return config
+    return _swap(config, folder.rstrip("/"), DATA_FOLDER_NAME)
+
+
+def _localised(config: dict, path: Path) -> dict:
+    """A portable `config` with DATA_FOLDER_NAME back as this machine's clips' folder ($BMIMIC_LAFAN_DIR,
+    as data.lafan_dir defaults to), so that the resume compares it with the launch's like any checkpoint."""
+    if (config.get("data") or {}).get("lafan_dir") != DATA_FOLDER_NAME:
+        return config
+    folder = os.environ.get("BMIMIC_LAFAN_DIR", "").rstrip("/")
+    if not folder.startswith("/") or not Path(folder).is_dir():
+        raise StateError(f"{path}: trained on the clips of $BMIMIC_LAFAN_DIR; set it to that folder here (an absolute "
+                         f"path, got {folder or 'nothing'!r})")
+    return _swap(config, DATA_FOLDER_NAME, folder)
+
+
+def _swap(value: Any, old: str, new: str) -> Any:
+    """`value` with every string that is `old` or a path below it starting with `new` instead."""
+    if isinstance(value, dict):
+        return {k: _swap(v, old, new) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_swap(v, old, new) for v in value]
+    if isinstance(value, str) and (value == old or value.startswith(old + "/")):
+        return new + value[len(old):]
+    return value
 
 
 def _last_trained(run_dir: Path) -> int | None:
@@ -180,8 +217,6 @@ def _last_trained(run_dir: Path) -> int | None:
 
 def _config(state: dict, path: str | os.PathLike) -> dict:
     """The resolved config a state's checkpoint trained with."""
-    import json
-
     text = state.get("config")
     try:
         config = json.loads(text) if isinstance(text, str) else None
