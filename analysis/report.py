@@ -26,9 +26,10 @@ from analysis.files import write_csv, write_text
 from analysis.inputs import MIXED_FLAG, check_options
 from analysis.report_compute import compute, read_runs
 from analysis.report_files import write_files
-from analysis.report_views import body, header
+from analysis.report_views import REPORT_TITLE, body, header
 from analysis.tables import ReportOptions
 from bmimic.cli.common import path_arg
+from bmimic.runs import safe_read
 
 
 def default_out(paths: list[Path]) -> Path:
@@ -48,6 +49,14 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     out = Path(out) if out is not None else default_out(paths)
     if out.exists() and not out.is_dir():
         raise AnalysisError(f"--out {out}: is a file, not a folder")
+    for name, ours in (("report.md", REPORT_TITLE), ("runs.csv", "run_dir,")):  # never a user's file of that name
+        if (out / name).exists() or (out / name).is_symlink():
+            try:
+                text = safe_read.read_text(out / name)
+            except (OSError, ValueError):
+                text = ""
+            if not text.startswith(ours):
+                raise AnalysisError(f"--out {out}: its {name} is not a bmimic report's; choose another folder")
     r = read_runs(paths, opts, allow_mixed)
     # Every table is read (and checked) before the first file is written: a refused report writes nothing.
     data = compute(r.runs, r.opts) if r.runs["included"].any() else None

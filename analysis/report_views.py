@@ -33,6 +33,8 @@ from analysis.report_compute import Inputs, ReportData, Runs
 from analysis.stats import MIN_SEEDS_IQM
 from bmimic.runs.schema import BIN, JOINT_VEL_ERR_RADPS, MPKPE_REL_MM
 
+REPORT_TITLE = "# bmimic report"
+"""report.md's first line: how a later report knows the file in its --out folder is a report's, not a user's."""
 TRACKING_HEADLINE = (MPKPE_REL_MM, JOINT_VEL_ERR_RADPS)
 """Tracking errors the Tracking quality section compares between arms in words (position and velocity
 tracking; the policy's smoothness is SMOOTHNESS_METRICS, compared in its own block)."""
@@ -74,7 +76,7 @@ def _baseline_note(inp: Inputs) -> str:
 def header(paths: list, r: Runs) -> list[str]:
     """The inputs, the definitions in force and the Runs section."""
     runs, opts, coverage = r.runs, r.opts, r.coverage
-    md = ["# bmimic report", "", f"Inputs: {', '.join(f'`{p}`' for p in paths)}  ",
+    md = [REPORT_TITLE, "", f"Inputs: {', '.join(f'`{p}`' for p in paths)}  ",
           f"Mastery: per-visit bin failure < {opts.mastery_threshold:g} at "
           f"{plural(opts.mastery_persist, 'consecutive evaluation')} (or to the end of the run); success threshold: "
           f"overall success ≥ {opts.success_threshold:g} (the speedup curve covers 0.5–0.99). Failure unit: "

@@ -68,8 +68,9 @@ from bmimic.evaluation.saved_run import (
 )
 from bmimic.evaluation.tables import EvalResult, bin_table, episode_table, segment_table, write_tables
 from bmimic.evaluation.whole_clip import evaluate_whole_clip, format_whole_clip, write_whole_clip_tables
+from bmimic.runs import safe_read
 from bmimic.runs.folder import EVAL_DIR, EVAL_SUMMARY, EVAL_TABLES, SIM2SIM_DIR, WHOLE_CLIP_DIR
-from bmimic.runs.schema import HORIZON_TRUNCATED, WHOLE_CLIP_CONDITIONS
+from bmimic.runs.schema import HORIZON_TRUNCATED, WHOLE_CLIP_CONDITIONS, summary_key
 
 log = logging.getLogger("bmimic.eval")
 
@@ -122,8 +123,19 @@ class EarlierEvaluationError(BmimicError):
 def keep_earlier(out_dir: Path, run_dir: Path, force: bool) -> None:
     """An earlier evaluation in `out_dir` is replaced with a warning; one that a sim2sim result of the
     same checkpoint compared its gap against only with `force` (EarlierEvaluationError otherwise)."""
-    if not (out_dir / EVAL_SUMMARY).exists():
+    summary = out_dir / EVAL_SUMMARY
+    if not summary.exists():
+        there = [n for n in EVAL_TABLES if (out_dir / n).exists() or (out_dir / n).is_symlink()]
+        if there:  # a folder of someone else's files that share a name with ours: never replaced
+            raise EarlierEvaluationError(f"{out_dir / there[0]}: exists, and no evaluation's summary beside it says "
+                                         "bmimic wrote it; choose another --out")
         return
+    try:
+        earlier = safe_read.read_json(summary)
+    except (OSError, ValueError):
+        earlier = None
+    if not isinstance(earlier, dict) or "checkpoint" not in earlier or summary_key("success_rate") not in earlier:
+        raise EarlierEvaluationError(f"{summary}: exists and is not a bmimic evaluation's summary; choose another --out")
     compared = sorted(p.parent for p in (run_dir / SIM2SIM_DIR).glob(f"*/{out_dir.name}/{EVAL_SUMMARY}"))
     if compared and not force:
         raise EarlierEvaluationError(

@@ -6,7 +6,7 @@ sitting copies the tables into a run folder, `unpack`s the state into its `check
 with `resume=true`. The file (STATE_FORMAT, plain tensors: it loads with `weights_only=True`) holds what a
 checkpoint holds (policy, critic, optimiser, sampler, RNG streams, counters, the config it trained with,
 its meta) less two things:
-- the worlds' state (`env`, ~2.7 kB per world: 22 MB at 8,192 worlds): the resumed run's worlds start
+- the worlds' state (`env`, 5.2 kB per world on the G1: ~42 MB at 8,192 worlds): the resumed run's worlds start
   afresh, as at a run's start, so a sitting boundary costs one wave of episode starts; a run continued from
   its own checkpoint (`resume=true` in its folder) keeps them and continues exactly;
 - with `moments="bf16"`, the optimiser's Adam moments are stored in bfloat16 (relative error < 2**-8 per
