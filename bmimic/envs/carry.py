@@ -13,7 +13,7 @@ at each iteration's end and are not state.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 import warp as wp
@@ -57,7 +57,7 @@ def _tensors(env: TrackingEnv) -> dict[str, torch.Tensor]:
                     "feedback.errors": fb._errors, "feedback.episode_return": fb._episode_return,
                     "feedback.returns": fb._returns})
     for group, value in env._obs.items():
-        out[f"obs.{group}"] = value
+        out[f"obs.{group}"] = cast(torch.Tensor, value)
     return out
 
 

@@ -95,11 +95,12 @@ def check_yaml(text: str, what: str | os.PathLike = "YAML", max_nodes: int = MAX
     import yaml
 
     sizes: dict[str, int] = {}  # anchor -> expanded nodes of the node it names
-    stack = [[0, None]]  # per open collection: [expanded nodes so far, its anchor]
+    counts: list[int] = [0]  # per open collection (the document first): expanded nodes so far
+    anchors: list[str | None] = [None]  # and its anchor
 
     def add(n: int) -> None:
-        stack[-1][0] += n
-        if stack[-1][0] > max_nodes:
+        counts[-1] += n
+        if counts[-1] > max_nodes:
             raise UnsafeFileError(f"{what}: more than {max_nodes} YAML nodes once its aliases are expanded "
                                   "(an alias bomb?)")
     try:
@@ -109,11 +110,12 @@ def check_yaml(text: str, what: str | os.PathLike = "YAML", max_nodes: int = MAX
                     sizes[event.anchor] = 1
                 add(1)
             elif isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
-                stack.append([1, event.anchor])
-                if len(stack) > MAX_DEPTH + 1:
+                counts.append(1)
+                anchors.append(event.anchor)
+                if len(counts) > MAX_DEPTH + 1:
                     raise UnsafeFileError(f"{what}: nested deeper than {MAX_DEPTH} levels")
             elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
-                count, anchor = stack.pop()
+                count, anchor = counts.pop(), anchors.pop()
                 if anchor:
                     sizes[anchor] = count
                 add(count)

@@ -182,7 +182,7 @@ class Checkpoint:
         t = self.trainer
         why = ("it holds no env state" if saved is None else "the run trains on several GPUs"
                if t.runner.is_distributed else None)
-        if why is None:
+        if saved is not None and why is None:
             try:
                 load_env_state(t.env, saved)
                 t.fresh_worlds = False
