@@ -35,6 +35,7 @@ import yaml
 
 from analysis import AnalysisError
 from analysis.run_files import REPORT_COLUMNS, find_run_dirs
+from bmimic.runs import safe_read
 from bmimic.runs.atomic_io import atomic_write_bytes
 from bmimic.runs.folder import (
     DATA_FOLDER_NAME,
@@ -93,7 +94,7 @@ def compact_run(run_dir: Path, write: bool = True) -> tuple[int, int]:
         if not path.is_file():
             continue
         try:
-            table = pq.read_table(path)
+            table = pq.read_table(safe_read.regular_file(path, run_dir))  # a FIFO or device would hang pyarrow
         except Exception as e:  # pyarrow raises several types for damaged files
             raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
         data = compact_table(table, keep)
@@ -123,6 +124,7 @@ def _survival_sources(run_dir: Path) -> list[tuple[Path, Path, Path, tuple[str, 
 
 
 def _read(path: Path) -> pd.DataFrame:
+    safe_read.regular_file(path)  # a FIFO or device would hang the reader
     return pd.read_csv(path) if path.suffix == ".csv" else pd.read_parquet(path)
 
 

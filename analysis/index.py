@@ -38,7 +38,7 @@ from bmimic.runs.folder import (
     read_provenance,
     read_resolved_config,
 )
-from bmimic.runs.schema import ENV_STEPS, ITERATION, WALL_TIME_S
+from bmimic.runs.schema import BUDGET_KEYS, ENV_STEPS, ITERATION, WALL_TIME_S
 
 log = logging.getLogger("analysis.index")
 
@@ -51,7 +51,7 @@ METRIC_KEYS = (
 )
 """metrics.json keys copied into the index (absent keys stay empty, e.g. for running jobs)."""
 
-BUDGET_COLUMNS = ("max_iterations", "num_envs", "time_limit_s")
+BUDGET_COLUMNS = BUDGET_KEYS
 """The budget each job trained under (its resolved config, else its composed one): budgets stay out of
 job folder names, so this is where a smoke run's 4 iterations show beside a study's 10,000."""
 

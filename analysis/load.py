@@ -14,6 +14,7 @@ or lacks a table is kept in the runs frame with ``included=False`` and a ``probl
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ from analysis.run_files import (
     table_problem,
 )
 from analysis.table_checks import check_table
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     EVAL_DIR,
     EVALUATION_TABLES,
@@ -76,7 +78,7 @@ def _read_run(run_dir: Path, root: Path) -> dict:
     if isinstance(status, dict):
         row["status"] = str(status.get("status", "unknown"))
         row["error"] = status.get("error")
-        row[ITERATION] = status.get(ITERATION)
+        row[ITERATION] = _whole(status.get(ITERATION))
     else:
         row["status"] = "unknown"
         problems.append("no status.json")
@@ -115,6 +117,16 @@ def _read_run(run_dir: Path, root: Path) -> dict:
     row["problem"] = "; ".join(problems) if problems else None
     row["included"] = not problems
     return row
+
+
+def _whole(value: Any) -> int | None:
+    """status.json's iteration as a whole number >= 0, else None (NaN, Infinity or 1e30 in a damaged record
+    would fail the runs frame's integer column)."""
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return int(number) if math.isfinite(number) and number.is_integer() and 0 <= number <= 2**53 else None
 
 
 def _single_run_arms(rows: list[dict]) -> None:
@@ -224,8 +236,9 @@ def load_runs(paths, allow_mixed: bool = False, compare: bool = True) -> pd.Data
       value (e.g. a config-group choice such as ``param.sampler``), else missing.
 
     Raises AnalysisError when a path does not exist or no run folder is found under any path, and
-    (analysis.inputs) when included runs differ in motion, bin layout or budget unless ``allow_mixed``; a
-    run whose tables are byte-identical to another's is left out (``problem`` says so), and so is every
+    (analysis.inputs) when included runs differ in motion, bin layout or budget unless ``allow_mixed``, or when
+    a run's tables are byte-identical to another's but its config differs (a copy with its seed edited); a
+    run whose tables and config are byte-identical to another's is left out (``problem`` says so), and so is every
     run but one of a seed that appears more than once in an arm (analysis.inputs.collapse_duplicate_seeds).
     ``compare=False`` skips the motion, bin-layout and budget check, for a listing that compares nothing
     (the sweep index: a study may hold a bin-size knob's runs beside the others).
@@ -244,7 +257,7 @@ def load_runs(paths, allow_mixed: bool = False, compare: bool = True) -> pd.Data
             rows.append(_read_run(run_dir, root if root != run_dir else run_dir.parent.parent))
     if not rows:
         raise AnalysisError(f"no run folders (with status.json or .hydra/config.yaml) under {list(map(str, paths))}")
-    mark_copies(rows)
+    mark_copies(rows, refuse=compare)  # a report refuses a copy with an edited seed; the index lists it
     for note in check_comparable(rows, allow_mixed) if compare else ():
         log.warning("%s (%s)", note, MIXED_FLAG)
     _single_run_arms(rows)
@@ -289,7 +302,7 @@ def load_table(runs: pd.DataFrame, name: str, max_iteration: int | None = None) 
         table = None
         if path.is_file():
             try:
-                table = pd.read_parquet(path)
+                table = pd.read_parquet(safe_read.regular_file(path, run.run_dir))  # never a FIFO, device, foreign link
             except Exception as e:  # pyarrow raises several types for truncated or foreign files
                 raise AnalysisError(f"{path}: unreadable parquet ({type(e).__name__}: {e})") from e
             _check_read(path, name, table, run.run_dir)
@@ -358,7 +371,7 @@ def _with_checkpoint_whole_clips(run_dir: Path, name: str, table: pd.DataFrame |
         if not path.is_file():
             raise AnalysisError(f"{path}: missing (its evaluation's summary exists)")
         try:
-            rows = pd.read_csv(path)
+            rows = pd.read_csv(safe_read.regular_file(path, run_dir))
         except Exception as e:  # an unreadable or foreign file is one line naming it
             raise AnalysisError(f"{path}: unreadable csv ({type(e).__name__}: {e})") from e
         if rows.empty:  # a whole_clip_failures.csv of an evaluation where every rollout completed

@@ -22,7 +22,7 @@ def read_race(path: str | Path) -> dict:
     naming the file, otherwise)."""
     path = Path(path)
     try:
-        data = safe_read.read_json(path)
+        data = safe_read.read_json(path, finite=True)  # bmimic.race writes null for what it did not measure
     except FileNotFoundError:
         raise AnalysisError(f"{path}: no such file") from None
     except (OSError, ValueError) as e:

@@ -84,6 +84,11 @@ SKIP_DIRS = {"report", CHECKPOINTS_DIR}
 """Folder names never searched for runs (report output, checkpoints)."""
 
 
+MAX_SEARCHED_FOLDERS = 10_000
+"""Most folders searched for runs under one path (a study of a hundred jobs has a few hundred): `/` or a home
+folder is refused in seconds instead of walked for minutes."""
+
+
 def find_run_dirs(root: str | Path) -> list[Path]:
     """All run folders at or below ``root``, sorted; run folders are not searched further."""
     root = Path(root)
@@ -92,7 +97,10 @@ def find_run_dirs(root: str | Path) -> list[Path]:
     if is_run_folder(root):
         return [root]
     found = []
-    for dirpath, dirnames, _ in os.walk(root):
+    for searched, (dirpath, dirnames, _) in enumerate(os.walk(root)):
+        if searched >= MAX_SEARCHED_FOLDERS:
+            raise AnalysisError(f"{root}: more than {MAX_SEARCHED_FOLDERS} folders to search for runs; name the study's "
+                                "sweep folder or its run folders")
         here = Path(dirpath)
         if here != root and is_run_folder(here):
             found.append(here)
@@ -219,7 +227,9 @@ def table_problem(run_dir: Path, name: str) -> str | None:
     if not path.is_file():
         return f"no {path.name}"
     try:
-        columns = set(pq.read_schema(path).names)
+        columns = set(pq.read_schema(safe_read.regular_file(path, run_dir)).names)
+    except safe_read.UnsafeFileError as e:  # a FIFO, a device or a link out of the run: never opened by pyarrow
+        return f"{path.name} refused: {str(e).partition(': ')[2]}"
     except Exception as e:  # pyarrow raises several types for truncated or foreign files
         return f"{path.name} unreadable ({type(e).__name__})"
     missing = missing_columns(name, columns)

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from analysis import AnalysisError
-from bmimic.runs.folder import METRICS, MOTION_SEGMENTS, read_json
+from bmimic.runs.folder import METRICS, MOTION_SEGMENTS, read_json, read_metrics, read_status
 from bmimic.runs.schema import (
     BIN,
     BIN_COLUMNS,
@@ -68,6 +68,15 @@ def recorded_bins(run_dir: str | Path) -> int | None:
     return int(n) if isinstance(n, int) and not isinstance(n, bool) and n >= 1 else None
 
 
+def finished_iterations(run_dir: str | Path) -> int | None:
+    """The iterations a finished run trained (metrics.json, when status.json says done; None otherwise: a
+    run being trained or resumed has tables past its last metrics.json)."""
+    if read_status(run_dir).get("status") != "done":
+        return None
+    n = read_metrics(run_dir).get("iterations")
+    return int(n) if isinstance(n, int) and not isinstance(n, bool) and n >= 0 else None
+
+
 def check_table(path: Path, name: str, table: pd.DataFrame, run_dir: str | Path) -> None:
     """Raise AnalysisError (one line: the file, the column, what is wrong) when `table` (the run
     table `name` read from `path`) breaks the contract; see the module doc."""
@@ -81,6 +90,10 @@ def check_table(path: Path, name: str, table: pd.DataFrame, run_dir: str | Path)
         if column in table.columns and not np.isfinite(table[column].to_numpy(dtype=float)).any():
             raise AnalysisError(f"{path}: column {column} has no finite value in {len(table)} rows")
     _check_key(path, table, ITERATION)
+    last, done = int(table[ITERATION].max()), finished_iterations(run_dir)
+    if done is not None and last > done:  # an iteration far past the run's own (issue 77: 1e18 in a 1-iteration run)
+        raise AnalysisError(f"{path}: column {ITERATION} holds {last}, past the {done} iterations the finished run "
+                            "trained (metrics.json): the table is damaged; move the run aside or train it again")
     if "episodes" in table.columns:  # an iteration in which episodes ended has their mean length and return
         ended = table["episodes"].to_numpy(dtype=float) > 0
         for column in ("mean_episode_length", "mean_reward"):

@@ -8,7 +8,9 @@ BeyondMimic-compatible file existed, or for one checkpoint of it:
                                           motion baked in (BeyondMimic's format; bmimic.sim2sim runs it)
 
 The run's config is reloaded as `bmimic.eval` does, and a one-world evaluation environment on the CPU
-supplies the robot, motion and observation layout. Bad input prints one `error: ...` line (status 2).
+supplies the robot, motion and observation layout. Overrides as eval takes them (`motion=<option, clip
+file or folder of clips>`) bake another motion into motion_policy, e.g. a library policy's for one clip
+(`--out` then names the folder: the files are not the run's own). Bad input prints one `error: ...` line (status 2).
 """
 
 from bmimic.cli.startup import start_command
@@ -27,10 +29,12 @@ from bmimic.runs.folder import checkpoints_dir, make_folder
 log = logging.getLogger("bmimic.export")
 
 
-def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False, force: bool = False) -> list[Path]:
+def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = False, force: bool = False,
+               overrides: Sequence[str] = ()) -> list[Path]:
     """Export the run's latest checkpoint (or the given one); returns the written files. `trust`
     (--trust-checkpoint): a run config whose env terms import code outside bmimic is loaded, as
-    bmimic.eval does. Existing ONNX files of the same iteration are replaced only with `force`."""
+    bmimic.eval does. Existing ONNX files of the same iteration are replaced only with `force`.
+    `overrides` (e.g. motion=clip.csv) need `out_dir`: files of another motion never land beside the run's."""
     from bmimic import BmimicError
     from bmimic.evaluation.saved_run import load_run, load_run_checkpoint
     from bmimic.runs.folder import motion_policy_onnx_name, policy_onnx_name
@@ -38,7 +42,9 @@ def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = Fals
     from bmimic.training.onnx_export import export_checkpoint_onnx
     from bmimic.training.policy import build_policy
 
-    run = load_run(path, ["device=cpu", "eval.max_envs=1"], trust=trust)
+    if overrides and out_dir is None:
+        raise BmimicError(f"overrides {' '.join(overrides)}: give --out DIR, since the files would not be the run's own")
+    run = load_run(path, [*overrides, "device=cpu", "eval.max_envs=1"], trust=trust)
     task = run.task
     state = load_run_checkpoint(run)
     target = out_dir or checkpoints_dir(run.run_dir)
@@ -57,6 +63,8 @@ def export_run(path: str | Path, out_dir: Path | None = None, trust: bool = Fals
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bmimic.export", description=__doc__.splitlines()[0].split(": ", 1)[1])
     p.add_argument("path", type=path_arg, help="a run folder (its latest checkpoint) or a checkpoint file in one")
+    p.add_argument("overrides", nargs="*", help="dotted overrides as bmimic.eval takes them, e.g. motion=clip.csv "
+                                                "(another motion baked in; needs --out)")
     p.add_argument("--out", type=path_arg, help="folder for the files (default RUN_DIR/checkpoints)")
     p.add_argument("--force", action="store_true", help="replace ONNX files of the same iteration that exist")
     add_trust_flag(p)
@@ -70,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     quiet_warp()
     try:
-        paths = export_run(args.path, args.out, trust=args.trust_checkpoint, force=args.force)
+        paths = export_run(args.path, args.out, trust=args.trust_checkpoint, force=args.force, overrides=args.overrides)
     except user_errors() as e:
         print(f"error: {first_line(e)}", file=sys.stderr)
         return 2

@@ -5,7 +5,8 @@
 
 The dry run expands a multirun exactly as `python -m bmimic.train -m <same overrides>` would
 (bmimic.sweeping.jobs), so what it prints is what the sweep will do, including which jobs are
-already done. It keeps torch and the simulator out of its imports.
+already done, and whether this machine would refuse the sweep (on a CPU: its estimated training time
+over max_cpu_hours). It keeps torch and the simulator out of its imports.
 """
 
 from bmimic.cli.startup import start_command
@@ -60,6 +61,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SweepListError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    from bmimic.config.budget import BudgetError, check_sweep
+    from bmimic.runtime import guess_device
+
+    try:  # what `train -m` would refuse on this machine before any job runs (its CPU budget), torch-free
+        check_sweep(jobs, resolve=guess_device)
+    except BudgetError as e:
+        print(f"this machine would refuse the sweep: {e}")
     return 0
 
 

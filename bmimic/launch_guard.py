@@ -32,7 +32,10 @@ from bmimic import BmimicError
 def _refuse(e: BaseException) -> None:
     from bmimic.cli.common import first_line
 
-    print(f"error: {first_line(e)}", file=sys.stderr)
+    # (an OSError of the file system: the guard must refuse, since Hydra turns a callback's error into a warning
+    # and goes on without it)
+    said = f"{e.filename}: {e.strerror}" if isinstance(e, OSError) and e.strerror and e.filename else first_line(e)
+    print(f"error: {said}", file=sys.stderr)
     sys.exit(2)
 
 
@@ -92,9 +95,11 @@ class LaunchGuard(Callback):
 
         template = str(cast(dict, OmegaConf.to_container(config.hydra.run, resolve=False)).get("dir", ""))
         pinned = "${now:" not in template
+        job_logging = config.hydra.get("job_logging") or {}
+        log_name = f"{config.hydra.job.name}.log" if "file" in (job_logging.get("handlers") or {}) else None
         if process_rank() != 0:
             with contextlib.suppress(Exception):  # under torchrun rank 0 owns the (pinned) folder
-                observe(str(config.hydra.run.dir), pinned)
+                observe(str(config.hydra.run.dir), pinned, log_name)
             return
         try:
             check_visible_devices()
@@ -105,10 +110,8 @@ class LaunchGuard(Callback):
                 resume = resume_request(config.get("resume")) is not None
             except Exception as e:  # noqa: BLE001 - an interpolation that does not resolve
                 raise BmimicError(f"hydra.run.dir: cannot be resolved: {str(e).splitlines()[0]}") from None
-            job_logging = config.hydra.get("job_logging") or {}
-            log_name = f"{config.hydra.job.name}.log" if "file" in (job_logging.get("handlers") or {}) else None
             claimed = claim(run_dir, pinned, resume, log_name)
-        except BmimicError as e:
+        except (BmimicError, OSError) as e:
             _refuse(e)
             return
         if str(claimed.run_dir) != os.path.abspath(run_dir):
@@ -137,5 +140,5 @@ class LaunchGuard(Callback):
             check_jobs(jobs, str(config.hydra.sweep.dir), f"{config.hydra.job.name}.log")
             check_job_runs(jobs)  # a smoke run's folder is not the study's job
             check_sweep(jobs)  # a sweep that would train for a day or more on this CPU
-        except BmimicError as e:
+        except (BmimicError, OSError) as e:
             _refuse(e)

@@ -67,6 +67,7 @@ from bmimic import BmimicError
 from bmimic.cli.common import check_output_file, first_line, path_arg
 from bmimic.runs.race_record import LAUNCH_UNIX_S, WHOLE_CLIP_METRIC, Race, Threshold
 from bmimic.runtime import (
+    DistributedSetupError,
     exit_rank,
     gather_floats,
     init_distributed,
@@ -177,7 +178,12 @@ def _refuse(problem: str) -> None:
     if process_world() > 1:
         import torch
 
-        init_distributed()
+        try:
+            init_distributed()
+        except DistributedSetupError:  # no peers came to leave with: a rank other than 0 says it itself
+            if process_rank() != 0:
+                print(f"error: {problem}", file=sys.stderr, flush=True)
+            return
         torch.distributed.barrier()  # rank 0 has printed
 
 
@@ -213,9 +219,11 @@ def _race(argv: list[str] | None) -> int:
     args, rest = parse_args(sys.argv[1:] if argv is None else argv)
     native = args.native_whole_clip is not None
     from bmimic.config import ConfigError, check_hydra_flags, check_overrides
+    from bmimic.config.sources import check_config_source
 
     try:  # before anything trains: flags Hydra refuses with a traceback, overrides that do not compose (one
-        check_hydra_flags(rest)  # line each, as bmimic.train)
+        check_config_source(rest)  # line each, as bmimic.train), a config folder or name that names nothing
+        check_hydra_flags(rest)
         check_overrides(race_overrides(rest, whole_clip=not args.no_whole_clip, native=native))
     except ConfigError as e:
         _refuse(str(e))
@@ -226,7 +234,11 @@ def _race(argv: list[str] | None) -> int:
     race = Race(thresholds, args.budget_s, args.sustain)
     result: dict = {}
     if process_world() > 1:
-        init_distributed()  # the process group training would join: joined now, to gather the launch times
+        try:
+            init_distributed()  # the process group training would join: joined now, to gather the launch times
+        except DistributedSetupError as e:  # every rank its own line: its peers never came
+            print(f"error: {e}", file=sys.stderr, flush=True)
+            return 2
         race.join_ranks(gather_floats(LAUNCH_UNIX_S))
 
     import hydra

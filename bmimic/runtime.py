@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bmimic import BmimicError
+from bmimic.rendezvous import DistributedSetupError, meet
 from bmimic.runs.folder import now
 
 if TYPE_CHECKING:
@@ -54,8 +55,15 @@ def resolve_device(device: str) -> str:
     return f"cuda:{index}"
 
 
-class DistributedSetupError(BmimicError):
-    """torchrun's variables are malformed, or its ranks cannot meet (one line)."""
+def guess_device(device: str) -> str:
+    """`resolve_device` without importing torch, for a dry run: `cpu` where resolve_device would give it
+    (device=cpu, or auto where the NVIDIA driver lists no GPU or CUDA_VISIBLE_DEVICES hides them all),
+    else the GPU `device` names (`cuda:0` for auto); it checks nothing a real run checks."""
+    if device != "auto":
+        return device
+    hidden = os.environ.get("CUDA_VISIBLE_DEVICES", None) in ("", "-1")
+    gpus = Path("/proc/driver/nvidia/gpus")
+    return "cuda:0" if not hidden and gpus.is_dir() and any(gpus.iterdir()) else "cpu"
 
 
 RENDEZVOUS_TIMEOUT_S = 300.0
@@ -135,9 +143,9 @@ def rendezvous_timeout_s() -> float:
 
 def init_distributed() -> tuple[int, int]:
     """(rank, world size); under torchrun, join the process group (NCCL on GPUs, gloo on a CPU-only
-    machine) before any env is built. The ranks meet (rendezvous) in a helper thread while this one
-    waits in Python: a stop signal is handled at once (bmimic.training.interrupts), and a rank whose
-    peers do not come within rendezvous_timeout_s ends with one line."""
+    machine) before any env is built. The ranks meet through bmimic.rendezvous: a stop signal is handled
+    at once, and a rank whose peers do not come within rendezvous_timeout_s ends with one line of its own,
+    without torch's C++ stack frames."""
     import torch
 
     rank, world, local = torchrun_env()
@@ -149,53 +157,11 @@ def init_distributed() -> tuple[int, int]:
             if local >= torch.cuda.device_count():
                 raise DistributedSetupError(f"LOCAL_RANK={local}: only {torch.cuda.device_count()} GPU(s) are visible")
             torch.cuda.set_device(local)
-        store = _rendezvous(rank, world, timeout_s)
+        store = meet(rank, world, timeout_s)
         # (CPU ranks use gloo: the same code path, for smoke tests without a GPU)
         torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo", store=store,
                                              rank=rank, world_size=world)
     return torch.distributed.get_rank(), world
-
-
-def _rendezvous(rank: int, world: int, timeout_s: float):
-    """torch's env:// rendezvous store, met in a daemon thread (see init_distributed)."""
-    import datetime
-    import threading
-    import time
-
-    import torch
-    from torch.distributed.rendezvous import rendezvous as torch_rendezvous
-
-    where = f"{os.environ['MASTER_ADDR'].strip()}:{os.environ['MASTER_PORT'].strip()}"
-    result: dict[str, Any] = {}
-
-    def meet() -> None:
-        try:
-            store, _, _ = next(torch_rendezvous("env://", rank, world, timeout=datetime.timedelta(seconds=timeout_s)))
-            store.set_timeout(torch.distributed.default_pg_timeout)
-            result["store"] = store
-        except Exception as e:  # noqa: BLE001 - torch raises several types (DistStoreError, ValueError, ...)
-            result["error"] = e
-
-    thread = threading.Thread(target=meet, name="bmimic-rendezvous", daemon=True)
-    thread.start()
-    start, said = time.monotonic(), False
-    while thread.is_alive():
-        thread.join(0.2)
-        waited = time.monotonic() - start
-        if not said and waited > 5 and thread.is_alive():
-            log.info("torchrun: rank %d of %d waiting for the other ranks at %s (up to %g s)", rank, world, where,
-                     timeout_s)
-            said = True
-        if waited > timeout_s + 30:  # torch's own timeout should have ended it by now
-            break
-    if "store" in result:
-        return result["store"]
-    error = result.get("error")
-    detail = str(error).strip().splitlines()[0] if error is not None and str(error).strip() else "no answer"
-    raise DistributedSetupError(
-        f"torchrun: rank {rank} of {world} could not meet the other ranks at MASTER_ADDR:MASTER_PORT={where} within "
-        f"{timeout_s:g} s ({detail[:200]}); start every rank (torchrun --nproc-per-node {world}), or unset "
-        "WORLD_SIZE and RANK to run one process ($BMIMIC_RENDEZVOUS_TIMEOUT_S sets the wait)")
 
 
 def any_rank(flag: bool, device: torch.device | str) -> bool:

@@ -82,3 +82,102 @@ def test_overrides_that_would_rewrite_a_record_are_refused_before_hydra_writes(t
     errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
     assert out.returncode == 2 and len(errors) == 1 and needle in errors[0], out.stderr[-2000:]
     assert sorted(p.name for p in run.iterdir()) == ["status.json"]  # no .hydra/ written, nothing else
+
+
+def test_regular_file_refuses_fifos_devices_and_links_out_of_the_run(tmp_path):
+    """The one check before every binary reader of a run's files (torch.load, pyarrow, onnxruntime): a FIFO
+    would block the reader, /dev/zero feed it forever, a link out of the run hand it another run's file."""
+    run, other = tmp_path / "run", tmp_path / "other"
+    (run / "checkpoints").mkdir(parents=True)
+    other.mkdir()
+    (run / "checkpoints" / "model_1.pt").write_bytes(b"x")
+    (other / "model_2.pt").write_bytes(b"y")
+    assert safe_read.regular_file(run / "checkpoints" / "model_1.pt", run) == run / "checkpoints" / "model_1.pt"
+    (run / "checkpoints" / "latest.pt").symlink_to("model_1.pt")  # a link inside the run is the run's own
+    assert safe_read.regular_file(run / "checkpoints" / "latest.pt", run)
+    os.mkfifo(run / "train_metrics.parquet")
+    (run / "eval.parquet").symlink_to("/dev/zero")
+    (run / "checkpoints" / "model_2.pt").symlink_to(other / "model_2.pt")
+    t0 = time.monotonic()
+    for name, words in (("train_metrics.parquet", "not a regular file"), ("eval.parquet", "not a regular file"),
+                        ("checkpoints/model_2.pt", "outside its run folder")):
+        with pytest.raises(safe_read.UnsafeFileError, match=words):
+            safe_read.regular_file(run / name, run)
+    assert safe_read.regular_file(run / "checkpoints" / "model_2.pt")  # without a run: only the file's type
+    with pytest.raises(FileNotFoundError):
+        safe_read.regular_file(run / "nothing.pt", run)
+    assert time.monotonic() - t0 < 5
+
+
+def test_a_fifo_or_device_checkpoint_is_one_line_at_once(tmp_path):
+    from bmimic.training.checkpoints import CheckpointError, load_checkpoint_file
+
+    os.mkfifo(tmp_path / "model_1.pt")
+    (tmp_path / "latest.pt").symlink_to("/dev/zero")
+    t0 = time.monotonic()
+    for name in ("model_1.pt", "latest.pt"):
+        with pytest.raises(CheckpointError, match="not a regular file"):
+            load_checkpoint_file(tmp_path / name)
+    assert time.monotonic() - t0 < 5
+
+
+@pytest.mark.parametrize("text", ['[{"a": NaN}]', '[Infinity]', '{"a": -Infinity}', '[1e999]'])
+def test_finite_json_refuses_numbers_that_are_not_finite(text):
+    with pytest.raises(safe_read.UnsafeFileError, match="not finite"):
+        safe_read.parse_json(text, "bench.json", finite=True)
+    safe_read.parse_json(text, "status.json")  # (the records' default reader keeps json's reading)
+    assert safe_read.parse_json('[1, 2.5, -3e10]', finite=True) == [1, 2.5, -3e10]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from tests.conftest import train_in_process
+
+    root = tmp_path_factory.mktemp("tiny")
+    return train_in_process(root / "run", "device=cpu", "num_envs=2", "ppo.num_steps_per_env=4", "ppo.num_mini_batches=2",
+                            "motion=easy_only", "motion.duration_s=7", "eval.horizon_s=0.2", "progress_bar=false",
+                            "logger=none", "max_iterations=1", cwd=root)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command, rel, how, words", [
+    ("eval", "checkpoints/latest.pt", "outside", "outside its run folder"),
+    ("eval", "checkpoints/latest.pt", "fifo", "not a regular file"),
+    ("export", "checkpoints/latest.pt", "device", "not a regular file"),
+    ("sim2sim", "checkpoints/motion_policy_1.onnx", "outside", "outside its run folder"),
+    ("sim2sim", "checkpoints/motion_policy_1.onnx", "fifo", "not a regular file"),
+    ("report", "eval.parquet", "outside", "eval.parquet refused: links to"),
+    ("report", "train_metrics.parquet", "device", "no train_metrics.parquet"),
+])
+def test_readers_of_a_runs_binary_files_refuse_fifos_devices_and_links_out_of_the_run(tiny_run, tmp_path, capsys,
+                                                                                      command, rel, how, words):
+    """Issue 77: checkpoints/latest.pt linked to /dev/zero read forever, a FIFO blocked the reader, and a file
+    linked from another run was read as this run's. Each reader checks with safe_read.regular_file first."""
+    import importlib
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run, ignore=shutil.ignore_patterns("eval", "sim2sim", "report"))
+    outside = tmp_path / ("elsewhere" + "".join((run / rel).suffixes))
+    shutil.copy(run / rel, outside)
+    (run / rel).unlink()
+    {"outside": lambda p: p.symlink_to(outside), "fifo": os.mkfifo, "device": lambda p: p.symlink_to("/dev/zero")}[how](
+        run / rel)
+    if command == "eval" and rel.endswith("latest.pt"):
+        (run / "checkpoints" / "model_1.pt").unlink()  # the newest checkpoint is the one damaged
+    argv = {"eval": [str(run), "--episodes-per-bin", "1"], "export": [str(run), "--force"],
+            "sim2sim": [str(run), "--episodes-per-bin", "1", "--workers", "1"],
+            "report": [str(run), "--out", str(tmp_path / "report")]}[command]
+    module = {"eval": "bmimic.eval", "export": "bmimic.export", "sim2sim": "bmimic.sim2sim.cli",
+              "report": "analysis.report"}[command]
+    t0 = time.monotonic()
+    code = importlib.import_module(module).main(argv)
+    err = capsys.readouterr().err
+    assert time.monotonic() - t0 < 30
+    if command == "report":  # lenient per run: listed as not included, with the reason
+        import pandas as pd
+
+        assert code == 0 and words in pd.read_csv(tmp_path / "report" / "runs.csv")["problem"][0], err
+        return
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert code == 2 and len(errors) == 1 and words in errors[0], err

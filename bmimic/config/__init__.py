@@ -194,17 +194,21 @@ def check_overrides(argv: Sequence[str], multirun: bool | None = None, loader=No
     grammar, its config groups or the schema's keys and types raises ConfigError with one line naming
     the override and the problem (override_error), where Hydra would print its 5-7 line block and exit 1.
     `multirun` (default: whether argv has -m) composes the sweep's master config, whose swept values
-    each job checks (bmimic.sweeping.jobs). Returns None, checking nothing, for a command line that
-    names another config tree (OWN_CONFIG_FLAGS) or has a malformed flag (Hydra reports it). `loader`: a
+    each job checks (bmimic.sweeping.jobs). Returns None for a command line that names another config tree
+    (OWN_CONFIG_FLAGS: only its overrides' grammar is checked; -cp/-cn naming bmimic's own are checked as without
+    them) or has a malformed flag (Hydra reports it). `loader`: a
     config loader to compose with (default: a fresh one, config_loader)."""
     from hydra.types import RunMode
 
     args = _hydra_args(list(argv))
     if args is None:
         return None
-    if any(a == flag or a.startswith(flag + "=") for a in argv for flag in OWN_CONFIG_FLAGS):
+    if any(a == flag or a.startswith(flag + "=") for a in argv for flag in OWN_CONFIG_FLAGS) and not _own_tree(args):
+        _check_grammar(list(args.overrides))  # another tree composes as Hydra's to check; the grammar is Hydra's alike
         return None
     overrides = list(args.overrides)
+    if args.config_dir is not None:  # bmimic's tree with a folder of the user's: searched as Hydra's -cd does
+        overrides.append(f"hydra.searchpath=[file://{os.path.abspath(args.config_dir)}]")
     multirun = args.multirun if multirun is None else multirun
     adds = _dotted_additions(overrides)
     with contextlib.nullcontext(loader) if loader is not None else config_loader() as loader:
@@ -221,6 +225,35 @@ def check_overrides(argv: Sequence[str], multirun: bool | None = None, loader=No
             raise ConfigError(override_error(e, overrides)) from None
     _refuse_record_overrides(cfg)
     return cfg
+
+
+def _own_tree(args) -> bool:
+    """The -cp/-cn of Hydra's parse `args` name bmimic's own tree and primary config (`-cp` of bmimic's conf/,
+    `-cn train`; a -cd folder is searched beside it): its overrides are checked as without them."""
+    from bmimic import CONF_DIR
+
+    if args.config_name not in (None, "train", "train.yaml"):
+        return False
+    if args.config_path is None:
+        return True
+    text = str(args.config_path).removeprefix("file://")
+    if text.startswith("pkg://"):
+        return False
+    path = Path(text) if os.path.isabs(text) else Path(__file__).resolve().parents[1] / text  # as Hydra's -cp
+    try:
+        return path.resolve() == Path(CONF_DIR).resolve()
+    except (OSError, RuntimeError):
+        return False
+
+
+def _check_grammar(overrides: list[str]) -> None:
+    """ConfigError (one line) for an override Hydra's grammar cannot parse, whatever tree it composes in."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        OverridesParser.create().parse_overrides(overrides)
+    except Exception as e:  # noqa: BLE001 - Hydra's OverrideParseException and relatives: one line
+        raise ConfigError(override_error(e, overrides)) from None
 
 
 def _refuse_record_overrides(cfg) -> None:

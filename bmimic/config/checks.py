@@ -26,10 +26,12 @@ def _fail(key: str, problem: str) -> None:
     raise ConfigError(f"{key}: {problem}")
 
 
-def check_composed(cfg, choices=None) -> None:
+def check_composed(cfg, choices=None, motion_files: bool = False) -> None:
     """The checks a composed config gets before anything runs (train and the sweep dry run): unknown
     keys (also `+` ones), NaN or infinity anywhere, the sampler group against sampler.name,
-    resume_allow_changes names, the extra that logger=wandb needs. `choices`: Hydra's runtime.choices
+    resume_allow_changes names, the extra that logger=wandb needs; with `motion_files` (a launch that
+    trains now, not a dry run on a machine without the data) a motion library's entries and the files of
+    its folder or pattern (bmimic.motion.library.library_entries). `choices`: Hydra's runtime.choices
     (group -> option)."""
     check_present(cfg)
     check_resolvable(cfg)
@@ -39,6 +41,10 @@ def check_composed(cfg, choices=None) -> None:
     check_resume_allow_changes(cfg)
     if cfg.get("logger") == "wandb":
         require_extra("wandb", "logger=wandb")
+    if motion_files and cfg.motion.get("source") == "library":  # its file names now, not after the set-up
+        from bmimic.motion.library import library_entries
+
+        library_entries(cfg.motion)
 
 
 def check_resolvable(cfg, prefix: str = "") -> None:

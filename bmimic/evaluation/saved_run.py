@@ -34,10 +34,14 @@ class RunLoadError(BmimicError):
 
 
 def locate_run(path: str | Path) -> tuple[Path, Path]:
-    """(run folder, checkpoint) for a run folder (its latest.pt) or a checkpoint file inside one."""
+    """(run folder, checkpoint) for a run folder (its latest.pt) or a checkpoint file inside one. The
+    checkpoint is a regular file (torch.load would block on a FIFO, read a device forever), and a run
+    folder's own: one linked from outside it would be evaluated under this run's config."""
     p = Path(path).expanduser()
     if not p.exists():
         raise RunLoadError(f"{p}: no such run folder or checkpoint")
+    if not p.is_dir():
+        _checked_file(p, None)
     run_dir = p if p.is_dir() else p.resolve().parent.parent
     if not has_hydra_record(run_dir):
         where = "" if p.is_dir() else f" (the folder two levels above checkpoint {p.name})"
@@ -48,7 +52,17 @@ def locate_run(path: str | Path) -> tuple[Path, Path]:
     if checkpoint is None:
         raise RunLoadError(f"{p}: no checkpoint ({CHECKPOINTS_DIR}/{LATEST_CHECKPOINT} or model_<it>.pt) in this "
                            "run folder")
-    return run_dir.resolve(), checkpoint.resolve()
+    return run_dir.resolve(), _checked_file(checkpoint, p).resolve()
+
+
+def _checked_file(path: Path, run_dir: Path | None) -> Path:
+    """`path` once safe_read.regular_file accepts it; RunLoadError (one line) otherwise."""
+    try:
+        return safe_read.regular_file(path, run_dir)
+    except safe_read.UnsafeFileError as e:
+        raise RunLoadError(str(e)) from None
+    except OSError as e:  # a dangling link, a loop of links, no permission
+        raise RunLoadError(f"{path}: cannot be opened ({e.strerror or e})") from None
 
 
 def motion_option(value: str):

@@ -130,6 +130,23 @@ def _matches(path: Path, pattern: str) -> bool:
     return fnmatch.fnmatchcase(path.name, pattern) or fnmatch.fnmatchcase(path.stem, pattern)
 
 
+def _shown(path: str | os.PathLike) -> str:
+    """`path` printable: bytes that are not UTF-8 shown escaped (\\xff), as the OS holds them."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
+def _utf8_names(origin: str, where: str | os.PathLike, files: list[Path]) -> None:
+    """MotionDataError naming `where` and the first file whose name is not valid UTF-8: a clip is named
+    after its file in the run's tables and records, which hold text (refused before anything runs, not
+    when the first table is written)."""
+    for path in files:
+        try:
+            path.name.encode("utf-8")
+        except UnicodeEncodeError:
+            raise MotionDataError(f"{origin}: {_shown(where)}: the file name {os.fsencode(path.name)!r} is not valid "
+                                  "UTF-8 (a clip is named after its file in the run's tables); rename it") from None
+
+
 def _folder_files(folder: Any) -> list[Path]:
     """The clip files directly in `folder` (hidden files are not clips, as for a shell's `*`)."""
     from bmimic.motion.config import LAFAN_ENV, LAFAN_SOURCE, resolve_path
@@ -147,6 +164,7 @@ def _folder_files(folder: Any) -> list[Path]:
     files = [path / n for n in names if not n.startswith(".") and Path(n).suffix.lower() in CLIP_SUFFIXES]
     if not files:
         raise MotionDataError(f"motion.folder: {path} holds no .csv or .npz file")
+    _utf8_names("motion.folder", path, files)
     return files
 
 
@@ -190,6 +208,7 @@ def library_entries(cfg: MotionConfig) -> list[ClipEntry]:
         found = sorted(p for p in globlib.glob(full) if Path(p).suffix.lower() in CLIP_SUFFIXES)
         if not found:
             raise MotionDataError(f"motion.glob: {pattern!r} matches no .csv or .npz file")
+        _utf8_names("motion.glob", str(pattern), [Path(f) for f in found])
         files += [("motion.glob", Path(f)) for f in found]
     files += [("motion.folder", p) for p in _folder_files(getattr(cfg, "folder", None))]
     entries += [ClipEntry(p.stem, "file", str(p), origin=o) for o, p in _selected(files, cfg)]

@@ -52,6 +52,13 @@ FOOT_WORDS = ("ankle", "foot", "toe")
 """Body names that mark a foot (the G1's ankle links); without any, the lowest body stands in."""
 
 
+JOINT_SPEED_P99_RADPS = 40.0
+"""Fastest a plausible reference's fastest joint moves on 1% of its frames (99th percentile over frames of
+the largest joint speed): 36 LAFAN1 clips at their 30 fps reach 5.9-20.1 rad/s; read at 4 times its
+frame rate (a 7.5 fps clip taken for 30 fps) a clip moves 4 times faster. A single fast frame (a glitch
+of the retarget: up to 37 rad/s in LAFAN1) does not count. A clip read at a lower rate than its own (120
+fps taken for 30) is a slow but possible motion, which no check can tell."""
+
 BODY_OFFSET_M = 0.05
 """Farthest a body's recorded position may lie from where the model puts it, given the root's recorded
 pose and the joints, at the first frame (forward kinematics; arrays written in another quaternion
@@ -78,6 +85,14 @@ def implausibility(motion, mjmodel: mujoco.MjModel | None = None) -> str | None:
     if up_z < UPSIDE_DOWN_UP_Z:
         return (f"its root ({motion.body_names[0]}) is upside down at the first frame (tilted "
                 f"{np.degrees(np.arccos(np.clip(up_z, -1, 1))):.0f} deg from upright)")
+    joints = np.asarray(getattr(motion, "joint_pos", np.zeros((0, 0))))
+    if joints.ndim == 2 and joints.shape[0] > 2 and joints.shape[1] > 0:
+        # from the positions, not joint_vel: its central differences halve a speed that flips each frame
+        vel = np.diff(joints, axis=0) * float(motion.fps)
+        speed = float(np.percentile(np.abs(vel).max(axis=1), 99))
+        if speed > JOINT_SPEED_P99_RADPS:
+            return (f"its fastest joint moves at {speed:.0f} rad/s on 1% of its frames, faster than any human (LAFAN1's "
+                    f"clips: 6-20 rad/s): is the frame rate right (motion.fps_in, convert's --fps-in)?")
     feet = [i for i, name in enumerate(motion.body_names) if any(word in str(name) for word in FOOT_WORDS)]
     lowest = pos[:, feet or slice(None), 2].min(axis=1)
     height = float(np.median(lowest))
@@ -116,6 +131,8 @@ def check_plausible(motion, source: str, flag: str, mjmodel: mujoco.MjModel | No
     """Refuse (MotionDataError naming `source`) a reference for which implausibility() says why; `flag`
     is the setting that accepts it anyway."""
     why = implausibility(motion, mjmodel)
+    if why is not None and "frame rate" in why:
+        raise MotionDataError(f"{source}: {why}; fix the rate, or {flag} to use it anyway")
     if why is not None:
         raise MotionDataError(f"{source}: {why}: not a plausible reference (is the root quaternion x y z w, as "
                               f"the CSV expects, and the root position in metres?); fix the file, or {flag} to "

@@ -93,6 +93,19 @@ class RunClaim:
                 break
         return not self.run_dir.exists()
 
+    def release_observed(self) -> bool:
+        """For a launch that observed its folder (`observe`: a torchrun rank other than 0 refused, e.g. its
+        peers never came): remove the folders its Hydra made and the log in them, when the folder holds
+        nothing else (rank 0, had it come, would have put its record there). Returns whether it is gone."""
+        if not self.created or self.log_path is None:
+            return False
+        try:
+            if set(os.listdir(self.run_dir)) - {self.log_path.name}:
+                return False
+        except OSError:
+            return False
+        return self.release()
+
 
 _CURRENT: RunClaim | None = None
 
@@ -105,7 +118,8 @@ def current(run_dir: str | os.PathLike) -> RunClaim | None:
 
 
 def _mkdirs(path: Path, exist_ok: bool) -> list[Path]:
-    """Create `path` and its missing parents; returns the folders created, outermost first."""
+    """Create `path` and its missing parents; returns the folders created, outermost first. When a folder
+    cannot be made (no permission, a full disk, a name too long) those it made are removed first."""
     if not exist_ok and path.exists():
         raise FileExistsError(path)
     missing = []
@@ -115,23 +129,55 @@ def _mkdirs(path: Path, exist_ok: bool) -> list[Path]:
         if p.parent == p:
             break
         p = p.parent
-    created = []
-    for folder in reversed(missing):
-        try:
-            folder.mkdir()
-        except FileExistsError:
-            if folder == path and not exist_ok:
-                raise
-            continue
-        created.append(folder)
-    if not path.is_dir():
-        raise NotADirectoryError(f"{path}: not a folder")
+    created: list[Path] = []
+    try:
+        for folder in reversed(missing):
+            try:
+                folder.mkdir()
+            except FileExistsError:
+                if folder == path and not exist_ok:
+                    raise
+                continue
+            created.append(folder)
+        if not path.is_dir():
+            raise NotADirectoryError(f"{path}: not a folder")
+    except OSError:
+        for folder in reversed(created):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
     return created
+
+
+def check_path(key: str, path: str | os.PathLike) -> None:
+    """ClaimError (one line) for a folder path the OS would refuse by its length (ENAMETOOLONG), before
+    anything is made: a name longer than its file system allows, or a path longer than PATH_MAX."""
+    text = os.fsencode(os.path.abspath(path))
+    probe = Path(os.path.abspath(path))
+    while probe.parent != probe:  # the file system the folder would be made on: its nearest existing folder
+        try:
+            if probe.exists():
+                break
+        except OSError:  # (the name too long to look up)
+            pass
+        probe = probe.parent
+    try:
+        name_max, path_max = os.pathconf(probe, "PC_NAME_MAX"), os.pathconf(probe, "PC_PATH_MAX")
+    except (OSError, ValueError):
+        name_max, path_max = 255, 4096
+    shown = f"{os.fsdecode(text[:60])}..." if len(text) > 80 else os.fsdecode(text)
+    longest = max(Path(os.fsdecode(text)).parts, key=lambda part: len(os.fsencode(part)))
+    if len(os.fsencode(longest)) > name_max:
+        raise ClaimError(f"{key}={shown}: a folder name of {len(os.fsencode(longest))} bytes, more than the "
+                         f"{name_max} this file system allows")
+    if len(text) >= path_max:
+        raise ClaimError(f"{key}={shown}: {len(text)} bytes, more than the {path_max - 1} a path may have")
 
 
 def claim(run_dir: str | os.PathLike, pinned: bool, resume: bool, log_name: str | None) -> RunClaim:
     """Claim the launch's folder (see the module doc); raises ClaimError with one line."""
     global _CURRENT
+    check_path("hydra.run.dir", run_dir)
     path = Path(os.path.abspath(run_dir))
     if pinned:
         if path.exists() and not path.is_dir():
@@ -175,11 +221,20 @@ def claim(run_dir: str | os.PathLike, pinned: bool, resume: bool, log_name: str 
     return _CURRENT
 
 
-def observe(run_dir: str | os.PathLike, pinned: bool) -> RunClaim:
-    """Record the folder of a launch that does not own it (a torchrun rank other than 0): it created
-    nothing, so a refusal removes nothing."""
+def observe(run_dir: str | os.PathLike, pinned: bool, log_name: str | None = None) -> RunClaim:
+    """Record the folder of a launch that does not own it (a torchrun rank other than 0), before its Hydra
+    makes the folder and opens its log there: the folders missing now are the ones that Hydra makes, which
+    a refusal of this rank removes only while nothing but its log is in them (`release_observed`)."""
     global _CURRENT
-    _CURRENT = RunClaim(Path(os.path.abspath(run_dir)), pinned)
+    path = Path(os.path.abspath(run_dir))
+    missing: list[Path] = []
+    with contextlib.suppress(OSError):
+        p = path
+        while not p.exists() and p.parent != p:
+            missing.insert(0, p)
+            p = p.parent
+    log_path = path / log_name if log_name else None
+    _CURRENT = RunClaim(path, pinned, missing, log_path, None, True)
     return _CURRENT
 
 
@@ -198,6 +253,7 @@ def check_sweep_folder(sweep_dir: str | os.PathLike) -> None:
     """A multirun's folder (`hydra.sweep.dir`) is new, empty or a sweep's (Hydra's multirun.yaml or the
     sweep's index.csv at its root); ClaimError otherwise: Hydra writes multirun.yaml there and the jobs
     their folders, so a folder of the user's own files is never written into."""
+    check_path("hydra.sweep.dir", sweep_dir)
     path = Path(sweep_dir)
     if path.exists() and not path.is_dir():
         raise ClaimError(f"hydra.sweep.dir={sweep_dir}: is a file, not a folder")

@@ -163,7 +163,9 @@ def checkpoint_files(ckpt_dir: str | os.PathLike) -> list[Path]:
     found = sorted((p for p in ckpt_dir.glob("model_*.pt") if checkpoint_iteration(p) >= 0),
                    key=checkpoint_iteration, reverse=True)
     latest = ckpt_dir / LATEST_CHECKPOINT
-    return ([latest] if latest.is_file() else []) + found
+    # (a latest.pt that is not a regular file, a FIFO or a link to a device, is listed: its reader refuses it
+    # in its words, where passing it over would evaluate an older checkpoint as the run's newest)
+    return ([latest] if latest.is_symlink() or latest.exists() else []) + found
 
 
 def newest_iteration(ckpt_dir: str | os.PathLike) -> int:

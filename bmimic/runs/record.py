@@ -20,6 +20,7 @@ from typing import Any, Mapping
 import pandas as pd
 
 from bmimic import BmimicError
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     EVAL_TABLES,
     EVALUATION_TABLES,
@@ -77,10 +78,10 @@ class RunRecord:
             if not path.exists():
                 continue
             try:
-                df = pd.read_parquet(path)
+                df = pd.read_parquet(safe_read.regular_file(path, self.run_dir))  # a FIFO or device would hang
             except Exception as e:  # noqa: BLE001 - any reader error: the table is damaged
-                raise RunRecordError(f"{path}: cannot be read ({type(e).__name__}); move it aside to resume without "
-                                     "its rows") from None
+                raise RunRecordError(f"{path}: cannot be read ({type(e).__name__}: {(str(e).strip() or '-').splitlines()[0][:160]}); move it aside to "
+                                     "resume without its rows") from None
             if ITERATION not in df:
                 raise RunRecordError(f"{path}: has no {ITERATION} column; move it aside to resume without its rows")
             df = df[df[ITERATION] <= iteration] if name in EVALUATION_TABLES else df[df[ITERATION] < iteration]

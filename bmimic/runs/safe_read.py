@@ -5,7 +5,10 @@ without bound.
 - `read_text`: regular files only. The open never blocks (O_NONBLOCK: a FIFO opens at once and is then
   refused by its type), a device or a link to one is refused by the type of what was opened, and a
   file over `max_bytes` is refused before it is read.
-- `parse_json`: nesting deeper than MAX_DEPTH is refused before the parser recurses.
+- `parse_json`: nesting deeper than MAX_DEPTH is refused before the parser recurses; with `finite`,
+  so is a number that is not finite (NaN, Infinity, 1e999: bmimic writes none, see atomic_write_json).
+- `regular_file`: the same type check for a binary reader that opens a file by name (torch.load,
+  pyarrow, onnxruntime), and with `within`, a link out of the run folder refused.
 - `parse_yaml`: YAML's safe loader, with documents of more than MAX_NODES nodes once their aliases are
   expanded refused before they are built (an alias bomb expands exponentially in whoever copies it next).
 Each raises `UnsafeFileError` (a ValueError, so the readers' existing `except (OSError, ValueError)`
@@ -15,6 +18,7 @@ keeps treating such a file as unreadable) with one line naming the file.
 from __future__ import annotations
 
 import json
+import math
 import os
 import stat
 from pathlib import Path
@@ -32,14 +36,40 @@ class UnsafeFileError(ValueError):
     """A file refused by the guarded reader (not a regular file, too large, too deep, an alias bomb)."""
 
 
-def read_text(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> str:
-    """The UTF-8 text of the regular file at `path`; OSError when absent or unreadable, UnsafeFileError
-    when it is not a regular file (a FIFO, a device, a link to one) or larger than `max_bytes`."""
+def _open_regular(path: str | os.PathLike) -> tuple[int, os.stat_result]:
+    """An fd and the stat of the regular file at `path`, opened without blocking (a FIFO opens at once);
+    UnsafeFileError (fd closed) when it is not a regular file."""
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
-            raise UnsafeFileError(f"{path}: not a regular file")
+            raise UnsafeFileError(f"{path}: not a regular file (a FIFO, a device or a link to one)")
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, info
+
+
+def regular_file(path: str | os.PathLike, within: str | os.PathLike | None = None) -> Path:
+    """`path`, once checked for a reader that opens it by name (torch.load, pyarrow, onnxruntime), which
+    would block on a FIFO or read a device forever: a regular file (links followed), and with `within`
+    (a run folder) one whose real path lies inside that folder, so that a run's checkpoint or table is
+    never another run's or the machine's. OSError when absent, UnsafeFileError otherwise."""
+    fd, _ = _open_regular(path)
+    os.close(fd)
+    if within is not None:
+        real, root = Path(path).resolve(), Path(within).resolve()
+        if not real.is_relative_to(root):
+            raise UnsafeFileError(f"{path}: links to {real}, outside its run folder {within} (a run's files are its "
+                                  "own: copy the file in instead of linking it)")
+    return Path(path)
+
+
+def read_text(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> str:
+    """The UTF-8 text of the regular file at `path`; OSError when absent or unreadable, UnsafeFileError
+    when it is not a regular file (a FIFO, a device, a link to one) or larger than `max_bytes`."""
+    fd, info = _open_regular(path)
+    try:
         if info.st_size > max_bytes:
             raise UnsafeFileError(f"{path}: {info.st_size} bytes, more than the {max_bytes} a record may have")
         with os.fdopen(fd, "rb", closefd=False) as f:
@@ -73,19 +103,29 @@ def nesting_depth(text: str) -> int:
     return deepest
 
 
-def parse_json(text: str, what: str | os.PathLike = "JSON", max_depth: int = MAX_DEPTH) -> Any:
-    """`json.loads(text)`, refusing nesting deeper than `max_depth` (UnsafeFileError naming `what`)."""
+def parse_json(text: str, what: str | os.PathLike = "JSON", max_depth: int = MAX_DEPTH, finite: bool = False) -> Any:
+    """`json.loads(text)`, refusing nesting deeper than `max_depth` and, with `finite`, any number that is
+    not finite (UnsafeFileError naming `what`): a record whose numbers are measurements, where NaN or
+    Infinity would pass a `> 0` check and then be written back as null."""
     if text.count("[") + text.count("{") > max_depth and nesting_depth(text) > max_depth:
         raise UnsafeFileError(f"{what}: nested deeper than {max_depth} levels")
+
+    def not_finite(word: str) -> float:
+        raise UnsafeFileError(f"{what}: holds the number {word}, which is not finite")
+
+    def number(word: str) -> float:
+        value = float(word)
+        return value if math.isfinite(value) else not_finite(word[:40])
+    hooks: dict[str, Any] = {"parse_constant": not_finite, "parse_float": number} if finite else {}
     try:
-        return json.loads(text)
+        return json.loads(text, **hooks)
     except RecursionError:  # a depth the scan did not see (it cannot happen; never a traceback)
         raise UnsafeFileError(f"{what}: nested too deep") from None
 
 
-def read_json(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> Any:
+def read_json(path: str | os.PathLike, max_bytes: int = MAX_BYTES, finite: bool = False) -> Any:
     """The parsed JSON record at `path` (read_text, then parse_json)."""
-    return parse_json(read_text(path, max_bytes), path)
+    return parse_json(read_text(path, max_bytes), path, finite=finite)
 
 
 def check_yaml(text: str, what: str | os.PathLike = "YAML", max_nodes: int = MAX_NODES) -> str:
@@ -145,4 +185,4 @@ def read_yaml(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> Any:
 
 
 __all__ = ["MAX_NODES", "MAX_BYTES", "MAX_DEPTH", "UnsafeFileError", "check_yaml", "nesting_depth", "parse_json",
-           "parse_yaml", "read_json", "read_text", "read_yaml", "read_yaml_text"]
+           "parse_yaml", "read_json", "read_text", "read_yaml", "read_yaml_text", "regular_file"]

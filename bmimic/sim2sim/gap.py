@@ -62,13 +62,13 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     folder = run_dir / EVAL_DIR / label
     summary_file, bins_file = folder / EVAL_SUMMARY, folder / EVAL_TABLES[1]
     if summary_file.is_file() and bins_file.is_file():
-        with readable(summary_file):
+        with readable(summary_file, run_dir):
             s = safe_read.read_json(summary_file)
             success, mpkpe = (math.nan if s[k] is None else float(s[k]) for k in ("eval_success_rate", "eval_mpkpe_rel_mm"))
-        with readable(bins_file):
+        with readable(bins_file, run_dir):
             bins = pd.read_parquet(bins_file)
         if "visits" in bins:
-            with readable(bins_file):
+            with readable(bins_file, run_dir):
                 return WarpEval(str(folder), bins[columns + [c for c in extra if c in bins]], success, mpkpe,
                                 {k: s[k] for k in SETTINGS if k in s})
         log.warning("%s: tables of the old start-bin accounting, not compared (evaluate again with python -m "
@@ -76,7 +76,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
     table = table_path(run_dir, "eval")
     if iteration is None or not table.is_file():
         return None
-    with readable(table):
+    with readable(table, run_dir):
         rows = pd.read_parquet(table)
         rows = rows[rows[ITERATION] == iteration].reset_index(drop=True)
     if rows.empty:
@@ -85,7 +85,7 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
         log.warning("%s: rows of the old start-bin accounting, not compared (run python -m bmimic.eval %s)",
                     table, run_dir)
         return None
-    with readable(table):
+    with readable(table, run_dir):
         overall = summarize(rows)
         settings = {"episodes_per_bin": int(rows["start_episodes"].max())}
         config = _run_eval_config(run_dir)
@@ -96,10 +96,12 @@ def warp_eval(run_dir: Path | None, label: str, iteration: int | None) -> WarpEv
 
 
 @contextlib.contextmanager
-def readable(path: Path):
+def readable(path: Path, run_dir: Path | None = None):
     """A file of the MuJoCo-Warp evaluation that cannot be read (damaged, or lacking a column) is one
-    line naming it, not a traceback from the reader."""
+    line naming it, not a traceback from the reader; one that is not a regular file of `run_dir` (a FIFO,
+    a device, a link out of the run) is refused before a reader opens it (it would block or read forever)."""
     try:
+        safe_read.regular_file(path, run_dir)
         yield
     except Exception as e:  # noqa: BLE001 - JSON, pyarrow and pandas raise many types for a damaged file
         text = str(e).strip()

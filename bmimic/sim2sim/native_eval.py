@@ -10,6 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
+from bmimic.runs import safe_read
 from bmimic.runs.folder import MOTION_POLICY, checkpoints_dir, has_hydra_record
 from bmimic.runs.folder import checkpoint_label as run_checkpoint_label
 from bmimic.runs.schema import BIN, HORIZON_TRUNCATED, ITERATION
@@ -48,7 +49,10 @@ def locate(path: str | Path) -> tuple[Path, Path | None]:
                            f"write it with: python -m bmimic.export {p}")
     policy = max(found)[1]
     try:
+        safe_read.regular_file(policy, p)  # the run's own file: a policy linked from elsewhere is not its result
         return policy.resolve(strict=True), p.resolve()
+    except safe_read.UnsafeFileError as e:
+        raise Sim2SimError(str(e)) from None
     except (OSError, RuntimeError) as e:  # a dangling link, a loop of links
         raise Sim2SimError(f"{policy}: cannot be read ({e})") from None
 

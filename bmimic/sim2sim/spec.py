@@ -115,10 +115,24 @@ def policy_error(path: Path, what: str) -> Sim2SimError:
     return Sim2SimError(f"{path}: {what}")
 
 
+def regular_policy(path: Path) -> Path:
+    """`path` once it is a regular file (safe_read.regular_file: onnxruntime would block on a FIFO or read
+    a device forever); Sim2SimError (one line) otherwise."""
+    try:
+        return safe_read.regular_file(path)
+    except FileNotFoundError:
+        raise policy_error(path, "no such file") from None
+    except OSError as e:
+        raise policy_error(path, f"cannot be opened ({e.strerror or e})") from None
+    except safe_read.UnsafeFileError as e:
+        raise Sim2SimError(str(e)) from None
+
+
 def read_metadata(path: Path) -> tuple[dict[str, str], list[str], list[str]]:
     """(metadata, input names, output names) of an ONNX file."""
     import onnxruntime as ort
 
+    regular_policy(path)
     try:
         session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own exception types for unreadable files
@@ -132,8 +146,6 @@ def read_policy(path: str | Path) -> PolicySpec:
     from bmimic.motion.motion import segments_from_json
 
     path = Path(path)
-    if not path.is_file():
-        raise policy_error(path, "no such file")
     meta, inputs, outputs = read_metadata(path)
     if inputs != ["obs", "time_step"] or outputs[1:] != list(REFERENCE_OUTPUTS):
         raise policy_error(path, f"inputs {inputs}, outputs {outputs}: not a BeyondMimic-compatible policy "
@@ -304,7 +316,7 @@ def policy_session(path: Path):
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
     options.inter_op_num_threads = 1
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(str(regular_policy(path)), options, providers=["CPUExecutionProvider"])
 
 
 def clip_frames(spec: PolicySpec, k: int) -> range:

@@ -57,14 +57,14 @@ def _from_whole_clip(run_dir: Path, label: str, iteration, starts, ends, spec) -
     folder = run_dir / EVAL_DIR / label / WHOLE_CLIP_DIR
     clips_file, summary_file = folder / WHOLE_CLIP_FILES[0], folder / WHOLE_CLIP_FILES[-1]
     if clips_file.is_file() and summary_file.is_file():
-        with readable(clips_file):
+        with readable(clips_file, run_dir):
             table = pd.read_csv(clips_file)[[CONDITION, "clip", "rollouts", "completed"]]
         source = f"{folder} (bmimic.eval --whole-clip)"
     else:
         path = table_path(run_dir, "whole_clip")
         if iteration is None or not path.is_file():
             return {}
-        with readable(path):
+        with readable(path, run_dir):
             table = pd.read_parquet(path)[[ITERATION, CONDITION, "clip", "rollouts", "completed"]]
         table = table[table[ITERATION] == iteration]
         source = f"{path} (iteration {iteration})"
@@ -79,7 +79,7 @@ def _from_eval_episodes(run_dir: Path, label: str, iteration, starts, ends, spec
     episodes_file, summary_file = folder / EVAL_TABLES[0], folder / EVAL_TABLES[-1]
     if not (episodes_file.is_file() and summary_file.is_file()):
         return {}
-    with readable(episodes_file):
+    with readable(episodes_file, run_dir):
         ep = pd.read_parquet(episodes_file)
         ep = ep[[BIN, "start_frame", "end_frame", "failed", HORIZON_TRUNCATED]]
     layout = make_layout(spec.bin_layout, spec.num_frames, spec.fps, spec.bin_size_s, clip_starts=spec.clip_starts)
@@ -103,7 +103,7 @@ def _from_clip_eval(run_dir: Path, label: str, iteration, starts, ends, spec) ->
     table = table_path(run_dir, "clip_eval")
     if iteration is None or not table.is_file():
         return {}
-    with readable(table):
+    with readable(table, run_dir):
         rows = pd.read_parquet(table)
         rows = rows[rows[ITERATION] == iteration]
         whole = rows[rows["failed"].astype(bool) | rows["reached_end"].astype(bool)]

@@ -207,9 +207,10 @@ def recorded_differences(run_dir: Path, task: DictConfig, device: str | None = N
 
 def describe_differences(differs: dict[str, tuple[Any, Any]], limit: int = 4) -> str:
     """`key recorded -> this`, for the first `limit` keys (the budget's first: what a smoke run changes)."""
-    from bmimic.training.resume import BUDGET_KEYS
+    from bmimic.runs.schema import BUDGET_KEYS
+    from bmimic.training.resume import RESUME_BUDGET_KEYS
 
-    keys = sorted(differs, key=lambda k: (k not in ("max_iterations", "num_envs", *BUDGET_KEYS), k))
+    keys = sorted(differs, key=lambda k: (k not in (*BUDGET_KEYS, *RESUME_BUDGET_KEYS), k))
     shown = [f"{k} {_short(differs[k][0])} -> {_short(differs[k][1])}" for k in keys[:limit]]
     return ", ".join(shown) + (f" and {len(keys) - limit} more" if len(keys) > limit else "")
 
@@ -261,9 +262,12 @@ def check_jobs(jobs: Sequence[Job], sweep_dir: str | os.PathLike | None = None, 
     whose sweep folder or a job's folder holds files that are not bmimic's (bmimic.runs.claim: a launch
     writes only into its own folders; `log_name`: Hydra's log of a job, which a killed job leaves), or a
     job whose folder would lie outside the sweep folder."""
-    from bmimic.runs.claim import check_sweep_folder, foreign_entries, holds_run
+    from bmimic.runs.claim import check_path, check_sweep_folder, foreign_entries, holds_run
 
     if sweep_dir is not None:
+        check_path("hydra.sweep.dir", sweep_dir)  # a path the OS refuses by its length: one line, before any look-up
+        for job in jobs:
+            check_path(f"job {job.num}'s folder (hydra.sweep.dir and its overrides)", job.run_dir)
         if not any(job.run_dir.is_dir() and holds_run(job.run_dir) for job in jobs):  # else: this sweep's folder
             check_sweep_folder(sweep_dir)
         root = os.path.abspath(sweep_dir)

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from bmimic import BmimicError
+from bmimic.runs import safe_read
 from bmimic.runs.folder import LATEST_CHECKPOINT, atomic_write, checkpoint_files
 
 CHECKPOINT_FORMAT = "bmimic-checkpoint-2"
@@ -36,14 +37,23 @@ def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
-def load_checkpoint_file(path: str | os.PathLike, map_location: str = "cpu") -> dict:
-    """The checkpoint dict at `path`, read with `weights_only=True` (nothing in it can run code).
-    Raises CheckpointError / UnsafeCheckpointError with one line."""
+def load_checkpoint_file(path: str | os.PathLike, map_location: str = "cpu",
+                         within: str | os.PathLike | None = None) -> dict:
+    """The checkpoint dict at `path`, read with `weights_only=True` (nothing in it can run code), once
+    it is a regular file (and, with `within`, its run folder's own: safe_read.regular_file), since
+    torch.load would block on a FIFO and read a device forever. Raises CheckpointError /
+    UnsafeCheckpointError with one line."""
     import torch
 
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        safe_read.regular_file(path, within)
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no such checkpoint file") from None
+    except safe_read.UnsafeFileError as e:
+        raise CheckpointError(str(e)) from None
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot be opened ({e.strerror or e})") from None
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
@@ -75,7 +85,7 @@ def load_newest_intact(ckpt_dir: Path) -> tuple[Path, dict, str]:
     damaged = []
     for path in checkpoint_files(ckpt_dir):
         try:
-            state = load_checkpoint_file(path, "cpu")
+            state = load_checkpoint_file(path, "cpu", within=Path(ckpt_dir).parent)  # the run's own
         except UnsafeCheckpointError:
             raise
         except CheckpointError as e:

@@ -98,3 +98,61 @@ def test_an_interpolated_seed_reads_the_value_the_run_trained_with(tmp_path, cap
     runs = load_runs(run)
     assert runs["included"].all() and runs["seed"].tolist() == [3]
     assert report_main([str(run)]) == 0
+
+
+def test_a_copy_with_its_seed_edited_is_refused_not_counted_as_a_second_seed(tmp_path, capsys):
+    """Issue 77: a run copied and its seed edited (config and overrides) counted as a second seed, its tables
+    and wall times identical. Two runs never train to the same bytes: one line naming both, exit 2."""
+    import shutil
+
+    first = write_run(tmp_path / "runs" / "uniform" / "seed=0", sampler="uniform", seed=0, overrides=[],
+                      mastery=MASTERY)
+    copy = tmp_path / "runs" / "uniform" / "seed=1"
+    shutil.copytree(first, copy)
+    for name in ("config.yaml", "overrides.yaml"):
+        path = copy / ".hydra" / name
+        path.write_text(path.read_text().replace("seed: 0", "seed: 1").replace("seed=0", "seed=1"))
+    assert yaml.safe_load((copy / ".hydra" / "config.yaml").read_text())["seed"] == 1
+    assert report_main([str(tmp_path / "runs"), "--out", str(tmp_path / "report")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:"), err
+    assert str(copy) in err[0] and str(first) in err[0] and "differ only in their seed" in err[0]
+    assert not (tmp_path / "report").exists()
+    # the sweep index compares nothing: it lists the copy, left out with the reason
+    runs = load_runs(tmp_path / "runs", compare=False)
+    assert runs.set_index("seed").loc[1, "problem"].startswith(f"its tables are byte-identical to {first}'s")
+    assert runs["included"].tolist() == [True, False]
+    # a real second seed (other tables) and a byte-identical copy (counted once) are read as before
+    write_run(copy, sampler="uniform", seed=1, overrides=[], mastery=MASTERY)
+    shutil.copytree(first, tmp_path / "runs" / "uniform" / "seed=0_copy")
+    runs = load_runs(tmp_path / "runs")
+    assert sorted(runs.loc[runs["included"], "seed"]) == [0, 1]
+    assert runs["problem"].fillna("").str.contains("byte-identical to .*counted once", regex=True).sum() == 1
+
+
+def test_a_path_with_too_many_folders_to_search_is_refused_in_one_line(tmp_path, capsys, monkeypatch):
+    """Found by the generated harness at 500 examples (issue 77): `bmimic-report RUN /` walked the whole file
+    system for minutes. A search of more than MAX_SEARCHED_FOLDERS folders is one line instead."""
+    from analysis import run_files
+
+    monkeypatch.setattr(run_files, "MAX_SEARCHED_FOLDERS", 20)
+    for k in range(30):
+        (tmp_path / "big" / f"d{k}").mkdir(parents=True)
+    run = _run(tmp_path)
+    assert report_main([str(run), str(tmp_path / "big"), "--out", str(tmp_path / "report")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {tmp_path / 'big'}: more than 20 folders to search for runs; name the study's sweep "
+                   "folder or its run folders"]
+    assert not (tmp_path / "report").exists()
+
+
+@pytest.mark.parametrize("value", ["Infinity", "NaN", "1e30", "-3", "2.5"])
+def test_a_status_iteration_that_is_not_a_whole_number_reads_as_unknown(tmp_path, value):
+    """Found by the generated harness at 500 examples (issue 77): status.json's `"iteration": Infinity` failed
+    the runs frame's integer column (OverflowError) in report and index, NaN the report's header."""
+    run = _run(tmp_path)
+    status = run / "status.json"
+    status.write_text(json.dumps({"status": "done", "error": None, "iteration": 0}).replace("0}", f"{value}}}"))
+    runs = load_runs(run)
+    assert runs["iteration"].isna().all() and runs["included"].all()
+    assert report_main([str(run), "--out", str(tmp_path / "report")]) == 0

@@ -199,6 +199,45 @@ def test_a_torchrun_rank_without_peers_ends_in_one_line_or_at_sigterm(tmp_path):
     assert not (tmp_path / "waiting").exists()
 
 
+@RANKS_GROUP
+@pytest.mark.parametrize("rank, addr", [("1", "127.0.0.1"), ("0", "no.such.host.invalid")])
+def test_a_rank_without_peers_says_its_own_line_first_and_leaves_no_folder(tmp_path, rank, addr):
+    """Issue 77: RANK=1 without rank 0 exited 2 with no `error:` line (only rank 0 spoke), about thirty lines
+    of C++ stack frames from torch's TCP client, and the run folder Hydra made for it (train.log)."""
+    from tests.conftest import free_port
+
+    env = {**cli_env(), "WORLD_SIZE": "2", "RANK": rank, "LOCAL_RANK": rank, "MASTER_ADDR": addr,
+           "MASTER_PORT": str(free_port()), "BMIMIC_RENDEZVOUS_TIMEOUT_S": "1"}
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "bmimic.train", *TINY, "hydra.run.dir=runs/alone"], cwd=tmp_path,
+                         env=env, capture_output=True, text=True, timeout=120)
+    said = (out.stdout + out.stderr).strip().splitlines()
+    assert out.returncode == 2 and len(said) == 1 and said[0].startswith("error: torchrun: rank "), said
+    assert f"rank {rank} of 2 could not meet the other ranks" in said[0] and "frame #" not in out.stderr
+    assert list(tmp_path.iterdir()) == [] and time.monotonic() - t0 < 60
+
+
+def test_the_address_is_waited_for_in_python_before_torch_connects(monkeypatch):
+    from bmimic.rendezvous import DistributedSetupError, meet, wait_for_address
+    from tests.conftest import free_port
+
+    port = free_port()
+    t0 = time.monotonic()
+    with pytest.raises(Exception, match="nothing listened there"):
+        wait_for_address("127.0.0.1", port, 1, time.monotonic() + 0.3)
+    with pytest.raises(Exception, match="does not resolve"):
+        wait_for_address("no.such.host.invalid", port, 0, time.monotonic() + 5)
+    assert time.monotonic() - t0 < 5
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as server:  # rank 0's store listening: rank 1 goes on at once
+        wait_for_address("127.0.0.1", server.getsockname()[1], 1, time.monotonic() + 5)
+    monkeypatch.setenv("MASTER_ADDR", "127.0.0.1")
+    monkeypatch.setenv("MASTER_PORT", str(port))
+    with pytest.raises(DistributedSetupError, match=r"rank 1 of 2 could not meet .* within 0.5 s \(nothing"):
+        meet(1, 2, 0.5)
+
+
 def test_torchrun_variables_are_checked_before_anything_runs(monkeypatch):
     from bmimic.runtime import DistributedSetupError, process_rank, torchrun_env
 

@@ -37,7 +37,14 @@ def test_what_composes_passes_and_a_quoted_non_ascii_value_is_read():
     cfg = check_overrides(["sampler=uniform", "motion.name='dansé'", "seed=3"])
     assert (cfg.sampler.name, cfg.motion.name, cfg.seed) == ("uniform", "dansé", 3)
     assert check_overrides(["-m", "seed=0,1"]) is not None  # a sweep's values: each job checks its own
-    assert check_overrides(["--config-dir", "/elsewhere", "seed=1.5"]) is None  # another config tree: Hydra's
+    # another config tree: Hydra's to compose, only the grammar is checked (issue 77: Hydra's block, exit 1, before)
+    assert check_overrides(["--config-path", "/elsewhere", "seed=1.5"]) is None
+    with pytest.raises(ConfigError, match="a=b=c: not a valid override"):
+        check_overrides(["--config-path", "/elsewhere", "a=b=c"])
+    # bmimic's own tree named by -cp/-cn, or with a -cd folder searched beside it: checked as without them
+    for flags in (["-cn", "train"], ["--config-path", str(REPO / "conf")], ["--config-dir", str(REPO)]):
+        with pytest.raises(ConfigError, match="seed=1.5: Value '1.5'"):
+            check_overrides([*flags, "seed=1.5"])
 
 
 def _run(tmp_path, *argv: str) -> subprocess.CompletedProcess:
@@ -72,3 +79,46 @@ def test_a_race_that_could_time_no_evaluation_is_refused_before_it_trains(tmp_pa
     assert out.stderr.startswith("error: a race times evaluations, and with max_iterations=4 (the smoke-scale "
                                  "default on a CPU) and eval.every_iters=100 none would run")
     assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "outputs").exists()
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["-cp", "/nonexistent"], "--config-path /nonexistent: no such folder"),
+    (["--config-path=/nonexistent"], "--config-path /nonexistent: no such folder"),
+    (["--config-path", "nowhere"], "--config-path nowhere: no such folder"),
+    (["-cp", "pkg://no_such_package_x"], "--config-path pkg://no_such_package_x: no such Python package"),
+    (["--config-name", "nope"], "--config-name nope: no nope.yaml in "),
+    (["-cn", "nope.yaml"], "--config-name nope.yaml: no nope.yaml in "),
+    (["-cd", "/nonexistent"], "--config-dir /nonexistent: no such folder"),
+])
+def test_a_config_folder_or_name_that_names_nothing_is_one_line_with_status_2(tmp_path, argv, words):
+    """Issue 77: Hydra's block ("Primary config directory not found ...", "Cannot find primary config ...")
+    and exit 1 became one line and exit 2, for train and race alike, before anything is written."""
+    from tests.conftest import run_train
+
+    code, out = run_train(*argv, "device=cpu", "max_iterations=1", cwd=tmp_path)
+    errors = [line for line in out.splitlines() if line.startswith("error:")]
+    assert code == 2 and len(out.strip().splitlines()) == 1 and errors[0].startswith(f"error: {words}"), out
+    assert list(tmp_path.iterdir()) == []
+    from bmimic.config.sources import check_config_source
+
+    for ok in (["-cp", str(REPO / "conf"), "--cfg", "job"], ["-cn", "train"], ["-cd", str(tmp_path)], ["seed=1"]):
+        check_config_source(ok)  # what exists passes
+
+
+@pytest.mark.slow
+def test_race_refuses_a_config_name_that_names_nothing_in_one_line(tmp_path):
+    out = _run(tmp_path, "bmimic.race", "--config-name", "nope")
+    assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+        f"error: --config-name nope: no nope.yaml in {REPO / 'bmimic' / 'conf'} (bmimic's primary config is train)"], \
+        out.stderr
+
+
+def test_info_of_a_sweep_shows_its_first_job(tmp_path):
+    """Found by the generated harness at 500 examples (issue 77): `--info -m` put the first job's overrides
+    after --info, which took the first of them as its value (two usage blocks, exit 2)."""
+    from tests.conftest import run_train
+
+    code, out = run_train("device=cpu", "max_iterations=1", "--info", "--multirun", cwd=tmp_path)
+    assert code == 0 and "usage:" not in out and "Installed Hydra Plugins" in out, out[-2000:]
+    assert not [line for line in out.splitlines() if line.startswith("error:") or ": error:" in line]
+    assert list(tmp_path.iterdir()) == []

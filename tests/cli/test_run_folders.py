@@ -186,6 +186,25 @@ def test_status_is_rewritten_in_place_when_the_disk_is_full(tmp_path, monkeypatc
     assert run_folder.read_status(tmp_path)["status"] == "failed"
 
 
+def test_a_folder_path_longer_than_the_os_allows_is_refused_before_anything_is_made(tmp_path) -> None:
+    """Issue 77: ENAMETOOLONG in the launch guard became a Hydra warning, then Hydra's mkdir traceback."""
+    from bmimic.runs.claim import ClaimError, _mkdirs, check_sweep_folder, claim
+
+    for path, words in ((tmp_path / "ok" / ("a" * 300), "a folder name of 300 bytes, more than the 255"),
+                        (tmp_path.joinpath(*["b" * 200] * 25), "bytes, more than the 4095 a path may have")):
+        with pytest.raises(ClaimError, match=words):
+            claim(path, pinned=True, resume=False, log_name="train.log")
+        with pytest.raises(ClaimError, match=words):
+            claim(path, pinned=False, resume=False, log_name="train.log")
+        with pytest.raises(ClaimError, match=words):
+            check_sweep_folder(path)
+    assert list(tmp_path.iterdir()) == []
+    # and any folder the OS refuses half-way: what was made on the way is removed
+    with pytest.raises(OSError):
+        _mkdirs(tmp_path / "ok" / "fine" / ("a" * 300), exist_ok=True)
+    assert list(tmp_path.iterdir()) == []
+
+
 # --------------------------------------------------------------------------------------------- end to end
 @pytest.mark.slow
 def test_a_pinned_folder_holding_a_run_is_refused_without_resume(tmp_path) -> None:
@@ -194,6 +213,19 @@ def test_a_pinned_folder_holding_a_run_is_refused_without_resume(tmp_path) -> No
     code, out = run_train(*TINY, "max_iterations=1", "hydra.run.dir=pinned", cwd=tmp_path)
     assert code == 2 and "resume=true" in one_error(out)
     assert tree(tmp_path / "pinned") == before
+
+
+@pytest.mark.slow
+def test_a_run_dir_longer_than_the_os_allows_is_one_line_and_writes_nothing(tmp_path) -> None:
+    for path, words in ((tmp_path / "ok" / ("a" * 300), "a folder name of 300 bytes"),
+                        (tmp_path.joinpath(*["b" * 200] * 25), "more than the 4095 a path may have")):
+        code, out = run_train(*TINY, "max_iterations=1", f"hydra.run.dir={path}", cwd=tmp_path)
+        assert code == 2 and words in one_error(out), out[-3000:]
+        assert "warning" not in out.lower()
+    code, out = run_train("-m", *TINY, "max_iterations=1", "seed=1,2", f"hydra.sweep.dir={tmp_path / ('c' * 300)}",
+                          cwd=tmp_path)
+    assert code == 2 and "hydra.sweep.dir=" in one_error(out), out[-3000:]
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.slow

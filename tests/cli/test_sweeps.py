@@ -64,6 +64,10 @@ STUDIES = {
     "confirm_hybrid_dance1": (2 * 10, {"sampler"}),
     "hybrid_factorial_dance1": (2 ** 3 * 3, {"sampler.accounting.attribution", "sampler.gamma", "sampler.K"}),
     "lafan36_library": (5 * 2, {"sampler"}),
+    "confirm_hybrid_fall1": (2 * 10, {"sampler"}),  # issue 76: the confirmatory test on a second clip
+    "equivalence_bins_dance1": (2 * 10, {"sampler.bin_size_seconds"}),  # issue 76: pre-registered TOSTs
+    "equivalence_K_dance1": (2 * 10, {"sampler.K"}),
+    "finished_stage_dance1": (2 * 5, {"sampler"}),  # issue 76: the recommendation at the whole-clip stage
 }
 # One knob of a study at a time: these files write into the study's folder (one report covers every
 # knob) and estimate effect sizes on 3 seeds per level, beside the study's 5-seed reference arms.
@@ -161,6 +165,22 @@ def test_confirmatory_study_uses_fresh_seeds():
     assert "PRE-REGISTERED RULE" in header and "184,756" in header
 
 
+def test_the_equivalence_studies_use_seeds_no_other_dance1_study_uses():
+    """Issue 76's equivalence tests and finished-stage comparison: fresh seeds on dance1 (20-29, 30-39,
+    40-44), the rule (and an equivalence test's margin) in the header before any run."""
+    seeds = {}
+    for study in STUDIES:
+        params = compose_study(study).hydra.sweeper.params
+        if params.motion == "lafan_dance1_full":
+            seeds[study] = {int(s) for s in str(params.seed).split(",")}
+    assert seeds["equivalence_bins_dance1"] == set(range(20, 30)) and seeds["equivalence_K_dance1"] == set(range(30, 40))
+    assert seeds["finished_stage_dance1"] == set(range(40, 45))
+    for study in ("equivalence_bins_dance1", "equivalence_K_dance1", "finished_stage_dance1"):
+        assert all(not seeds[study] & other for name, other in seeds.items() if name != study), study
+        header = (SWEEPS / f"{study}.yaml").read_text()
+        assert "PRE-REGISTERED RULE" in header and ("Margin: 0.01" in header) == ("equivalence" in study)
+
+
 def test_command_line_sweep_replaces_the_study_params():
     jobs = sweep_overrides(["+sweep=sampler_ablation", "seed=7,8", "sampler=uniform", "max_iterations=3"])
     assert [sorted(j) for j in jobs] == [
@@ -234,11 +254,11 @@ def _done_run(tmp_path: Path, *overrides: str) -> Path:
 
 def test_every_key_left_out_of_job_folder_names_is_result_neutral_or_a_budget():
     from bmimic.runs.schema import LOGISTICS_KEYS
-    from bmimic.training.resume import BUDGET_KEYS, RESULT_NEUTRAL_KEYS
+    from bmimic.training.resume import RESULT_NEUTRAL_KEYS, RESUME_BUDGET_KEYS
 
     # The seed and the study name make the folder; num_envs changes results and no resume may change it.
     # Every other key out of the names is classified, so a job folder's run is compared on the rest.
-    assert set(LOGISTICS_KEYS) - {"seed", "sweep", "+sweep", "num_envs"} <= {*RESULT_NEUTRAL_KEYS, *BUDGET_KEYS}
+    assert set(LOGISTICS_KEYS) - {"seed", "sweep", "+sweep", "num_envs"} <= {*RESULT_NEUTRAL_KEYS, *RESUME_BUDGET_KEYS}
 
 
 @pytest.mark.parametrize("study", ["mdp_action_rate", "design_choices_dance1", "peer_samplers",

@@ -17,6 +17,7 @@ OPTIONS = {
     "lafan_walk1_full": ("walk1_subject1", None, None),
     "lafan_run1": ("run1_subject2", 0.0, 60.0),
     "lafan_run1_full": ("run1_subject2", None, None),
+    "lafan_fall1_full": ("fallAndGetUp1_subject1", None, None),
 }
 
 

@@ -252,3 +252,26 @@ def test_a_clip_is_named_after_its_file_even_when_the_cache_holds_its_content_un
     (folder / "walk1_subject1.csv").rename(folder / "walk9_subject9.csv")  # same content, another name
     motion = load_any(_cfg(folder), model, cache_dir=cache, bin_size_s=1.0, control_fps=50.0)
     assert [s.name for s in motion.segments] == ["run1_subject5", "walk1_subject2", "walk9_subject9"]
+
+
+def test_a_clip_file_name_that_is_not_utf8_is_refused_before_training_in_one_line(folder, tmp_path):
+    """Issue 77: a name the OS holds as bytes that are not UTF-8 (b'bad\\xff.csv') became a clip name and failed
+    the run with a UnicodeEncodeError when its first table was written, after training had started."""
+    import os
+    import shutil
+    import time
+
+    shutil.copy(folder / "walk1_subject1.csv", os.fsencode(folder) + b"/bad\xff.csv")
+    words = f"motion.folder: {folder}: the file name b'bad\\xff.csv' is not valid UTF-8"
+    with pytest.raises(MotionDataError, match=re.escape(words)):
+        library_entries(_cfg(folder))
+    with pytest.raises(MotionDataError, match=re.escape("motion.glob: ")):
+        library_entries(SimpleNamespace(**{**vars(_cfg(None)), "glob": str(folder / "*.csv")}))
+    run = tmp_path / "run"
+    t0 = time.monotonic()
+    code, out = run_train("motion=lafan_folder", "device=cpu", "num_envs=2", f"hydra.run.dir={run}", cwd=tmp_path,
+                          env={LAFAN_ENV: str(folder)})
+    errors = [line for line in out.splitlines() if line.startswith("error:")]
+    assert code == 2 and errors == [f"error: {words} (a clip is named after its file in the run's tables); rename it"], \
+        out[-2000:]
+    assert "Traceback" not in out and not run.exists() and time.monotonic() - t0 < 5
