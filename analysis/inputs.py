@@ -11,16 +11,12 @@ from pathlib import Path
 
 from analysis import AnalysisError
 from analysis.run_files import NEEDED_TABLES, config_value
+from bmimic.runs import safe_read
 from bmimic.runs.folder import table_path
-from bmimic.runs.schema import ITERATION
+from bmimic.runs.schema import BUDGET_KEYS, ITERATION
 
 BIN_KEYS = ("sampler.bins", "sampler.bin_size_seconds")
 """Config keys that define a run's time bins (with its motion)."""
-BUDGET_KEYS = ("max_iterations", "num_envs", "time_limit_s")
-"""Config keys that set how much a run trains: no sweep can make arms of them (they stay out of job
-folder names), so runs that differ in them are not one study's arms (a smoke run of 4 iterations is
-not a seed of a 10,000-iteration study), and arms compared at equal iterations would be cut to the
-shortest."""
 MIXED_FLAG = "--allow-mixed"
 
 
@@ -40,8 +36,10 @@ def _flat(tree, prefix: str = "") -> dict:
 
 def check_comparable(rows: list[dict], allow_mixed: bool = False) -> list[str]:
     """Refuse included runs trained on different motions or bin layouts: their per-bin tables would
-    be compared bin number by bin number, and their failure rates measure different tasks. With
-    `allow_mixed` the differences are returned as notes instead."""
+    be compared bin number by bin number, and their failure rates measure different tasks; or on
+    different budgets (bmimic.runs.schema.BUDGET_KEYS): a smoke run is not a seed of a study, and arms
+    compared at equal iterations would be cut to the shortest. With `allow_mixed` the differences are
+    returned as notes instead."""
     used = [r for r in rows if r.get("included") and r.get("_cfg")]
     if len(used) < 2:
         return []
@@ -89,23 +87,44 @@ def _name(row: dict) -> str:
     return f"{path.parent.name}/{path.name}"
 
 
-def mark_copies(rows: list[dict]) -> None:
+def mark_copies(rows: list[dict], refuse: bool = True) -> None:
     """A run whose config, overrides and tables are byte-identical to another's (a copied folder) is counted once:
-    the later one (by path) is left out with a problem naming the first."""
+    the later one (by path) is left out with a problem naming the first. A run whose tables are byte-identical to
+    another's while the two differ only in their seed (a copy with its seed edited) is refused: two runs never
+    train to the same bytes (wall times alone differ), so it would count one run as a second seed of its arm.
+    With `refuse` False (a listing that compares nothing: the sweep index) such a run is left out instead."""
     seen: dict[str, str] = {}
+    replicas: dict[str, str] = {}
     for r in sorted(rows, key=lambda r: r["run_dir"]):
         if not r.get("included"):
             continue
-        h = hashlib.sha256(repr((sorted(_flat(r.get("_cfg") or {}).items()),
-                                 sorted((r.get("_overrides") or {}).items()))).encode())
+        tables = hashlib.sha256()
         for name in NEEDED_TABLES:
-            h.update(table_path(r["run_dir"], name).read_bytes())
-        key = h.hexdigest()
+            path = table_path(r["run_dir"], name)
+            try:
+                tables.update(safe_read.regular_file(path, r["run_dir"]).read_bytes())
+            except (OSError, ValueError) as e:  # replaced since it was found usable
+                raise AnalysisError(f"{path}: cannot be read ({e})") from None
+        cfg = sorted(_flat(r.get("_cfg") or {}).items())
+        overrides = sorted((r.get("_overrides") or {}).items())
+        key = hashlib.sha256(repr((cfg, overrides)).encode() + tables.digest()).hexdigest()
         if key in seen:
             r["included"] = False
             r["problem"] = f"its tables are byte-identical to {seen[key]}'s (a copy): counted once"
-        else:
-            seen[key] = r["run_dir"]
+            continue
+        seen[key] = r["run_dir"]
+        # the same run but for its seed: the arm's signature without the seed, and the same tables
+        arm = repr(([kv for kv in cfg if kv[0] != "seed"], [kv for kv in overrides if kv[0] != "seed"]))
+        first = replicas.setdefault(hashlib.sha256(arm.encode() + tables.digest()).hexdigest(), r["run_dir"])
+        if first == r["run_dir"]:
+            continue
+        if not refuse:
+            r["included"] = False
+            r["problem"] = f"its tables are byte-identical to {first}'s, which differs only in its seed: a copy"
+            continue
+        raise AnalysisError(f"{r['run_dir']}: its tables ({', '.join(NEEDED_TABLES)}) are byte-identical to {first}'s "
+                            f"and the two differ only in their seed ({r.get('seed')}): a copied run with its seed "
+                            "edited is not a second seed; remove the copy")
 
 
 def collapse_duplicate_seeds(rows: list[dict]) -> list[str]:

@@ -259,9 +259,10 @@ def plot_final_bin_failure(
         ax.fill_between(x, f["ci_low"].to_numpy(dtype=float), f["ci_high"].to_numpy(dtype=float),
                         color=colors[arm], alpha=0.2, lw=0)
         jitter = (i - (len(arms) - 1) / 2) * 0.12
-        for b, cell in zip(x, f["per_seed"], strict=True):
-            v = _seed_values(cell)
-            ax.scatter(np.full(len(v), b + jitter), v, s=6, color=colors[arm], alpha=0.6, lw=0)
+        seeds = [_seed_values(cell) for cell in f["per_seed"]]  # one scatter per arm, bin after bin
+        counts = np.fromiter((len(v) for v in seeds), dtype=int, count=len(seeds))
+        ax.scatter(np.repeat(x + jitter, counts), np.concatenate(seeds) if seeds else np.empty(0), s=6,
+                   color=colors[arm], alpha=0.6, lw=0)
     ax.set_xlabel("bin")
     ax.set_ylabel("failure rate")
     ax.set_ylim(bottom=0)

@@ -26,6 +26,7 @@ start_command(__spec__.name)  # first: the working directory off sys.path, MUJOC
 
 import argparse
 import json
+import math
 import os
 import platform
 import sys
@@ -33,9 +34,14 @@ import tempfile
 import time
 from importlib.metadata import version
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+from bmimic.cli.deferred import import_on_first_use
+
+if TYPE_CHECKING:
+    import torch
+else:  # `--help` and the argument checks need no torch (2.8 s of a 2-core machine's start-up)
+    torch = import_on_first_use("torch", globals())
 
 from bmimic import BmimicError
 from bmimic.cli.common import path_arg
@@ -289,7 +295,7 @@ def read_multigpu_rows(path: str | os.PathLike) -> list[dict]:
     if not path.exists():
         return []
     try:
-        rows = safe_read.read_json(path)
+        rows = safe_read.read_json(path, finite=True)  # Infinity would pass `> 0`, then be written back as null
     except (OSError, ValueError) as e:
         raise BmimicError(f"{path}: not readable as JSON ({e})") from None
     if not isinstance(rows, list):
@@ -313,6 +319,10 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
     rows = {(r["gpus"], r["num_envs_per_gpu"]): r for r in read_multigpu_rows(path)}
     for r in new_rows:
         rows[(int(r["gpus"]), int(r["num_envs_per_gpu"]))] = r
+    bad = [r for r in rows.values() if not (math.isfinite(float(r["env_steps_per_s"])) and r["env_steps_per_s"] > 0)]
+    if bad:  # a measurement that is not a positive finite rate is never written (JSON would say null)
+        raise BmimicError(f"{path}: not written: env_steps_per_s {bad[0]['env_steps_per_s']} measured with "
+                          f"{bad[0]['gpus']} GPU(s) x {bad[0]['num_envs_per_gpu']} envs is not a positive finite rate")
     one_gpu = {n: r["env_steps_per_s"] for (g, n), r in rows.items() if g == 1}
     out = []
     for g, n in sorted(rows, key=lambda k: (k[1], k[0])):

@@ -41,7 +41,8 @@ MAX_LINES = 400
 
 ENTRY_POINTS = ("bmimic.train", "bmimic.race", "bmimic.eval", "bmimic.play", "bmimic.bench", "bmimic.export", "bmimic.state",
                 "bmimic.sim2sim",
-                "bmimic.launch", "bmimic.motion.convert", "analysis.report", "analysis.index")
+                "bmimic.launch", "bmimic.motion.convert", "bmimic.motion.example", "analysis.report", "analysis.index",
+                "analysis.headline", "analysis.bench_index", "analysis.races", "analysis.race_whole_clip", "analysis.compact")
 """The command lines (`python -m <name>`); a package entry point (sim2sim) is all of its modules."""
 
 COMPOSITION_ROOT = "bmimic.task"

@@ -11,7 +11,7 @@ same budgets are what the studies are for. Torch-free, except the device resolut
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from bmimic import BmimicError
 from bmimic.training.config import launch_end_iteration
@@ -72,22 +72,24 @@ def describe_sizes(cfgs: Sequence[Any]) -> str:
     return f"{largest}{c.max_iterations} iterations x {c.num_envs} envs x {c.ppo.num_steps_per_env} steps"
 
 
-def check_sweep(jobs: Sequence[Any]) -> None:
+def check_sweep(jobs: Sequence[Any], resolve: Callable[[str], str] | None = None) -> None:
     """A multirun's jobs (bmimic.sweeping.jobs.Job, each with its composed config), resolved for this
     machine, refused together (BudgetError) when their CPU training would exceed max_cpu_hours; jobs
-    already done are not counted. bmimic.launch_guard calls it before any job runs."""
+    already done are not counted. bmimic.launch_guard calls it before any job runs. `resolve`: the device
+    resolution (default bmimic.runtime.resolve_device, which imports torch; a dry run passes guess_device)."""
     from omegaconf import OmegaConf
 
     from bmimic.config import resolve_runtime
     from bmimic.runtime import resolve_device
 
+    resolve = resolve or resolve_device
     cfgs: list = []
     devices: dict = {}
     for job in jobs:
         if job.config is None or job.status == "done":
             continue
         requested = str(job.config.device)
-        device = devices.setdefault(requested, resolve_device(requested))
+        device = devices.setdefault(requested, resolve(requested))
         if device == "cpu":
             cfg = OmegaConf.create(OmegaConf.to_container(job.config, resolve=True))
             resolve_runtime(cfg, device)

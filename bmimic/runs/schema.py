@@ -1,6 +1,6 @@
 """The run record's contract: the columns of every run table, with units and labels, the metrics.json
-keys, the mastery rule and the logistics keys. Producers (training, `bmimic.eval`, sim2sim) and
-readers (evaluation's report, the analysis) spell these names through this module only.
+keys, the mastery rule, the logistics keys and the budget keys. Producers (training, `bmimic.eval`,
+sim2sim) and readers (evaluation's report, the analysis) spell these names through this module only.
 
 File names are `bmimic.runs.folder`'s; this module says what the files hold. It is torch-free and imports
 nothing heavy (the analysis imports it without torch; sim2sim, numpy only, imports it too).
@@ -256,8 +256,14 @@ def counts_as_mastered(per_bin: "pd.DataFrame", threshold: float = MASTERED_BELO
 
 
 # --------------------------------------------------------------------------------------------- logistics
+BUDGET_KEYS = ("max_iterations", "num_envs", "time_limit_s")
+"""The one set of config keys that say how much a run trains (iterations, worlds per iteration, wall
+time): its results depend on them, yet no sweep makes arms of them (they stay out of job folder names),
+so runs that differ in them are not one study's arms (a smoke run of 4 iterations is not a seed of a
+10,000-iteration study). The analysis refuses to compare them (analysis.inputs) and lists them in a
+sweep's index.csv; a resume may change all but num_envs (bmimic.training.resume.RESUME_BUDGET_KEYS)."""
 LOGISTICS_KEYS = ("seed", "sweep_name", "run_name", "device", "resume", "sweep", "+sweep", "logger", "progress_bar",
-                  "max_iterations", "num_envs", "time_limit_s", "eval.every_iters", "ppo.save_interval",
+                  *BUDGET_KEYS, "eval.every_iters", "ppo.save_interval",
                   "wandb_project", "verbose", "data.lafan_dir", "resume_allow_changes", "max_cpu_hours",
                   "stop_at_iteration")
 """Override keys that are budgets or logistics, not arms: they stay out of a sweep job's folder name
@@ -279,11 +285,12 @@ then its episode columns: the condition, the clip and the rollout's index in it,
 clip's last frame, when it failed (seconds into the clip; NaN if it did not), whether that was a start
 transient (within START_TRANSIENT_S), and the pushes it took."""
 
-__all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "EE_POS_ERR_MM", "JOINT_POS_ERR_RAD",
-           "JOINT_VEL_ERR_RADPS", "CLIP_ROLLOUT_COLUMNS", "CLIP_TIME_S", "CONDITION", "Column", "ENV_STEPS",
-           "EPISODE_COLUMNS", "ERROR_COLUMNS", "EVAL_SUMMARY_KEYS", "FAILURE_RATE", "FINAL_METRICS", "HORIZON_TRUNCATED",
-           "ITERATION", "LABELS", "LOGISTICS_KEYS", "MASTERED_BELOW", "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND",
-           "REPORTED_ERRORS", "RUN_METRICS", "SMOOTHNESS", "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE",
-           "TRACKED_THROUGH", "TRACKING_ERRORS", "WALL_TIME_S", "WHOLE_CLIP_COLUMNS", "WHOLE_CLIP_CONDITIONS",
-           "WHOLE_CLIP_FAILURE_COLUMNS", "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS",
+__all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "BUDGET_KEYS", "EE_POS_ERR_MM",
+           "JOINT_POS_ERR_RAD", "JOINT_VEL_ERR_RADPS", "CLIP_ROLLOUT_COLUMNS", "CLIP_TIME_S", "CONDITION",
+           "Column", "ENV_STEPS", "EPISODE_COLUMNS", "ERROR_COLUMNS", "EVAL_SUMMARY_KEYS", "FAILURE_RATE",
+           "FINAL_METRICS", "HORIZON_TRUNCATED", "ITERATION", "LABELS", "LOGISTICS_KEYS", "MASTERED_BELOW",
+           "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND", "REPORTED_ERRORS", "RUN_METRICS", "SMOOTHNESS",
+           "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE", "TRACKED_THROUGH", "TRACKING_ERRORS",
+           "WALL_TIME_S", "WHOLE_CLIP_COLUMNS", "WHOLE_CLIP_CONDITIONS", "WHOLE_CLIP_FAILURE_COLUMNS",
+           "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS",
            "WHOLE_CLIP_SURVIVAL_COLUMNS", "counts_as_mastered", "summary_key", "whole_clip_key"]

@@ -25,6 +25,7 @@ from bmimic.runs.folder import (
     read_resolved_config,
     read_status,
 )
+from bmimic.runs.schema import BUDGET_KEYS
 from bmimic.training.checkpoints import is_latest, load_checkpoint_file, load_newest_intact
 
 LAUNCH_KEYS = ("resume", "resume_allow_changes")
@@ -34,10 +35,17 @@ RESULT_NEUTRAL_KEYS = (*LAUNCH_KEYS, "device", "progress_bar", "verbose", "logge
                        "run_name", "sweep_name", "ppo.save_interval", "data.lafan_dir", "stop_at_iteration")
 """Keys that say where and how a run is launched and logged, never what it trains or for how long:
 runs that differ only in these are the same job (bmimic.sweeping.jobs)."""
-BUDGET_KEYS = ("max_iterations", "time_limit_s", "eval.every_iters")
+FIXED_BUDGET_KEYS = ("num_envs",)
+"""Budget keys (runs.schema.BUDGET_KEYS) a resume keeps unless resume_allow_changes names them: the
+number of worlds changes what each iteration trains on, not only for how long."""
+EVAL_CADENCE_KEYS = ("eval.every_iters",)
+"""How often a run is evaluated: not how much it trains (so not a budget key), but its tables depend
+on it, and a resume may change it (to evaluate the rest of a run more or less often)."""
+RESUME_BUDGET_KEYS = (*(k for k in BUDGET_KEYS if k not in FIXED_BUDGET_KEYS), *EVAL_CADENCE_KEYS)
 """How long a run trains and how often it is evaluated: its results depend on them (a smoke run of 4
 iterations is not a study's job), but a resume may change them (to extend a run)."""
-RESUME_FREE_KEYS = tuple(k for k in (*RESULT_NEUTRAL_KEYS, *BUDGET_KEYS) if k not in ("verbose", "data.lafan_dir"))
+RESUME_FREE_KEYS = tuple(k for k in (*RESULT_NEUTRAL_KEYS, *RESUME_BUDGET_KEYS)
+                         if k not in ("verbose", "data.lafan_dir"))
 """Keys a resume may change without naming them in resume_allow_changes: where and how long to run
 and how to log, not what is trained. Changes are still recorded in resumes.json."""
 

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from bmimic import BmimicError
+from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     DATA_FOLDER_NAME,
     checkpoint_path,
@@ -209,7 +210,8 @@ def _last_trained(run_dir: Path) -> int | None:
     import pandas as pd
 
     try:
-        iterations = pd.read_parquet(table_path(run_dir, "train_metrics"), columns=[ITERATION])[ITERATION]
+        path = safe_read.regular_file(table_path(run_dir, "train_metrics"), run_dir)  # never a FIFO or device
+        iterations = pd.read_parquet(path, columns=[ITERATION])[ITERATION]
     except Exception:  # noqa: BLE001 - absent or damaged: the record cannot carry the state
         return None
     return int(iterations.max()) if len(iterations) else None

@@ -867,3 +867,14 @@ def test_the_hardest_clips_curves_follow_the_planted_failures_hardest_first():
     fig = plot_hardest_clips(curves)
     assert [ax.get_title() for ax in fig.axes if ax.get_visible()] == ["c", "a"]
     assert hardest_clip_curves(eval_df.assign(clip="a"), clip_tab).empty  # one clip: no figure
+
+
+def test_a_smoke_scale_report_says_so_in_its_title_and_a_study_does_not(report, speedup_report):
+    """The planted sweep's runs stop before iteration 100 (a pipeline check); the speedup sweep's run to 150."""
+    from analysis.report_views import REPORT_TITLE, SMOKE_ITERATIONS
+
+    smoke = (report / "report.md").read_text().splitlines()
+    assert smoke[0] == f"{REPORT_TITLE} (smoke scale: not a result)"
+    assert smoke[2].startswith("**Smoke scale.**") and str(SMOKE_ITERATIONS) in smoke[2]
+    study = (speedup_report / "report.md").read_text()
+    assert study.splitlines()[0] == REPORT_TITLE and "Smoke scale" not in study

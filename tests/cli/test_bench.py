@@ -58,6 +58,28 @@ def test_multigpu_rows_merge_and_scale_against_one_gpu(tmp_path):
     assert set(rows[0]) == {"gpus", "num_envs_per_gpu", "env_steps_per_s", "scaling"}
 
 
+@pytest.mark.parametrize("value", ["Infinity", "NaN", "-Infinity", "1e999"])
+def test_multigpu_json_with_a_number_that_is_not_finite_is_refused_untouched(tmp_path, capsys, value):
+    """Issue 77: `Infinity` passed the `> 0` check, was written back as null, and the next read refused it."""
+    from bmimic import BmimicError
+    from bmimic.bench import main, merge_multigpu_rows, read_multigpu_rows
+
+    path = tmp_path / "multigpu.json"
+    text = f'[{{"gpus": 1, "num_envs_per_gpu": 2, "env_steps_per_s": {value}, "scaling": 1.0}}]'
+    path.write_text(text)
+    with pytest.raises(BmimicError, match="not finite"):
+        read_multigpu_rows(path)
+    assert main(["--multigpu-json", str(path), "--device", "cpu", "--envs", "2", "--iters", "1"]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"error: {path}: ") and "not finite" in line
+    assert path.read_text() == text
+    # and a measurement that is not a positive finite rate is never written (JSON would hold null)
+    fresh = tmp_path / "fresh.json"
+    with pytest.raises(BmimicError, match="not a positive finite rate"):
+        merge_multigpu_rows(fresh, [{"gpus": 2, "num_envs_per_gpu": 2, "env_steps_per_s": math.inf}])
+    assert not fresh.exists()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("text", ["{not json", '{"gpus": 1}', '[{"gpus": 0, "num_envs_per_gpu": 2, '
                                   '"env_steps_per_s": 1.0, "scaling": null}]'])

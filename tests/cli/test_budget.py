@@ -96,3 +96,12 @@ def test_a_time_limit_caps_the_estimate_and_the_run_trains(tmp_path):
                           f"hydra.run.dir={tmp_path / 'run'}")
     assert code == 0, out[-3000:]
     assert (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_the_dry_runs_device_guess_is_cpu_where_no_gpu_shows(monkeypatch):
+    """launch list's torch-free guess: what it names stays, auto is the CPU where every GPU is hidden."""
+    from bmimic.runtime import guess_device
+
+    assert guess_device("cpu") == "cpu" and guess_device("cuda:1") == "cuda:1"
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert guess_device("auto") == "cpu"

@@ -4,6 +4,7 @@ file (bmimic.state) carries a job into a fresh run folder, with its bad inputs r
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -115,8 +116,9 @@ def test_state_file_carries_a_job_to_a_new_folder(legs, tmp_path):
     for k, v in full["actor_state_dict"].items():  # the weights stay exact
         assert torch.equal(saved["actor_state_dict"][k], v)
     # the next sitting: the committed record (no checkpoints) in a fresh folder, the state restored into it
-    sitting = tmp_path / "sitting"
+    sitting = root / "sitting_carried"  # under the launch's working directory, as a study's outputs/ are
     shutil.copytree(split, sitting, ignore=shutil.ignore_patterns("checkpoints", ".lock*"))
+    compact(sitting)  # as committed: no hydra.yaml, portable paths
     out = state_cli(["restore", str(state), str(sitting)], cwd=root)
     assert out.returncode == 0, out.stderr
     restored = torch.load(sitting / "checkpoints" / "latest.pt", weights_only=True)
@@ -130,10 +132,32 @@ def test_state_file_carries_a_job_to_a_new_folder(legs, tmp_path):
     train([*BASE, "max_iterations=6", f"hydra.run.dir={sitting}", "resume=true"], cwd=root)
     assert list(pd.read_parquet(sitting / "train_metrics.parquet")["iteration"]) == list(range(6))
     assert torch.load(sitting / "checkpoints" / "latest.pt", weights_only=True)["iter"] == 6
+    # the resumed record compacts to a portable one again (the resume's own hydra.yaml names this machine's
+    # folders): no folder of this machine stays a record's value (the legs' command lines name theirs)
+    again = tmp_path / "again"
+    shutil.copytree(sitting, again, ignore=shutil.ignore_patterns("checkpoints", ".lock*", "train.log"))
+    compact(again)
+    assert not [(p.name, v) for p in again.rglob("*.json") for v in strings(json.loads(p.read_text()))
+                if v.startswith(str(root))]
     # the state may replace its own earlier version, never another job's or a foreign file
     out = state_cli(["save", str(sitting), str(state)], cwd=root)
     assert out.returncode == 0, out.stderr
     assert torch.load(state, weights_only=True)["iter"] == 6
+
+
+def strings(tree):
+    """Every string value of a JSON tree."""
+    if isinstance(tree, dict):
+        return [s for v in tree.values() for s in strings(v)]
+    if isinstance(tree, list):
+        return [s for v in tree for s in strings(v)]
+    return [tree] if isinstance(tree, str) else []
+
+
+def compact(folder):
+    out = subprocess.run([sys.executable, "-m", "analysis.compact", str(folder)], capture_output=True, text=True,
+                         timeout=300, env=cli_env())
+    assert out.returncode == 0, out.stderr
 
 
 def refused(args, cwd, *needles):
