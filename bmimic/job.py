@@ -49,6 +49,7 @@ from bmimic.task import (
     check_num_envs_fit,
 )
 from bmimic.training.interrupts import StopNow, StopSignals, TrainingInterrupted
+from bmimic.training.logger import done_line, final_evaluation_line
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
 from bmimic.training.schedule import whole_clip_wanted
 from bmimic.training.session import RunContext, commit, record_failure
@@ -230,11 +231,15 @@ def learn_and_evaluate(trainer, task, place: Placement, stop: StopSignals | None
             return final, robust
         with rng_untouched():  # drawing nothing of training's: a pause here resumes as one unbroken run
             final = trainer.progress.last_eval
+            windows = trainer.record.last_iteration("eval") != trainer.progress.iteration
+            if place.main_rank:  # (tens of seconds on a CPU that nothing else would account for)
+                log.info(final_evaluation_line(windows, cfg.eval.robust, trainer.whole_clip is not None and
+                                               cfg.eval.whole_clip.at_end))
             # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
             # their graphs and leave the process group meanwhile, and return NaN.
             if not place.main_rank:
                 final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
-            elif trainer.record.last_iteration("eval") != trainer.progress.iteration:
+            elif windows:
                 # (a resume of a run that reached max_iterations already holds its final evaluation)
                 final = trainer.evaluate()
             robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
@@ -276,11 +281,7 @@ def finish_job(cfg: PlacedConfig, trainer, task, place: Placement, run_dir: Path
     write_status(run_dir, "done", trainer.progress.iteration)
     broken = sum(trainer.total_resets.values())
     overflow = trainer.overflow_world_steps
-    log.info("done: %d iterations, %.0f s, eval failure rate %.3f%s%s -> %s", metrics["iterations"],
-             metrics[WALL_TIME_S], metrics["final_eval_failure_rate"],
-             f"; {broken} broken world-steps were reset" if broken else "",
-             f"; {overflow} world-steps overflowed the contact/constraint buffers (raise sim.nconmax / sim.njmax)"
-             if overflow else "", run_dir)
+    log.info("%s", done_line(metrics, WALL_TIME_S, run_dir, broken, overflow))
     if not sweep_job:  # a sweep's closing line names the report instead (bmimic.sweeping.outcomes)
         folder = shell_arg(run_dir)  # pasted back into a shell: a folder with a space stays one argument
         log.info("next: bmimic-eval %s (evaluate), bmimic-report %s (report)%s", folder, folder,
@@ -326,8 +327,8 @@ def record_values(record: dict[str, str] | None, composed: dict, resolved: dict)
 
 
 def check_config(cfg: DictConfig) -> None:
-    """bmimic.config.check_composed with Hydra's group choices (no device, no motion needed)."""
-    check_composed(cfg, HydraConfig.get().runtime.choices if HydraConfig.initialized() else None)
+    """bmimic.config.check_composed with Hydra's group choices (no device; a library's files, not loaded)."""
+    check_composed(cfg, HydraConfig.get().runtime.choices if HydraConfig.initialized() else None, motion_files=True)
 
 
 def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
@@ -380,8 +381,7 @@ def launch(cfg: DictConfig, stop_rule: Callable | None = None) -> float:
         sys.exit(e.exit_code)
     except user_errors() as e:
         message = first_line(e)
-        record_failure(ctx, multirun, message)
-        if process_rank() == 0:  # under torchrun every rank refuses alike: one line
+        if record_failure(ctx, multirun, message, error=e):  # rank 0's line, or a rank's own rendezvous
             print(f"error: {message}", file=sys.stderr)
         if multirun:
             return math.nan

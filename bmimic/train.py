@@ -28,6 +28,7 @@ from bmimic import CONF_DIR
 from bmimic.cli.common import first_line, shell_arg
 from bmimic.cli.extras import MissingExtraError, check_launcher
 from bmimic.config import ConfigError, check_hydra_flags, check_overrides, config_loader
+from bmimic.config.sources import check_config_source
 
 
 # An absolute config path: the console script imports this module, for which Hydra would otherwise look for
@@ -60,7 +61,7 @@ def inspect_sweep_argv(argv: list[str]) -> list[str]:
         for i, job in enumerate(jobs):
             print(f"#   job {i}: {' '.join(map(shell_arg, job))}")
     rest = [a for a in argv[1:] if a not in ("-m", "--multirun", *args.overrides)]
-    return [argv[0], *rest, *jobs[0]]
+    return [argv[0], *jobs[0], *rest]  # overrides first: a flag with an optional value (--info) never takes one
 
 
 def help_text(argv: list[str]) -> str | None:
@@ -91,6 +92,7 @@ def cli() -> None:
     try:
         _, world, _ = torchrun_env()  # torchrun's variables, before Hydra claims a folder with them
         rendezvous_timeout_s()
+        check_config_source(sys.argv[1:])  # -cp/-cn/-cd that name nothing: Hydra's block and exit 1 otherwise
         check_launcher(sys.argv[1:])  # before Hydra composes the launcher's config, which fails unnamed
         # Hydra's own report of overrides that do not compose is a 5-7 line block and exit 1, and it
         # suggests `+key=...` for a typo; bmimic names the override in one line (exit 2).

@@ -49,6 +49,10 @@ SKIP = [
     (r"^sbatch ", "needs SLURM (tests/training/test_distributed.py runs the script with a stub srun)"),
     (r"--model my_g1\.xml", "my_g1.xml stands for the user's own MJCF"),
     (r"^export BMIMIC_LAFAN_DIR=/data/", "a placeholder path: the tests read $BMIMIC_LAFAN_DIR when it is set"),
+    (r"\+sweep=my_study|outputs/sweeps/my_study", "the README's own study needs its sweep file, which tests/cli/test_own_study.py "
+                                                  "writes from the README's yaml block and runs end to end"),
+    (r"library_run|lafan36_whole", "the committed library policy: tests/cli/test_library_policy.py restores, evaluates "
+                                    "and exports it (from the repository, not this temporary folder)"),
     (r"bmimic\.race|bmimic-race", "a race trains until its thresholds (minutes on a GPU); tests/cli/test_race.py runs "
                                   "a tiny one on the CPU"),
 ]

@@ -159,6 +159,9 @@ def start_summary(cfg, requested_device: str, world: int, smoke: bool, motion, l
     ranks = f" per rank, {world} ranks" if world > 1 else ""
     title = ("no GPU: this is a smoke-scale run through the whole pipeline; on a GPU the same command "
              "trains for real" if smoke else "training")
+    # the silence until the first iteration is the simulator's build: say so before it starts
+    building = ("building the simulator and the policy (its kernels compile on a machine's first run and are "
+                "cached; a GPU also captures its graphs) ...")
     return summary_block(title, [
         ("device", f"{cfg.device} (requested {requested_device})"),
         ("envs", f"{cfg.num_envs}{ranks}"),
@@ -168,4 +171,4 @@ def start_summary(cfg, requested_device: str, world: int, smoke: bool, motion, l
         ("bins", layout.describe()),
         ("sampler", variant if variant == cfg.sampler.name else f"{variant} ({cfg.sampler.name})"),
         ("run folder", str(run_dir)),
-    ])
+    ]) + "\n" + building

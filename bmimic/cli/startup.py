@@ -18,6 +18,16 @@ bmimic.sim2sim, analysis) import nothing else before it runs, or call `leave_wor
 
 import os
 import sys
+import time  # built into the interpreter: no file can shadow it
+
+STARTED_S = time.monotonic()
+"""When this process imported its first bmimic module, as near to the command's start as a module sees
+(a run's done line gives the whole command's wall time from it, not training alone)."""
+
+
+def command_wall_s() -> float:
+    """Seconds since this process started its command (STARTED_S)."""
+    return time.monotonic() - STARTED_S
 
 
 def python_m_module() -> str | None:

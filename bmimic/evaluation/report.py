@@ -58,7 +58,9 @@ def format_report(result: EvalResult) -> str:
               f"bins mastered (failure rate < 0.1; a horizon-truncated bin only when tracked through): "
               f"{s['eval_bins_mastered_frac']:.2f}",
               "failures are charged to the bin (segment) where they happened, per visit; "
-              "* = horizon-truncated (its episodes reach the clip end before the horizon)"]
+              "* = horizon-truncated (its episodes reach the clip end before the horizon)",
+              "(bmimic-report's Segments table counts otherwise, failed / started episodes by the segment an episode "
+              "started in, and reads training's evaluations: its segment figures differ from these)"]
     if result.out_dir is not None:
         lines.append(f"tables: {result.out_dir}")
     return "\n".join(lines)

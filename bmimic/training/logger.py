@@ -66,6 +66,7 @@ class RunLogger:
         self.wandb_project = wandb_project
         self.progress_bar = progress_bar and enabled and sys.stderr.isatty()  # tqdm redraws a terminal line
         self._line_every, self._end_it = 10, 0
+        self._paced, self._start_it = True, 0  # start() arms the pace line
         self.enabled = enabled
         self.writer: Any = None
         self._opened = False
@@ -90,6 +91,8 @@ class RunLogger:
         """The training loop begins (a progress bar from `start_it` to `end_it`)."""
         self.open()
         self._line_every, self._end_it = line_every(end_it - start_it), end_it
+        self._paced = end_it - start_it < 3  # a pace line needs a steady iteration and one after it
+        self._start_it = start_it
         if self.progress_bar and end_it > start_it:
             from tqdm import tqdm
 
@@ -118,7 +121,15 @@ class RunLogger:
             self._bar.set_postfix(ep_len=f"{row['mean_episode_length']:.0f}", reward=f"{row['mean_reward']:.2f}",
                                   fps=f"{row['fps']:.0f}", **({"broken_worlds": int(broken_so_far)}
                                                               if broken_so_far else {}))
-        elif self.enabled and ((it + 1) % self._line_every == 0 or it + 1 == self._end_it):
+            return  # (the bar shows its own pace and ETA)
+        if not self.enabled:
+            return
+        if not self._paced and it == self._start_it + 1:
+            self._paced = True
+            iteration_s = row.get("collection_time_s", math.nan) + row.get("learning_time_s", math.nan)
+            if math.isfinite(iteration_s):
+                log.info(pace_line(iteration_s, self._end_it - it - 1))
+        if (it + 1) % self._line_every == 0 or it + 1 == self._end_it:
             log.info("iteration %d/%d: episode length %.1f, reward %.3f, failure rate %.3f, lr %.1e, %.0f steps/s",
                      it + 1, self._end_it, row["mean_episode_length"], row["mean_reward"], row[FAILURE_RATE],
                      row["learning_rate"], row["fps"])
@@ -182,3 +193,32 @@ class _WandbWriter:
     def close(self) -> None:
         """Finish the W&B run."""
         self.run.finish()
+
+
+def pace_line(iteration_s: float, left: int) -> str:
+    """The estimate a run gives once its second iteration is timed (its first may hold one-time work:
+    torch's first calls, graph capture): the iterations `left` at that pace, training alone."""
+    total = iteration_s * left
+    when = f"{total / 3600:.1f} h" if total >= 5400 else f"{total / 60:.0f} min" if total >= 90 else f"{total:.0f} s"
+    return (f"pace: {iteration_s:.2f} s per iteration; the {left} iterations left take about {when} of training "
+            "(evaluations come on top)")
+
+
+def done_line(metrics: dict, wall_key: str, run_dir, broken: int, overflow: int) -> str:
+    """A run's closing line: its iterations, training's seconds (over every launch of a resumed run) and this
+    whole command's, the final failure rate, the world-steps reset or overflowed."""
+    from bmimic.cli.startup import command_wall_s
+
+    return (f"done: {metrics['iterations']} iterations, {metrics[wall_key]:.0f} s of training in all (a resumed run's "
+            f"launches together; {command_wall_s():.0f} s this whole command), eval failure rate "
+            f"{metrics['final_eval_failure_rate']:.3f}"
+            + (f"; {broken} broken world-steps were reset" if broken else "")
+            + (f"; {overflow} world-steps overflowed the contact/constraint buffers (raise sim.nconmax / sim.njmax)"
+               if overflow else "") + f" -> {run_dir}")
+
+
+def final_evaluation_line(windows: bool, robust: bool, whole_clips: bool) -> str:
+    """What a run evaluates after its last iteration, said before it starts."""
+    kinds = [name for name, on in (("the windows", windows), ("the windows under pushes and noise", robust),
+                                   ("the whole clips", whole_clips)) if on]
+    return "final evaluation: " + (", then ".join(kinds) if kinds else "none due (the last iteration's stands)")

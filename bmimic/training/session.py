@@ -19,6 +19,7 @@ from typing import Any, TextIO
 from bmimic.runs.claim import RunClaim
 from bmimic.runs.claim import current as current_claim
 from bmimic.runs.folder import (
+    HYDRA_DIR,
     LOCK,
     RESOLVED_CONFIG,
     RunLockedError,
@@ -36,7 +37,7 @@ from bmimic.runs.folder import (
     write_status,
 )
 from bmimic.runs.schema import ITERATION
-from bmimic.runtime import process_rank, provenance
+from bmimic.runtime import DistributedSetupError, process_rank, provenance
 from bmimic.training.resume import RunPlan
 
 log = logging.getLogger("bmimic.train")
@@ -100,6 +101,10 @@ def commit(ctx: RunContext, plan: RunPlan, resolved: dict, device: str, changes:
             write_resolved_config(run_dir, resolved)
         if not has_hydra_record(run_dir):
             write_hydra_record(run_dir, ctx.hydra_record)
+        elif ctx.hydra_record and not (run_dir / HYDRA_DIR / "hydra.yaml").is_file():
+            # a record compacted elsewhere (analysis.compact drops hydra.yaml) and resumed here: this launch's
+            # names this machine's folders, so that compacting the record again makes them portable
+            write_hydra_record(run_dir, {"hydra.yaml": ctx.hydra_record["hydra.yaml"]})
         if changes:
             log.info("resume: accepted config changes %s (recorded in resumes.json)",
                      ", ".join(f"{k}: {json.dumps(a, default=str)} -> {json.dumps(b, default=str)}"
@@ -128,11 +133,15 @@ def note_previous_attempt(run_dir: str | os.PathLike, status: dict) -> None:
                                   f"(updated {status.get('updated')}), with a checkpoint there; resuming")
 
 
-def record_failure(ctx: RunContext, multirun: bool, message: str, details: str = "") -> None:
+def record_failure(ctx: RunContext, multirun: bool, message: str, details: str = "",
+                   error: BaseException | None = None) -> bool:
     """Record a failed attempt where it cannot damage anything: in the run once committed; before
     that only in a sweep job folder without checkpoints that is not done; a single run's launch
-    removes what it created. Never raises for a write the disk refuses (the failure being recorded
-    may be that very disk being full): status.json is rewritten in place, the error log is skipped."""
+    removes what it created (under torchrun a rank other than 0 what its Hydra made, when rank 0 never
+    wrote there). Never raises for a write the disk refuses (the failure being recorded may be that
+    very disk being full): status.json is rewritten in place, the error log is skipped. Returns whether
+    this process says the error: rank 0 does (every rank refuses a config alike), and any rank its own
+    torchrun rendezvous (`error`), which only it knows."""
     try:
         if ctx.run_dir is not None:
             write_status(ctx.run_dir, "failed", read_status(ctx.run_dir).get(ITERATION, 0) or 0, error=message)
@@ -150,8 +159,11 @@ def record_failure(ctx: RunContext, multirun: bool, message: str, details: str =
         elif process_rank() == 0:  # under torchrun, rank 0 owns the folder
             ctx.discard()
             ctx.release()
+        elif ctx.claim is not None:
+            ctx.claim.release_observed()
     except OSError as e:
         log.warning("could not record the failure: %s", e)
+    return process_rank() == 0 or isinstance(error, DistributedSetupError)
 
 
 def move_file_logs(src_dir: Path, dst_dir: Path, claim: RunClaim | None = None) -> None:

@@ -142,7 +142,9 @@ def test_eval_summary_matches_the_tables(run_eval, tiny_run):
 def test_eval_of_a_checkpoint_path_reproduces_the_run_eval(run_eval, tiny_run, tmp_path, capsys):
     ckpt = tiny_run / "checkpoints" / "model_1.pt"  # same weights as latest.pt
     assert bm_eval.main([str(ckpt), *EVAL_FLAGS, "--out", str(tmp_path)]) == 0
-    assert "overall:" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    # issue 75: eval's and report's segment figures differ by design; the eval says so where it prints them
+    assert "overall:" in out and "failed / started episodes by the segment an episode started in" in out
     summary = json.loads((tmp_path / "eval_summary.json").read_text())
     assert summary["checkpoint"] == str(ckpt.resolve()) and summary["label"] == "model_1"
     bins = pd.read_parquet(tmp_path / "eval_bins.parquet")

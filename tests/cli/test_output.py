@@ -15,7 +15,14 @@ from omegaconf import OmegaConf
 from bmimic.eval import EarlierEvaluationError, keep_earlier
 from bmimic.runs.folder import EVAL_DIR, EVAL_SUMMARY, SIM2SIM_DIR
 from bmimic.sweeping.outcomes import OUTCOMES_ENV, SweepOutcomesCallback, record_job_outcome
-from bmimic.training.logger import LINES_PER_RUN, RunLogger, line_every
+from bmimic.training.logger import (
+    LINES_PER_RUN,
+    RunLogger,
+    done_line,
+    final_evaluation_line,
+    line_every,
+    pace_line,
+)
 
 
 @pytest.mark.parametrize(("iterations", "every"), [(1, 1), (4, 1), (50, 1), (51, 2), (101, 5), (1000, 20),
@@ -28,7 +35,8 @@ def test_log_lines_are_at_most_50_a_run_at_round_intervals(iterations, every):
 def test_without_a_terminal_the_log_gets_lines_not_a_progress_bar(tmp_path, caplog, capsys):
     logger = RunLogger("none", tmp_path, "r", progress_bar=True)  # pytest's stderr is no terminal
     row = {"nonfinite_resets": 0, "out_of_bounds_resets": 0, "overflow_worlds": 0, "mean_episode_length": 10.0,
-           "mean_reward": 0.5, "failure_rate": 0.1, "learning_rate": 1e-3, "fps": 100.0}
+           "mean_reward": 0.5, "failure_rate": 0.1, "learning_rate": 1e-3, "fps": 100.0,
+           "collection_time_s": 2.0, "learning_time_s": 0.5}
     with caplog.at_level(logging.INFO, logger="bmimic.training.logger"):
         logger.start(0, 120)
         for it in range(120):
@@ -36,6 +44,9 @@ def test_without_a_terminal_the_log_gets_lines_not_a_progress_bar(tmp_path, capl
         logger.close()
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("iteration ")]
     assert [int(re.match(r"iteration (\d+)/120", m).group(1)) for m in lines] == [*range(5, 121, 5)]
+    # once, after the second iteration: its seconds times the 118 left (issue 75: an estimate from a measured iteration)
+    assert [r.getMessage() for r in caplog.records if r.getMessage().startswith("pace: ")] == [
+        "pace: 2.50 s per iteration; the 118 iterations left take about 5 min of training (evaluations come on top)"]
     assert "\r" not in capsys.readouterr().err  # no tqdm frames
 
 
@@ -115,3 +126,17 @@ def test_on_a_terminal_the_progress_bar_shows(tmp_path, monkeypatch):
     assert logger._bar is not None  # tqdm's bar, redrawn on the terminal line
     logger.close()
     assert not RunLogger("none", tmp_path, "r", progress_bar=False).progress_bar
+
+
+def test_the_closing_lines_say_what_runs_and_how_long_the_command_took(monkeypatch):
+    import bmimic.cli.startup as startup
+
+    assert pace_line(0.5, 60) == "pace: 0.50 s per iteration; the 60 iterations left take about 30 s of training (evaluations come on top)"
+    assert "about 2.8 h" in pace_line(10.0, 1000)
+    assert final_evaluation_line(True, False, True) == "final evaluation: the windows, then the whole clips"
+    assert final_evaluation_line(False, False, False) == "final evaluation: none due (the last iteration's stands)"
+    monkeypatch.setattr(startup, "STARTED_S", startup.time.monotonic() - 95.2)
+    line = done_line({"iterations": 3, "wall_time_s": 53.4, "final_eval_failure_rate": 0.25}, "wall_time_s", "RUN", 0, 2)
+    assert line.startswith("done: 3 iterations, 53 s of training in all (a resumed run's launches together; 95 s "
+                           "this whole command), eval failure rate 0.250; "
+                           "2 world-steps overflowed") and line.endswith(" -> RUN")
