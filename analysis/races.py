@@ -242,8 +242,11 @@ def plot_races(evals: pd.DataFrame, figsize=(15.0, 7.0)) -> Figure:
         raise AnalysisError("no evaluations to draw (every race JSON has an empty 'evaluations' list)")
     fig = Figure(figsize=figsize, layout="constrained")
     axes = fig.subplots(2, len(CURVE_AXES), sharey="row")
-    keys = (evals["config"] + " (" + gpu_label(evals["gpu"], evals["gpus"]) + ", " + evals["date"] + ", eval every "
-            + evals["eval_every_iters"].astype(str) + ")").to_numpy()
+    # (each part as text, a missing one as "?": pandas' string columns keep None as missing, and a key that is
+    # missing has no colour)
+    every = ["?" if v is None or v != v else str(v) for v in evals["eval_every_iters"]]
+    keys = np.array([f"{c} ({g}, {d}, eval every {e})" for c, g, d, e in
+                     zip(evals["config"], gpu_label(evals["gpu"], evals["gpus"]), evals["date"], every)], dtype=object)
     colors = arm_colors(keys)
     seeds = sorted(evals["seed"].dropna().unique().tolist())
     floor = 1e-3  # failure 0 drawn at the floor: a log axis has no zero

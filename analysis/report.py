@@ -26,7 +26,7 @@ from analysis.files import write_csv, write_text
 from analysis.inputs import MIXED_FLAG, check_options
 from analysis.report_compute import compute, read_runs
 from analysis.report_files import write_files
-from analysis.report_views import REPORT_TITLE, body, header
+from analysis.report_views import REPORT_TITLE, body, header, schedule_section
 from analysis.tables import ReportOptions
 from bmimic.cli.common import path_arg
 from bmimic.runs import safe_read
@@ -65,7 +65,7 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     if data is None:
         md += ["No run has usable tables yet; nothing else to report."]
     else:
-        md += body(data, write_files(data, out), r.coverage)
+        md += schedule_section(r.runs, data.inputs.final_iteration) + body(data, write_files(data, out), r.coverage)
     write_text(out / "report.md", "\n".join(md) + "\n")
     return out
 

@@ -31,10 +31,13 @@ from analysis.markdown import (
 from analysis.metrics import SMOOTHNESS_METRICS
 from analysis.report_compute import Inputs, ReportData, Runs
 from analysis.stats import MIN_SEEDS_IQM
-from bmimic.runs.schema import BIN, JOINT_VEL_ERR_RADPS, MPKPE_REL_MM
+from bmimic.runs.schema import BIN, ITERATION, JOINT_VEL_ERR_RADPS, MPKPE_REL_MM
 
 REPORT_TITLE = "# bmimic report"
 """report.md's first line: how a later report knows the file in its --out folder is a report's, not a user's."""
+SMOKE_ITERATIONS = 100
+"""A report whose runs all stopped before this many PPO iterations is a pipeline check (a CPU smoke run
+is 4), not a result: its title and first line say so, so that its p-values are not read as findings."""
 TRACKING_HEADLINE = (MPKPE_REL_MM, JOINT_VEL_ERR_RADPS)
 """Tracking errors the Tracking quality section compares between arms in words (position and velocity
 tracking; the policy's smoothness is SMOOTHNESS_METRICS, compared in its own block)."""
@@ -76,7 +79,12 @@ def _baseline_note(inp: Inputs) -> str:
 def header(paths: list, r: Runs) -> list[str]:
     """The inputs, the definitions in force and the Runs section."""
     runs, opts, coverage = r.runs, r.opts, r.coverage
-    md = [REPORT_TITLE, "", f"Inputs: {', '.join(f'`{p}`' for p in paths)}  ",
+    done = (runs.loc[runs["included"], ITERATION] if "included" in runs else runs[ITERATION]).dropna()
+    smoke = len(done) > 0 and float(done.max()) < SMOKE_ITERATIONS  # (a status without an iteration says nothing)
+    title = [f"{REPORT_TITLE} (smoke scale: not a result)", "",
+             f"**Smoke scale.** Every run stopped before iteration {SMOKE_ITERATIONS}: this report checks the "
+             "pipeline; its numbers and tests say nothing about the samplers.", ""] if smoke else [REPORT_TITLE, ""]
+    md = [*title, f"Inputs: {', '.join(f'`{p}`' for p in paths)}  ",
           f"Mastery: per-visit bin failure < {opts.mastery_threshold:g} at "
           f"{plural(opts.mastery_persist, 'consecutive evaluation')} (or to the end of the run); success threshold: "
           f"overall success ≥ {opts.success_threshold:g} (the speedup curve covers 0.5–0.99). Failure unit: "
@@ -93,6 +101,40 @@ def header(paths: list, r: Runs) -> list[str]:
     if r.shared:
         md += [f"Arms are named by the overrides that differ between them; all share `{','.join(r.shared)}`.", ""]
     return md + runs_section(runs)
+
+
+def schedule_section(runs: pd.DataFrame, judged) -> list[str]:
+    """The arms whose sampler anneals over a schedule of its own (sampler.schedule_iterations: EGM's exponent and
+    uniform share) and whether it had finished at `judged`, the iteration the report reads: a peer read
+    mid-schedule is not the peer as its paper runs it (issue 76). Empty when no arm has one."""
+    used = runs[runs["included"]] if "included" in runs else runs
+    lines = []
+    for arm, group in used.groupby("arm", sort=True):
+        lengths = sorted({n for d in group["run_dir"] if isinstance(d, str) and (n := _schedule(d)) is not None})
+        if not lengths or judged is None:
+            continue
+        state = ("had finished" if judged >= lengths[-1] else
+                 f"had not finished: the report reads {judged / lengths[-1]:.0%} of the way through it")
+        lines.append(f"- `{arm}` anneals over {plural(lengths[-1], 'iteration')} (sampler.schedule_iterations"
+                     + (f"; its seeds' schedules: {', '.join(map(str, lengths))}" if len(lengths) > 1 else "")
+                     + f"); at iteration {fmt(judged)}, where this report reads it, its schedule {state}.")
+    return ["## Samplers with schedules of their own", "", *lines, ""] if lines else []
+
+
+def _schedule(run_dir: str) -> int | None:
+    """A run's sampler.schedule_iterations as it trained: the resolved config's, else the composed one's, where
+    null is the run's max_iterations (placement fills it so; a config holds null only since that rule); None
+    for a sampler without one."""
+    from analysis.run_files import config_value
+    from bmimic.runs.folder import read_hydra_config, read_resolved_config
+
+    for cfg in (read_resolved_config(run_dir) or {}, read_hydra_config(run_dir) or {}):
+        sampler = cfg.get("sampler")
+        if isinstance(sampler, dict) and "schedule_iterations" in sampler:
+            value = sampler["schedule_iterations"]
+            value = config_value(cfg, "max_iterations") if value is None else value
+            return int(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+    return None
 
 
 def _tracking(d: ReportData) -> list[str]:

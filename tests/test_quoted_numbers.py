@@ -204,22 +204,12 @@ def unsourced(checked: Checked) -> list[str]:
 # ------------------------------------------------------------------------------------------ the documents
 @functools.lru_cache(maxsize=1)
 def _readme_spans() -> tuple[tuple[int, int], ...]:
-    """Line spans of the README that quote results: the opening's "So far" paragraph, the Results
-    section, and the race and throughput paragraphs of the evaluation section."""
+    """Line spans of the README that quote results: its Results section (the generated table is held
+    equal to its records by tests/test_headline.py; the words around it are checked here)."""
     lines = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
-
-    def heading(title: str) -> int:
-        return lines.index(title) + 1
-
-    def paragraph(prefix: str) -> tuple[int, int]:
-        start = next(i for i, text in enumerate(lines, 1) if text.startswith(prefix))
-        end = next((i for i in range(start, len(lines)) if not lines[i].strip()), len(lines))
-        return start, end
-
-    results = heading("## Results")
+    results = lines.index("## Results") + 1
     after = next(i for i in range(results, len(lines)) if lines[i].startswith("## ")) + 1
-    return (paragraph("**So far**"), (results, after), paragraph("**Time to a finished policy**"),
-            paragraph("Throughput on one H100"))
+    return ((results, after),)
 
 
 def _readme_results(block: Block) -> bool:

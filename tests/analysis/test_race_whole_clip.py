@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import pytest
 
 from analysis.race_whole_clip import main, race_whole_clip
+from bmimic.runs.atomic_io import atomic_write_json
 from bmimic.runs.race_record import WHOLE_CLIP_METRIC, Race, Threshold
 
 SUCCESS = {100: 0.80, 200: 0.93, 300: 0.96, 400: 0.99, 500: 0.995, 600: 0.996}
@@ -29,7 +30,7 @@ def _race_dir(tmp_path: Path, own_whole_clip: dict[int, float] | None = None) ->
         race.on_evaluation(trainer, summary, now=100.0 + it / 10)
     run = tmp_path / "run"
     run.mkdir()
-    (run / "race.json").write_text(json.dumps(race.to_json({"overrides": []}, None)))
+    atomic_write_json(run / "race.json", race.to_json({"overrides": []}, None))  # as bmimic.race writes it
     return run
 
 

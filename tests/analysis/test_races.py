@@ -3,7 +3,6 @@ and refused with one line when they are not race JSONs."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -26,6 +25,7 @@ from analysis.races import (
     whole_clip_markdown,
 )
 from bmimic.race import WHOLE_CLIP_METRIC, Race, Threshold
+from bmimic.runs.atomic_io import atomic_write_json
 from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -51,7 +51,7 @@ def _race_json(path, successes, mpkpes, seed=0, overrides=(), num_envs=4096, gpu
     config = {"seed": seed, "sampler": "adaptive_hybrid", "num_envs": num_envs, "eval": {"every_iters": every},
               "overrides": ["motion=lafan_dance1_full", *overrides, f"seed={seed}", "hydra.run.dir=/tmp/x"]}
     machine = {"gpu": {"name": gpu}, "created": "2026-11-27T14:28:24+00:00"}
-    path.write_text(json.dumps(race.to_json(config, machine)))
+    atomic_write_json(path, race.to_json(config, machine))  # as bmimic.race writes it (NaN as null)
     return path
 
 
@@ -157,6 +157,9 @@ def test_the_cli_writes_the_tables_and_the_figure(tmp_path, capsys):
      '"wall_from_launch_s": true, "success_rate": 0.5, "mpkpe_rel_mm": 40}]}', "wall_from_launch_s is True"),
     ('{"kind": "bmimic-race-1", "config": {}, "evaluations": [], "thresholds": [{"threshold": "x"}]}',
      "'thresholds' must be a list of objects"),
+    # issue 77: a measurement that is not finite (bmimic.race writes null for what it did not measure)
+    ('{"kind": "bmimic-race-1", "config": {}, "evaluations": [{"iteration": 1, "env_steps": 1, '
+     '"wall_from_launch_s": Infinity, "success_rate": NaN, "mpkpe_rel_mm": 40}]}', "holds the number Infinity"),
 ])
 def test_bad_input_is_one_line_naming_the_file_and_writes_nothing(tmp_path, capsys, content, message):
     bad = tmp_path / "bad.json"
@@ -226,7 +229,7 @@ def test_a_whole_clip_threshold_gets_a_column_of_its_own(tmp_path):
         summary = {"eval_success_rate": 0.96, **({} if whole is None else {WHOLE_CLIP_METRIC: whole})}
         race.on_evaluation(trainer, summary, now=120.0 + 10.0 * i)
     path = tmp_path / "w.json"
-    path.write_text(json.dumps(race.to_json({"seed": 0, "eval": {"every_iters": 100}}, {"gpu": {"name": "H100"}})))
+    atomic_write_json(path, race.to_json({"seed": 0, "eval": {"every_iters": 100}}, {"gpu": {"name": "H100"}}))
     summary = race_summary(read_races([path]))
     assert summary.loc[0, "90% robust whole-clip success"] == "40 s (it 200)"  # launch at 100 s
     assert "90% robust whole-clip success" in summary_markdown(summary).splitlines()[0]
@@ -243,9 +246,9 @@ def test_the_whole_clip_table_gives_time_iteration_and_env_steps_and_the_final_j
         race.on_evaluation(trainer, summary, now=120.0 + 10.0 * i)
     race.record_final_native(0.9453125, {"iterations": 300, "env_steps": 3 * 196_608_000})
     judged = tmp_path / "judged.json"
-    judged.write_text(json.dumps(race.to_json({"seed": 1, "num_envs": 4096,
+    atomic_write_json(judged, race.to_json({"seed": 1, "num_envs": 4096,
                                                "eval": {"every_iters": 100, "whole_clip": {"rollouts": 128}}},
-                                              {"gpu": {"name": "NVIDIA H200"}, "created": "2026-11-29T21:00:00"})))
+                                              {"gpu": {"name": "NVIDIA H200"}, "created": "2026-11-29T21:00:00"}))
     plain = _race_json(tmp_path / "plain.json", [0.5, 0.95], [60.0, 45.0])  # no whole-clip line: no row
     table = whole_clip_markdown(read_races([judged, plain])).splitlines()
     assert len(table) == 3  # header, rule, the judged race alone
@@ -258,3 +261,15 @@ def test_the_whole_clip_table_gives_time_iteration_and_env_steps_and_the_final_j
     # 121 of 128 rollouts: Wilson's 95% interval [0.891, 0.973] (the race recorded its rollouts per judgement)
     assert row[FINAL_WHOLE_CLIP] == "0.945 [0.891, 0.973] (native MuJoCo, it 300)"
     assert whole_clip_markdown(read_races([plain])) is None
+
+
+def test_a_race_without_an_evaluation_cadence_draws_its_curves(tmp_path):
+    """Found by the generated harness at 500 examples (issue 77): a race JSON whose config has no `eval`
+    (an earlier bmimic's) made the colour key of its line missing (pandas keeps None as missing), a KeyError."""
+    path = _race_json(tmp_path / "r.json", [0.5, 0.9], [60, 50])
+    data = read_race(path)
+    data["config"].pop("eval")
+    atomic_write_json(path, data)
+    fig = plot_races(race_evaluations(read_races([path])))
+    assert len([ln for ln in fig.axes[0].get_lines() if ln.get_marker() == "o"]) == 1
+    assert main([str(path), "--out", str(tmp_path / "out")]) == 0
