@@ -43,7 +43,7 @@ from bmimic.runs.folder import (
 )
 from bmimic.runs.race_judge import NATIVE_MODEL
 from bmimic.runs.race_record import WHOLE_CLIP_METRIC, Threshold, rejudge
-from bmimic.runs.schema import ITERATION
+from bmimic.runs.schema import ITERATION, whole_clip_success
 
 WARP_SUMMARY = WHOLE_CLIP_FILES[-1]
 """bmimic.eval --whole-clip's summary in RUN/eval/<checkpoint>/whole_clip/."""
@@ -61,14 +61,12 @@ def _read(path: Path) -> dict:
     return data
 
 
-def _robust_success(path: Path, data: dict, native: bool) -> float | None:
+def _robust_success(path: Path, data: dict) -> float | None:
     """The summary's robust whole-clip success (None: it evaluated the nominal condition only)."""
-    value = (data.get("conditions") or {}).get("robust", {}).get("success_rate") if native else data.get(WHOLE_CLIP_METRIC)
-    if value is None:
-        return None
-    if not isinstance(value, int | float) or isinstance(value, bool) or not 0.0 <= value <= 1.0:
-        raise AnalysisError(f"{path}: robust whole-clip success is {value!r}, not a fraction")
-    return float(value)
+    try:
+        return whole_clip_success(data, "robust")
+    except ValueError as e:
+        raise AnalysisError(f"{path}: {e}") from None
 
 
 def checkpoint_success(run_dir: str | Path, native: bool = False, model: str = NATIVE_MODEL) -> dict[int, tuple[float, Path]]:
@@ -81,7 +79,7 @@ def checkpoint_success(run_dir: str | Path, native: bool = False, model: str = N
     found: dict[int, tuple[float, Path]] = {}
     for path in sorted(run_dir.glob(pattern)):
         data = _read(path)
-        value = _robust_success(path, data, native)
+        value = _robust_success(path, data)
         if value is None:
             continue
         it = data[ITERATION]

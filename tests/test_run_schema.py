@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pandas as pd
+import pytest
 
 from analysis.metrics import ERROR_METRICS, SMOOTHNESS_METRICS
 from analysis.run_files import IGNORED_OVERRIDE_KEYS
@@ -83,3 +84,23 @@ def test_whole_clip_survival_is_derived_from_the_clips_and_failures_tables():
     assert walk[CLIP_TIME_S].tolist() == [0.0, 1.0, 2.0] * 2 and walk["tracking"].eq(2).all()
     none = whole_clip_survival(clips, failures.iloc[:0], keys=(ITERATION,))
     assert none["tracking_frac"].eq(1.0).all() and len(none) == len(sv)
+
+
+# ------------------------------------------------------------------------------- whole-clip summaries
+def test_one_reader_gives_the_same_success_from_both_whole_clip_summary_shapes():
+    from bmimic.runs.schema import whole_clip_key, whole_clip_success
+
+    warp = {"conditions": ["nominal", "robust"], whole_clip_key("nominal", "success_rate"): 1.0,
+            whole_clip_key("robust", "success_rate"): 0.9375}
+    native = {"conditions": {"robust": {"success_rate": 0.9375, "rollouts": 128}}}
+    assert whole_clip_success(warp, "robust") == whole_clip_success(native, "robust") == 0.9375
+    assert whole_clip_success(warp, "nominal") == 1.0
+    assert whole_clip_success(native, "nominal") is None  # not evaluated: no number, no error
+    assert whole_clip_success({"conditions": ["nominal"]}, "robust") is None
+    assert whole_clip_success({"conditions": {"robust": 1}}, "robust") is None  # no numbers under it
+    for bad in (1.5, -0.1, True, "0.9", float("nan")):
+        for summary in ({whole_clip_key("robust", "success_rate"): bad}, {"conditions": {"robust": {"success_rate": bad}}}):
+            with pytest.raises(ValueError, match="robust whole-clip success is .*not a fraction"):
+                whole_clip_success(summary, "robust")
+    with pytest.raises(ValueError, match="JSON object, not list"):
+        whole_clip_success([0.9], "robust")

@@ -29,6 +29,7 @@ from bmimic.runs.folder import (
     checkpoints_dir,
     motion_policy_onnx_name,
 )
+from bmimic.runs.schema import whole_clip_success
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +45,11 @@ def native_summary_path(run_dir: str | Path, iteration: int) -> Path:
 
 
 def robust_success(path: Path) -> float | None:
-    """The robust whole-clip success in a sim2sim summary (None: absent or unreadable)."""
+    """The robust whole-clip success in a sim2sim summary (None: absent, unreadable or not a fraction)."""
     try:
-        value = safe_read.read_json(path)["conditions"]["robust"]["success_rate"]
-    except (OSError, ValueError, KeyError, TypeError):
+        return whole_clip_success(safe_read.read_json(path), "robust")
+    except (OSError, ValueError):
         return None
-    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
 class NativeJudge:

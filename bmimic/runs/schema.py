@@ -212,6 +212,27 @@ def whole_clip_key(condition: str, key: str) -> str:
     return f"whole_clip_{condition}_{key}"
 
 
+def whole_clip_success(summary: object, condition: str) -> float | None:
+    """The whole-clip success rate of `condition` in a whole-clip summary of either shape, the one reader of
+    both: MuJoCo-Warp's (bmimic.eval --whole-clip and training: flat `whole_clip_<condition>_success_rate`,
+    `conditions` a list of names) and native MuJoCo's (bmimic.sim2sim --whole-clip: `conditions` a mapping of
+    condition to its numbers). None: that condition was not evaluated. ValueError (one line): the summary is
+    no mapping, or the rate is there but no fraction in [0, 1]."""
+    if not isinstance(summary, dict):
+        raise ValueError(f"a whole-clip summary is a JSON object, not {type(summary).__name__}")
+    nested = summary.get("conditions")
+    if isinstance(nested, dict):
+        numbers = nested.get(condition)
+        value = numbers.get("success_rate") if isinstance(numbers, dict) else None
+    else:
+        value = summary.get(whole_clip_key(condition, "success_rate"))
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+        raise ValueError(f"{condition} whole-clip success is {value!r}, not a fraction")
+    return float(value)
+
+
 # --------------------------------------------------------------------------------------------- metrics.json
 EVAL_SUMMARY_KEYS = ("failure_rate", "bins_mastered_frac", "success_rate", "broken",
                      *ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
