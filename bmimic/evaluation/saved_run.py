@@ -4,6 +4,7 @@ task rebuilt (robot, motion, bins) as training built it. Used by eval, play and 
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
@@ -13,6 +14,7 @@ from bmimic.cli.common import first_line
 from bmimic.runs import safe_read
 from bmimic.runs.folder import (
     CHECKPOINTS_DIR,
+    DATA_FOLDER_NAME,
     HYDRA_DIR,
     LATEST_CHECKPOINT,
     RESUMES,
@@ -20,6 +22,7 @@ from bmimic.runs.folder import (
     newest_checkpoint,
     read_json,
     read_resolved_config,
+    swap_folder,
 )
 from bmimic.runs.folder import (
     checkpoint_label as run_checkpoint_label,
@@ -142,11 +145,34 @@ def load_run_config(run_dir: Path, overrides: Sequence[str] = ()):
             cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
         except OmegaConfBaseException as e:
             raise RunLoadError(f"override {item!r}: {first_line(e)}") from None
+    cfg = _localised(cfg, path)
     try:
         check_resolvable(cfg)
     except BmimicError as e:
         raise RunLoadError(f"{path} with overrides {list(overrides)}: {first_line(e)}") from None
     return cfg
+
+
+def _localised(cfg, path: Path):
+    """`cfg` with a committed record's clips' folder (DATA_FOLDER_NAME, analysis.compact) read as this machine's:
+    data.lafan_dir as overridden, else $BMIMIC_LAFAN_DIR, in every key below it (motion.folder too). Left as it
+    is where neither names an absolute folder: a motion that reads no clips of it needs none."""
+    from omegaconf import OmegaConf
+
+    from bmimic.config import TrainConfig
+
+    tree = OmegaConf.to_container(cfg, resolve=False)
+    given = (tree.get("data") or {}).get("lafan_dir")  # an override's value, the token, or an interpolation
+    explicit = isinstance(given, str) and given != DATA_FOLDER_NAME and not given.startswith("${")
+    folder = (given if explicit else os.environ.get("BMIMIC_LAFAN_DIR") or "").rstrip("/")
+    if not folder.startswith("/") or swap_folder(tree, DATA_FOLDER_NAME, "") == tree:
+        return cfg
+    if not Path(folder).is_dir():
+        raise RunLoadError(f"{path}: the run trained on the clips of {DATA_FOLDER_NAME} (a committed record), "
+                           f"here {folder!r}, which is not a folder")
+    localised = OmegaConf.merge(OmegaConf.structured(TrainConfig), swap_folder(tree, DATA_FOLDER_NAME, folder))
+    OmegaConf.set_struct(localised, True)
+    return localised
 
 
 def anchor_relative_paths(cfg, run_dir: Path) -> None:

@@ -59,6 +59,18 @@ MULTIRUN_RECORD = "multirun.yaml"
 DATA_FOLDER_NAME = "$BMIMIC_LAFAN_DIR"
 """What an absolute data.lafan_dir outside the launch directory reads as in committed records
 (analysis.compact's portable_records; a restored state is compared with such a record)."""
+
+
+def swap_folder(value, old: str, new: str):
+    """`value` (a config tree) with every string that is the folder `old` or a path below it starting with
+    `new` instead: a committed record's DATA_FOLDER_NAME and this machine's clips' folder, either way."""
+    if isinstance(value, dict):
+        return {k: swap_folder(v, old, new) for k, v in value.items()}
+    if isinstance(value, list):
+        return [swap_folder(v, old, new) for v in value]
+    if isinstance(value, str) and (value == old or value.startswith(old + "/")):
+        return new + value[len(old):]
+    return value
 LOCK = ".bmimic.lock"
 """Empty; flock-ed while a process trains the run (the lock dies with the process)."""
 TENSORBOARD_DIR = "tensorboard"

@@ -32,6 +32,7 @@ from bmimic.runs.folder import (
     is_run_folder,
     latest_checkpoint,
     read_resolved_config,
+    swap_folder,
     table_path,
 )
 from bmimic.runs.schema import ITERATION
@@ -179,7 +180,7 @@ def _portable(config: dict) -> dict:
     folder = (config.get("data") or {}).get("lafan_dir")
     if not isinstance(folder, str) or not folder.startswith("/") or folder == "/":
         return config
-    return _swap(config, folder.rstrip("/"), DATA_FOLDER_NAME)
+    return swap_folder(config, folder.rstrip("/"), DATA_FOLDER_NAME)
 
 
 def _localised(config: dict, path: Path) -> dict:
@@ -191,18 +192,7 @@ def _localised(config: dict, path: Path) -> dict:
     if not folder.startswith("/") or not Path(folder).is_dir():
         raise StateError(f"{path}: trained on the clips of $BMIMIC_LAFAN_DIR; set it to that folder here (an absolute "
                          f"path, got {folder or 'nothing'!r})")
-    return _swap(config, DATA_FOLDER_NAME, folder)
-
-
-def _swap(value: Any, old: str, new: str) -> Any:
-    """`value` with every string that is `old` or a path below it starting with `new` instead."""
-    if isinstance(value, dict):
-        return {k: _swap(v, old, new) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_swap(v, old, new) for v in value]
-    if isinstance(value, str) and (value == old or value.startswith(old + "/")):
-        return new + value[len(old):]
-    return value
+    return swap_folder(config, DATA_FOLDER_NAME, folder)
 
 
 def _last_trained(run_dir: Path) -> int | None:
