@@ -7,6 +7,7 @@
 #   BMIMIC_LAFAN_DIR=/tmp/lafan36 bash sweeps/lafan36_whole_sitting.sh ARM SEED restore   # before training
 #   BMIMIC_LAFAN_DIR=/tmp/lafan36 bash sweeps/lafan36_whole_sitting.sh ARM SEED train     # TRAIN_S more s
 #   bash sweeps/lafan36_whole_sitting.sh ARM SEED save                                     # after, or any time
+#   BMIMIC_LAFAN_DIR=/tmp/lafan36 bash sweeps/lafan36_whole_sitting.sh ARM SEED wholeclip # then save again
 #
 # restore: when the job has a committed state (STATE_DIR/ARM-sSEED.pt) and its run folder under RUNS_ROOT
 #   holds no checkpoint yet, copy the job's committed record (RECORD_DIR/JOB) there and `bmimic.state
@@ -15,13 +16,15 @@
 # save: `bmimic.state save` the run's newest checkpoint to STATE_DIR/ARM-sSEED.pt (fp32 weights, Adam moments
 #   in MOMENTS, default bf16; no worlds' state), and copy its record (no checkpoints, ONNX or log) to
 #   RECORD_DIR/JOB compacted (analysis.compact). Commit both.
+# wholeclip: the issue's measure of the newest checkpoint, robust whole clips (ROLLOUTS per clip, default 128),
+#   into the run's eval/<checkpoint>/whole_clip/; a save after it carries them into the record.
 # Defaults: RUNS_ROOT=outputs/sweeps/lafan36_whole, STATE_DIR=docs/results/lafan36_whole/state,
 # RECORD_DIR=docs/results/lafan36_whole/runs. The clips must sit at the same absolute path every sitting
 # (data.lafan_dir is compared on resume): unpack lafan1_g1_36.tar.xz to /tmp/lafan36 each time.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-usage="usage: $0 ARM SEED restore|train|save"
+usage="usage: $0 ARM SEED restore|train|save|wholeclip"
 arm=${1:?$usage}
 seed=${2:?$usage}
 step=${3:?$usage}
@@ -52,5 +55,8 @@ case "$step" in
     tar -C "$run" --exclude=checkpoints --exclude=.bmimic.lock --exclude=train.log -cf - . | tar -C "$tmp" -xf -
     python -m analysis.compact "$tmp"
     rm -rf "${record_dir:?}/$job" && mv "$tmp" "$record_dir/$job" ;;
+  wholeclip)
+    [ -e "$run/checkpoints/latest.pt" ] || { echo "error: $run has no checkpoint to evaluate" >&2; exit 2; }
+    python -m bmimic.eval "$run" --whole-clip "${ROLLOUTS:-128}" --conditions robust ;;
   *) echo "error: unknown step '$step'; $usage" >&2; exit 2 ;;
 esac

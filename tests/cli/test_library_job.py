@@ -82,3 +82,23 @@ def test_bad_input_is_one_line_exit_2_and_starts_nothing(tmp_path, args, env, wh
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and what in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+SITTING = REPO / "sweeps" / "lafan36_whole_sitting.sh"
+
+
+def test_a_sitting_step_that_cannot_run_is_one_line_and_writes_nothing(tmp_path):
+    path = f"{Path(sys.executable).parent}:/usr/bin:/bin"
+    env = {"PATH": path, "RUNS_ROOT": str(tmp_path / "runs"), "STATE_DIR": str(tmp_path / "state"),
+           "RECORD_DIR": str(tmp_path / "record")}
+
+    def sitting(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(SITTING), *args], capture_output=True, text=True, timeout=60, env=env)
+
+    unknown = sitting("adaptive_hybrid", "0", "dance")
+    assert unknown.returncode == 2 and unknown.stderr.startswith("error: unknown step 'dance'")
+    assert "restore|train|save|wholeclip" in unknown.stderr
+    nothing = sitting("adaptive_hybrid", "0", "wholeclip")  # before any training: no checkpoint to evaluate
+    assert nothing.returncode == 2 and nothing.stderr.startswith("error: ") and "no checkpoint" in nothing.stderr
+    assert sitting("design", "0", "save").returncode == 2  # not an arm of the study
+    assert not any(tmp_path.iterdir())
