@@ -162,9 +162,10 @@ def _localised(cfg, path: Path):
     from bmimic.config import TrainConfig
 
     tree = OmegaConf.to_container(cfg, resolve=False)
-    given = (tree.get("data") or {}).get("lafan_dir")  # an override's value, the token, or an interpolation
+    data = tree.get("data") if isinstance(tree, dict) else None
+    given = data.get("lafan_dir") if isinstance(data, dict) else None  # an override, the token, or an interpolation
     explicit = isinstance(given, str) and given != DATA_FOLDER_NAME and not given.startswith("${")
-    folder = (given if explicit else os.environ.get("BMIMIC_LAFAN_DIR") or "").rstrip("/")
+    folder = str(given if explicit else os.environ.get("BMIMIC_LAFAN_DIR") or "").rstrip("/")
     if not folder.startswith("/") or swap_folder(tree, DATA_FOLDER_NAME, "") == tree:
         return cfg
     if not Path(folder).is_dir():
