@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from analysis.generated_block import block_between, replace_between
 from analysis.stats import permutation_pvalue
 from bmimic.runs.folder import EVAL_DIR, METRICS, TABLES, WHOLE_CLIP_DIR, WHOLE_CLIP_FILES
 from bmimic.runs.safe_read import read_json
@@ -142,9 +143,7 @@ def headline_table(repo: Path = REPO) -> str:
 
 def readme_table(readme: str) -> str:
     """The table between README's markers (ValueError when the markers are missing)."""
-    if readme.count(BEGIN) != 1 or readme.count(END) != 1 or readme.index(BEGIN) > readme.index(END):
-        raise ValueError("README.md: the headline table's two markers are missing or out of order")
-    return readme.split(BEGIN, 1)[1].split(END, 1)[0].strip("\n") + "\n"
+    return block_between(readme, BEGIN, END, "README.md's headline table")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -171,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     from bmimic.runs.atomic_io import atomic_write_bytes
 
-    new = readme.replace(BEGIN + readme.split(BEGIN, 1)[1].split(END, 1)[0], BEGIN + "\n" + table, 1)
+    new = replace_between(readme, BEGIN, END, table, "README.md's headline table")
     if readme_table(new) != table:  # never say "rewritten" of a README the write did not change
         print(f"error: {readme_path}: the table between its markers could not be replaced", file=sys.stderr)
         return 2

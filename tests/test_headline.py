@@ -9,6 +9,7 @@ import shutil
 import pytest
 
 from analysis import bench_index, headline
+from analysis.generated_block import block_between, replace_between
 from tests.conftest import REPO
 
 
@@ -55,7 +56,7 @@ def test_write_replaces_a_stale_table_and_says_so(tmp_path, monkeypatch, capsys)
 
 def test_the_benchmarks_records_index_is_the_one_the_files_give():
     doc = (REPO / bench_index.DOC).read_text()
-    committed = doc.split(bench_index.BEGIN, 1)[1].split(bench_index.END, 1)[0].strip("\n") + "\n"
+    committed = block_between(doc, bench_index.BEGIN, bench_index.END, bench_index.DOC)
     assert committed == bench_index.bench_index(REPO), "run python -m analysis.bench_index --write"
     names = [line.split("`")[1] for line in committed.splitlines()[2:]]
     assert sorted(names) == sorted(p.name for p in (REPO / "docs" / "bench").glob("*.json"))
@@ -67,3 +68,15 @@ def test_a_record_is_found_by_its_full_name_its_tail_or_a_glob():
     assert bench_index._cites("and `..._1x8192-hybrid-s1.json`", "2026-12-01_h200_race_1x8192-hybrid-s1.json")
     assert bench_index._cites("`docs/bench/2026-11-22_h100_s4_*.json`", "2026-11-22_h100_s4_default.json")
     assert not bench_index._cites("`..._1x8192-hybrid-s1.json`", "2026-12-01_h200_race_2x8192-hybrid-s1.json")
+
+
+def test_a_generated_block_is_replaced_and_nothing_else():
+    doc = "intro\n<!-- b -->\nold\nrows\n<!-- e -->\ntail <!-- b --> is not here\n"
+    with pytest.raises(ValueError, match="doc.md"):  # BEGIN twice
+        replace_between(doc, "<!-- b -->", "<!-- e -->", "new\n", "doc.md")
+    doc = "intro\n<!-- b -->\nold\nrows\n<!-- e -->\ntail\n"
+    new = replace_between(doc, "<!-- b -->", "<!-- e -->", "\nnew\n\n", "doc.md")
+    assert new == "intro\n<!-- b -->\nnew\n<!-- e -->\ntail\n"
+    assert block_between(new, "<!-- b -->", "<!-- e -->", "doc.md") == "new\n"
+    with pytest.raises(ValueError, match="out of order"):
+        block_between("<!-- e -->\n<!-- b -->\n", "<!-- b -->", "<!-- e -->", "doc.md")
