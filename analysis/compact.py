@@ -65,6 +65,8 @@ STUDY_BUDGETS_MB = {
     "lafan36_library": 42.5,  # 8 runs of 8,018 bins (eval.parquet ~0.46 MB per evaluation: 2.3-2.9 MB at 2038 iterations,
     # 5.0-5.5 MB for the four jobs continued to 4,604; whole-clip clips and failures CSVs ~0.07 MB per evaluation,
     # their survival views dropped) + the continued jobs' report (1.0 MB): 41.9 MB
+    "lafan36_whole": 16.0,  # issue 73's states (4.6 MB per job, the issue allows 10) + each job's record, which grows
+    # ~0.5 MB per 500 iterations (one window evaluation of 8,018 bins): 12.2 MB for one job at 4,749 iterations
 }
 """Studies allowed more than STUDY_BUDGET_MB, in MB, with why."""
 
