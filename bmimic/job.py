@@ -8,7 +8,6 @@ written into a run folder before every check has passed.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import sys
@@ -36,7 +35,7 @@ from bmimic.runs.folder import (
     write_status,
 )
 from bmimic.runs.record import metrics as run_metrics
-from bmimic.runs.schema import ENV_STEPS, FINAL_METRICS, WALL_TIME_S
+from bmimic.runs.schema import ENV_STEPS, WALL_TIME_S
 from bmimic.runtime import init_distributed, process_rank, resolve_device, seed_everything, torchrun_env
 from bmimic.sweeping.jobs import done_run_differences
 from bmimic.sweeping.outcomes import record_job_outcome
@@ -48,8 +47,9 @@ from bmimic.task import (
     build_whole_clip,
     check_num_envs_fit,
 )
+from bmimic.training.final_eval import learn_and_evaluate
 from bmimic.training.interrupts import StopNow, StopSignals, TrainingInterrupted
-from bmimic.training.logger import done_line, final_evaluation_line
+from bmimic.training.logger import done_line
 from bmimic.training.resume import check_resume_changes, plan_run, refuse_finished, resume_request
 from bmimic.training.schedule import whole_clip_wanted
 from bmimic.training.session import RunContext, commit, record_failure
@@ -105,16 +105,14 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     if place.main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
         log.info(start_summary(run_cfg, place.requested, place.world, place.smoke, task.motion, task.layout,
                                plan.run_dir))
-    trainer, whole_clip = build_job(run_cfg, task, place, plan, resolved)
-    trainer.after_evaluation = stop_rule
-    trainer.whole_clip = whole_clip
+    trainer, whole_clip = build_job(run_cfg, task, place, plan, resolved, stop_rule)
     env = trainer.env
     try:
         if stop is not None:
             stop.end_at_once()  # from here the run has something to save: a signal ends the iteration
         if place.main_rank:
             commit(ctx, plan, resolved, place.device, changes, task.motion)
-        final, robust = learn_and_evaluate(trainer, task, place, stop)
+        final, robust = learn_and_evaluate(trainer, place.main_rank, lambda: build_evaluator(task, robust=True), stop)
         if trainer.interrupted:
             if place.main_rank:
                 trainer.checkpoint.save()  # the tables first, then model_<it>.pt and latest.pt
@@ -190,9 +188,9 @@ def plan_job(cfg: PlacedConfig, launch_dir: Path, sweep_job: bool, ctx: RunConte
     return plan, resolved, changes
 
 
-def build_job(cfg: PlacedConfig, task, place: Placement, plan, resolved: dict):
-    """The training environment, sampler, evaluators and trainer of `task`, with the checkpoint that
-    `plan` continues restored: (trainer, whole-clip evaluator or None)."""
+def build_job(cfg: PlacedConfig, task, place: Placement, plan, resolved: dict, stop_rule: Callable | None = None):
+    """The training environment, sampler, evaluators and trainer of `task` (with the race's `stop_rule`),
+    with the checkpoint that `plan` continues restored: (trainer, whole-clip evaluator or None)."""
     from bmimic.sampling.config import describe as describe_sampler
 
     training = build_training(cfg, place.device, task)
@@ -203,7 +201,8 @@ def build_job(cfg: PlacedConfig, task, place: Placement, plan, resolved: dict):
     if whole_clip is not None:
         whole_clip.build()
     with quiet_stdout(cfg.verbose):  # rsl-rl prints its observation sets and models while building
-        trainer = build_trainer(training, evaluator, plan.run_dir, is_main_rank=place.main_rank, run_config=resolved)
+        trainer = build_trainer(training, evaluator, plan.run_dir, is_main_rank=place.main_rank, run_config=resolved,
+                                whole_clip=whole_clip, after_evaluation=stop_rule)
     if plan.state is not None:
         trainer.checkpoint.load(plan.state, plan.checkpoint, list(cfg.resume_allow_changes or []))
         if place.world > 1:
@@ -215,44 +214,6 @@ def build_job(cfg: PlacedConfig, task, place: Placement, plan, resolved: dict):
             log.info("rank %d: random streams reseeded from %d (the run's seed + rank + 1000003 x %d iterations)",
                      place.rank, stream, trainer.progress.iteration)
     return trainer, whole_clip
-
-
-def learn_and_evaluate(trainer, task, place: Placement, stop: StopSignals | None) -> tuple[dict, dict]:
-    """Train to the budget (or the race's stop), then the final evaluations rank 0 owes the run: the
-    window evaluation unless the last iteration had one, the robust one (eval.robust) and the whole
-    clips (eval.whole_clip.at_end). (final summary, metrics.json's final_robust_* and final_whole_clip_*);
-    both empty when a signal interrupted (trainer.interrupted)."""
-    from bmimic.training.run_state import rng_untouched
-
-    cfg, final, robust = task.cfg, dict[str, Any](), dict[str, Any]()
-    try:
-        trainer.learn(signals=stop)
-        if trainer.interrupted:
-            return final, robust
-        with rng_untouched():  # drawing nothing of training's: a pause here resumes as one unbroken run
-            final = trainer.progress.last_eval
-            windows = trainer.record.last_iteration("eval") != trainer.progress.iteration
-            if place.main_rank:  # (tens of seconds on a CPU that nothing else would account for)
-                log.info(final_evaluation_line(windows, cfg.eval.robust, trainer.whole_clip is not None and
-                                               cfg.eval.whole_clip.at_end))
-            # Rank 0 alone evaluates (the evaluation env holds no collective): the other ranks release
-            # their graphs and leave the process group meanwhile, and return NaN.
-            if not place.main_rank:
-                final = dict.fromkeys((name.removeprefix("final_") for name in FINAL_METRICS), math.nan)
-            elif windows:
-                # (a resume of a run that reached max_iterations already holds its final evaluation)
-                final = trainer.evaluate()
-            robust = robust_evaluation(trainer, build_evaluator(task, robust=True), stop) if (
-                cfg.eval.robust and place.main_rank) else {}
-            whole_clip = trainer.whole_clip
-            if whole_clip is not None and cfg.eval.whole_clip.at_end and (
-                    trainer.record.last_iteration("whole_clip") != trainer.progress.iteration):
-                trainer.evaluate_whole_clip()
-            if trainer.last_whole_clip is not None and trainer.last_whole_clip[0] == trainer.progress.iteration:
-                robust.update({f"final_{k}": v for k, v in trainer.last_whole_clip[1].items()})
-    except StopNow:  # a signal during an evaluation (bmimic.training.interrupts): the iteration is kept
-        trainer.interrupted = True
-    return final, robust
 
 
 def finish_job(cfg: PlacedConfig, trainer, task, place: Placement, run_dir: Path, final: dict, robust: dict,
@@ -288,24 +249,6 @@ def finish_job(cfg: PlacedConfig, trainer, task, place: Placement, run_dir: Path
                  f", tensorboard --logdir {shell_arg(run_dir / TENSORBOARD_DIR)} (curves)" if cfg.logger == "tensorboard"
                  else "")
     return float(metrics["final_eval_failure_rate"])
-
-
-def robust_evaluation(trainer, evaluator, stop: StopSignals | None = None) -> dict:
-    """`eval.robust`: the final evaluation again in `evaluator` (domain randomisation, noise and pushes
-    on) -> eval_robust.parquet; returns its summary as metrics.json's `final_robust_eval_*`."""
-    from bmimic.training.evaluator import summarize
-
-    policy = trainer.alg.get_policy()
-    policy.eval()
-    p = trainer.progress
-    with stop.at_once() if stop is not None else contextlib.nullcontext():  # a signal ends it at once
-        per_bin = evaluator.evaluate(policy, p.iteration, p.env_steps, p.wall_time_s)
-    trainer.record.write_table("eval_robust", per_bin)
-    evaluator.env.close()
-    summary = summarize(per_bin, prefix="robust_eval")
-    log.info("robust eval at iteration %d: failure rate %.3f (clean: see eval.parquet)", p.iteration,
-             summary["robust_eval_failure_rate"])
-    return {f"final_{k}": v for k, v in summary.items()}
 
 
 def hydra_record(cfg: DictConfig) -> dict[str, str] | None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Callable, cast
 
 from bmimic.config import ConfigError
 from bmimic.config.checks import check_motion_fit
@@ -189,10 +189,11 @@ def _whole_clip_evaluator(task: Task, condition: str, per_clip: int):
 
 
 def build_trainer(training: Training, evaluator, run_dir: str | Path, is_main_rank: bool = True,
-                  run_config: dict | None = None):
+                  run_config: dict | None = None, whole_clip=None, after_evaluation: Callable | None = None):
     """The PPO trainer of `training` with the config's logger (TensorBoard, W&B or none) and console
     line; rank 0 alone logs and writes (`is_main_rank`). `run_config`: the resolved config that
-    checkpoints carry."""
+    checkpoints carry; `whole_clip`: rank 0's whole-clip evaluation (build_whole_clip) or None;
+    `after_evaluation(trainer, summary) -> bool`: a stopping rule after each evaluation (bmimic.race)."""
     from bmimic.training.logger import RunLogger
     from bmimic.training.runner import Trainer
 
@@ -200,7 +201,8 @@ def build_trainer(training: Training, evaluator, run_dir: str | Path, is_main_ra
     logger = RunLogger(cfg.logger, run_dir, cfg.run_name, cfg.wandb_project,
                        progress_bar=cfg.progress_bar and is_main_rank, enabled=is_main_rank)
     return Trainer(training.env, evaluator, training.sampler, training.feedback, cfg, run_dir, training.task.device,
-                   logger, is_main_rank=is_main_rank, run_config=run_config)
+                   logger, is_main_rank=is_main_rank, run_config=run_config, whole_clip=whole_clip,
+                   after_evaluation=after_evaluation)
 
 
 def check_motion_speeds(motion, max_abs_qvel: float, clip_names=None) -> None:

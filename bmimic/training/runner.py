@@ -67,7 +67,9 @@ class Trainer:
     `checkpoint.load` leaves the folder as it was."""
 
     def __init__(self, env, evaluator, sampler, feedback, cfg, run_dir: str | os.PathLike, device: str,
-                 logger: RunLogger, is_main_rank: bool = True, run_config: dict | None = None) -> None:
+                 logger: RunLogger, is_main_rank: bool = True, run_config: dict | None = None,
+                 whole_clip: WholeClipEvaluation | None = None,
+                 after_evaluation: Callable[[Trainer, dict], bool] | None = None) -> None:
         self.env = env
         self.evaluator = evaluator
         self.sampler = sampler
@@ -98,13 +100,13 @@ class Trainer:
         """Its checkpoint: meta, state, save, load (bmimic.training.run_state)."""
         # A stopping rule after each evaluation (its summary -> True: stop; bmimic.race), when learn()
         # began (time.time()) and the wall time the evaluations took.
-        self.after_evaluation: Callable[[Trainer, dict], bool] | None = None
+        self.after_evaluation = after_evaluation
         self.learn_started_unix_s: float | None = None
         self.eval_time_s = 0.0
         self.health = Health(env.num_envs * self.ppo_cfg.num_steps_per_env)
         self.schedule = Schedule(cfg.eval.every_iters, self.ppo_cfg.save_interval)
         w = cfg.eval.whole_clip
-        self.whole_clip: WholeClipEvaluation | None = None
+        self.whole_clip = whole_clip
         """The whole-clip evaluation (bmimic.training.whole_clip.WholeClipEvaluation; rank 0, when configured)."""
         self.whole_clip_schedule = WholeClipSchedule(w.every_iters, w.max_share, w.after_success)
         self.last_whole_clip: tuple[int, dict] | None = None
