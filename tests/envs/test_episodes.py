@@ -7,7 +7,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from bmimic.envs.tracking_env import PlacedEpisodes, TrackingEnv
+from bmimic.envs.episodes import PlacedEpisodes
+from bmimic.envs.tracking_env import TrackingEnv
 
 
 @pytest.mark.parametrize("mode, feedback, robust, message", [
