@@ -28,6 +28,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -66,12 +67,19 @@ STUDY_BUDGETS_MB = {
     # 5.0-5.5 MB for the four jobs continued to 4,604; whole-clip clips and failures CSVs ~0.07 MB per evaluation,
     # their survival views dropped) + the continued jobs' report (1.0 MB): 41.9 MB
     "lafan36_whole": 16.0,  # issue 73's states (4.6 MB per job, the issue allows 10) + each job's record, which grows
-    # ~0.5 MB per 500 iterations (one window evaluation of 8,018 bins): 12.2 MB for one job at 4,749 iterations
+    # ~0.5 MB per 500 iterations (one window evaluation of 8,018 bins): 12.2 MB for one job at 4,749 iterations;
+    # its history grows by about the new rows per sitting (ROW_GROUP_ITERATIONS)
 }
 """Studies allowed more than STUDY_BUDGET_MB, in MB, with why."""
 
 ZSTD_LEVEL = 19
 """zstd level of compacted tables (slow to write, as fast to read as the default)."""
+
+ROW_GROUP_ITERATIONS = 500
+"""A table with an iteration column is written in row groups of this many iterations (rows of iterations
+[0, 500), [500, 1000), ...). A run continued across sittings (docs/results/lafan36_whole) commits its grown
+tables each sitting; its earlier row groups then come out byte-identical, so git stores the new version as
+a delta of the old one (the new rows and the last group) instead of another whole file."""
 
 
 def compact_table(table: pa.Table, keep: tuple[str, ...] | None) -> bytes:
@@ -82,10 +90,22 @@ def compact_table(table: pa.Table, keep: tuple[str, ...] | None) -> bytes:
     table = table.replace_schema_metadata(None)  # pandas' index metadata: the readers never use it
     floats = [f.name for f in table.schema if pa.types.is_floating(f.type)]
     buf = io.BytesIO()
-    pq.write_table(table, buf, compression="zstd", compression_level=ZSTD_LEVEL,
-                   use_byte_stream_split=floats or False,
-                   use_dictionary=[c for c in table.column_names if c not in floats] or False)
+    with pq.ParquetWriter(buf, table.schema, compression="zstd", compression_level=ZSTD_LEVEL,
+                          use_byte_stream_split=floats or False,
+                          use_dictionary=[c for c in table.column_names if c not in floats] or False) as writer:
+        for start, length in row_groups(table):
+            writer.write_table(table.slice(start, length), row_group_size=max(length, 1))
     return buf.getvalue()
+
+
+def row_groups(table: pa.Table) -> list[tuple[int, int]]:
+    """(first row, rows) of each row group: runs of consecutive rows in one ROW_GROUP_ITERATIONS block of
+    the iteration column; the whole table in one group where there is no such column (or no rows)."""
+    if ITERATION not in table.column_names or table.num_rows == 0:
+        return [(0, table.num_rows)]
+    block = np.asarray(table.column(ITERATION).to_numpy(zero_copy_only=False)) // ROW_GROUP_ITERATIONS
+    starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
+    return [(int(a), int(b - a)) for a, b in zip(starts, np.r_[starts[1:], len(block)])]
 
 
 def compact_run(run_dir: Path, write: bool = True) -> tuple[int, int]:

@@ -151,3 +151,28 @@ def test_survival_views_go_only_where_the_clips_and_failures_give_them_back(tmp_
     dropped, size = drop_survival_views(run)
     assert dropped == 1 and size > 0
     assert not folders["model_5"].is_file() and folders["model_9"].is_file()
+
+
+def test_a_grown_table_keeps_its_earlier_row_groups_byte_for_byte():
+    """A run continued across sittings commits its grown tables again: the rows of finished
+    ROW_GROUP_ITERATIONS blocks come out as the same bytes, so git stores only the new rows."""
+    import io
+
+    import numpy as np
+    import pyarrow as pa
+
+    from analysis.compact import ROW_GROUP_ITERATIONS, compact_table, row_groups
+    rng = np.random.default_rng(0)
+    iterations = np.repeat(np.arange(0, 5 * ROW_GROUP_ITERATIONS, ROW_GROUP_ITERATIONS // 2) + 7, 40)
+    full = pa.table({"iteration": iterations, "bin": np.tile(np.arange(40), len(iterations) // 40),
+                     "failure_rate": rng.random(len(iterations))})
+    earlier = full.filter(pa.compute.less(full["iteration"], 3 * ROW_GROUP_ITERATIONS + 300))
+    a, b = compact_table(earlier, None), compact_table(full, None)
+    assert pq.read_table(io.BytesIO(b)).equals(full) and pq.read_table(io.BytesIO(a)).equals(earlier)
+    meta_a = pq.ParquetFile(io.BytesIO(a)).metadata
+    assert meta_a.num_row_groups == 4 == len(row_groups(earlier))  # blocks 0, 1, 2 and the unfinished 3
+    assert [meta_a.row_group(i).num_rows for i in range(4)] == [80, 80, 80, 80]
+    chunk = meta_a.row_group(3).column(0)  # the unfinished block's first bytes
+    finished = min(o for o in (chunk.dictionary_page_offset, chunk.data_page_offset) if o is not None)
+    assert finished > 4 and a[:finished] == b[:finished]
+    assert row_groups(pa.table({"bin": [1, 2]})) == [(0, 2)]
