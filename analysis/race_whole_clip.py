@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m analysis.race_whole_clip", description=__doc__.splitlines()[0])
     parser.add_argument("run", type=path_arg, help="the race's run folder (its race.json and evaluated checkpoints)")
     parser.add_argument("--native", action="store_true", help="the checkpoints' native-MuJoCo whole clips (bmimic.sim2sim)")
-    parser.add_argument("--model", default=NATIVE_MODEL, help="with --native: the sim2sim model's folder (default project)")
+    parser.add_argument("--model", default=NATIVE_MODEL, help="with --native: the sim2sim model's folder (default bmimic_g1)")
     parser.add_argument("--json", type=path_arg, help="write the record here (e.g. docs/bench/<name>.json)")
     args = parser.parse_args(argv)
     try:

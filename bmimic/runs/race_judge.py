@@ -33,7 +33,7 @@ from bmimic.runs.schema import whole_clip_success
 
 log = logging.getLogger(__name__)
 
-NATIVE_MODEL = "project"
+NATIVE_MODEL = "bmimic_g1"
 """The robot model sim2sim judges on (its default --model: the run's own robot config), and its folder name."""
 JUDGE_LOG = "race_native_judge.log"
 """The judge's children's output, in RUN/sim2sim/."""

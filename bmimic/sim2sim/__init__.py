@@ -22,7 +22,7 @@ the file's metadata alone, never from bmimic's training code:
 - Observations: rebuilt in numpy from `observation_layout` (term functions and sizes), the tracked
   bodies, the anchor body and the baked reference; terminations from `terminations`; the physics
   options (integrator, solver, cone, iterations) from the `sim_*` keys.
-- `--model project` is the G1 the run trained on (its `robot` config; the built-in G1 for a bare
+- `--model bmimic_g1` (formerly `project`) is the G1 the run trained on (its `robot` config; the built-in G1 for a bare
   ONNX file), `menagerie` the MuJoCo Menagerie G1 (`BMIMIC_MENAGERIE_G1` or a `shared/reference`
   folder beside the checkout; mesh geoms whose files are missing are dropped, so only its primitive
   geoms collide), a path any MJCF. Joints are matched by name, a mismatch is refused. The model's own

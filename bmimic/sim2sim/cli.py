@@ -75,8 +75,8 @@ def parser() -> argparse.ArgumentParser:
         description="Evaluate the exported (BeyondMimic-compatible) ONNX policy in native MuJoCo on the CPU.",
         epilog=f"Tables: RUN/{SIM2SIM_DIR}/<model>/<checkpoint>/{{{','.join((*EVAL_TABLES, GAP_FILE))}}}")
     p.add_argument("path", type=path_arg, help="a run folder (its latest checkpoints/motion_policy_<it>.onnx) or such an ONNX file")
-    p.add_argument("--model", default="project",
-                   help="project (the run's G1), menagerie (MuJoCo Menagerie's G1) or an MJCF path")
+    p.add_argument("--model", default="bmimic_g1",
+                   help="bmimic_g1 (the G1 the run trained on; formerly `project`), menagerie (MuJoCo Menagerie's G1) or an MJCF path")
     p.add_argument("--episodes-per-bin", type=int, help="default: as the run's MuJoCo-Warp evaluation")
     p.add_argument("--horizon-s", type=float, help="seconds an episode must survive (default: as the run's evaluation)")
     p.add_argument("--max-mpkpe-rel-mm", type=float,

@@ -12,8 +12,10 @@ from bmimic.runs import safe_read
 from bmimic.runs.folder import HYDRA_DIR
 from bmimic.sim2sim.spec import PolicySpec, Sim2SimError, first_line, policy_error
 
-MODELS = ("project", "menagerie")
-"""Named robot models for --model (anything else is an MJCF path)."""
+MODELS = ("bmimic_g1", "menagerie")
+"""Named robot models for --model (anything else is an MJCF path), each also its output folder's name."""
+RENAMED = {"project": "bmimic_g1"}
+"""Earlier names of MODELS, still accepted (`project` said whose code, not which robot the folder holds)."""
 MENAGERIE_ENV = "BMIMIC_MENAGERIE_G1"
 """Environment variable naming the Menagerie G1 MJCF (g1.xml)."""
 MENAGERIE_RELATIVE = Path("shared") / "reference" / "unitree_g1_menagerie" / "g1.xml"
@@ -36,7 +38,7 @@ def find_menagerie() -> Path:
                        "its path as --model PATH")
 
 
-def _project_spec(run_dir: Path | None):
+def _run_g1_spec(run_dir: Path | None):
     """The G1 of the run's robot config (the built-in default without a run), and a description."""
     from bmimic.robot import RobotConfig, build_spec, load_user_spec, robot_config
 
@@ -81,11 +83,12 @@ def _file_spec(path: Path):
 
 
 def model_label(model: str) -> str:
-    """Folder name of a --model choice: project, menagerie, or the MJCF's file stem."""
+    """Folder name of a --model choice: bmimic_g1, menagerie, or the MJCF's file stem."""
+    model = RENAMED.get(model, model)
     return model if model in MODELS else re.sub(r"[^A-Za-z0-9_.-]", "_", Path(model).stem) or "model"
 
 
-def build_model(spec: PolicySpec, model: str = "project", run_dir: Path | None = None,
+def build_model(spec: PolicySpec, model: str = "bmimic_g1", run_dir: Path | None = None,
                 joint_dynamics: str = "model"):
     """(compiled MjModel, description) of `model` with the policy's actuators, options and a floor."""
     import mujoco
@@ -99,8 +102,9 @@ def build_model(spec: PolicySpec, model: str = "project", run_dir: Path | None =
         root_body,
     )
 
-    if model == "project":
-        mjs, source = _project_spec(run_dir)
+    model = RENAMED.get(model, model)
+    if model == "bmimic_g1":
+        mjs, source = _run_g1_spec(run_dir)
     else:
         mjs, source = _file_spec(find_menagerie() if model == "menagerie" else Path(model).expanduser())
     try:

@@ -90,7 +90,7 @@ def clip_bins(layout, spec: PolicySpec, clips: Sequence[int]) -> np.ndarray:
     return np.flatnonzero(np.isin(clip_of_bin, clips))
 
 
-def evaluate(policy_path: Path, run_dir: Path | None, model: str = "project", episodes_per_bin: int | None = None,
+def evaluate(policy_path: Path, run_dir: Path | None, model: str = "bmimic_g1", episodes_per_bin: int | None = None,
              horizon_s: float | None = None, workers: int = 1, joint_dynamics: str = "model",
              max_mpkpe_rel_mm: float | None = None, clips: Sequence[str] | None = None):
     """Run the sim2sim evaluation; returns (bmimic.evaluation.tables.EvalResult, WarpEval or None, gap table or None).

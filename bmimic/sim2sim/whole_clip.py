@@ -193,7 +193,7 @@ class WholeClipResult:
 
 
 def run_whole_clip(policy_path: Path, run_dir: Path | None, rollouts_per_clip: int,
-                   conditions: Sequence[str] = WHOLE_CLIP_CONDITIONS, model: str = "project", workers: int = 1,
+                   conditions: Sequence[str] = WHOLE_CLIP_CONDITIONS, model: str = "bmimic_g1", workers: int = 1,
                    joint_dynamics: str = "model", max_mpkpe_rel_mm: float | None = None, seed: int = 0,
                    clips: Sequence[str] | None = None) -> WholeClipResult:
     """R whole-clip rollouts per clip and condition (module docstring); `clips`: of those clips of a

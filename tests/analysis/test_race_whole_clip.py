@@ -35,7 +35,7 @@ def _race_dir(tmp_path: Path, own_whole_clip: dict[int, float] | None = None) ->
 
 
 def _checkpoint(run: Path, it: int, success: float | None, native: bool = False) -> Path:
-    folder = run / ("sim2sim/project" if native else "eval") / f"model_{it}" / "whole_clip"
+    folder = run / ("sim2sim/bmimic_g1" if native else "eval") / f"model_{it}" / "whole_clip"
     folder.mkdir(parents=True)
     if native:
         data = {"iteration": it, "conditions": {"nominal": {"success_rate": 1.0},

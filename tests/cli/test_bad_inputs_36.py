@@ -204,7 +204,7 @@ def _nan_weights(run: Path) -> None:
 
 
 def _summary(run: Path, tool: str = "eval") -> dict:
-    folder = run / "eval" if tool == "eval" else run / "sim2sim" / "project"
+    folder = run / "eval" if tool == "eval" else run / "sim2sim" / "bmimic_g1"
     (summary,) = folder.glob("*/eval_summary.json")
     return json.loads(summary.read_text())
 

@@ -100,7 +100,7 @@ def test_sim2sim_runs_one_clip_of_the_library(library, capsys):
     _, run = library
     assert bm_eval.main([str(run)]) == 0  # the MuJoCo-Warp evaluation the gap compares against
     assert sim2sim_main([str(run), "--clip", "walk_b", "--workers", "1"]) == 0
-    out = run / "sim2sim" / "project" / "model_2_clip_walk_b"
+    out = run / "sim2sim" / "bmimic_g1" / "model_2_clip_walk_b"
     summary = _summary(out)
     assert summary["clips"] == ["walk_b"] and summary["num_bins"] == 4 and summary["episodes"] == 4
     episodes = pd.read_parquet(out / "eval_episodes.parquet")
@@ -129,7 +129,7 @@ def test_whole_clips_of_an_unseen_clip_and_of_one_clip_in_native_mujoco(library)
     # sim2sim's whole clips of one clip of the library: its name from the ONNX metadata, its library number
     assert sim2sim_main([str(run), "--whole-clip", "1", "--conditions", "nominal", "--clip", "walk_b",
                          "--workers", "1"]) == 0
-    native = run / "sim2sim" / "project" / "model_2_clip_walk_b" / "whole_clip"
+    native = run / "sim2sim" / "bmimic_g1" / "model_2_clip_walk_b" / "whole_clip"
     assert _summary(native)["clips"] == ["walk_b"]
     rollouts = pd.read_parquet(native / "eval_episodes.parquet")
     assert list(zip(rollouts["clip"], rollouts["clip_name"], rollouts["start_frame"])) == [(1, "walk_b", 149)]

@@ -105,7 +105,7 @@ def test_an_evaluation_sim2sim_compared_against_is_replaced_only_when_forced(tmp
     with caplog.at_level(logging.WARNING, logger="bmimic.eval"):
         keep_earlier(out, tmp_path, force=False)  # no sim2sim result: replaced, but said so
     assert "replacing the earlier evaluation" in caplog.text
-    gap = tmp_path / SIM2SIM_DIR / "project" / "model_2"
+    gap = tmp_path / SIM2SIM_DIR / "bmimic_g1" / "model_2"
     gap.mkdir(parents=True)
     (gap / EVAL_SUMMARY).write_text("{}")
     with pytest.raises(EarlierEvaluationError, match=r"model_2: holds an earlier evaluation that sim2sim.*--out.*--force"):
@@ -113,7 +113,7 @@ def test_an_evaluation_sim2sim_compared_against_is_replaced_only_when_forced(tmp
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="bmimic.eval"):
         keep_earlier(out, tmp_path, force=True)
-    assert "sim2sim gap in" in caplog.text and "project" in caplog.text
+    assert "sim2sim gap in" in caplog.text and "bmimic_g1" in caplog.text
 
 
 def test_on_a_terminal_the_progress_bar_shows(tmp_path, monkeypatch):

@@ -466,7 +466,7 @@ def test_training_writes_both_onnx_files_and_sim2sim_evaluates_them(trained, tmp
     assert (trained / "checkpoints" / "policy_2.onnx").is_file()
     assert (trained / "checkpoints" / "motion_policy_2.onnx").is_file()
     out = run("bmimic.sim2sim", trained, "--workers", 2, cwd=tmp_path)
-    folder = trained / "sim2sim" / "project" / "model_2"
+    folder = trained / "sim2sim" / "bmimic_g1" / "model_2"
     for name in ("eval_episodes.parquet", "eval_bins.parquet", "eval_segments.csv", "eval_summary.json",
                  sim2sim.GAP_FILE):
         assert (folder / name).is_file(), name
@@ -591,3 +591,10 @@ def test_a_policy_from_another_run_in_this_runs_folder_is_refused(task, tmp_path
     write_resolved_config(run, {"sim": {"timestep_s": spec.physics_dt_s, "decimation": spec.decimation + 1}})
     with pytest.raises(sim2sim.Sim2SimError, match=f"sim.decimation \\({spec.decimation}, the run's"):
         check_policy_of_run(spec, run)
+
+
+def test_each_robot_model_writes_to_a_folder_named_for_the_robot():
+    from bmimic.sim2sim.model import MODELS, model_label
+    assert [model_label(m) for m in MODELS] == ["bmimic_g1", "menagerie"]
+    assert model_label("project") == "bmimic_g1"  # the earlier name of the run's own G1, still accepted
+    assert model_label("/models/my g1.xml") == "my_g1"

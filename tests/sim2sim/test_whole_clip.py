@@ -240,7 +240,7 @@ def test_the_command_writes_the_tables_and_the_gap_to_bmimics_own_whole_clip_eva
     run("bmimic.eval", trained, "--horizon-s", 11, "--episodes-per-bin", 2, "env.episode_length_s=12", cwd=tmp_path)
     before = {p: p.read_bytes() for p in (trained / "eval").rglob("*") if p.is_file()}
     out = run("bmimic.sim2sim", trained, "--whole-clip", 2, "--workers", 2, "--seed", 3, cwd=tmp_path)
-    folder = trained / "sim2sim" / "project" / "model_2" / "whole_clip"
+    folder = trained / "sim2sim" / "bmimic_g1" / "model_2" / "whole_clip"
     names = sorted(p.name for p in folder.iterdir())
     assert names == ["eval_bins.parquet", "eval_episodes.parquet", "eval_segments.csv", "eval_summary.json",
                      "sim2sim_gap_clips.csv", "whole_clip_survival.csv"]

@@ -54,7 +54,7 @@ def test_an_evaluation_is_written_whole_with_the_summary_last(tmp_path, monkeypa
     monkeypatch.setattr(atomic_io, "atomic_write",
                         lambda path, w: (written.append(path.name), write(path, w))[1])
     frame = pd.DataFrame({"bin": [0, 1], "segment": ["", "walk"]})
-    out = write_evaluation(tmp_path / "sim2sim" / "project" / "model_3", frame, frame, frame,
+    out = write_evaluation(tmp_path / "sim2sim" / "bmimic_g1" / "model_3", frame, frame, frame,
                            {"label": "model_3"}, gap=frame)
     assert written == [SIM2SIM_GAP, *EVAL_TABLES] and sorted(p.name for p in out.iterdir()) == sorted(written)
     pd.testing.assert_frame_equal(pd.read_csv(out / EVAL_TABLES[2], keep_default_na=False), frame)
