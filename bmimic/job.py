@@ -105,7 +105,7 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
     if place.main_rank:  # before the environment is built: its first start compiles Warp kernels (minutes)
         log.info(start_summary(run_cfg, place.requested, place.world, place.smoke, task.motion, task.layout,
                                plan.run_dir))
-    trainer, whole_clip = build_job(run_cfg, task, place, plan, resolved, stop_rule)
+    trainer = build_job(run_cfg, task, place, plan, resolved, stop_rule)
     env = trainer.env
     try:
         if stop is not None:
@@ -125,8 +125,8 @@ def train(cfg: DictConfig, launch_dir: Path, sweep_job: bool = False, ctx: RunCo
             trainer.close()
         finally:
             env.close()
-            if whole_clip is not None:
-                whole_clip.close()
+            if trainer.whole_clip is not None:
+                trainer.whole_clip.close()
             if place.world > 1:
                 import torch
 
@@ -190,7 +190,7 @@ def plan_job(cfg: PlacedConfig, launch_dir: Path, sweep_job: bool, ctx: RunConte
 
 def build_job(cfg: PlacedConfig, task, place: Placement, plan, resolved: dict, stop_rule: Callable | None = None):
     """The training environment, sampler, evaluators and trainer of `task` (with the race's `stop_rule`),
-    with the checkpoint that `plan` continues restored: (trainer, whole-clip evaluator or None)."""
+    with the checkpoint that `plan` continues restored: the trainer, which holds them all."""
     from bmimic.sampling.config import describe as describe_sampler
 
     training = build_training(cfg, place.device, task)
@@ -213,7 +213,7 @@ def build_job(cfg: PlacedConfig, task, place: Placement, plan, resolved: dict, s
             seed_everything(stream)
             log.info("rank %d: random streams reseeded from %d (the run's seed + rank + 1000003 x %d iterations)",
                      place.rank, stream, trainer.progress.iteration)
-    return trainer, whole_clip
+    return trainer
 
 
 def finish_job(cfg: PlacedConfig, trainer, task, place: Placement, run_dir: Path, final: dict, robust: dict,
