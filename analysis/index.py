@@ -11,8 +11,6 @@ from bmimic.cli.startup import leave_working_directory
 
 leave_working_directory(__spec__.name)  # first: under `python -m` (bmimic.cli.startup); no MuJoCo here
 
-import contextlib
-import fcntl
 import logging
 import sys
 from pathlib import Path
@@ -28,6 +26,7 @@ from analysis.files import write_csv
 from analysis.load import load_runs
 from analysis.run_files import find_run_dirs
 from bmimic.cli.common import path_arg
+from bmimic.runs.atomic_io import folder_lock
 from bmimic.runs.folder import (
     MULTIRUN_RECORD,
     SWEEP_INDEX,
@@ -43,7 +42,6 @@ from bmimic.runs.schema import BUDGET_KEYS, ENV_STEPS, ITERATION, WALL_TIME_S
 log = logging.getLogger("analysis.index")
 
 INDEX_NAME = SWEEP_INDEX
-LOCK_NAME = ".index.lock"
 
 METRIC_KEYS = (
     "final_eval_failure_rate", "final_eval_success_rate", "final_robust_eval_failure_rate", "iterations",
@@ -98,21 +96,6 @@ def build_index(sweep_dir: str | Path) -> pd.DataFrame:
     return index
 
 
-@contextlib.contextmanager
-def _lock(sweep_dir: Path):
-    """An exclusive advisory lock on ``<sweep>/.index.lock``; a no-op where the filesystem lacks locks."""
-    with open(sweep_dir / LOCK_NAME, "a") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX)
-        except OSError:
-            pass  # e.g. some network filesystems: the atomic replace alone still keeps the file whole
-        try:
-            yield
-        finally:
-            with contextlib.suppress(OSError):
-                fcntl.flock(f, fcntl.LOCK_UN)
-
-
 def write_index(sweep_dir: str | Path) -> Path:
     """Rebuild ``<sweep_dir>/index.csv`` from the job folders, atomically; return its path."""
     sweep_dir = Path(sweep_dir)
@@ -124,7 +107,7 @@ def write_index(sweep_dir: str | Path) -> Path:
             and not find_run_dirs(sweep_dir)):
         raise AnalysisError(f"{sweep_dir}: holds files but is not a sweep folder (no {MULTIRUN_RECORD}, {SWEEP_INDEX} "
                             "or run folders); nothing is written there")
-    with _lock(sweep_dir):
+    with folder_lock(sweep_dir):  # a flock on the folder itself: no lock file left in the user's sweep
         return write_csv(sweep_dir / INDEX_NAME, build_index(sweep_dir))
 
 

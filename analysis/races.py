@@ -44,6 +44,7 @@ from analysis.markdown import is_nan, md_table
 from analysis.palette import arm_colors
 from analysis.race_files import EVALUATION_KEYS, THRESHOLD_KEYS, read_race
 from bmimic.cli.common import path_arg
+from bmimic.runs.atomic_io import staged_folder
 from bmimic.runs.race_record import WHOLE_CLIP_METRIC
 from bmimic.runs.schema import ENV_STEPS, ITERATION, MPKPE_REL_MM, SUCCESS_RATE
 
@@ -280,10 +281,13 @@ def write_race_curves(paths, out: str | Path) -> list[Path]:
     races = read_races(paths)
     evals, thresholds, summary = race_evaluations(races), race_thresholds(races), race_summary(races)
     fig, whole = plot_races(evals), whole_clip_markdown(races)
-    return [write_csv(out / "race_evaluations.csv", evals), write_csv(out / "race_thresholds.csv", thresholds),
-            write_csv(out / "race_summary.csv", summary), write_text(out / "race_table.md", summary_markdown(summary)),
-            *([] if whole is None else [write_text(out / "whole_clip_table.md", whole)]),
-            save_figure(out / "race_curves.png", fig)]
+    with staged_folder(out) as stage:  # a write that fails (a full disk) leaves `out` as it was
+        written = [write_csv(stage / "race_evaluations.csv", evals), write_csv(stage / "race_thresholds.csv", thresholds),
+                   write_csv(stage / "race_summary.csv", summary),
+                   write_text(stage / "race_table.md", summary_markdown(summary)),
+                   *([] if whole is None else [write_text(stage / "whole_clip_table.md", whole)]),
+                   save_figure(stage / "race_curves.png", fig)]
+    return [out / p.name for p in written]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -30,6 +30,7 @@ from analysis.report_views import REPORT_TITLE, body, header, schedule_section
 from analysis.tables import ReportOptions
 from bmimic.cli.common import path_arg
 from bmimic.runs import safe_read
+from bmimic.runs.atomic_io import staged_folder
 
 
 def default_out(paths: list[Path]) -> Path:
@@ -60,13 +61,14 @@ def build_report(paths, out: str | Path | None = None, opts: ReportOptions | Non
     r = read_runs(paths, opts, allow_mixed)
     # Every table is read (and checked) before the first file is written: a refused report writes nothing.
     data = compute(r.runs, r.opts) if r.runs["included"].any() else None
-    write_csv(out / "runs.csv", r.runs)
-    md = header(paths, r)
-    if data is None:
-        md += ["No run has usable tables yet; nothing else to report."]
-    else:
-        md += schedule_section(r.runs, data.inputs.final_iteration) + body(data, write_files(data, out), r.coverage)
-    write_text(out / "report.md", "\n".join(md) + "\n")
+    with staged_folder(out) as stage:  # a write that fails (a full disk) leaves `out` as it was
+        write_csv(stage / "runs.csv", r.runs)
+        md = header(paths, r)
+        if data is None:
+            md += ["No run has usable tables yet; nothing else to report."]
+        else:
+            md += schedule_section(r.runs, data.inputs.final_iteration) + body(data, write_files(data, stage), r.coverage)
+        write_text(stage / "report.md", "\n".join(md) + "\n")
     return out
 
 

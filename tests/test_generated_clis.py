@@ -428,7 +428,8 @@ tests/cli/test_resume_exact.py's, its status on a full disk tests/cli/test_run_f
 def test_a_full_disk_at_any_write_is_one_line_and_leaves_no_half_file(world, name, tmp_path_factory):
     """Issue 77: report or export on a full filesystem left partial CSVs or an empty folder. Each write the
     command makes fails in turn; every time it ends in one error line, exit 2, nothing half-written, the
-    inputs unchanged, until n passes its last write and it completes."""
+    inputs and the output folder unchanged (no file of the writes before the failing one), until n passes its
+    last write and it completes."""
     for n in range(1, 40):
         with scratch(tmp_path_factory, "full") as tmp:
             work = tmp / "work"
@@ -438,8 +439,10 @@ def test_a_full_disk_at_any_write_is_one_line_and_leaves_no_half_file(world, nam
             else:
                 work.mkdir()
                 argv = FULL_DISK_COMMANDS[name](world, work)
+            before = tree(work)
             if _property((name, argv, {DISK_FULL: str(n)}), world, tmp) in (0, "reached"):
                 break  # n is past the command's last write
+            assert tree(work) == before, f"{name} {argv}: refused at write {n}, but left what it wrote before"
     assert n > 1, f"{name}: wrote nothing, so the full disk was never met"
 
 

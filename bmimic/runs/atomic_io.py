@@ -14,6 +14,7 @@ import fcntl
 import json
 import math
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -201,3 +202,35 @@ def make_folder(path: str | os.PathLike) -> Path:
     except OSError as e:
         raise WriteError.of(path, e) from None
     return path
+
+
+@contextlib.contextmanager
+def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
+    """A hidden folder beside `out` to write a command's several files into. When the block ends, each file
+    moves into `out` (made if missing) by a rename over any file of its name; when it raises (a full disk at
+    the fifth figure, say), the stage goes and so does every folder made for it: a refused command leaves
+    `out` and its parents as they were, never half a report."""
+    out = Path(out)
+    missing = [p for p in (out, *out.parents) if not p.exists()]
+    stage = None
+    try:
+        make_folder(out.parent)
+        try:
+            stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+        except OSError as e:
+            raise WriteError.of(out.parent, e) from None
+        yield stage
+        make_folder(out)
+        for f in sorted(p for p in stage.rglob("*") if not p.is_dir()):
+            dest = out / f.relative_to(stage)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(f, dest)
+        _fsync_path(out, directory=True)
+    except BaseException:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+        if missing:  # the topmost folder made for it, with everything below it
+            shutil.rmtree(missing[-1], ignore_errors=True)
+        raise
+    else:
+        shutil.rmtree(stage, ignore_errors=True)  # its folders, emptied by the moves

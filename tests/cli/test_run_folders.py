@@ -414,3 +414,27 @@ def test_resumes_json_lists_changes_of_the_run_not_of_the_launch() -> None:
            "max_iterations": 6, "sampler": {"gamma": 0.5}}
     plan = RunPlan(Path("run"), Path("run"), Path("run/checkpoints/latest.pt"), {"config": json.dumps(old)}, True)
     assert check_resume_changes(plan, new, ["sampler.gamma"]) == {"max_iterations": (4, 6), "sampler.gamma": (0.9, 0.5)}
+
+
+def test_a_staged_folder_moves_in_whole_or_leaves_everything_as_it_was(tmp_path) -> None:
+    """Several files of one command (a report): all of them replace their namesakes in the output folder,
+    or, when a write fails, none does and every folder made for them is gone again."""
+    from bmimic.runs.atomic_io import atomic_write_text, staged_folder
+
+    out = tmp_path / "made" / "for" / "it"
+    with pytest.raises(OSError):
+        with staged_folder(out) as stage:
+            atomic_write_text(stage / "a.csv", "1\n")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert list(tmp_path.iterdir()) == []  # no stage, no parents
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "a.csv").write_text("old\n")
+    (kept / "user.txt").write_text("mine\n")
+    with staged_folder(kept) as stage:
+        atomic_write_text(stage / "a.csv", "new\n")
+        atomic_write_text(stage / "sub" / "b.md", "b\n")
+        assert not (kept / "sub").exists()  # nothing reaches the folder before the block ends
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"]
+    assert (kept / "a.csv").read_text() == "new\n" and (kept / "sub" / "b.md").read_text() == "b\n"
+    assert (kept / "user.txt").read_text() == "mine\n"
