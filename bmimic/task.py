@@ -167,6 +167,7 @@ def _whole_clip_evaluator(task: Task, condition: str, per_clip: int):
     from bmimic.envs.config import EnvConfig
     from bmimic.envs.tracking_env import TrackingEnv
     from bmimic.robot import load_mjmodel
+    from bmimic.runs.schema import CONDITIONS
     from bmimic.training.clip_rollouts import clip_bounds
     from bmimic.training.evaluator import Evaluator
 
@@ -180,7 +181,7 @@ def _whole_clip_evaluator(task: Task, condition: str, per_clip: int):
     env_cfg = cast(EnvConfig, OmegaConf.to_object(cfg.env))
     env_cfg = dataclasses.replace(env_cfg, episode_length_s=max(float(env_cfg.episode_length_s), steps * step_dt))
     env = TrackingEnv(env_cfg, cfg.sim, mjm, task.robot, task.reference(), n, device, mode="eval",
-                      robust=condition != "nominal", layout=layout)
+                      robust=CONDITIONS[condition].perturbed, layout=layout)
     if env.max_episode_length < steps - 1:
         raise ConfigError(f"eval.whole_clip: the evaluation's episode limit ({env.max_episode_length} steps) is shorter "
                           f"than the longest clip ({steps - 1} steps)")

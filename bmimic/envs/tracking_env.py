@@ -145,6 +145,11 @@ class TrackingEnv(VecEnv):
         self.events.startup(self)
 
     # ----------------------------------------------------------------------------------- VecEnv API
+    @property
+    def perturbed(self) -> bool:
+        """Events and observation noise on: training, and a robust evaluation (runs.schema.CONDITIONS)."""
+        return self.episodes.perturbed
+
     def get_observations(self) -> TensorDict:
         return self._obs.clone()
 

@@ -99,10 +99,27 @@ CLIP_ROLLOUT_COLUMNS = ("clip", "clip_name", "start_frame", "end_frame", "steps"
 last frame (False for one cut by its time limit or failed)."""
 
 # --------------------------------------------------------------------------------------------- whole clips
-WHOLE_CLIP_CONDITIONS = ("nominal", "robust")
-"""The conditions of a whole-clip evaluation: `nominal` as the window evaluation (no domain randomisation,
-no observation noise, no pushes: deterministic, so one rollout per clip), `robust` with training's domain
-randomisation, observation noise and pushes (each rollout its own draw)."""
+@dataclass(frozen=True)
+class Condition:
+    """What an evaluation perturbs, as data: every evaluator asks this, never the condition's name."""
+
+    name: str
+    perturbed: bool
+    """Training's domain randomisation (startup and interval events: pushes) and observation noise on. A
+    perturbed condition is random: many rollouts per clip, each its own draw. An unperturbed one is
+    deterministic: one rollout per clip says all."""
+
+
+CONDITIONS = {c.name: c for c in (Condition("nominal", perturbed=False), Condition("robust", perturbed=True))}
+"""The evaluation conditions: `nominal` as the window evaluation (no domain randomisation, no observation
+noise, no pushes), `robust` as in training (domain randomisation, observation noise and pushes)."""
+WHOLE_CLIP_CONDITIONS = tuple(CONDITIONS)
+"""The conditions a whole-clip evaluation may name (CONDITIONS)."""
+
+
+def condition_rollouts(condition: str, perturbed_rollouts: int) -> int:
+    """Rollouts per clip under `condition`: one when it is deterministic, else `perturbed_rollouts`."""
+    return int(perturbed_rollouts) if CONDITIONS[condition].perturbed else 1
 START_TRANSIENT_S = 1.0
 """A whole-clip rollout that fails within this many seconds of its start is a start transient."""
 CONDITION = "condition"
@@ -313,5 +330,5 @@ __all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "BUDG
            "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND", "REPORTED_ERRORS", "RUN_METRICS", "SMOOTHNESS",
            "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE", "TRACKED_THROUGH", "TRACKING_ERRORS",
            "WALL_TIME_S", "WHOLE_CLIP_COLUMNS", "WHOLE_CLIP_CONDITIONS", "WHOLE_CLIP_FAILURE_COLUMNS",
-           "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS",
+           "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS", "CONDITIONS", "Condition", "condition_rollouts",
            "WHOLE_CLIP_SURVIVAL_COLUMNS", "counts_as_mastered", "summary_key", "whole_clip_key"]

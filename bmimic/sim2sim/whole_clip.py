@@ -34,11 +34,13 @@ import pandas as pd
 from bmimic.runs import safe_read
 from bmimic.runs.folder import HYDRA_DIR, RESOLVED_CONFIG, read_resolved_config
 from bmimic.runs.schema import (
+    CONDITIONS,
     ERROR_COLUMNS,
     ITERATION,
     START_TRANSIENT_S,
     WHOLE_CLIP_CONDITIONS,
     WHOLE_CLIP_ROLLOUT_COLUMNS,
+    condition_rollouts,
     whole_clip_survival,
 )
 from bmimic.sim2sim.model import build_model
@@ -213,23 +215,24 @@ def run_whole_clip(policy_path: Path, run_dir: Path | None, rollouts_per_clip: i
     names = clip_names(run_dir, spec)
     durations_s = (ends - 1 - starts) / spec.fps
     iteration = -1 if spec.iteration is None else spec.iteration
-    robust = robust_perturbations(run_dir, spec) if "robust" in conditions else None
+    robust = robust_perturbations(run_dir, spec) if any(CONDITIONS[c].perturbed for c in conditions) else None
     if robust is not None and robust.skipped:
         log.warning("robust: env.events terms without a native version, not applied: %s", ", ".join(robust.skipped))
     tables: dict[str, list[pd.DataFrame]] = {"rollouts": [], "bins": [], "segments": []}
     per_condition, wall_s = {}, {}
     for condition in conditions:
-        per_clip = 1 if condition == "nominal" else rollouts_per_clip  # nominal is deterministic
+        perturbed = CONDITIONS[condition].perturbed
+        per_clip = condition_rollouts(condition, rollouts_per_clip)  # a deterministic condition: one rollout says all
         clip_of = np.repeat(chosen, per_clip)  # the library's clip numbers: a clip's draws never depend on --clip
         rollout = np.tile(np.arange(per_clip), len(chosen))
         tasks = [EpisodeTask(int(starts[c]), max(1, int(ends[c] - starts[c]) - 1),
-                             None if condition == "nominal" else (int(seed), int(c), int(r)))
+                             (int(seed), int(c), int(r)) if perturbed else None)
                  for c, r in zip(clip_of, rollout)]
         log.info("sim2sim whole clip, %s: %d clip(s) x %d rollout(s), %s control steps each, on %s, %d workers",
                  condition, len(chosen), per_clip, "/".join(str(t) for t in (ends - starts - 1)[chosen]), model_note,
                  workers)
         runs, wall_s[condition] = run_tasks(policy_path, mjm, spec, ref, tasks, workers, max_mpkpe_rel_mm,
-                                            robust if condition == "robust" else None)
+                                            robust if perturbed else None)
         collected = collect(runs, layout.frame_to_bin.numpy()[starts[clip_of]], spec.num_frames)
         episodes = episode_table(collected.episodes, layout, ref, spec.control_dt_s, iteration)
         rows = rollout_table(episodes, collected.episodes, condition, clip_of, names, starts, ends, spec.fps)
@@ -282,7 +285,7 @@ def format_whole_clip(result: WholeClipResult) -> str:
                      f"(< {START_TRANSIENT_S:g} s), {c['later_failures']} later{': ' + where if where else ''}; "
                      f"mean survival {c['mean_survival_s']:.1f} s; {c['control_steps']} control steps in "
                      f"{c['eval_wall_time_s']:.0f} s")
-        if condition == "nominal" and c["rollouts_per_clip"] == 1 and s["rollouts_per_clip"] > 1:
+        if not CONDITIONS[condition].perturbed and c["rollouts_per_clip"] == 1 and s["rollouts_per_clip"] > 1:
             lines.append("           (one nominal rollout per clip: native MuJoCo repeats it exactly)")
         if "warp_source" in c:
             lines.append(f"           bmimic (MuJoCo-Warp) {c['warp_success_rate']:.3f} over {c['warp_rollouts']} "

@@ -239,7 +239,7 @@ class Evaluator:
         measured = (*ERROR_COLUMNS, *SMOOTHNESS_COLUMNS)
         frame_sums = torch.zeros(num_frames, len(measured) + 1, device=dev)  # steps, then per-step sums
         rows = []
-        may_stop = not getattr(env, "robust", False) if self.stop_early is None else self.stop_early
+        may_stop = not env.perturbed if self.stop_early is None else self.stop_early
         for first in range(0, len(self.frames), n):
             if self.before_wave is not None:
                 self.before_wave(first // n)

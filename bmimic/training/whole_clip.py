@@ -35,12 +35,14 @@ import torch
 from bmimic.runs.schema import (
     BIN,
     CONDITION,
+    CONDITIONS,
     ERROR_COLUMNS,
     SMOOTHNESS_COLUMNS,
     START_TRANSIENT_S,
     WHOLE_CLIP_COLUMNS,
     WHOLE_CLIP_FAILURE_COLUMNS,
     WHOLE_CLIP_SUCCESS,
+    condition_rollouts,
     whole_clip_key,
     whole_clip_survival,
 )
@@ -158,7 +160,7 @@ class WholeClipEvaluation:
 
     def per_clip(self, condition: str) -> int:
         """Rollouts per clip under `condition`: one when it is deterministic."""
-        return 1 if condition == "nominal" else self.rollouts
+        return condition_rollouts(condition, self.rollouts)
 
     def steps(self) -> int:
         """Control steps of the longest clip (one wave lasts that long)."""
@@ -189,7 +191,7 @@ class WholeClipEvaluation:
         parts = []
         for condition in self.conditions:
             t0 = time.perf_counter()
-            perturbed = condition != "nominal"
+            perturbed = CONDITIONS[condition].perturbed
             with own_random_stream(self.seed, self.device) if perturbed else contextlib.nullcontext():
                 ev = self.evaluator(condition)
                 ev.stop_early = True  # draws are per wave (own stream), so stopping early changes nothing measured

@@ -261,3 +261,10 @@ def test_step_traces_as_single_graphs(built):
         # graph_break_count does not count.
         assert explained.graph_count == 1 and not reasons, (part.__name__, reasons)
     dynamo.reset()
+
+
+def test_training_is_perturbed_and_a_nominal_evaluation_is_not(built):
+    """TrackingEnv.perturbed is what an evaluator asks (a deterministic wave may stop once no episode is
+    alive; a perturbed one keeps stepping): training's env always, a nominal evaluation's never."""
+    _, _, _, _, _, env, evaluator = built
+    assert env.perturbed is True and evaluator.env.perturbed is False

@@ -28,6 +28,9 @@ class PlantedEnv:
     at the clip's last frame; an env whose segment started in a clip of ``failing`` terminates on its
     FAIL_AFTER-th step; the state is the reference's (no tracking error)."""
 
+    perturbed = False
+    """As TrackingEnv.perturbed: no events, no observation noise (a nominal evaluation)."""
+
     def __init__(self, num_envs: int, failing: set[int]):
         self.num_envs, self.device, self.step_dt = num_envs, torch.device("cpu"), 1.0 / FPS
         starts = torch.tensor(STARTS)
@@ -133,7 +136,7 @@ def test_phc_resets_to_uniform_when_nothing_failed_and_keeps_its_counts():
 class CountingEnv(PlantedEnv):
     def __init__(self, num_envs: int, failing: set[int], robust: bool = False):
         super().__init__(num_envs, failing)
-        self.robust, self.steps_taken = robust, 0
+        self.perturbed, self.steps_taken = robust, 0
 
     def step(self, actions: torch.Tensor):
         self.steps_taken += 1

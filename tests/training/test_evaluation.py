@@ -158,6 +158,7 @@ def test_real_eval_env_charges_the_bin_where_the_planted_termination_happens(rob
     env = ev.env
     # DR, noise and pushes on, as in training
     assert env.episodes.perturbed and env.events.model_fields and env.events.has_interval and env.observations.noisy["policy"]
+    assert env.perturbed  # what the evaluator asks (a robust wave keeps stepping: its draws advance torch's stream)
     assert ev.layout.num_bins == 7 and ev.horizon_steps == 50
     planted = 60  # bin 1; the episode started in bin 0 (frame 25) runs into it
     ev.env = PlantedTermination(env, planted)

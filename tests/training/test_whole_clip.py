@@ -48,7 +48,7 @@ class ClipEnv(PlantedEnv):
         self.clip_of_frame = torch.bucketize(torch.arange(NUM_FRAMES), torch.tensor(STARTS), right=True) - 1
         self.frame_clip_end = torch.tensor([*STARTS[1:], NUM_FRAMES])[self.clip_of_frame]
         self.fail_after = torch.tensor([fail_after.get(c, 0) for c in range(len(STARTS))])
-        self.robust = robust
+        self.robust = self.perturbed = robust
         self.draw = torch.zeros(num_envs)
         self.redraws = []
         self._limit = torch.zeros(num_envs, dtype=torch.long)
