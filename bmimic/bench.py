@@ -335,12 +335,13 @@ def merge_multigpu_rows(path: str | os.PathLike, new_rows: list[dict]) -> list[d
 
 def multigpu(args: argparse.Namespace, overrides: list[str], envs: list[int]) -> int:
     """`--multigpu-json`: full PPO iterations on every rank of this torchrun, rank 0 merges the rows."""
-    from bmimic.runtime import exit_rank, init_distributed, resolve_device, torchrun_env
+    from bmimic.runtime import exit_rank, init_distributed, resolve_device, torchrun_env, use_cpu_threads
 
     path = Path(args.multigpu_json)
     read_multigpu_rows(path)  # a malformed file stops the run here, before any measurement
     rank, world = init_distributed()
     device = resolve_device(args.device)
+    use_cpu_threads(device)  # as a training run on this device
     if world > 1 and torch.distributed.get_backend() == "nccl":
         device = f"cuda:{torchrun_env()[2]}"
     rows = []

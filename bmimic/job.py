@@ -36,7 +36,14 @@ from bmimic.runs.folder import (
 )
 from bmimic.runs.record import metrics as run_metrics
 from bmimic.runs.schema import ENV_STEPS, WALL_TIME_S
-from bmimic.runtime import init_distributed, process_rank, resolve_device, seed_everything, torchrun_env
+from bmimic.runtime import (
+    init_distributed,
+    process_rank,
+    resolve_device,
+    seed_everything,
+    torchrun_env,
+    use_cpu_threads,
+)
 from bmimic.sweeping.jobs import done_run_differences
 from bmimic.sweeping.outcomes import record_job_outcome
 from bmimic.task import (
@@ -145,6 +152,7 @@ def place_job(cfg: DictConfig, stop_rule: Callable | None = None) -> tuple[Place
     default_budget = cfg.max_iterations is None
     quiet_warp(cfg.verbose)
     device = resolve_device(requested)
+    use_cpu_threads(device)
     rank, world = init_distributed()
     if rank != 0 and not cfg.verbose:  # under torchrun rank 0 speaks for the run; the others only warn
         logging.getLogger().setLevel(logging.WARNING)

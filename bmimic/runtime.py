@@ -66,6 +66,25 @@ def guess_device(device: str) -> str:
     return "cuda:0" if not hidden and gpus.is_dir() and any(gpus.iterdir()) else "cpu"
 
 
+THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
+"""Environment variables by which a user sets torch's CPU threads; set, they are obeyed."""
+
+
+def use_cpu_threads(device: str) -> int | None:
+    """A CPU run's torch threads: one, unless THREAD_ENV names a number (returns what was set; None on a
+    GPU or where the environment decides). The physics runs on Warp's CPU backend, one thread; what
+    torch computes there (the policy, PPO's mini-batches of a few hundred rows) is too small to share,
+    so a second thread only waits, and beside other processes (a sweep's jobs, pytest's workers) it
+    oversubscribes the cores. Measured on 2 cores (docs/benchmarks.md, 2026-12-08): the default run's
+    4 iterations trained in 12 s with one thread, 28-45 s with torch's default, the same numbers."""
+    if not device.startswith("cpu") or any(os.environ.get(name, "").strip() for name in THREAD_ENV):
+        return None
+    import torch
+
+    torch.set_num_threads(1)
+    return 1
+
+
 RENDEZVOUS_TIMEOUT_S = 300.0
 """How long a torchrun rank waits for the others to meet (`$BMIMIC_RENDEZVOUS_TIMEOUT_S` sets it): a
 rank started alone (WORLD_SIZE=2 without its peer) ends with one line instead of waiting forever."""

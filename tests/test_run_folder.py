@@ -17,7 +17,15 @@ from bmimic.runs.folder import (
     write_provenance,
     write_status,
 )
-from bmimic.runtime import SOURCE_COMMIT_ENV, provenance, resolve_device, seed_everything, source_commit
+from bmimic.runtime import (
+    SOURCE_COMMIT_ENV,
+    THREAD_ENV,
+    provenance,
+    resolve_device,
+    seed_everything,
+    source_commit,
+    use_cpu_threads,
+)
 
 
 def test_atomic_write_replaces_whole_file(tmp_path):
@@ -112,6 +120,21 @@ def test_resolve_device():
 
         with pytest.raises(BmimicError, match="device=cuda"):
             resolve_device("cuda")
+
+
+def test_a_cpu_run_uses_one_torch_thread_unless_the_environment_says_otherwise(monkeypatch):
+    before = torch.get_num_threads()
+    try:
+        for name in THREAD_ENV:
+            monkeypatch.delenv(name, raising=False)
+        torch.set_num_threads(2)
+        assert use_cpu_threads("cuda:0") is None and torch.get_num_threads() == 2  # a GPU run: torch's own
+        assert use_cpu_threads("cpu") == 1 and torch.get_num_threads() == 1
+        torch.set_num_threads(2)
+        monkeypatch.setenv("OMP_NUM_THREADS", "2")
+        assert use_cpu_threads("cpu") is None and torch.get_num_threads() == 2  # the user's choice stands
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_seed_reproducible_streams():

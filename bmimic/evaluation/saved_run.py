@@ -220,7 +220,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
     from bmimic.config import placed, resolve_runtime
     from bmimic.config.checks import validate
     from bmimic.envs.config import foreign_term_modules
-    from bmimic.runtime import resolve_device
+    from bmimic.runtime import resolve_device, use_cpu_threads
     from bmimic.task import build_task
 
     run_dir, checkpoint = locate_run(path)
@@ -231,6 +231,7 @@ def load_run(path: str | Path, overrides: Sequence[str] = (), trust: bool = Fals
                            "terms; pass --trust-checkpoint if you trust this run folder")
     anchor_relative_paths(cfg, run_dir)
     device = resolve_device(cfg.device)
+    use_cpu_threads(device)
     resolve_runtime(cfg, device)
     validate(cfg)
     return LoadedRun(run_dir, checkpoint, build_task(placed(cfg), device), tuple(overrides))
