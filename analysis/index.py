@@ -103,12 +103,28 @@ def write_index(sweep_dir: str | Path) -> Path:
         raise AnalysisError(f"{sweep_dir}: sweep folder does not exist")
     if is_run_folder(sweep_dir):
         raise AnalysisError(f"{sweep_dir}: is a run folder, not a sweep folder (give the folder that holds the jobs)")
+    index = sweep_dir / INDEX_NAME
+    if index.is_file() and not written_by_index(index):
+        raise AnalysisError(f"{index}: a file bmimic did not write (its first columns are not {', '.join(INDEX_COLUMNS[:3])}); "
+                            "it is left as it is and nothing is written")
     if (any(sweep_dir.iterdir()) and not any((sweep_dir / name).is_file() for name in (MULTIRUN_RECORD, SWEEP_INDEX))
             and not find_run_dirs(sweep_dir)):
         raise AnalysisError(f"{sweep_dir}: holds files but is not a sweep folder (no {MULTIRUN_RECORD}, {SWEEP_INDEX} "
                             "or run folders); nothing is written there")
     with folder_lock(sweep_dir):  # a flock on the folder itself: no lock file left in the user's sweep
         return write_csv(sweep_dir / INDEX_NAME, build_index(sweep_dir))
+
+
+def written_by_index(path: Path) -> bool:
+    """Whether an existing index.csv is one this module wrote (any version: its header begins with job, arm
+    and has status), so that rebuilding it replaces nothing of the user's (issue 77's second round: a
+    user's own index.csv was replaced by an empty index)."""
+    try:
+        with open(path, "rb") as f:
+            header = f.read(4096).split(b"\n", 1)[0].decode("utf-8", "replace").strip().split(",")
+    except OSError:
+        return False
+    return header[:2] == ["job", "arm"] and "status" in header
 
 
 class SweepIndexCallback(Callback):

@@ -36,6 +36,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("command", choices=["list"], help="list: print the jobs of the sweep")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, as for bmimic.train (e.g. +sweep=gamma)")
     args = parser.parse_args(argv)
+    import yaml
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
@@ -47,6 +48,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_launcher(args.overrides)
         check_additions(args.overrides)
         sweep_dir, jobs = list_jobs(args.overrides)
+    except yaml.YAMLError as e:  # a sweep file of the user's own that is not YAML (a tag, a bracket left open)
+        print(f"error: a config or sweep file is not valid YAML: {' '.join(str(e).split())}", file=sys.stderr)
+        return 2
     except (SweepListError, HydraException, OmegaConfBaseException, BmimicError) as e:
         # Hydra's and OmegaConf's refusals as bmimic.train words them (bmimic.config.override_error)
         text = str(e) if isinstance(e, BmimicError) else override_error(e, args.overrides)

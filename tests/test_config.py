@@ -78,6 +78,7 @@ BAD = [
     (["sampler.gamma=0"], "sampler.gamma"),
     (["sampler.gamma=1.2"], "sampler.gamma"),
     (["sampler.K=0"], "sampler.K"),
+    (["sampler.K=1000000000"], "sampler.K"),
     (["sampler.bin_size_seconds=0"], "sampler.bin_size_seconds"),
     (["sampler.bin_size_seconds=31"], "sampler.bin_size_seconds"),
     (["sampler.alpha_smooth=0"], "sampler.alpha_smooth"),

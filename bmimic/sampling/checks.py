@@ -36,9 +36,10 @@ def check_choice(key: str, x: Any, choices: tuple[str, ...]) -> None:
         fail(key, f"one of {', '.join(choices)}", x)
 
 
-def check_int_at_least(key: str, x: Any, low: int) -> None:
-    if not (isinstance(x, int) and not isinstance(x, bool) and x >= low):
-        fail(key, f"an integer >= {low}", x)
+def check_int_at_least(key: str, x: Any, low: int, high: int | None = None) -> None:
+    """An integer >= low (and <= high, when given)."""
+    if not (isinstance(x, int) and not isinstance(x, bool) and x >= low and (high is None or x <= high)):
+        fail(key, f"an integer >= {low}" + (f" and <= {high}" if high is not None else ""), x)
 
 
 def check_positive(key: str, x: Any) -> None:

@@ -182,10 +182,15 @@ class BeyondMimicConfig(SamplerConfig):
         check_positive("uniform_ratio", self.uniform_ratio)
 
 
+MAX_LOOKAHEAD_BINS = 1000
+"""The largest K: the kernel is a [bins, K] table on the device (8,018 bins x 1000 = 64 MB), and K=1e9
+hung a run building it (issue 77's second round)."""
+
+
 def _check_lookahead(cfg: AdaptiveConfig | BeyondMimicConfig) -> None:
     """The look-ahead kernel's keys, which the adaptive and beyondmimic schemas share (with their own defaults)."""
     check_fraction("gamma", cfg.gamma)
-    check_int_at_least("K", cfg.K, 1)
+    check_int_at_least("K", cfg.K, 1, MAX_LOOKAHEAD_BINS)
     check_choice("empty_bins", cfg.empty_bins, EMPTY_BINS)
 
 

@@ -677,6 +677,23 @@ def test_an_index_the_disk_refuses_is_one_error_line(tmp_path, capsys):
     assert (sweep / "index.csv").is_dir() and not [p for p in sweep.iterdir() if p.name.endswith(".tmp")]
 
 
+def test_a_users_own_index_csv_is_never_replaced(tmp_path, capsys):
+    """Issue 77's second round: an index.csv bmimic did not write was taken for a sweep's and replaced by
+    an empty index (exit 0). Now refused in one line, the file byte-identical; an index it wrote, of any
+    version, is still rebuilt."""
+    from analysis.index import main as index_main
+
+    (tmp_path / "index.csv").write_text("name,phone\nalice,1\n")
+    (tmp_path / "notes.txt").write_text("x")
+    assert index_main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "did not write" in err and len(err.splitlines()) == 1
+    assert (tmp_path / "index.csv").read_text() == "name,phone\nalice,1\n"
+    sweep = make_sweep(tmp_path / "sweep")
+    (sweep / "index.csv").write_text("job,arm,seed,status\nold,x,0,done\n")  # an older index of bmimic's
+    assert len(pd.read_csv(write_index(sweep))) == 8
+
+
 def test_short_arm_labels_keep_only_what_differs():
     from analysis.load import short_arm_labels
 

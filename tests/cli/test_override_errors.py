@@ -122,3 +122,14 @@ def test_info_of_a_sweep_shows_its_first_job(tmp_path):
     assert code == 0 and "usage:" not in out and "Installed Hydra Plugins" in out, out[-2000:]
     assert not [line for line in out.splitlines() if line.startswith("error:") or ": error:" in line]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_launch_list_refuses_a_sweep_file_that_is_not_yaml_in_one_line(tmp_path):
+    """Issue 77's second round: a sweep file of the user's own with a bracket left open or a YAML tag gave
+    launch list an 85-line traceback (yaml's error escaped); bmimic.train -m already said it in one line."""
+    for text in ("sweep_name: x\nmax_iterations: [2\n", "sweep_name: !custom x\n"):
+        (tmp_path / "sweep").mkdir(exist_ok=True)
+        (tmp_path / "sweep" / "x.yaml").write_text(text)
+        out = _run(tmp_path, "bmimic.launch", "list", "+sweep=x", f"hydra.searchpath=[file://{tmp_path}]")
+        assert out.returncode == 2 and out.stderr.startswith("error: ") and "x.yaml" in out.stderr, out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stdout + out.stderr

@@ -848,14 +848,15 @@ def test_design_choice_arms_change_one_key_of_the_design(arm, key, value):
         (AdaptiveConfig, "gamma", 0.0, "sampler.gamma must be in (0, 1], got 0.0"),
         (AdaptiveConfig, "gamma", 1.2, "sampler.gamma must be in (0, 1], got 1.2"),
         (AdaptiveConfig, "gamma", math.nan, "sampler.gamma must be in (0, 1], got nan"),
-        (AdaptiveConfig, "K", 0, "sampler.K must be an integer >= 1, got 0"),
-        (AdaptiveConfig, "K", 2.5, "sampler.K must be an integer >= 1, got 2.5"),
+        (AdaptiveConfig, "K", 0, "sampler.K must be an integer >= 1 and <= 1000, got 0"),
+        (AdaptiveConfig, "K", 2.5, "sampler.K must be an integer >= 1 and <= 1000, got 2.5"),
+        (AdaptiveConfig, "K", 10**9, "sampler.K must be an integer >= 1 and <= 1000, got 1000000000"),  # hung
         (AdaptiveConfig, "alpha_smooth", 0.0, "sampler.alpha_smooth must be in (0, 1], got 0.0"),
         (AdaptiveConfig, "alpha_smooth", 1.01, "sampler.alpha_smooth must be in (0, 1], got 1.01"),
         (BeyondMimicConfig, "alpha", 0.0, "sampler.alpha must be in (0, 1], got 0.0"),
         (BeyondMimicConfig, "alpha", 2.0, "sampler.alpha must be in (0, 1], got 2.0"),
         (BeyondMimicConfig, "uniform_ratio", 0.0, "sampler.uniform_ratio must be a finite number > 0, got 0.0"),
-        (BeyondMimicConfig, "K", 0, "sampler.K must be an integer >= 1, got 0"),
+        (BeyondMimicConfig, "K", 0, "sampler.K must be an integer >= 1 and <= 1000, got 0"),
         (UniformConfig, "bin_size_seconds", 0.0, "sampler.bin_size_seconds must be a finite number > 0, got 0.0"),
         (AdaptiveConfig, "bin_size_seconds", -1.0, "sampler.bin_size_seconds must be a finite number > 0, got -1.0"),
         (
@@ -901,7 +902,7 @@ def test_keys_of_another_sampler_are_refused():
 def test_schemas_hold_the_range_rules_and_constructors_the_shape_checks():
     with pytest.raises(SamplerConfigError, match="sampler.lambda_uniform must be in \\[0, 1\\], got 2.0"):
         AdaptiveConfig(lambda_uniform=2.0).check()
-    with pytest.raises(SamplerConfigError, match="sampler.K must be an integer >= 1, got 0"):
+    with pytest.raises(SamplerConfigError, match="sampler.K must be an integer >= 1 and <= 1000, got 0"):
         validate_sampler_config(BeyondMimicConfig(K=0))
     with pytest.raises(SamplerConfigError, match="num_bins"):
         UniformSampler(0)
