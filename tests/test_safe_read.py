@@ -121,6 +121,28 @@ def test_a_fifo_or_device_checkpoint_is_one_line_at_once(tmp_path):
     assert time.monotonic() - t0 < 5
 
 
+@pytest.mark.parametrize("change, words", [
+    (lambda w: w["mlp.0.weight"].fill_(float("nan")), "NaN or infinite"),
+    (lambda w: w["mlp.0.bias"].__setitem__(0, float("inf")), "NaN or infinite"),
+    (lambda w: w.__setitem__("mlp.0.weight", w["mlp.0.weight"].int()), "not a floating-point weight"),
+    (lambda w: w.__setitem__("mlp.0.weight", [1.0]), "is not a tensor"),
+])
+def test_a_checkpoint_whose_weights_cannot_be_a_policy_is_refused(tmp_path, change, words):
+    """Issue 77's second round: NaN weights evaluated to all-NaN tables (exit 0); an int32 weight was cast
+    back silently by load_state_dict (another policy)."""
+    import torch
+
+    from bmimic.training.checkpoints import CheckpointError, load_checkpoint_file
+
+    weights = {"mlp.0.weight": torch.ones(3, 2), "mlp.0.bias": torch.zeros(3), "normalizer.count": torch.tensor(4)}
+    torch.save({"actor_state_dict": dict(weights), "iter": 2}, tmp_path / "good.pt")
+    assert load_checkpoint_file(tmp_path / "good.pt")["iter"] == 2  # an integer buffer is no weight
+    change(weights)
+    torch.save({"actor_state_dict": weights, "iter": 2}, tmp_path / "bad.pt")
+    with pytest.raises(CheckpointError, match=words):
+        load_checkpoint_file(tmp_path / "bad.pt")
+
+
 @pytest.mark.parametrize("text", ['[{"a": NaN}]', '[Infinity]', '{"a": -Infinity}', '[1e999]'])
 def test_finite_json_refuses_numbers_that_are_not_finite(text):
     with pytest.raises(safe_read.UnsafeFileError, match="not finite"):

@@ -71,7 +71,31 @@ def load_checkpoint_file(path: str | os.PathLike, map_location: str = "cpu",
     if isinstance(it, bool) or not isinstance(it, int) or not 0 <= it <= MAX_ITERATION:
         raise CheckpointError(f"{path}: its iteration 'iter' must be an integer in [0, {MAX_ITERATION}], "
                               f"got {str(it)[:40]!r}")
+    _check_weights(path, state)
     return state
+
+
+def _check_weights(path: Path, state: dict) -> None:
+    """The networks' tensors are weights a policy can run: a weight or bias of floating dtype (an integer
+    one was cast back silently by load_state_dict, giving another policy), and every floating value finite
+    (NaN weights evaluated to NaN errors and 100% failure, exit 0; a resume trained on them and blamed the
+    learning rate). Issue 77's second round."""
+    import torch
+
+    for part in ("actor_state_dict", "critic_state_dict"):
+        weights = state.get(part)
+        if weights is None:
+            continue
+        if not isinstance(weights, dict):
+            raise CheckpointError(f"{path}: {part} is not a dict of tensors")
+        for name, t in weights.items():
+            if not isinstance(t, torch.Tensor):
+                raise CheckpointError(f"{path}: {part}[{str(name)[:60]!r}] is not a tensor")
+            if str(name).endswith(("weight", "bias")) and not t.is_floating_point():
+                raise CheckpointError(f"{path}: {part}[{name!r}] is {t.dtype}, not a floating-point weight")
+            if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                raise CheckpointError(f"{path}: {part}[{name!r}] holds NaN or infinite values; "
+                                      "its policy cannot be evaluated or trained on")
 
 
 def _first_line(e: BaseException) -> str:
