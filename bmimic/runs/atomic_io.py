@@ -15,7 +15,9 @@ import json
 import math
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -205,6 +207,25 @@ def make_folder(path: str | os.PathLike) -> Path:
 
 
 @contextlib.contextmanager
+def _terminate_raises() -> Iterator[None]:
+    """SIGTERM raises SystemExit(143) in this block, so that its cleanup runs (the default action ends the
+    process where it stands: a report stopped by SIGTERM left its stage behind). Only where nothing else
+    handles SIGTERM, and only in the main thread (where handlers can be set)."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+
+    def stop(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@contextlib.contextmanager
 def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
     """A hidden folder beside `out` to write a command's several files into. When the block ends, each file
     moves into `out` (made if missing) by a rename over any file of its name; when it raises (a full disk at
@@ -213,24 +234,25 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
     out = Path(out)
     missing = [p for p in (out, *out.parents) if not p.exists()]
     stage = None
-    try:
-        make_folder(out.parent)
+    with _terminate_raises():  # a SIGTERM mid-way: the cleanup below runs too
         try:
-            stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-        except OSError as e:
-            raise WriteError.of(out.parent, e) from None
-        yield stage
-        make_folder(out)
-        for f in sorted(p for p in stage.rglob("*") if not p.is_dir()):
-            dest = out / f.relative_to(stage)
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(f, dest)
-        _fsync_path(out, directory=True)
-    except BaseException:
-        if stage is not None:
-            shutil.rmtree(stage, ignore_errors=True)
-        if missing:  # the topmost folder made for it, with everything below it
-            shutil.rmtree(missing[-1], ignore_errors=True)
-        raise
-    else:
-        shutil.rmtree(stage, ignore_errors=True)  # its folders, emptied by the moves
+            make_folder(out.parent)
+            try:
+                stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+            except OSError as e:
+                raise WriteError.of(out.parent, e) from None
+            yield stage
+            make_folder(out)
+            for f in sorted(p for p in stage.rglob("*") if not p.is_dir()):
+                dest = out / f.relative_to(stage)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(f, dest)
+            _fsync_path(out, directory=True)
+        except BaseException:
+            if stage is not None:
+                shutil.rmtree(stage, ignore_errors=True)
+            if missing:  # the topmost folder made for it, with everything below it
+                shutil.rmtree(missing[-1], ignore_errors=True)
+            raise
+        else:
+            shutil.rmtree(stage, ignore_errors=True)  # its folders, emptied by the moves

@@ -438,3 +438,27 @@ def test_a_staged_folder_moves_in_whole_or_leaves_everything_as_it_was(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"]
     assert (kept / "a.csv").read_text() == "new\n" and (kept / "sub" / "b.md").read_text() == "b\n"
     assert (kept / "user.txt").read_text() == "mine\n"
+
+
+def test_a_staged_folder_stopped_by_sigterm_leaves_nothing(tmp_path) -> None:
+    """Issue 77's second round: `bmimic-report RUN` stopped by SIGTERM left RUN/.report.partial-*/ (the
+    default action ends the process where it stands, so no cleanup ran). Inside a stage SIGTERM now raises
+    SystemExit(143), and the stage goes as on any failure."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.conftest import REPO
+
+    code = ("import sys, time; from pathlib import Path; from bmimic.runs.atomic_io import staged_folder\n"
+            "with staged_folder(Path(sys.argv[1]) / 'report') as stage:\n"
+            "    (stage / 'a.csv').write_text('x'); print('staged', flush=True); time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], cwd=REPO, stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "staged"
+    assert [p.name.startswith(".report.partial-") for p in tmp_path.iterdir()] == [True]
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 143 and time.monotonic() - t0 < 10
+    assert list(tmp_path.iterdir()) == []
