@@ -9,6 +9,7 @@ Every observation, reward, termination and event term names a plain function in 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
@@ -161,10 +162,24 @@ def check_env(cfg: EnvConfig) -> None:
             except LookupError as e:
                 _fail(f"env.{group}.{name}.func", str(e))
             _check_signature(f"env.{group}.{name}", term, fn, kind)
+            _check_scales(f"env.{group}.{name}.params", term)
             if kind == "events":
                 _check_event(f"env.events.{name}", term, fn)
     if not cfg.policy_observations:
         _fail("env.policy_observations", "is empty; the policy needs at least one observation term")
+
+
+POSITIVE_PARAMS = re.compile(r"^(std|threshold)(_[a-z]+)?$")
+"""Term params that are a scale or a threshold (`std` of an exp(-err/std^2) reward, `threshold_m` of a
+termination): > 0. A std of 0 made its reward exp(-err/0), 0 or NaN; a threshold of -1 ended every
+episode at its first step (issue 77's second round)."""
+
+
+def _check_scales(key: str, term: Any) -> None:
+    for param, value in dict(getattr(term, "params", None) or {}).items():
+        if POSITIVE_PARAMS.match(str(param)) and isinstance(value, (int, float)) and not isinstance(value, bool) \
+                and not value > 0:
+            _fail(f"{key}.{param}", f"is a scale or threshold and must be > 0, got {value}")
 
 
 def _check_signature(key: str, term: Any, fn: Any, kind: str) -> None:
