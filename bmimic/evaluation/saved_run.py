@@ -254,6 +254,9 @@ def load_run_checkpoint(run: LoadedRun) -> dict:
     except ValueError:
         own = None
     ours = read_resolved_config(run.run_dir)
+    folder = str(getattr(getattr(run.task.cfg, "data", None), "lafan_dir", None) or "").rstrip("/")
+    if folder.startswith("/"):  # a committed record names the clips' folder DATA_FOLDER_NAME, a restored
+        own, ours = (swap_folder(c, DATA_FOLDER_NAME, folder) for c in (own, ours))  # state this machine's
     if isinstance(own, dict) and ours is not None:
         differ += [f"{k} ({a} -> {b})" for k, (a, b) in config_changes(own, ours).items()
                    if key_allowed(k, TASK_KEYS) and not key_allowed(k, allowed)]

@@ -55,3 +55,29 @@ def test_the_committed_library_policy_evaluates_and_exports_on_a_clip_it_never_s
     assert exported.returncode == 0, exported.stderr[-2000:]
     assert sorted(p.name for p in (tmp_path / "onnx").iterdir()) == [f"motion_policy_{iteration}.onnx",
                                                                      f"policy_{iteration}.onnx"]
+
+
+def _library_clips():
+    import os
+    from pathlib import Path
+
+    folder = os.environ.get("BMIMIC_LAFAN_DIR")
+    return Path(folder) if folder and len(list(Path(folder).glob("*.csv"))) >= 36 else None
+
+
+@pytest.mark.skipif(_library_clips() is None, reason="the 36 LAFAN1 clips are absent (not shipped: CC BY-NC-ND); "
+                    "set BMIMIC_LAFAN_DIR to a folder of them to run this")
+def test_a_restored_state_loads_for_evaluation_on_its_own_clips(tmp_path, monkeypatch):
+    """The library's fifth sitting: the committed record names the clips' folder $BMIMIC_LAFAN_DIR while the
+    restored checkpoint names this machine's, and `bmimic.eval RUN` refused it as trained on another task.
+    Both now read as this machine's folder before they are compared."""
+    from bmimic.evaluation.saved_run import load_run, load_run_checkpoint
+
+    clips = _library_clips()
+    shutil.copytree(STUDY / "runs" / JOB, tmp_path / "run")
+    restored = _run("bmimic.state", "restore", str(STUDY / "state" / "adaptive_hybrid-s0.pt"), "run", cwd=tmp_path,
+                    lafan_dir=clips)
+    assert restored.returncode == 0, restored.stderr
+    monkeypatch.setenv("BMIMIC_LAFAN_DIR", str(clips))
+    run = load_run(tmp_path / "run", ["device=cpu"])
+    assert load_run_checkpoint(run)["iter"] == json.loads((tmp_path / "run" / "status.json").read_text())["iteration"]
