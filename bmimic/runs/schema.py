@@ -98,6 +98,10 @@ CLIP_ROLLOUT_COLUMNS = ("clip", "clip_name", "start_frame", "end_frame", "steps"
 `end_frame` is the last frame the rollout was alive at; `reached_end` whether it tracked to the clip's
 last frame (False for one cut by its time limit or failed)."""
 
+ONNX_METADATA_VERSION = "3"
+"""Version of the key set an exported ONNX's metadata holds (1: today's keys only; 2: BeyondMimic keys +
+sim2sim keys; 3: + the clips' names and `time_step_input`): written by the export, required by sim2sim."""
+
 # --------------------------------------------------------------------------------------------- whole clips
 @dataclass(frozen=True)
 class Condition:
@@ -330,5 +334,5 @@ __all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "BUDG
            "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND", "REPORTED_ERRORS", "RUN_METRICS", "SMOOTHNESS",
            "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE", "TRACKED_THROUGH", "TRACKING_ERRORS",
            "WALL_TIME_S", "WHOLE_CLIP_COLUMNS", "WHOLE_CLIP_CONDITIONS", "WHOLE_CLIP_FAILURE_COLUMNS",
-           "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS", "CONDITIONS", "Condition", "condition_rollouts",
+           "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS", "CONDITIONS", "Condition", "condition_rollouts", "ONNX_METADATA_VERSION",
            "WHOLE_CLIP_SURVIVAL_COLUMNS", "counts_as_mastered", "summary_key", "whole_clip_key"]

@@ -16,7 +16,7 @@ import numpy as np
 
 from bmimic import BmimicError
 from bmimic.runs import safe_read
-from bmimic.runs.schema import ITERATION
+from bmimic.runs.schema import ITERATION, ONNX_METADATA_VERSION
 
 if TYPE_CHECKING:
     from bmimic.motion.motion import Motion
@@ -155,6 +155,11 @@ def read_policy(path: str | Path) -> PolicySpec:
         if key not in meta:
             raise policy_error(path, f"metadata has no {key!r}; write the file again with python -m bmimic.export RUN")
         return meta[key]
+
+    version = meta.get("bmimic_metadata_version")
+    if version is not None and version != ONNX_METADATA_VERSION:  # another key set: its keys may mean otherwise
+        raise policy_error(path, f"metadata version {version[:20]!r}, where this bmimic reads version "
+                                 f"{ONNX_METADATA_VERSION}; write the file again with python -m bmimic.export RUN")
 
     def names(key: str) -> list[str]:
         return [x for x in get(key).split(",") if x]

@@ -33,11 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from bmimic.runs.folder import atomic_write, motion_policy_onnx_name, policy_onnx_name
-from bmimic.runs.schema import ITERATION
+from bmimic.runs.schema import ITERATION, ONNX_METADATA_VERSION
 
-METADATA_VERSION = "3"
-"""Version of the metadata key set (1: today's keys only; 2: BeyondMimic keys + sim2sim keys; 3: + the
-clips' names and `time_step_input`)."""
+METADATA_VERSION = ONNX_METADATA_VERSION
+"""Version of the metadata key set (runs.schema.ONNX_METADATA_VERSION)."""
 TIME_STEP_INPUT = ("frame index into the baked motion at motion_fps, one per control step; clip k (motion_clip_names[k]) "
                    "is frames motion_clip_starts[k] to motion_clip_starts[k+1]-1 (the last to motion_num_frames-1), "
                    "clamped to [0, motion_num_frames-1]; play one clip from its first frame to its last, never on "

@@ -274,6 +274,9 @@ def test_bad_policy_files_are_refused_in_one_line(task, tmp_path):
     bad = with_metadata(paths[1], tmp_path, decimation="5")
     with pytest.raises(sim2sim.Sim2SimError, match="control_dt_s"):
         sim2sim.read_policy(bad)
+    bad = with_metadata(paths[1], tmp_path, bmimic_metadata_version="99")  # issue 77: was accepted unread
+    with pytest.raises(sim2sim.Sim2SimError, match="metadata version '99', where this bmimic reads version 3"):
+        sim2sim.read_policy(bad)
 
 
 def test_a_model_with_other_joint_names_is_refused(task, tmp_path):
