@@ -164,8 +164,9 @@ _COUNTS_WITHIN = (("failures", "visits"), ("start_failures", "start_episodes"), 
 
 def table_problems(name: str, table: "pd.DataFrame") -> list[str]:
     """What in a run table breaks its invariants (empty: none): counts negative or beyond their totals
-    (failures within visits, start failures within start episodes), tracking errors negative, iterations
-    and env steps not increasing row by row (train_metrics) or negative (every table). A damaged table is
+    (failures within visits, start failures within start episodes), a failure rate that is not failures /
+    visits, tracking errors negative, iterations and env steps not increasing row by row (train_metrics) or
+    negative (every table), wall time going back (train_metrics). A damaged table is
     refused by its readers rather than reported as numbers it cannot hold."""
     import numpy as np
 
@@ -182,6 +183,9 @@ def table_problems(name: str, table: "pd.DataFrame") -> list[str]:
             v = col(c)
             if v is not None and len(v) > 1 and not (np.diff(v) > 0).all():
                 out.append(f"column {c} not increasing from row to row")
+        v = col(WALL_TIME_S)  # cumulative over a resumed run's launches: it never goes back
+        if v is not None and len(v) > 1 and (np.diff(v) < 0).any():
+            out.append(f"column {WALL_TIME_S} decreasing from row to row")
     for part, whole in _COUNTS_WITHIN:
         a, b = col(part), col(whole)
         if a is not None and ((a < 0).any() or (b is not None and (a > b).any())):
@@ -190,6 +194,11 @@ def table_problems(name: str, table: "pd.DataFrame") -> list[str]:
         v = col(c)
         if v is not None and (v < 0).any():
             out.append(f"column {c} negative")
+    rate, failures, visits = col(FAILURE_RATE), col("failures"), col("visits")
+    if rate is not None and failures is not None and visits is not None:
+        seen = visits > 0  # the rate is failures / visits, the unit every reader takes it in
+        if (np.abs(rate[seen] - failures[seen] / visits[seen]) > 1e-6).any():
+            out.append(f"column {FAILURE_RATE} not failures / visits")
     return out
 
 

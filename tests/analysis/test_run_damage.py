@@ -62,6 +62,10 @@ def _damage(run, table, change):
     ("train_metrics", lambda d: d.__setitem__("iteration", 0), "iteration", "not increasing from row to row"),
     ("train_metrics", lambda d: d.__setitem__("env_steps", d["env_steps"][::-1].to_numpy()), "env_steps",
      "not increasing"),
+    # issue 77's second round: a rate its counts contradict (28 bins read as mastered, not 4); time going back
+    ("eval", lambda d: d.__setitem__("failure_rate", 0.0), "failure_rate", "not failures / visits"),
+    ("train_metrics", lambda d: d.__setitem__("wall_time_s", d["wall_time_s"][::-1].to_numpy()), "wall_time_s",
+     "decreasing"),
 ])
 def test_a_table_out_of_range_is_one_line_naming_file_and_column(tmp_path, capsys, table, change, column, words):
     run = _run(tmp_path)
