@@ -254,7 +254,7 @@ def load_run_checkpoint(run: LoadedRun) -> dict:
     except ValueError:
         own = None
     ours = read_resolved_config(run.run_dir)
-    folder = str(getattr(getattr(run.task.cfg, "data", None), "lafan_dir", None) or "").rstrip("/")
+    folder = str(run.task.cfg.data.lafan_dir or "").rstrip("/")
     if folder.startswith("/"):  # a committed record names the clips' folder DATA_FOLDER_NAME, a restored
         own, ours = (swap_folder(c, DATA_FOLDER_NAME, folder) for c in (own, ours))  # state this machine's
     if isinstance(own, dict) and ours is not None:

@@ -343,5 +343,6 @@ __all__ = ["ANCHOR_ORI_ERR_RAD", "BIN", "BIN_COLUMNS", "BODY_ORI_ERR_RAD", "BUDG
            "MPKPE_MM", "MPKPE_REL_MM", "RACE_KIND", "REPORTED_ERRORS", "RUN_METRICS", "SMOOTHNESS",
            "SMOOTHNESS_COLUMNS", "START_TRANSIENT_S", "SUCCESS_RATE", "TRACKED_THROUGH", "TRACKING_ERRORS",
            "WALL_TIME_S", "WHOLE_CLIP_COLUMNS", "WHOLE_CLIP_CONDITIONS", "WHOLE_CLIP_FAILURE_COLUMNS",
-           "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS", "CONDITIONS", "Condition", "condition_rollouts", "ONNX_METADATA_VERSION",
-           "WHOLE_CLIP_SURVIVAL_COLUMNS", "counts_as_mastered", "summary_key", "whole_clip_key"]
+           "WHOLE_CLIP_ROLLOUT_COLUMNS", "WHOLE_CLIP_SUCCESS", "WHOLE_CLIP_SUMMARY_KEYS",
+           "WHOLE_CLIP_SURVIVAL_COLUMNS", "CONDITIONS", "Condition", "ONNX_METADATA_VERSION", "condition_rollouts",
+           "counts_as_mastered", "summary_key", "whole_clip_key"]

@@ -19,8 +19,8 @@ are written with enough digits to round-trip a float64 where it writes 3 decimal
 `bmimic.sim2sim` needs to rebuild the control loop without bmimic's training code (observation
 layout with per-term sizes and functions, termination terms, physics and control periods, armature
 and torque limits, motion frame rate, clips with their names and first frames, segments and time
-bins) and `time_step_input`, how `time_step` picks a clip and a frame of a library. `METADATA_VERSION`
-names the set.
+bins) and `time_step_input`, how `time_step` picks a clip and a frame of a library.
+`runs.schema.ONNX_METADATA_VERSION` names the set.
 """
 
 from __future__ import annotations
@@ -35,8 +35,6 @@ import numpy as np
 from bmimic.runs.folder import atomic_write, motion_policy_onnx_name, policy_onnx_name
 from bmimic.runs.schema import ITERATION, ONNX_METADATA_VERSION
 
-METADATA_VERSION = ONNX_METADATA_VERSION
-"""Version of the metadata key set (runs.schema.ONNX_METADATA_VERSION)."""
 TIME_STEP_INPUT = ("frame index into the baked motion at motion_fps, one per control step; clip k (motion_clip_names[k]) "
                    "is frames motion_clip_starts[k] to motion_clip_starts[k+1]-1 (the last to motion_num_frames-1), "
                    "clamped to [0, motion_num_frames-1]; play one clip from its first frame to its last, never on "
@@ -87,7 +85,7 @@ def policy_metadata(env, iteration: int | None = None, run_path: str = "") -> di
         "anchor_body_name": names[int(robot.anchor_body_id) - 1],
         "body_names": ",".join(body_names),
         # bmimic's keys.
-        "bmimic_metadata_version": METADATA_VERSION,
+        "bmimic_metadata_version": ONNX_METADATA_VERSION,
         ITERATION: "" if iteration is None else str(int(iteration)),
         "observation_layout": json.dumps(_term_entries(policy_terms, dims)),
         "policy_obs_dim": str(int(obs["policy"].shape[-1])),
